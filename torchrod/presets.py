@@ -1,0 +1,38 @@
+"""Ready-made rods.
+
+``nitinol290`` is the paper's Nitinol tube (Xiao & Chen): L = 290 mm, d_out = 1.397 mm, d_in = 1.118 mm,
+E = 67 GPa (EI about 7.39e-3 N m^2), FBG gratings every 20 mm at 10, 30, ..., 270 mm (14 gratings).
+Its calibrated location bias is -3.12 mm; the preset ships with ``location_bias=0`` (an uncalibrated rod) and
+``nitinol290(calibrated=True)`` carries the paper's value.
+"""
+
+from __future__ import annotations
+
+from .rod import Rod
+
+__all__ = ["nitinol290", "PAPER_LOCATION_BIAS", "PRESETS", "get"]
+
+PAPER_LOCATION_BIAS = -3.12e-3  # [m], the paper's calibrated s_bias
+
+
+def nitinol290(calibrated: bool = False) -> Rod:
+    """The paper's 290 mm Nitinol tube with 14 gratings at 10, 30, ..., 270 mm."""
+    return Rod.from_geometry(
+        length=0.29,
+        outer_diameter=1.397e-3,
+        inner_diameter=1.118e-3,
+        youngs_modulus=67e9,
+        gratings=[(10 + 20 * k) * 1e-3 for k in range(14)],
+        location_bias=PAPER_LOCATION_BIAS if calibrated else 0.0,
+    )
+
+
+PRESETS = {"nitinol290": nitinol290}
+
+
+def get(name: str) -> Rod:
+    """A preset by name; raises ``ValueError`` listing the known names."""
+    try:
+        return PRESETS[name]()
+    except KeyError:
+        raise ValueError(f"unknown rod preset {name!r}; known presets: {sorted(PRESETS)}") from None
