@@ -14,7 +14,7 @@ from torchrod.rod import Rod
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 
-GEOMETRY = dict(length=0.29, outer_diameter=1.397e-3, inner_diameter=1.118e-3, youngs_modulus=67e9)
+GEOMETRY = {"length": 0.29, "outer_diameter": 1.397e-3, "inner_diameter": 1.118e-3, "youngs_modulus": 67e9}
 GRATINGS = [0.01, 0.03, 0.05]
 
 
@@ -74,24 +74,24 @@ def test_grating_positions_tensor_follows_the_requested_dtype():
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        (dict(length=-0.29), "length"),
-        (dict(length=0.0), "length"),
-        (dict(length=float("nan")), "length"),
-        (dict(bending_stiffness=-1e-3), "bending_stiffness"),
-        (dict(bending_stiffness=0.0), "bending_stiffness"),
-        (dict(bending_stiffness="stiff"), "bending_stiffness"),
-        (dict(gratings=()), "at least one"),
-        (dict(gratings=(0.03, 0.01)), "increasing"),
-        (dict(gratings=(0.01, 0.01)), "increasing"),
-        (dict(gratings=(-0.01, 0.1)), "inside"),
-        (dict(gratings=(0.1, 0.3)), "inside"),
-        (dict(gratings=(0.1, float("inf"))), "finite"),
-        (dict(location_bias=0.5), "location_bias"),
-        (dict(poisson_ratio=0.7), "poisson_ratio"),
+        ({"length": -0.29}, "length"),
+        ({"length": 0.0}, "length"),
+        ({"length": float("nan")}, "length"),
+        ({"bending_stiffness": -1e-3}, "bending_stiffness"),
+        ({"bending_stiffness": 0.0}, "bending_stiffness"),
+        ({"bending_stiffness": "stiff"}, "bending_stiffness"),
+        ({"gratings": ()}, "at least one"),
+        ({"gratings": (0.03, 0.01)}, "increasing"),
+        ({"gratings": (0.01, 0.01)}, "increasing"),
+        ({"gratings": (-0.01, 0.1)}, "inside"),
+        ({"gratings": (0.1, 0.3)}, "inside"),
+        ({"gratings": (0.1, float("inf"))}, "finite"),
+        ({"location_bias": 0.5}, "location_bias"),
+        ({"poisson_ratio": 0.7}, "poisson_ratio"),
     ],
 )
 def test_constructor_rejects_bad_values(kwargs, match):
-    base = dict(length=0.29, bending_stiffness=7e-3, gratings=(0.01, 0.27))
+    base = {"length": 0.29, "bending_stiffness": 7e-3, "gratings": (0.01, 0.27)}
     base.update(kwargs)
     with pytest.raises(ValueError, match=match):
         Rod(**base)
@@ -100,12 +100,12 @@ def test_constructor_rejects_bad_values(kwargs, match):
 @pytest.mark.parametrize(
     ("changes", "match"),
     [
-        (dict(outer_diameter=-1e-3), "outer_diameter"),
-        (dict(inner_diameter=-1e-4), "inner_diameter"),
-        (dict(inner_diameter=1.397e-3), "inner_diameter"),  # inner == outer: no wall
-        (dict(inner_diameter=2e-3), "inner_diameter"),  # inner > outer
-        (dict(youngs_modulus=-67e9), "youngs_modulus"),
-        (dict(length=-0.29), "length"),
+        ({"outer_diameter": -1e-3}, "outer_diameter"),
+        ({"inner_diameter": -1e-4}, "inner_diameter"),
+        ({"inner_diameter": 1.397e-3}, "inner_diameter"),  # inner == outer: no wall
+        ({"inner_diameter": 2e-3}, "inner_diameter"),  # inner > outer
+        ({"youngs_modulus": -67e9}, "youngs_modulus"),
+        ({"length": -0.29}, "length"),
     ],
 )
 def test_geometry_rejects_bad_sizes(changes, match):
@@ -122,13 +122,16 @@ def test_geometry_rejects_bad_sizes(changes, match):
     [
         (dict(GEOMETRY, gratings=GRATINGS, colour="blue"), "unknown rod keys.*colour"),
         (dict(GEOMETRY, gratings=GRATINGS, Length=0.3), "unknown rod keys.*Length"),
-        ({k: v for k, v in GEOMETRY.items() if k != "length"} | dict(gratings=GRATINGS), "missing 'length'"),
+        ({k: v for k, v in GEOMETRY.items() if k != "length"} | {"gratings": GRATINGS}, "missing 'length'"),
         (dict(GEOMETRY), "missing 'gratings'"),
-        (dict(length=0.29, gratings=GRATINGS), "bending_stiffness"),
-        (dict(length=0.29, outer_diameter=1e-3, youngs_modulus=1e9, gratings=GRATINGS), "go together"),
-        (dict(length=0.29, bending_stiffness=7e-3, gratings=0.01), "gratings"),
-        (dict(length=0.29, bending_stiffness=7e-3, gratings="0.01"), "gratings"),
-        (dict(length=0.29, bending_stiffness=7e-3, gratings=[0.2, 0.1]), "increasing"),
+        ({"length": 0.29, "gratings": GRATINGS}, "bending_stiffness"),
+        (
+            {"length": 0.29, "outer_diameter": 1e-3, "youngs_modulus": 1e9, "gratings": GRATINGS},
+            "go together",
+        ),
+        ({"length": 0.29, "bending_stiffness": 7e-3, "gratings": 0.01}, "gratings"),
+        ({"length": 0.29, "bending_stiffness": 7e-3, "gratings": "0.01"}, "gratings"),
+        ({"length": 0.29, "bending_stiffness": 7e-3, "gratings": [0.2, 0.1]}, "increasing"),
         ([0.29, 7e-3], "JSON object"),
     ],
 )
