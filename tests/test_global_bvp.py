@@ -22,7 +22,7 @@ LARGE = {
 }
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def reference(name: str) -> BVPSolution:
     """Reference solution at 0, the gratings, L and the force locations (cached across tests)."""
     forces = LARGE[name]

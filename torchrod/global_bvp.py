@@ -39,8 +39,9 @@ Two solvers:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Literal, Sequence
+from typing import Literal
 
 import numpy as np
 
@@ -48,11 +49,11 @@ from .loads import PointForces
 from .rod import Rod
 
 __all__ = [
-    "BVPSolution",
-    "solve_reference",
-    "reference_grating_curvature",
-    "ShootingSolver",
     "DEFAULT_POISSON_RATIO",
+    "BVPSolution",
+    "ShootingSolver",
+    "reference_grating_curvature",
+    "solve_reference",
 ]
 
 DEFAULT_POISSON_RATIO = 0.3
@@ -288,9 +289,12 @@ def _reference_shoot(
     fi = 0
     for k, s in enumerate(events):
         if k > 0 and s > events[k - 1]:
-            sol = solve_ivp(rhs, (events[k - 1], s), y, method="DOP853", rtol=rtol, atol=atol)
-            if not sol.success:
-                raise RuntimeError(f"DOP853 failed on [{events[k - 1]}, {s}]: {sol.message}")
+            with np.errstate(over="ignore", invalid="ignore"):
+                sol = solve_ivp(rhs, (events[k - 1], s), y, method="DOP853", rtol=rtol, atol=atol)
+            if not sol.success or not np.isfinite(sol.y[:, -1]).all():
+                # A wild trial step of the outer iteration: report no solution (Levenberg-Marquardt rejects it).
+                recorded[:] = np.nan
+                return np.full(_STATE, np.nan), recorded
             y = sol.y[:, -1].copy()
         recorded[query == s] = y
         while fi < len(forces) and forces[fi, 0] == s:
