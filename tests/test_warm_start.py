@@ -1,0 +1,209 @@
+"""The warm-start network: symmetries checked against the rod model, dimensionless scaling, guesses, checkpoints."""
+
+from __future__ import annotations
+
+import math
+import pickle
+from unittest import mock
+
+import pytest
+import torch
+
+import torchrod as tr
+from torchrod.warm_start import (
+    LAYOUT_TOLERANCE,
+    NetConfig,
+    WarmStart,
+    WarmStartNet,
+    load_checkpoint,
+    save_checkpoint,
+)
+
+
+def _net(rod: tr.Rod, seed: int = 0, **kwargs) -> WarmStartNet:
+    torch.manual_seed(seed)
+    kwargs.setdefault("hidden", 32)
+    kwargs.setdefault("depth", 2)
+    net = WarmStartNet(NetConfig.for_rod(rod, curvature_scale=1.5, force_scale=10.0, **kwargs))
+    # Untrained output layers are near zero; make every head's output matter for the comparisons below.
+    with torch.no_grad():
+        net.out.weight.mul_(20.0)
+    return net.eval()
+
+
+def _readings(rod: tr.Rod, gen: torch.Generator, B: int = 6) -> torch.Tensor:
+    """Clean readings (B, G, 2) [1/m] of random two-force cases (float64)."""
+    s = rod.length * (0.1 + 0.85 * torch.rand(B, 2, generator=gen, dtype=torch.float64))
+    f = 1.5 * (torch.rand(B, 2, 2, generator=gen, dtype=torch.float64) - 0.5)
+    return tr.grating_curvature(rod, tr.PointForces(s, f))
+
+
+def _rotate(v: torch.Tensor, angle: float) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    return torch.stack((c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]), dim=-1)
+
+
+def _mirror_f(f: torch.Tensor) -> torch.Tensor:
+    return torch.stack((-f[..., 0], f[..., 1]), dim=-1)
+
+
+def _mirror_u(u: torch.Tensor) -> torch.Tensor:
+    return torch.stack((u[..., 0], -u[..., 1]), dim=-1)
+
+
+def test_the_symmetries_the_network_uses_are_those_of_the_rod_model(rod, gen):
+    # The network's canonical frame rests on two facts of the physics: turning every force turns every curvature
+    # by the same angle, and the mirror u_y -> -u_y corresponds to f_x -> -f_x. Check both on the rod model.
+    s = rod.length * torch.rand(4, 3, generator=gen, dtype=torch.float64)
+    f = 2.0 * (torch.rand(4, 3, 2, generator=gen, dtype=torch.float64) - 0.5)
+    u = tr.grating_curvature(rod, tr.PointForces(s, f))
+    assert u.abs().max() > 5.0  # large deflection: the nonlinearity is in play
+    turned = tr.grating_curvature(rod, tr.PointForces(s, _rotate(f, 0.9)))
+    torch.testing.assert_close(turned, _rotate(u, 0.9), rtol=0, atol=1e-10)
+    mirrored = tr.grating_curvature(rod, tr.PointForces(s, _mirror_f(f)))
+    torch.testing.assert_close(mirrored, _mirror_u(u), rtol=0, atol=1e-10)
+
+
+def test_the_network_is_equivariant_under_rotation_and_mirror(rod, gen):
+    net = _net(rod)
+    ws = WarmStart(net, rod)
+    u = _readings(rod, gen)
+    base = ws.guess(u)
+    for angle in (0.4, 2.0, -2.9):
+        g = ws.guess(_rotate(u, angle))
+        torch.testing.assert_close(g.count_probs, base.count_probs, rtol=0, atol=1e-5)
+        for h in (1, 2, 3):
+            torch.testing.assert_close(g.forces[h].s, base.forces[h].s, rtol=0, atol=1e-6)
+            torch.testing.assert_close(g.forces[h].f, _rotate(base.forces[h].f, angle), rtol=1e-4, atol=1e-5)
+    g = ws.guess(_mirror_u(u))
+    for h in (1, 2, 3):
+        torch.testing.assert_close(g.forces[h].f, _mirror_f(base.forces[h].f), rtol=1e-4, atol=1e-5)
+
+
+def test_guess_shapes_sorted_locations_probabilities_and_dtype(rod, gen):
+    ws = WarmStart(_net(rod), rod)
+    u = _readings(rod, gen, B=5)
+    for dtype in (torch.float64, torch.float32):
+        g = ws.guess(u.to(dtype))
+        assert g.count_probs.shape == (5, 3) and g.count_probs.dtype == dtype
+        torch.testing.assert_close(g.count_probs.sum(1), torch.ones(5, dtype=dtype))
+        assert g.count.shape == (5,) and set(g.count.tolist()) <= {1, 2, 3}
+        assert sorted(g.forces) == [1, 2, 3]
+        for h, p in g.forces.items():
+            assert p.s.shape == (5, h) and p.f.shape == (5, h, 2)
+            assert p.s.dtype == dtype and p.f.dtype == dtype
+            assert bool((p.s > 0).all()) and bool((p.s < rod.length).all())
+            assert bool((p.s[:, 1:] > p.s[:, :-1]).all())  # sorted by location, by construction
+            assert not p.s.requires_grad
+
+
+def test_one_network_serves_any_length_and_stiffness_with_the_same_layout(rod, gen):
+    ws = WarmStart(_net(rod), rod)
+    other = tr.Rod(length=0.5, bending_stiffness=0.02, gratings=tuple(0.5 * x for x in rod.relative_gratings))
+    assert ws.matches(other)
+    ws_other = WarmStart(ws.net, other)
+    u = _readings(rod, gen)
+    # The same dimensionless reading u L on both rods must give the same dimensionless forces.
+    g = ws.guess(u)
+    g_other = ws_other.guess(u * rod.length / other.length)
+    torch.testing.assert_close(g_other.count_probs, g.count_probs)
+    for h in (1, 2, 3):
+        torch.testing.assert_close(g_other.forces[h].s / other.length, g.forces[h].s / rod.length)
+        ei_l2 = rod.bending_stiffness / rod.length**2
+        ei_l2_other = other.bending_stiffness / other.length**2
+        torch.testing.assert_close(g_other.forces[h].f / ei_l2_other, g.forces[h].f / ei_l2, rtol=1e-5, atol=1e-6)
+
+
+def test_missing_gratings_are_ignored_whatever_they_hold(rod, gen):
+    ws = WarmStart(_net(rod), rod)
+    u = _readings(rod, gen, B=3)
+    mask = torch.ones(3, rod.num_gratings, dtype=torch.bool)
+    mask[0, 4] = mask[1, 0] = mask[2, 13] = False
+    a = ws.guess(u.masked_fill(~mask.unsqueeze(-1), float("nan")), mask)
+    b = ws.guess(u.masked_fill(~mask.unsqueeze(-1), 123.0), mask)
+    c = ws.guess(u, mask)
+    for g in (a, b):
+        torch.testing.assert_close(g.count_probs, c.count_probs)
+        for h in (1, 2, 3):
+            torch.testing.assert_close(g.forces[h].f, c.forces[h].f)
+    assert not torch.allclose(ws.guess(u).count_probs, c.count_probs)  # the mask itself is an input
+
+
+def test_guess_checks_its_inputs(rod, gen):
+    ws = WarmStart(_net(rod), rod)
+    u = _readings(rod, gen, B=2)
+    with pytest.raises(ValueError, match=r"\(B, 14, 2\)"):
+        ws.guess(u[:, :10])
+    with pytest.raises(ValueError, match="mask"):
+        ws.guess(u, torch.ones(2, 13, dtype=torch.bool))
+    with pytest.raises(TypeError, match="bool"):
+        ws.guess(u, torch.ones(2, 14))
+    with pytest.raises(TypeError):
+        ws.guess(u.to(torch.int64))
+
+
+def test_checkpoint_round_trip_gives_the_same_guesses(rod, gen, tmp_path):
+    net = _net(rod, seed=3)
+    path = tmp_path / "ws.pt"
+    save_checkpoint(path, net, step=17, epoch=2, train_config={"lr": 1e-3}, metrics={"count_accuracy": 0.5})
+    loaded, meta = load_checkpoint(path)
+    assert meta["step"] == 17 and meta["epoch"] == 2 and meta["train_config"] == {"lr": 1e-3}
+    assert meta["torchrod_version"] == tr.__version__
+    assert meta["config"]["relative_gratings"] == pytest.approx(list(rod.relative_gratings))
+    assert meta["config"]["curvature_scale"] == 1.5 and meta["config"]["force_scale"] == 10.0
+    assert loaded.config == net.config
+    u = _readings(rod, gen)
+    a, b = WarmStart(net, rod).guess(u), WarmStart.load(path, rod).guess(u)
+    torch.testing.assert_close(a.count_probs, b.count_probs, rtol=0, atol=0)
+    for h in (1, 2, 3):
+        torch.testing.assert_close(a.forces[h].s, b.forces[h].s, rtol=0, atol=0)
+        torch.testing.assert_close(a.forces[h].f, b.forces[h].f, rtol=0, atol=0)
+
+
+class _Payload:
+    """Not a tensor or a plain container: unpickling it would run code, so weights_only must refuse it."""
+
+    def __reduce__(self):
+        return (print, ("this must never run",))
+
+
+def test_loading_uses_weights_only(rod, tmp_path):
+    path = tmp_path / "ws.pt"
+    save_checkpoint(path, _net(rod))
+    with mock.patch("torch.load", wraps=torch.load) as spy:
+        load_checkpoint(path)
+    assert spy.call_args.kwargs.get("weights_only") is True
+    # A checkpoint carrying an arbitrary pickled object is refused.
+    payload = torch.load(path, weights_only=True)
+    payload["extra"] = _Payload()
+    evil = tmp_path / "evil.pt"
+    torch.save(payload, evil)
+    with pytest.raises(pickle.UnpicklingError):
+        load_checkpoint(evil)
+
+
+def test_a_file_that_is_no_checkpoint_is_refused(tmp_path):
+    path = tmp_path / "other.pt"
+    torch.save({"weights": torch.zeros(3)}, path)
+    with pytest.raises(ValueError, match="not a warm-start checkpoint"):
+        load_checkpoint(path)
+
+
+def test_layout_mismatch(rod, tmp_path):
+    path = tmp_path / "ws.pt"
+    save_checkpoint(path, _net(rod))
+    ws = WarmStart.load(path, rod)
+    assert ws.matches(rod)
+    assert ws.matches(tr.presets.nitinol290(calibrated=True))  # the location bias is no part of the layout
+    L = rod.length
+    tiny = tuple(g + 0.1 * LAYOUT_TOLERANCE * L for g in rod.gratings)
+    assert ws.matches(rod.with_(gratings=tiny))
+    shifted = tuple(g + 10 * LAYOUT_TOLERANCE * L for g in rod.gratings)
+    assert not ws.matches(rod.with_(gratings=shifted))
+    assert not ws.matches(rod.with_(gratings=rod.gratings[:-1]))
+    longer = rod.with_(length=0.35)  # same gratings in m, other relative positions
+    assert not ws.matches(longer)
+    with pytest.raises(ValueError, match="relative positions"):
+        WarmStart.load(path, longer)
+    with pytest.raises(ValueError, match="relative positions"):
+        WarmStart.load(path, rod.with_(gratings=rod.gratings[:-1]))
