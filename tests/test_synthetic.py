@@ -182,6 +182,16 @@ def test_rejection_rate_is_reported(small_set):
     assert rate is not None and 0.3 < rate < 0.95  # the default envelope bends the rod far beyond 90 degrees
 
 
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_generate_on_cuda_matches_cpu(rod):
+    a = sy.generate(rod, 300, seed=6)
+    b = sy.generate(rod, 300, seed=6, device="cuda")
+    assert b.clean.device.type == "cpu"
+    assert torch.equal(a.loads.s, b.loads.s) and torch.equal(a.mask, b.mask)
+    assert torch.allclose(a.clean, b.clean, atol=1e-10)
+
+
 def test_zero_cases(rod):
     d = sy.generate(rod, 0)
     assert len(d) == 0 and d.clean.shape == (0, 14, 2)
