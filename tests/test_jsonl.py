@@ -1,0 +1,183 @@
+"""The shared JSON-lines helpers: reading with per-line errors, batching, writing."""
+
+from __future__ import annotations
+
+import io
+import json
+import sys
+
+import pytest
+
+from torchrod.jsonl import (
+    LineWriter,
+    as_number,
+    batched,
+    check_keys,
+    get_list,
+    get_number,
+    parse_records,
+    read_lines,
+    read_records,
+)
+
+
+def numbers(obj):
+    """A parse function: the object's "x" as a finite float."""
+    return get_number(obj, "x")
+
+
+def test_read_lines_skips_blank_lines_but_counts_them(tmp_path):
+    path = tmp_path / "in.jsonl"
+    path.write_text('{"x": 1}\n\n   \n{"x": 2}\n{"x": 3}', encoding="utf-8")  # no final newline
+    assert [n for n, _ in read_lines(path)] == [1, 4, 5]
+    assert [n for n, _ in read_lines(str(path))] == [1, 4, 5]
+    assert [n for n, _ in read_lines(io.StringIO('{"x": 1}\n\n{"x": 2}\n'))] == [1, 3]
+
+
+def test_dash_reads_stdin_as_it_is_when_reading_starts(monkeypatch):
+    lines = read_lines("-")  # nothing read yet
+    monkeypatch.setattr(sys, "stdin", io.StringIO('{"x": 5}\n'))
+    assert [r.value for r in parse_records(lines, numbers)] == [5.0]
+
+
+def test_undecodable_bytes_fail_their_own_line_only(tmp_path):
+    path = tmp_path / "in.jsonl"
+    path.write_bytes(b'{"x": 1}\n\xff\xfe garbage\n{"x": 2}\n')
+    records = list(read_records(path, numbers))
+    assert [r.ok for r in records] == [True, False, True]
+    assert records[1].error.startswith("line 2: not valid JSON")
+
+
+def test_missing_file_raises_when_reading_starts(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        list(read_lines(tmp_path / "nope.jsonl"))
+
+
+def test_records_carry_ids_values_and_errors_in_order():
+    text = "\n".join(  # noqa: FLY002
+        [
+            '{"id": "a", "x": 1.5}',
+            "{broken",
+            '{"id": 3, "x": "2"}',
+            '{"id": ["any", "json"], "x": NaN}',
+            '"just a string"',
+            '{"x": 4}',
+            '{"id": "k"}',
+        ]
+    )
+    records = list(read_records(io.StringIO(text), numbers))
+    assert [r.line for r in records] == [1, 2, 3, 4, 5, 6, 7]
+    assert [r.id for r in records] == ["a", None, 3, ["any", "json"], None, None, "k"]
+    assert [r.value for r in records] == [1.5, None, None, None, None, 4.0, None]
+    assert [r.ok for r in records] == [True, False, False, False, False, True, False]
+    assert records[1].error.startswith("line 2: not valid JSON")
+    assert records[2].error == 'line 3: x must be a number, got a string "2"'
+    assert records[3].error == "line 4: x must be finite, got nan"
+    assert records[4].error == "line 5: expected a JSON object, got a string"
+    assert records[6].error == "line 7: missing 'x'"
+
+
+def test_parse_errors_of_the_usual_kinds_become_records_others_propagate():
+    def key_error(obj):
+        return obj["absent"]
+
+    def type_error(obj):
+        return len(obj["x"])
+
+    def bug(obj):
+        raise RuntimeError("a bug, not bad input")
+
+    line = [(1, '{"x": 1}')]
+    assert next(parse_records(line, key_error)).error == "line 1: missing key 'absent'"
+    assert "line 1: " in next(parse_records(line, type_error)).error
+    with pytest.raises(RuntimeError):
+        next(parse_records(line, bug))
+
+
+def test_deeply_nested_json_is_an_error_line_not_a_crash():
+    deep = "[" * 100_000 + "]" * 100_000
+    (record,) = parse_records([(1, deep)], numbers)
+    assert not record.ok
+
+
+def test_batched_keeps_order_and_is_lazy():
+    assert list(batched(range(7), 3)) == [[0, 1, 2], [3, 4, 5], [6]]
+    assert list(batched([], 3)) == []
+
+    def endless():
+        k = 0
+        while True:
+            yield k
+            k += 1
+
+    assert next(batched(endless(), 2)) == [0, 1]
+    for bad in (0, -1, 2.0):
+        with pytest.raises(ValueError, match="batch size"):
+            list(batched(range(3), bad))
+
+
+def test_writer_writes_one_flushed_line_per_object_and_counts_errors():
+    class Recorder(io.StringIO):
+        flushes = 0
+
+        def flush(self):
+            self.flushes += 1
+            super().flush()
+
+    out = Recorder()
+    writer = LineWriter(out)
+    writer.write({"id": "a", "v": [1.0, 2.5]})
+    writer.error(None, "line 2: bad")
+    assert out.flushes == 2
+    assert [json.loads(line) for line in out.getvalue().splitlines()] == [
+        {"id": "a", "v": [1.0, 2.5]},
+        {"id": None, "error": "line 2: bad"},
+    ]
+    assert (writer.lines, writer.errors) == (2, 1)
+
+
+def test_writer_refuses_nan_and_writes_nothing_then():
+    out = io.StringIO()
+    writer = LineWriter(out)
+    with pytest.raises(ValueError):
+        writer.write({"v": float("nan")})
+    assert out.getvalue() == "" and writer.lines == 0
+
+
+def test_writer_defaults_to_stdout_at_write_time(capsys):
+    writer = LineWriter()
+    writer.write({"a": 1})
+    assert capsys.readouterr().out == '{"a": 1}\n'
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        (True, "must be a number"),
+        ("1", "must be a number"),
+        (None, "must be a number"),
+        ([1], "must be a number"),
+    ]
+    + [(float("inf"), "must be finite"), (float("-inf"), "must be finite"), (float("nan"), "must be finite")],
+)
+def test_as_number_refuses_non_numbers(value, message):
+    with pytest.raises(ValueError, match=message):
+        as_number(value, "x")
+
+
+def test_field_helpers():
+    assert as_number(3, "x") == 3.0 and isinstance(as_number(3, "x"), float)
+    assert get_number({"s": 0.5}, "s", "forces[0]") == 0.5
+    with pytest.raises(ValueError, match=r"missing 'forces\[0\].s'"):
+        get_number({}, "s", "forces[0]")
+    assert get_list({"a": [1]}, "a") == [1]
+    with pytest.raises(ValueError, match="a must be an array, got an object"):
+        get_list({"a": {"b": 1}}, "a")
+    obj = {"s": 1, "fx": 2}
+    assert check_keys(obj, ("s",), ("fx", "fy")) is obj
+    with pytest.raises(ValueError, match="f is missing 'fy'"):
+        check_keys(obj, ("s", "fy"), where="f")
+    with pytest.raises(ValueError, match="unknown key.*'fx'"):
+        check_keys(obj, ("s",), where="f")
+    with pytest.raises(ValueError, match="f must be an object, got a number"):
+        check_keys(3, ("s",), where="f")
