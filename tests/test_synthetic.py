@@ -359,7 +359,7 @@ def test_cli_reads_rod_files_and_reports_errors(tmp_path, capsys):
     rod_file = os.path.join(os.path.dirname(__file__), "..", "data", "nitinol290.json")
     assert main(["generate", "--rod", rod_file, "--count", "5", "--out", str(out)]) == 0
     assert main(["generate", "--rod", "no-such-rod", "--count", "5", "--out", str(out)]) == 2
-    assert "neither a file nor a preset" in capsys.readouterr().err
+    assert "neither a rod file nor a preset" in capsys.readouterr().err
     assert main(["generate", "--rod", "nitinol290", "--count", "5", "--out", str(out), "--noise", "-1"]) == 2
 
 

@@ -64,6 +64,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(module.run(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        # The reader of our output went away (as with `| head`): stop quietly, as for SIGPIPE.
+        from .jsonl import quiet_closed_pipe
+
+        quiet_closed_pipe(sys.stdout)
+        return 141
     except (ValueError, FileNotFoundError) as exc:
         print(f"torchrod {name}: error: {exc}", file=sys.stderr)
         return 2

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from .rod import Rod
 
-__all__ = ["nitinol290", "PAPER_LOCATION_BIAS", "PRESETS", "get"]
+__all__ = ["nitinol290", "PAPER_LOCATION_BIAS", "PRESETS", "get", "load"]
 
 PAPER_LOCATION_BIAS = -3.12e-3  # [m], the paper's calibrated s_bias
 
@@ -36,3 +36,17 @@ def get(name: str) -> Rod:
         return PRESETS[name]()
     except KeyError:
         raise ValueError(f"unknown rod preset {name!r}; known presets: {sorted(PRESETS)}") from None
+
+
+def load(spec: str) -> Rod:
+    """A rod from a JSON file path or a preset name (the ``--rod`` argument of every command).
+
+    Raises ``ValueError`` naming both possibilities when ``spec`` is neither an existing file nor a preset.
+    """
+    import os
+
+    if os.path.exists(spec):
+        return Rod.from_json(spec)
+    if spec in PRESETS:
+        return PRESETS[spec]()
+    raise ValueError(f"--rod {spec!r} is neither a rod file nor a preset (presets: {sorted(PRESETS)})")

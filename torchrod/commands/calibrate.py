@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 
 HELP = "fit the location bias and bending stiffness from readings with known forces"
@@ -35,19 +34,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _rod(spec: str):
-    from ..presets import get
-    from ..rod import Rod
-
-    if os.path.exists(spec) or spec.endswith(".json"):
-        return Rod.from_json(spec)
-    return get(spec)
-
 
 def run(args: argparse.Namespace) -> int:
+    from ..presets import load as load_rod
+
     from ..calibration import calibrate, read_readings, summary
 
-    rod = _rod(args.rod)
+    rod = load_rod(args.rod)
     data = read_readings(args.readings, rod)
     result = calibrate(rod, data, directions=args.directions, initial_bias=args.initial_bias)
     new_rod = result.apply(rod)

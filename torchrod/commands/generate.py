@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 import time
 
@@ -57,18 +56,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--decimals", type=int, default=6, help="decimals of the curvature written [1/m] (default: 6)")
 
 
-def _rod(spec: str):
-    from .. import presets
-    from ..rod import Rod
-
-    if os.path.exists(spec):
-        return Rod.from_json(spec)
-    if spec in presets.PRESETS:
-        return presets.get(spec)
-    raise ValueError(f"--rod {spec!r} is neither a file nor a preset (presets: {sorted(presets.PRESETS)})")
-
 
 def run(args: argparse.Namespace) -> int:
+    from ..presets import load as load_rod
+
     from ..synthetic import (
         ContactModel,
         LoadSampler,
@@ -78,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         write_trajectory,
     )
 
-    rod = _rod(args.rod)
+    rod = load_rod(args.rod)
     if args.count < 0:
         raise ValueError(f"--count must be >= 0, got {args.count}")
     s_range = None

@@ -34,13 +34,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 from collections.abc import Sequence
 from typing import Any
 
 import torch
 
-from .. import presets
+from ..presets import load as load_rod
 from ..body_frame import simulate
 from ..jsonl import LineWriter, Record, batched, check_keys, get_list, get_number, read_records
 from ..loads import PointForces
@@ -48,7 +47,7 @@ from ..rod import Rod
 
 HELP = "curvature at the gratings for given point forces (JSON lines in, JSON lines out)"
 
-__all__ = ["HELP", "configure", "load_rod", "parse_case", "run", "simulate_cases", "tip_angle"]
+__all__ = ["HELP", "configure", "parse_case", "run", "simulate_cases", "tip_angle"]
 
 TIP_INTERVALS = 128
 """Intervals of the Magnus integration of the frames behind ``tip_angle`` (measured error <= 1e-5 rad at
@@ -86,16 +85,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
 
-
-def load_rod(spec: str) -> Rod:
-    """A rod from a JSON file path or a preset name; ``ValueError`` naming both possibilities otherwise."""
-    if os.path.exists(spec):
-        return Rod.from_json(spec)
-    if spec in presets.PRESETS:
-        return presets.get(spec)
-    raise ValueError(
-        f"--rod {spec!r} is neither a rod file nor a preset (presets: {sorted(presets.PRESETS)})"
-    )
 
 
 def parse_case(obj: dict[str, Any], rod: Rod) -> list[Force]:
