@@ -171,7 +171,8 @@ def test_loads_do_not_depend_on_the_sensor_model(rod):
 def test_location_bias_moves_the_forces_seen(rod):
     bias = -0.004
     d = sy.generate(rod, 200, sensor=sy.SensorModel(noise=0.0, location_bias=bias), seed=3)
-    moved = tr.PointForces(torch.where(d.loads.active, d.loads.s + bias, d.loads.s).clamp(0, rod.length), d.loads.f,
+    # Same meaning as Rod.location_bias: reported = model + bias, so the model sees the forces at s - bias.
+    moved = tr.PointForces(torch.where(d.loads.active, d.loads.s - bias, d.loads.s).clamp(0, rod.length), d.loads.f,
                            d.loads.mask)
     assert torch.allclose(d.clean, _grating_curvature(rod, moved), atol=1e-7)
     assert not torch.allclose(d.clean, _grating_curvature(rod, d.loads), atol=1e-3)

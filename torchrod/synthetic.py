@@ -17,7 +17,8 @@ Load cases (:class:`LoadSampler`, :func:`sample_loads`)
 
 Sensor effects (:class:`SensorModel`)
     ``clean`` is the noise-free reading: the forward model's curvature at the gratings, for the forces moved to
-    ``s + location_bias`` (clamped to [0, L]) when a location bias is simulated. The reading is
+    ``s - location_bias`` (clamped to [0, L]) when a location bias is simulated (the meaning of
+    :attr:`torchrod.rod.Rod.location_bias`: reported = model + bias). The reading is
     ``curvature = clean + offsets + noise * N(0, 1)``; ``offsets`` (G, 2) are drawn once per set
     (``offset_std * N(0, 1)``) and stored; each grating is missing independently with ``missing_prob`` (mask
     False, curvature 0.0). The loads are independent of the sensor model: one seed gives the same loads and clean
@@ -230,8 +231,10 @@ class SensorModel:
         noise: Gaussian sigma of each component [1/m], independent per grating and reading.
         offset_std: sigma of constant per-grating offsets [1/m], drawn once per set and stored.
         missing_prob: probability that a grating has no reading, independently per grating and reading.
-        location_bias: [m]; readings are simulated with the forces at ``s + location_bias`` (clamped to [0, L]):
-            what a fibre registered at the wrong place sees. The stored loads stay at ``s``.
+        location_bias: [m], with the meaning of :attr:`torchrod.rod.Rod.location_bias` (reported location =
+            model location + bias): readings are simulated with the forces at ``s - location_bias`` (clamped to
+            [0, L]), what a fibre registered at the wrong place sees, so an estimator whose rod carries the same
+            bias reports the true ``s``. The stored loads stay at ``s``.
     """
 
     noise: float = 0.1
@@ -768,7 +771,7 @@ def generate(
             loads, clean, n_examined = _sample_rows(rod, sampler, chunks, dev)
             examined += n_examined
             if sensor.location_bias != 0.0:
-                clean, _ = _profile(rod, _shifted(rod, loads, sensor.location_bias))
+                clean, _ = _profile(rod, _shifted(rod, loads, -sensor.location_bias))
             draws = [
                 _sensor_draws(sizes[c], G, torch.Generator().manual_seed(_derive_seed(seed, "sensor", c)))
                 for c in idx
@@ -1070,7 +1073,7 @@ def generate_trajectory(
     if scale is not None:
         loads = PointForces(loads.s, loads.f * scale.view(-1, 1, 1), loads.mask)
     G = rod.num_gratings
-    clean, _ = _profile(rod, _shifted(rod, loads, sensor.location_bias))
+    clean, _ = _profile(rod, _shifted(rod, loads, -sensor.location_bias))
     sg = torch.Generator().manual_seed(_derive_seed(seed, "trajectory-sensor"))
     offsets = sensor.offset_std * torch.randn(G, 2, generator=sg, dtype=torch.float64)
     noise, missing = _sensor_draws(count, G, sg)

@@ -41,7 +41,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--noise", type=float, default=sm.noise, help="Gaussian sigma [1/m] (default: %(default)s)")
     g.add_argument("--offset-std", type=float, default=sm.offset_std, help="[1/m] (default: %(default)s)")
     g.add_argument("--missing-prob", type=float, default=sm.missing_prob, help="default: %(default)s")
-    g.add_argument("--location-bias", type=float, default=sm.location_bias, help="[m] (default: %(default)s)")
+    g.add_argument("--location-bias", type=float, default=sm.location_bias, help="[m], as in the rod file: the readings see the forces at s - bias (default: %(default)s)")
     g = parser.add_argument_group("sets")
     g.add_argument("--batch-size", type=int, default=4096, help="cases per forward pass (default: %(default)s)")
     g.add_argument("--device", default=None, help="torch device for the forward model (default: cpu)")
