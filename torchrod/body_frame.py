@@ -56,6 +56,7 @@ __all__ = [
     "integrate_curvature",
     "integrate_curvature_nodes",
     "simulate",
+    "step_counts",
 ]
 
 DEFAULT_STEP_ANGLE = 0.8
@@ -141,6 +142,46 @@ def _valid_loads(loads: PointForces) -> tuple[torch.Tensor, torch.Tensor]:
     return s, f
 
 
+def _events(
+    query: torch.Tensor, s: torch.Tensor, f: torch.Tensor, ei: torch.Tensor, length: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Forces and queries sorted tip to base: positions (B, E) [m], the sort order (B, E) (indices < h are forces),
+    segment lengths (B, E) [m] (segment e ends at event e) and the jump of W at each event (B, E, 2) [1/m^2]."""
+    B, Q = s.shape[0], query.shape[0]
+    # Jump of W = dU/dt (t = L - s) at a force: W(s_i-) = W(s_i+) - (f_y - i f_x)/EI, as real pairs (-f_y, f_x)/EI.
+    jump_f = torch.stack((-f[..., 1], f[..., 0]), dim=-1) / ei.unsqueeze(-1)  # (B, h, 2)
+    # Forces first: among events at one place the (stable) sort keeps them first, so a query there sees the jump.
+    pos = torch.cat((s, query.expand(B, Q)), dim=1)  # (B, E)
+    pos_sorted, order = pos.sort(dim=1, descending=True, stable=True)
+    jump = torch.cat((jump_f, jump_f.new_zeros(B, Q, 2)), dim=1).gather(
+        1, order.unsqueeze(-1).expand(-1, -1, 2)
+    )
+    start = torch.cat((pos_sorted.new_full((B, 1), float(length)), pos_sorted[:, :-1]), dim=1)
+    seg = (start - pos_sorted).clamp(min=0.0)
+    return pos_sorted, order, seg, jump
+
+
+def step_counts(
+    rod: Rod,
+    loads: PointForces,
+    *,
+    bending_stiffness: float | torch.Tensor | None = None,
+    max_step_angle: float = DEFAULT_STEP_ANGLE,
+    max_steps: int = 64,
+) -> torch.Tensor:
+    """(B, E) steps per segment that :func:`grating_curvature` takes with the exact scheme (a diagnostic).
+
+    Segments run between events (the rod's gratings and the forces, padding included), tip to base, E = G + h.
+    A batch runs max over samples of the row sums: every sample's own steps, then zero-length steps.
+    """
+    s, f = _valid_loads(loads)
+    ei = _as_stiffness(rod.bending_stiffness if bending_stiffness is None else bending_stiffness, s)
+    with torch.no_grad():
+        pos_sorted, _, seg, _ = _events(rod.grating_positions(s.dtype, s.device), s, f, ei, rod.length)
+        fmag = torch.linalg.vector_norm(f, dim=-1) / ei
+        return _step_counts(s, fmag, pos_sorted, seg, max_step_angle, max_steps)
+
+
 def integrate_curvature(
     query: torch.Tensor,
     loads: PointForces,
@@ -174,18 +215,8 @@ def integrate_curvature(
     tab = _method(method, "exact")
     s, f = _valid_loads(loads)
     B, h = s.shape
-    Q = query.shape[0]
     ei = _as_stiffness(bending_stiffness, s)
-    # Jump of W = dU/dt (t = L - s) at a force: W(s_i-) = W(s_i+) - (f_y - i f_x)/EI, as real pairs (-f_y, f_x)/EI.
-    jump_f = torch.stack((-f[..., 1], f[..., 0]), dim=-1) / ei.unsqueeze(-1)  # (B, h, 2)
-    # Forces first: among events at one place the (stable) sort keeps them first, so a query there sees the jump.
-    pos = torch.cat((s, query.expand(B, Q)), dim=1)  # (B, E)
-    pos_sorted, order = pos.sort(dim=1, descending=True, stable=True)
-    jump = torch.cat((jump_f, jump_f.new_zeros(B, Q, 2)), dim=1).gather(
-        1, order.unsqueeze(-1).expand(-1, -1, 2)
-    )
-    start = torch.cat((pos_sorted.new_full((B, 1), float(length)), pos_sorted[:, :-1]), dim=1)
-    seg = (start - pos_sorted).clamp(min=0.0)  # (B, E) segment lengths, tip to base
+    pos_sorted, order, seg, jump = _events(query, s, f, ei, length)
     E = seg.shape[1]
     with torch.no_grad():
         if steps is None:
@@ -202,7 +233,7 @@ def integrate_curvature(
     # Every sample runs K steps: its own step lengths, then zero-length steps once its events are done.
     hstep = torch.cat((seg / counts, seg.new_zeros(B, 1)), dim=1).gather(1, segment_of_step)  # (B, K) [m]
     kick = jump.new_zeros(B, K, 2).scatter(1, last.unsqueeze(-1).expand(-1, -1, 2), jump)  # (B, K, 2)
-    Z = march(hstep, kick, tab, adjoint=adjoint)  # (B, K, 4)
+    Z = march(hstep, tab, kick=kick, adjoint=adjoint)  # (B, K, 4)
     inverse = order.argsort(dim=1)[:, h:]  # sorted index of each query
     at_query = Z.gather(1, last.gather(1, inverse).unsqueeze(-1).expand(-1, -1, 4))  # (B, Q, 4)
     curvature = at_query[..., :2]
@@ -244,17 +275,18 @@ def integrate_curvature_nodes(
     # Events: the nodes and the queries, shared by the whole batch; the load is linear between events.
     pos = torch.cat((query, grid))
     pos_sorted, order = pos.sort(descending=True, stable=True)
-    d = grid[1] - grid[0]
-    hat = torch.clamp(1.0 - (pos_sorted.unsqueeze(-1) - grid).abs() / d, min=0.0)  # (E, q)
-    w_events = torch.einsum("eq,bqc->bec", hat, w_nodes)  # (B, E, 2)
-    # U_tt = U'' = g(U) + phi, phi = (-w_y, w_x) / EI as a real pair; in stage units (|U|^2 U) psi = -2 phi.
-    psi = torch.stack((2.0 * w_events[..., 1], -2.0 * w_events[..., 0]), dim=-1) / ei.unsqueeze(-1)
-    # Segment e runs from event e-1 to event e; the first event is the node at s = L (a zero-length segment).
-    psi_start = torch.cat((psi[:, :1], psi[:, :-1]), dim=1)
+    # Linear interpolation of the nodal load at the events (between nodes j and j + 1).
+    d = float(length) / (nodes - 1)
+    j = (pos_sorted / d).floor().clamp(0, nodes - 2).to(torch.int64)
+    frac = ((pos_sorted - grid[j]) / d).clamp(0.0, 1.0).unsqueeze(-1)  # (E, 1)
+    w_events = torch.lerp(w_nodes[:, j], w_nodes[:, j + 1], frac)  # (B, E, 2) [N/m]
+    # U_tt = U'' = g(U) + phi, phi = (-w_y, w_x) / EI as a real pair; in stage units (|U|^2 U) P = -2 phi.
+    P = torch.stack((2.0 * w_events[..., 1], -2.0 * w_events[..., 0]), dim=-1) / ei.unsqueeze(-1)
+    # Step e runs from event e-1 to event e; the first event is the node at s = L (a zero-length step), so the
+    # boundary values are P at the tip, then P at each event.
     start = torch.cat((pos_sorted.new_tensor([float(length)]), pos_sorted[:-1]))
     hstep = (start - pos_sorted).clamp(min=0.0).expand(B, -1)
-    E = hstep.shape[1]
-    Z = march(hstep, psi.new_zeros(B, E, 2), tab, forcing=(psi_start, psi - psi_start), adjoint=adjoint)
+    Z = march(hstep, tab, forcing=torch.cat((P[:, :1], P), dim=1), adjoint=adjoint)
     inverse = order.argsort()[: query.shape[0]]
     at_query = Z[:, inverse]
     curvature = at_query[..., :2]

@@ -194,10 +194,11 @@ def _dot_rows(a: Any, b: Any) -> Any:
     return (a * b).sum(0)
 
 
-def _forward_generic(tab: Tableau, zero, hs, h2s, kicks, psi0s, dpsis, sq: Callable, save: bool):
-    """Steps k = 0..K-1 from U = W = ``zero``; after step k, W += kicks[k] (None: no kick).
+def _forward_generic(tab: Tableau, zero, hs, h2s, kicks, forcing, sq: Callable, save: bool):
+    """Steps k = 0..K-1 from U = W = ``zero``; after step k, W += kicks[k] (``kicks`` or an entry None: no kick).
 
-    ``psi0s``/``dpsis`` (or None): a forcing in stage units, |Y|^2 Y + psi0 + c dpsi at stage node c.
+    ``forcing`` (or None): K + 1 values at the step boundaries, in stage units, linear within a step: stage i of
+    step k is |Y|^2 Y + P_k + c_i (P_k+1 - P_k).
     Returns the lists of U and W after each step (post-kick) and, with ``save``, what the adjoint needs.
     """
     s = tab.stages
@@ -213,8 +214,9 @@ def _forward_generic(tab: Tableau, zero, hs, h2s, kicks, psi0s, dpsis, sq: Calla
             G0, r0 = r * U, r
         else:
             G0, r0 = carried
-        if psi0s is not None:
-            p0, pd = psi0s[k], dpsis[k]
+        if forcing is not None:
+            p0 = forcing[k]
+            pd = forcing[k + 1] - p0
             G0 = G0 + p0
         Ys, rs, accs, Gs = [U], [r0], [None], [G0]
         for i in range(1, s):
@@ -226,7 +228,7 @@ def _forward_generic(tab: Tableau, zero, hs, h2s, kicks, psi0s, dpsis, sq: Calla
             G = r * Y
             if tab.fsal and i == s - 1:
                 carried = (G, r)  # the next step's first stage: Y_s is the new U
-            if psi0s is not None:
+            if forcing is not None:
                 G = G + (p0 + c[i] * pd)
             Ys.append(Y)
             rs.append(r)
@@ -258,7 +260,8 @@ def _forward_generic(tab: Tableau, zero, hs, h2s, kicks, psi0s, dpsis, sq: Calla
 def _backward_generic(tab: Tableau, saved, hs, h2s, gUs, gWs, forcing: bool, dot: Callable):
     """The discrete adjoint of :func:`_forward_generic`: gradients of a loss with respect to each step's h, kick
     and forcing, given its gradients with respect to each (post-kick) U and W. A value's gradient is stored like
-    the value: the partial derivatives with respect to its x and y parts as x and y parts.
+    the value: the partial derivatives with respect to its x and y parts as x and y parts. Returns the lists
+    of gradients for h, the kicks and (with ``forcing``, K + 1 entries) the forcing values.
 
     Per step (the forward recurrences read backwards): with Ub, Wb the adjoints of U+, W+ and Gb_i those of G_i,
         Gb_i = h^2 bp_i Ub + h bv_i Wb + h^2 sum_{j > i} a_ji Yb_j,   Yb_i = J(Y_i) Gb_i,
@@ -270,7 +273,7 @@ def _backward_generic(tab: Tableau, saved, hs, h2s, gUs, gWs, forcing: bool, dot
     c, cols, bp, bv = tab.c, tab.a_cols, tab.bp, tab.bv
     K = len(saved)
     hb, kb = [None] * K, [None] * K
-    p0b, pdb = ([None] * K, [None] * K) if forcing else (None, None)
+    Pb = [None] * (K + 1) if forcing else None
     Ub = Wb = None
     for k in range(K - 1, -1, -1):
         Ub = gUs[k] if Ub is None else Ub + gUs[k]
@@ -311,10 +314,13 @@ def _backward_generic(tab: Tableau, saved, hs, h2s, gUs, gWs, forcing: bool, dot
                     S = S + c[i] * Yb[i]
                     inner = inner + dot(Yb[i], accs[i])
         hb[k] = dot(S, W) + dot(Wb, accv) + (h + h) * inner
-        if forcing:
-            p0b[k], pdb[k] = sum0, sumd
+        if forcing:  # stage forcing P_k (1 - c_i) + P_k+1 c_i
+            if sumd is not None:
+                sum0 = sum0 - sumd
+                Pb[k + 1] = sumd if Pb[k + 1] is None else Pb[k + 1] + sumd
+            Pb[k] = sum0
         Ub, Wb = Ub_new, Wb + h * S
-    return hb, kb, p0b, pdb
+    return hb, kb, Pb
 
 
 # ================================================================================================= array kernel
@@ -353,8 +359,9 @@ class _Lib:
         return torch.sum(a, 0, out=out) if self.torch else np.sum(a, 0, out=out)
 
 
-def _forward_array(tab: Tableau, hs, kicks, psi0, dpsi, save: bool):
-    """Batched forward: hs (K, B), kicks (K, 2, B), psi0/dpsi (K, 2, B) or None, NumPy or torch (no autograd).
+def _forward_array(tab: Tableau, hs, kicks, forcing, save: bool):
+    """Batched forward: hs (K, B), kicks (K, 2, B) or None, forcing (K + 1, 2, B) or None (as in
+    :func:`_forward_generic`), NumPy or torch (no autograd).
 
     Returns Z (K, 4, B) = (U, W) after each step (post-kick) and what :func:`_backward_array` needs.
     """
@@ -383,8 +390,9 @@ def _forward_array(tab: Tableau, hs, kicks, psi0, dpsi, save: bool):
             lib.mul(r[0], U, out=G[0])
         else:
             G[0], r[0] = carried
-        if psi0 is not None:
-            p0, pd = psi0[k], dpsi[k]
+        if forcing is not None:
+            p0 = forcing[k]
+            pd = forcing[k + 1] - p0
             G[0] += p0
         acc[0] = 0.0
         for i in range(1, s):
@@ -394,7 +402,7 @@ def _forward_array(tab: Tableau, hs, kicks, psi0, dpsi, save: bool):
             lib.mul(r[i], Y[i], out=G[i])
             if tab.fsal and i == s - 1:
                 carried = (G[i].clone() if lib.torch else G[i].copy(), r[i])
-            if psi0 is not None:
+            if forcing is not None:
                 G[i] += p0 + c3[i] * pd
         accv = (bv @ G2).reshape(2, B)
         W_new = W + h * accv
@@ -405,7 +413,8 @@ def _forward_array(tab: Tableau, hs, kicks, psi0, dpsi, save: bool):
             U_new = U + hW + h2 * accp
         if save:
             saved.append((W, Y, r, acc, accp, accv))
-        W_new += kicks[k]
+        if kicks is not None:
+            W_new += kicks[k]
         Z[k, :2], Z[k, 2:] = U_new, W_new
         U, W = U_new, W_new
     return Z, (hs, h2s, saved)
@@ -414,7 +423,7 @@ def _forward_array(tab: Tableau, hs, kicks, psi0, dpsi, save: bool):
 def _backward_array(tab: Tableau, state, gZ, forcing: bool):
     """Batched discrete adjoint (the recurrences of :func:`_backward_generic`); gZ (K, 4, B).
 
-    Returns hb (K, B), kick grads (K, 2, B) and, with ``forcing``, psi0 and dpsi grads (K, 2, B).
+    Returns hb (K, B), kick grads (K, 2, B) and, with ``forcing``, forcing grads (K + 1, 2, B), else None.
     """
     hs, h2s, saved = state
     K, B = hs.shape
@@ -425,8 +434,7 @@ def _backward_array(tab: Tableau, state, gZ, forcing: bool):
     bp3, bv3 = lib.array(tab.bp).reshape(s, 1, 1), lib.array(tab.bv).reshape(s, 1, 1)
     last_used = max(i for i in range(s) if tab.bp[i] != 0.0 or tab.bv[i] != 0.0 or tab.a_cols[i])
     hb, kb = lib.empty(K, B), lib.empty(K, 2, B)
-    p0b = lib.empty(K, 2, B) if forcing else None
-    pdb = lib.empty(K, 2, B) if forcing else None
+    Pb = lib.zeros(K + 1, 2, B) if forcing else None
     Ub, Wb = lib.zeros(2, B), lib.zeros(2, B)
     for k in range(K - 1, -1, -1):
         Ub = Ub + gZ[k, :2]
@@ -444,93 +452,97 @@ def _backward_array(tab: Tableau, state, gZ, forcing: bool):
             d = (Y[i] * Gb[i]).sum(0)
             lib.mul(r[i], Gb[i], out=Yb[i])
             Yb[i] += (d + d) * Y[i]
-        if forcing:
-            lib.sum0(Gb, out=p0b[k])
-            pdb[k] = (c @ Gb.reshape(s, 2 * B)).reshape(2, B)
+        if forcing:  # stage forcing P_k (1 - c_i) + P_k+1 c_i
+            towards_end = (c @ Gb.reshape(s, 2 * B)).reshape(2, B)
+            Pb[k + 1] += towards_end
+            Pb[k] += Gb.sum(0) - towards_end
         S = Ub + (c @ Yb2).reshape(2, B)
         inner = (Ub * accp).sum(0) + (Yb * acc).sum((0, 1))
         hb[k] = (S * W).sum(0) + (Wb * accv).sum(0) + (h + h) * inner
         Ub = Ub + Yb.sum(0)
         Wb = Wb + h * S
-    return hb, kb, p0b, pdb
+    return hb, kb, Pb
 
 
 # ================================================================================================= autograd
-def _scalar_inputs(h, kick, psi0, dpsi):
-    """Per-sample Python lists: h, h^2, kicks (None for none), psi0, dpsi as complex numbers."""
-    cx = lambda t: None if t is None else [[complex(x, y) for x, y in row] for row in t.tolist()]
-    hl = h.tolist()
-    kicks = [[None if z == 0 else z for z in row] for row in cx(kick)]
-    return hl, [[x * x for x in row] for row in hl], kicks, cx(psi0), cx(dpsi)
+def _complex_rows(t: torch.Tensor | None) -> list[list[complex]] | None:
+    """(B, n, 2) -> per sample, n Python complex numbers."""
+    return None if t is None else [[complex(x, y) for x, y in row] for row in t.tolist()]
 
 
-def _run_forward(backend: str, tab: Tableau, h, kick, psi0, dpsi, save: bool):
+def _run_forward(backend: str, tab: Tableau, h, kick, forcing, save: bool):
     """Z (B, K, 4) and the state for :func:`_run_backward`."""
     B, K = h.shape
     if backend == "scalar":
-        hl, h2l, kl, p0l, pdl = _scalar_inputs(h, kick, psi0, dpsi)
+        hl = h.tolist()
+        kl = _complex_rows(kick)
+        fl = _complex_rows(forcing)
         rows, state = [], []
         for b in range(B):
-            p0, pd = (None, None) if p0l is None else (p0l[b], pdl[b])
-            Us, Ws, saved = _forward_generic(tab, 0j, hl[b], h2l[b], kl[b], p0, pd, _sq_complex, save)
+            h2 = [x * x for x in hl[b]]
+            kicks = None if kl is None else [None if z == 0 else z for z in kl[b]]
+            Us, Ws, saved = _forward_generic(
+                tab, 0j, hl[b], h2, kicks, None if fl is None else fl[b], _sq_complex, save
+            )
             rows.append([(u.real, u.imag, w.real, w.imag) for u, w in zip(Us, Ws)])
-            state.append((hl[b], h2l[b], saved))
+            state.append((hl[b], h2, saved))
         return torch.tensor(rows, dtype=h.dtype, device=h.device).reshape(B, K, 4), state
-    conv = (lambda t: t.detach().contiguous()) if backend == "torch" else (lambda t: t.detach().cpu().numpy())
-    perm = lambda t: None if t is None else conv(t.permute(1, 2, 0))
-    hs = conv(h.t())
-    if backend == "numpy":
-        hs = np.ascontiguousarray(hs)
-        perm = lambda t: None if t is None else np.ascontiguousarray(conv(t).transpose(1, 2, 0))
-    Z, state = _forward_array(tab, hs, perm(kick), perm(psi0), perm(dpsi), save)
-    Z = torch.as_tensor(Z, device=h.device).permute(2, 0, 1)
-    return Z, state
+    if backend == "torch":
+        hs = h.detach().t().contiguous()
+        rows = lambda t: None if t is None else t.detach().permute(1, 2, 0).contiguous()
+    else:
+        hs = np.ascontiguousarray(h.detach().cpu().numpy().T)
+        rows = lambda t: (
+            None if t is None else np.ascontiguousarray(t.detach().cpu().numpy().transpose(1, 2, 0))
+        )
+    Z, state = _forward_array(tab, hs, rows(kick), rows(forcing), save)  # (B, n, 2) -> (n, 2, B)
+    return torch.as_tensor(Z, device=h.device).permute(2, 0, 1), state
 
 
-def _run_backward(backend: str, tab: Tableau, state, gZ: torch.Tensor, forcing: bool) -> list[torch.Tensor]:
-    """Gradients for (h, kick[, psi0, dpsi]) from gZ (B, K, 4)."""
+def _run_backward(backend: str, tab: Tableau, state, gZ: torch.Tensor, forcing: bool):
+    """Gradients for (h, kick, forcing) (None for no forcing) from gZ (B, K, 4)."""
     B = gZ.shape[0]
     dt, dev = gZ.dtype, gZ.device
     if backend == "scalar":
         g = gZ.tolist()
-        out = [[] for _ in range(4 if forcing else 2)]
+        hb, kb, Pb = [], [], []
+        pair = lambda z: (0.0, 0.0) if z is None else (z.real, z.imag)
         for b in range(B):
-            hl, h2l, saved = state[b]
+            hl, h2, saved = state[b]
             gU = [complex(x[0], x[1]) for x in g[b]]
             gW = [complex(x[2], x[3]) for x in g[b]]
-            res = _backward_generic(tab, saved, hl, h2l, gU, gW, forcing, _dot_complex)
-            out[0].append(res[0])
-            for dst, v in zip(out[1:], res[1:]):
-                dst.append([(0.0, 0.0) if z is None else (z.real, z.imag) for z in v])
-        return [torch.tensor(x, dtype=dt, device=dev) for x in out]
+            res = _backward_generic(tab, saved, hl, h2, gU, gW, forcing, _dot_complex)
+            hb.append(res[0])
+            kb.append([pair(z) for z in res[1]])
+            if forcing:
+                Pb.append([pair(z) for z in res[2]])
+        out = [torch.tensor(hb, dtype=dt, device=dev), torch.tensor(kb, dtype=dt, device=dev)]
+        return (*out, torch.tensor(Pb, dtype=dt, device=dev) if forcing else None)
     if backend == "numpy":
         gZ_k = np.ascontiguousarray(gZ.detach().cpu().numpy().transpose(1, 2, 0))
     else:
         gZ_k = gZ.detach().permute(1, 2, 0).contiguous()
-    hb, kb, p0b, pdb = _backward_array(tab, state, gZ_k, forcing)
-    out = [torch.as_tensor(hb, device=dev).t()]
-    for x in (kb, p0b, pdb) if forcing else (kb,):
-        out.append(torch.as_tensor(x, device=dev).permute(2, 0, 1))
-    return out
+    hb, kb, Pb = _backward_array(tab, state, gZ_k, forcing)
+    back = lambda x: torch.as_tensor(x, device=dev).permute(2, 0, 1)  # (n, 2, B) -> (B, n, 2)
+    return torch.as_tensor(hb, device=dev).t(), back(kb), back(Pb) if forcing else None
 
 
 class _March(torch.autograd.Function):
-    """Z = march(h, kick, psi0, dpsi) with the discrete adjoint as its backward."""
+    """Z = march(h, kick, forcing) with the discrete adjoint as its backward."""
 
     @staticmethod
-    def forward(ctx, h, kick, psi0, dpsi, tab, backend):  # type: ignore[override]
-        save = any(ctx.needs_input_grad[:4])
-        Z, state = _run_forward(backend, tab, h, kick, psi0, dpsi, save)
-        ctx.state, ctx.tab, ctx.backend, ctx.forcing = state, tab, backend, psi0 is not None
+    def forward(ctx, h, kick, forcing, tab, backend):  # type: ignore[override]
+        save = any(ctx.needs_input_grad[:3])
+        Z, state = _run_forward(backend, tab, h, kick, forcing, save)
+        ctx.state, ctx.tab, ctx.backend, ctx.forcing = state, tab, backend, forcing is not None
+        ctx.kick = kick is not None
         return Z
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, gZ):  # type: ignore[override]
-        grads = _run_backward(ctx.backend, ctx.tab, ctx.state, gZ, ctx.forcing)
-        if not ctx.forcing:
-            grads += [None, None]
-        return (*grads, None, None)
+        hb, kb, Pb = _run_backward(ctx.backend, ctx.tab, ctx.state, gZ, ctx.forcing)
+        return hb, kb if ctx.kick else None, Pb, None, None
 
 
 def default_backend(batch: int, device: torch.device) -> str:
@@ -542,10 +554,10 @@ def default_backend(batch: int, device: torch.device) -> str:
 
 def march(
     h: torch.Tensor,
-    kick: torch.Tensor,
     tab: Tableau,
     *,
-    forcing: tuple[torch.Tensor, torch.Tensor] | None = None,
+    kick: torch.Tensor | None = None,
+    forcing: torch.Tensor | None = None,
     adjoint: bool = True,
     backend: str | None = None,
 ) -> torch.Tensor:
@@ -553,24 +565,24 @@ def march(
 
     Args:
         h: (B, K) step lengths [m] (zero: the step does nothing).
-        kick: (B, K, 2) added to W = dU/dt after each step [1/m^2].
         tab: the method (:data:`METHODS`).
-        forcing: (psi0, dpsi), each (B, K, 2): the forcing of step k is psi0 + c dpsi at stage node c, in units of
-            the stage value |U|^2 U [1/m^3] (so U'' = -|U|^2 U / 2 - (psi0 + c dpsi) / 2).
+        kick: (B, K, 2) added to W = dU/dt after each step [1/m^2], or None.
+        forcing: (B, K + 1, 2) values P of a forcing at the step boundaries, linear within each step, in units
+            of the stage value |U|^2 U [1/m^3], so that U'' = -(|U|^2 U + P) / 2; or None.
         adjoint: gradients from the discrete adjoint (default) or from autograd through every operation.
         backend: "scalar", "numpy" (CPU only) or "torch"; default :func:`default_backend`.
     Returns:
         (B, K, 4): (U_x, U_y, W_x, W_y) after each step and its kick.
     """
     B, K = h.shape
-    psi0, dpsi = forcing if forcing is not None else (None, None)
     if B == 0 or K == 0:
-        return h.new_zeros(B, K, 4) + 0.0 * (h.sum() + kick.sum())
+        keep = sum(0.0 * t.sum() for t in (h, kick, forcing) if t is not None)  # an empty result in the graph
+        return h.new_zeros(B, K, 4) + keep
     if adjoint:
-        return _March.apply(h, kick, psi0, dpsi, tab, backend or default_backend(B, h.device))
-    rows = lambda t: None if t is None else t.permute(1, 2, 0).unbind(0)
+        return _March.apply(h, kick, forcing, tab, backend or default_backend(B, h.device))
+    rows = lambda t: None if t is None else t.permute(1, 2, 0).unbind(0)  # (B, n, 2) -> n x (2, B)
     hs = h.unbind(1)
     Us, Ws, _ = _forward_generic(
-        tab, h.new_zeros(2, B), hs, [x * x for x in hs], rows(kick), rows(psi0), rows(dpsi), _sq_rows, False
+        tab, h.new_zeros(2, B), hs, [x * x for x in hs], rows(kick), rows(forcing), _sq_rows, False
     )
     return torch.cat((torch.stack(Us), torch.stack(Ws)), dim=1).permute(2, 0, 1)
