@@ -1,0 +1,48 @@
+"""Smoke tests of ``torchrod bench``: each suite runs end to end and prints what it promises (no timing checks)."""
+
+from __future__ import annotations
+
+import re
+
+import torch
+
+from torchrod.cli import main
+from torchrod.commands import bench
+
+
+def test_bench_forward_quick_prints_both_tables(capsys):
+    threads = torch.get_num_threads()
+    assert main(["bench", "forward", "--quick", "--threads", "1"]) == 0
+    assert torch.get_num_threads() == threads  # the suite restores the thread count
+    out = capsys.readouterr().out
+    assert "torch threads 1" in out
+    # The speed table: every scheme at every batch size, with positive times and rates.
+    for scheme in ("exact", "nodes q=90", "nodes q=250"):
+        for B in (1, 16):
+            row = re.search(rf"^{re.escape(scheme)}\s+{B}\s+(.*)$", out, re.MULTILINE)
+            assert row, (scheme, B, out)
+            numbers = [float(x) for x in row.group(1).split()]
+            assert len(numbers) == 6 and all(x > 0 for x in numbers), row.group(0)
+    # The accuracy table: the exact scheme meets its 1e-6 requirement on these large deflections, and the node
+    # scheme's error falls from q = 90 to q = 250.
+    acc = {
+        m.group(1): float(m.group(2))
+        for m in re.finditer(r"^(exact|nodes q=\d+)\s+(\S+)\s+\S+$", out, re.MULTILINE)
+    }
+    assert set(acc) == {"exact", "nodes q=90", "nodes q=250"}, out
+    assert acc["exact"] < 1e-6
+    assert acc["nodes q=250"] < acc["nodes q=90"]
+
+
+def test_bench_rejects_unknown_and_reports_missing_suites(capsys, monkeypatch):
+    assert main(["bench", "nosuch"]) == 2
+    assert "unknown suite" in capsys.readouterr().err
+    # A suite torchrod knows by name but whose module this version lacks.
+    monkeypatch.setitem(bench.SUITES, "absent_suite_for_test", "a suite without a module")
+    assert main(["bench", "absent_suite_for_test"]) == 2
+    assert "not available" in capsys.readouterr().err
+
+
+def test_bench_forward_rejects_bad_options(capsys):
+    assert main(["bench", "forward", "--threads", "0"]) == 2
+    assert "--threads" in capsys.readouterr().err
