@@ -21,8 +21,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Mapping, NamedTuple, Sequence
+from typing import Any, NamedTuple
 
 import torch
 from torch import nn
@@ -31,15 +32,15 @@ from .loads import PointForces
 from .rod import Rod
 
 __all__ = [
-    "LAYOUT_TOLERANCE",
     "CHECKPOINT_FORMAT",
+    "LAYOUT_TOLERANCE",
     "NetConfig",
     "NetOutput",
-    "WarmStartNet",
-    "WarmStartGuess",
     "WarmStart",
-    "save_checkpoint",
+    "WarmStartGuess",
+    "WarmStartNet",
     "load_checkpoint",
+    "save_checkpoint",
     "to_dimensionless",
     "unit_rod",
 ]
@@ -98,7 +99,7 @@ class NetConfig:
         return d
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "NetConfig":
+    def from_dict(cls, data: Mapping[str, Any]) -> NetConfig:
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:
@@ -108,7 +109,7 @@ class NetConfig:
         return cls(**kwargs)
 
     @classmethod
-    def for_rod(cls, rod: Rod, **kwargs: Any) -> "NetConfig":
+    def for_rod(cls, rod: Rod, **kwargs: Any) -> NetConfig:
         """A config with ``rod``'s layout."""
         return cls(relative_gratings=rod.relative_gratings, **kwargs)
 
@@ -336,7 +337,7 @@ class WarmStart:
         self._on: dict[torch.device, WarmStartNet] = {next(net.parameters()).device: self.net}
 
     @classmethod
-    def load(cls, path: str | os.PathLike, rod: Rod) -> "WarmStart":
+    def load(cls, path: str | os.PathLike, rod: Rod) -> WarmStart:
         """The network in checkpoint ``path`` for ``rod``; raises ``ValueError`` if the layouts differ."""
         net, meta = load_checkpoint(path)
         return cls(net, rod, meta)
