@@ -22,7 +22,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     lines = [f"  {name:10s} {text}" for name, text in SUITES.items()]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = "suites:\n" + "\n".join(lines)
-    parser.add_argument("suite", metavar="SUITE", help=f"one of: {', '.join(SUITES)}")
+    parser.add_argument("suite", metavar="SUITE", nargs="?", help=f"one of: {', '.join(SUITES)}")
     parser.add_argument(
         "options", nargs=argparse.REMAINDER, help="the suite's options (SUITE --help lists them)"
     )
@@ -40,6 +40,11 @@ def load_suite(name: str) -> ModuleType | None:
 
 def run(args: argparse.Namespace) -> int:
     name = args.suite
+    if name is None:
+        print("torchrod bench: name a suite; suites:", file=sys.stderr)
+        for suite, text in SUITES.items():
+            print(f"  {suite:10s} {text}", file=sys.stderr)
+        return 2
     if name not in SUITES:
         print(f"torchrod bench: unknown suite {name!r}; suites: {', '.join(SUITES)}", file=sys.stderr)
         return 2
