@@ -1,0 +1,153 @@
+"""Curvature at the gratings and its Jacobian w.r.t. the forces, in one tip-to-base pass (forward sensitivities).
+
+Estimation evaluates the forward model hundreds of times per reading, and always wants the derivative with respect
+to every unknown (s_i, f_x,i, f_y,i). Reverse-mode autograd through :func:`torchrod.body_frame.integrate_curvature`
+costs about three forward passes and records a graph of thousands of small operations; with at most 3 forces there
+are at most 9 unknowns, so carrying their tangents along the march (forward mode) is cheaper and gives the whole
+Jacobian, which the estimator also needs for its Gauss-Newton preconditioning and covariance.
+
+The march is the body-frame model of :mod:`torchrod.body_frame` in complex form: with U = u_x + i u_y and
+t = L - s, U_tt = -|U|^2 U / 2 between forces, U = U_t = 0 at the free tip, and at a force (f_x, f_y) at s_i the
+slope jumps, W = U_t -> W + i (f_x + i f_y) / EI. The same fourth-order Runge-Kutta-Nystrom scheme integrates it,
+with the step count per segment chosen from the same rigorous bound on the solution's rate.
+
+Tangents. For a parameter p, (dU/dp, dW/dp) obey the linearised equation, with
+D(|U|^2 U)[dU] = 2 |U|^2 dU + U^2 conj(dU); the RKN stages are applied to the tangents with that linearisation
+(the tangent of the discrete scheme). Every stage is linear in (U, dU) except g = |U|^2 U, and g is homogeneous of
+degree 3 (D g[U] = 3 g), so primal and tangents share one (B, 1 + P) complex state and one set of operations.
+At a force event:
+
+* d/df_x and d/df_y: the slope jump adds i / EI and -1 / EI to dW.
+* d/ds_i: moving the force distally by ds moves the jump earlier in t by ds; to first order the state just
+  proximal to the force changes by (F(Y+) - F(Y-)) ds with F(U, W) = (W, -|U|^2 U / 2) the vector field, which is
+  (jump, 0) since U is continuous. So dU/ds_i gains the jump i (f_x + i f_y) / EI and dW/ds_i is unchanged. This
+  is the exact derivative of the continuous problem; it matches the discrete scheme's to its O(h^4) accuracy.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+__all__ = ["ESTIMATION_STEP_ANGLE", "curvature_and_jacobian"]
+
+ESTIMATION_STEP_ANGLE = 0.4
+"""Default bound on (local rate) x (step) for estimation. Over the synthetic envelope (1-3 forces, 0.05-2 N, bending
+up to 90 degrees) the curvature at the gratings is within 1.1e-4 1/m of the converged solution (the simulation
+default 0.08 is within 1e-6 relative), a thousandth of the sensor noise, at about a fifth of the steps."""
+
+
+def _g(y: torch.Tensor) -> torch.Tensor:
+    """Column 0: 3 |y0|^2 y0 (three times g); columns 1..P: the tangent 2 |y0|^2 y_p + y0^2 conj(y_p).
+
+    y: (B, 1 + P) complex. The factor 1/3 of column 0 is folded into the RKN coefficients by the caller.
+    """
+    cy = torch.conj_physical(y)
+    y0 = y[:, :1]
+    a = y0 * cy[:, :1]  # |y0|^2, complex-typed so that no operation below converts dtypes
+    return torch.addcmul((y0 * y0) * cy, a, y, value=2.0)
+
+
+def curvature_and_jacobian(
+    query: torch.Tensor,
+    s: torch.Tensor,
+    f: torch.Tensor,
+    length: float,
+    bending_stiffness: float,
+    *,
+    mask: torch.Tensor | None = None,
+    jacobian: bool = True,
+    max_step_angle: float = ESTIMATION_STEP_ANGLE,
+    max_steps: int = 64,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Curvature at ``query`` and, optionally, its derivative w.r.t. each force's (s, f_x, f_y). Unchecked, no autograd.
+
+    Args:
+        query: (Q,) positions [m] in [0, L] (the gratings).
+        s: (B, h) force locations [m] in [0, L].
+        f: (B, h, 2) body-frame components (f_x, f_y) [N].
+        length: L [m]; bending_stiffness: EI [N m^2].
+        mask: (B, h) bool, False for padded forces (no load, zero Jacobian columns); None: all real.
+        jacobian: also return the Jacobian.
+        max_step_angle: bound on (rate) x (step) per RKN step; max_steps: cap on the steps per segment.
+    Returns:
+        curvature (B, Q, 2) [1/m], and the Jacobian (B, Q, 2, h, 3) of (u_x, u_y) w.r.t. (s [m], f_x [N], f_y [N])
+        of each force ([1/m^2], [1/(m N)], [1/(m N)]), or None.
+    """
+    B, h = s.shape
+    Q = query.shape[0]
+    E = Q + h
+    real, device = s.dtype, s.device
+    cplx = torch.complex128 if real == torch.float64 else torch.complex64
+    s = s.detach()
+    f = f.detach()
+    if mask is not None:
+        f = f * mask.unsqueeze(-1).to(real)
+    ei = float(bending_stiffness)
+    jump_f = torch.complex(-f[..., 1], f[..., 0]) / ei  # (B, h): i (f_x + i f_y) / EI
+    pos = torch.cat((query.to(real).expand(B, Q), s), dim=1)  # (B, E)
+    pos_sorted, order = pos.sort(dim=1, descending=True, stable=True)
+    start = torch.cat((pos_sorted.new_full((B, 1), float(length)), pos_sorted[:, :-1]), dim=1)
+    seg = (start - pos_sorted).clamp(min=0.0)  # (B, E), tip to base
+
+    # Step counts (shared by the batch): the bound of body_frame.integrate_curvature.
+    fmag = (torch.linalg.vector_norm(f, dim=-1) / ei).unsqueeze(1)  # (B, 1, h) [1/m^2]
+    lever = (s.unsqueeze(1) - pos_sorted.unsqueeze(2)).clamp(min=0.0)  # (B, E, h)
+    rate = torch.maximum((fmag * lever).sum(-1), (fmag * (lever > 0)).sum(-1).sqrt())
+    need = ((rate * seg).amax(dim=0) / max_step_angle).nan_to_num(nan=1.0, posinf=float(max_steps))
+    counts = [min(max_steps, max(1, math.ceil(x))) for x in need.tolist()]
+
+    # Jumps per event: column 0 the primal slope jump, columns 1.. the tangent jumps (dW for f, dU for s).
+    P = 3 * h if jacobian else 0
+    zeros_q = jump_f.new_zeros(B, Q)
+    jump_w0 = torch.cat((zeros_q, jump_f), dim=1).gather(1, order)  # (B, E)
+    if jacobian:
+        onehot = (order.unsqueeze(-1) - Q == torch.arange(h, device=device)).to(real)  # (B, E, h)
+        active = onehot if mask is None else onehot * mask.unsqueeze(1).to(real)
+        dw = torch.zeros(3, dtype=cplx, device=device)
+        dw[1], dw[2] = 1j / ei, -1.0 / ei
+        jump_w = torch.cat(
+            (jump_w0.unsqueeze(-1), (active.unsqueeze(-1) * dw).reshape(B, E, P)), dim=-1
+        )  # (B, E, 1 + P)
+        du = torch.zeros(B, E, h, 3, dtype=cplx, device=device)
+        du[..., 0] = onehot * jump_f.unsqueeze(1)
+        jump_u = torch.cat((du.new_zeros(B, E, 1), du.reshape(B, E, P)), dim=-1)
+    else:
+        jump_w = jump_w0.unsqueeze(-1)
+        jump_u = None
+    weight = torch.ones(1 + P, dtype=cplx, device=device)
+    weight[0] = 1.0 / 3.0  # _g returns 3 g in column 0
+
+    n = torch.tensor(counts, dtype=real, device=device)
+    hstep = (seg / n).unsqueeze(-1).to(cplx)  # (B, E, 1), complex-typed (no per-operation conversions)
+    # RKN coefficients per event (B, E, 1 + P), the g-weights folded in: see _march in body_frame.
+    c_half = 0.5 * hstep
+    c16 = (-1.0 / 16.0) * hstep * hstep * weight
+    c4 = -0.25 * hstep * hstep * weight
+    c12 = (-1.0 / 12.0) * hstep * hstep * weight
+    cw = (-1.0 / 12.0) * hstep * weight
+    Z = torch.zeros(B, 1 + P, dtype=cplx, device=device)  # U and its tangents
+    Zw = torch.zeros_like(Z)  # W = U_t and its tangents
+    recorded = []
+    for e in range(E):
+        hs, ch, k16, k4, k12, kw = hstep[:, e], c_half[:, e], c16[:, e], c4[:, e], c12[:, e], cw[:, e]
+        for _ in range(counts[e]):
+            g1 = _g(Z)
+            g2 = _g(torch.addcmul(torch.addcmul(Z, ch, Zw), k16, g1))
+            p = torch.addcmul(Z, hs, Zw)
+            g3 = _g(torch.addcmul(p, k4, g2))
+            Z = torch.addcmul(p, k12, torch.add(g1, g2, alpha=2.0))
+            Zw = torch.addcmul(Zw, kw, torch.add(torch.add(g1, g2, alpha=4.0), g3))
+        Zw = Zw + jump_w[:, e]
+        if jump_u is not None:
+            Z = Z + jump_u[:, e]
+        recorded.append(Z)
+    states = torch.stack(recorded, dim=1)  # (B, E, 1 + P)
+    inverse = order.argsort(dim=1)[:, :Q]
+    at_query = states.gather(1, inverse.unsqueeze(-1).expand(-1, -1, 1 + P))  # (B, Q, 1 + P)
+    curvature = torch.view_as_real(at_query[..., 0].contiguous())
+    if not jacobian:
+        return curvature, None
+    jac = torch.view_as_real(at_query[..., 1:].contiguous())  # (B, Q, P, 2)
+    return curvature, jac.transpose(-1, -2).reshape(B, Q, 2, h, 3)
