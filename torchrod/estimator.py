@@ -54,7 +54,7 @@ from .uncertainty import CONDITION_LIMIT, force_uncertainty
 __all__ = ["DEFAULT_LBFGS", "EstimateResult", "Estimator", "EstimatorOptions"]
 
 DEFAULT_LBFGS = LBFGSOptions(
-    max_iter=50, history_size=10, lr=1.0, tolerance_grad=1e-9, tolerance_change=1e-12
+    max_iter=30, history_size=10, lr=1.0, tolerance_grad=1e-9, tolerance_change=1e-12
 )
 """Refinement settings. Losses are whitened and scaled (module docstring): the gradient tolerance is on the
 whitened gradient divided by alpha (at most its starting 1-norm), i.e. the distance to the optimum in 1/m of
@@ -100,7 +100,7 @@ class EstimatorOptions:
     significance: float = 0.05
     noise_floor: float = 0.01
     lbfgs: LBFGSOptions = DEFAULT_LBFGS
-    starts: int = 3
+    starts: int = 2
     grid_step: float | None = None
     start_separation: float | None = None
     max_step_angle: float = ESTIMATION_STEP_ANGLE
@@ -181,6 +181,17 @@ class EstimateResult:
 
     def __len__(self) -> int:
         return self.batch_size
+
+    def __getitem__(self, index: int | slice | torch.Tensor) -> EstimateResult:
+        """Select readings along the batch dimension (an int keeps a batch of one)."""
+        if isinstance(index, int):
+            index = slice(index, index + 1 if index != -1 else None)
+        fields = {
+            f.name: getattr(self, f.name)[index]
+            for f in dataclasses.fields(self)
+            if getattr(self, f.name) is not None
+        }
+        return EstimateResult(**fields)
 
     def to_records(self, ids: Sequence[Any] | None = None) -> list[dict[str, Any]]:
         """One JSON-ready dict per reading (the ``torchrod estimate`` output, without ``time_ms``).
@@ -391,14 +402,24 @@ class Estimator:
         v_star = res.x
         row_loss = res.loss
 
-        # ---- best start per (reading, count), then the count
+        # ---- best start per (reading, count), then the count. Among starts whose losses differ by less than
+        # what the stopping rule ignores, a converged one is preferred (others may have been stopped early).
         C_ = len(counts)
         best_loss = torch.full((B, C_), float("inf"), dtype=dtype, device=device)
         best_row = torch.zeros(B, C_, dtype=torch.long, device=device)
+        slack = (
+            10.0
+            * opts.decrement_tolerance
+            * problem.sigma2(
+                torch.nan_to_num(row_loss, posinf=0.0).sqrt().unsqueeze(1),
+                torch.arange(row_loss.shape[0], device=device),
+            )
+        )
+        key = row_loss - slack * problem.cur_done.to(dtype)
         for ci, h in enumerate(counts):
             rows_h = (row_count == h).nonzero().squeeze(1).view(-1, B)  # (S, B)
             lh = row_loss[rows_h]
-            j = lh.argmin(dim=0)
+            j = key[rows_h].argmin(dim=0)
             best_loss[:, ci] = lh.gather(0, j.unsqueeze(0)).squeeze(0)
             best_row[:, ci] = rows_h.gather(0, j.unsqueeze(0)).squeeze(0)
         fit_losses = torch.where(torch.isinf(best_loss), torch.full_like(best_loss, float("nan")), best_loss)
@@ -844,56 +865,68 @@ class _Problem:
 
     # ------------------------------------------------------------------ L-BFGS
     def refine(self, v0: torch.Tensor) -> RefineResult:
-        """One batched L-BFGS call over all rows, whitened at ``v0`` (module docstring). Rows already converged
-        (or whose reading is settled) stop at once. Returns the result in terms of the unknowns v: ``x`` (R, P)
-        and ``loss`` (R,) the sum of squared residuals [1/m^2]."""
+        """One batched L-BFGS call over the rows still open (not converged, reading not settled), whitened at ``v0``
+        (module docstring); closed rows keep ``v0`` with zero iterations. Returns the result for all R rows in
+        terms of the unknowns v: ``x`` (R, P) and ``loss`` (R,) the sum of squared residuals [1/m^2]."""
         R, P, dtype, device = self.R, self.P, self.dtype, self.device
         all_rows = torch.arange(R, device=device)
         polished = getattr(self, "_polished", None)
         if polished is not None and polished[0] is v0:
-            _, r0, J0, open0 = polished
+            _, r_all, J_all, open_all = polished
         else:
-            r0, J0 = self.residual(v0, all_rows)
-            dec0, s20 = self.decrement(r0, J0, all_rows, v0)
-            self._reset_state(r0, dec0, dec0 <= self.opts.decrement_tolerance * s20)
-            open0 = ~self.cur_done
-        open0 = open0 & ~self.settled(open0)[self.reading]
+            r_all, J_all = self.residual(v0, all_rows)
+            dec0, s20 = self.decrement(r_all, J_all, all_rows, v0)
+            self._reset_state(r_all, dec0, dec0 <= self.opts.decrement_tolerance * s20)
+            open_all = ~self.cur_done
+        open_all = open_all & ~self.settled(open_all)[self.reading]
+        zeros = torch.zeros(R, dtype=torch.long, device=device)
+        result = RefineResult(
+            x=v0,
+            loss=r_all.square().sum(-1),
+            grad=torch.zeros_like(v0),
+            converged=self.cur_done.clone(),
+            iterations=zeros,
+            evaluations=zeros,
+        )
+        idx = open_all.nonzero().squeeze(1)  # the open rows, in the L-BFGS batch's order
+        n = idx.shape[0]
+        if n == 0:
+            return result
+        r0, J0, w0 = r_all[idx], J_all[idx], v0[idx]
         # Forces pinned on a kink at the start stay there (L-BFGS knows no kinks): their s is held fixed.
-        _, pinned = self.kinks(r0, J0, all_rows, v0)
-        free = torch.ones(R, self.H, 3, dtype=dtype, device=device)
+        _, pinned = self.kinks(r0, J0, idx, w0)
+        free = torch.ones(n, self.H, 3, dtype=dtype, device=device)
         free[..., 0] = (~pinned).to(dtype)
-        free = free.view(R, P)
+        free = free.view(n, P)
         J0 = J0 * free.unsqueeze(1)
-        A = self._normal(J0, all_rows, _DAMPING)
+        A = self._normal(J0, idx, _DAMPING)
         C, info = torch.linalg.cholesky_ex(A)
         if bool((info != 0).any()):  # numerically indefinite rows: fall back to the diagonal
             C = torch.where(
                 (info != 0).view(-1, 1, 1), torch.diag_embed(A.diagonal(dim1=1, dim2=2).sqrt()), C
             )
         eye = torch.eye(P, dtype=dtype, device=device)
-        T = torch.linalg.solve_triangular(C.transpose(1, 2), eye.expand(R, P, P), upper=True)  # T^T A T = I
+        T = torch.linalg.solve_triangular(C.transpose(1, 2), eye.expand(n, P, P), upper=True)  # T^T A T = I
         g_white = (T.transpose(1, 2) @ (J0.transpose(1, 2) @ r0.unsqueeze(-1))).squeeze(-1)
         alpha = g_white.abs().sum(dim=1).clamp(min=1.0)
-        T = T * alpha.view(R, 1, 1)
+        T = T * alpha.view(n, 1, 1)
         weight = 1.0 / (alpha * alpha)
         first = {"pending": True}
 
-        def objective(y: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        def objective(y: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
             yd = y.detach()
-            v = v0[rows] + free[rows] * (T[rows] @ yd.unsqueeze(-1)).squeeze(-1)
-            c = weight[rows]
-            if first["pending"] and rows.shape[0] == R and not bool(yd.any()):
-                # The start: every row already evaluated; closed rows report a zero gradient (converged).
+            rows = idx[local]
+            v = w0[local] + free[local] * (T[local] @ yd.unsqueeze(-1)).squeeze(-1)
+            c = weight[local]
+            if first["pending"] and local.shape[0] == n and not bool(yd.any()):
+                first["pending"] = False  # the start: already evaluated
+                r, J = r0, J0
+            else:
                 first["pending"] = False
-                grad_v = (J0.transpose(1, 2) @ r0.unsqueeze(-1)).squeeze(-1)
-                grad_y = c.unsqueeze(1) * (T.transpose(1, 2) @ grad_v.unsqueeze(-1)).squeeze(-1)
-                grad_y = torch.where(open0.unsqueeze(1), grad_y, torch.zeros_like(grad_y))
-                return 0.5 * c * r0.square().sum(-1) + ((y - yd) * grad_y).sum(-1)
-            first["pending"] = False
-            r, J = self.residual(v, rows)
+                r, J = self.residual(v, rows)
             sq = r.square().sum(-1)
-            grad_v = (J.transpose(1, 2) @ r.unsqueeze(-1)).squeeze(-1) * free[rows]
-            grad_y = c.unsqueeze(1) * (T[rows].transpose(1, 2) @ grad_v.unsqueeze(-1)).squeeze(-1)
+            grad_v = (J.transpose(1, 2) @ r.unsqueeze(-1)).squeeze(-1) * free[local]
+            grad_y = c.unsqueeze(1) * (T[local].transpose(1, 2) @ grad_v.unsqueeze(-1)).squeeze(-1)
             # Stopping: the row's own test (GN decrement), or its reading settled. A zero gradient ends the row
             # through L-BFGS's gradient test.
             dec, sigma2 = self.decrement(r, J, rows, v)
@@ -904,8 +937,15 @@ class _Problem:
             grad_y = torch.where(stop.unsqueeze(1), torch.zeros_like(grad_y), grad_y)
             return 0.5 * c * sq + ((y - yd) * grad_y).sum(-1)
 
-        res = lbfgs(objective, torch.zeros(R, P, dtype=dtype, device=device), self.opts.lbfgs)
-        x = v0 + free * (T @ res.x.unsqueeze(-1)).squeeze(-1)
+        res = lbfgs(objective, torch.zeros(n, P, dtype=dtype, device=device), self.opts.lbfgs)
+        x = w0 + free * (T @ res.x.unsqueeze(-1)).squeeze(-1)
         loss = 2.0 * res.loss / weight
         loss = torch.where(torch.isfinite(loss), loss, torch.full_like(loss, float("inf")))
-        return dataclasses.replace(res, x=x, loss=loss)
+        return RefineResult(
+            x=result.x.index_copy(0, idx, x),
+            loss=result.loss.index_copy(0, idx, loss),
+            grad=result.grad,
+            converged=result.converged.index_copy(0, idx, res.converged),
+            iterations=zeros.index_copy(0, idx, res.iterations),
+            evaluations=zeros.index_copy(0, idx, res.evaluations),
+        )
