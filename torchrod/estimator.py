@@ -80,6 +80,7 @@ _DAMPING = 1e-3  # relative damping of the whitening matrix
 _MAX_DPHI = 10.0  # largest force change per polish step, in units of EI / L^2
 _MAX_DZ = 0.5  # largest change of z per polish step [rad]
 _MAX_STEPS = 12  # cap on integrator steps per segment while fitting (far-off trial points need no accuracy)
+_GROUP_ROWS = 256  # rows from which a residual evaluation marches each force count separately
 _KINK = 1e-5  # [m] a location this close to a grating sits on the loss's kink (see _Problem.decrement)
 
 
@@ -579,16 +580,18 @@ class _Problem:
         z = vv[..., 0]
         s = 0.5 * self.L * (1.0 + torch.sin(z))
         f = vv[..., 1:] * self.f_unit
-        u, jac = curvature_and_jacobian(
-            self.query,
-            s,
-            f,
-            self.L,
-            self.EI,
-            mask=self.fmask[rows],
-            max_step_angle=self.opts.max_step_angle,
-            max_steps=_MAX_STEPS,
-        )  # (b, G, 2), (b, G, 2, H, 3)
+        counts = self.row_count[rows]
+        if b < _GROUP_ROWS or H == 1:
+            u, jac = self._march(s, f, self.fmask[rows])  # (b, G, 2), (b, G, 2, H, 3)
+        else:
+            # Large batches: march each count with its own forces only (no padded events or tangents).
+            u = s.new_empty(b, G, 2)
+            jac = s.new_zeros(b, G, 2, H, 3)
+            for h in counts.unique().tolist():
+                at = (counts == h).nonzero().squeeze(1)
+                u_h, jac_h = self._march(s[at, :h], f[at, :h], None)
+                u[at] = u_h
+                jac[at, :, :, :h] = jac_h
         gm = self.gmask[self.reading[rows]]
         r = (u - self.u_meas[self.reading[rows]]) * gm
         dsdz = 0.5 * self.L * torch.cos(z)
@@ -596,6 +599,22 @@ class _Problem:
         chain = torch.stack((dsdz, unit, unit), dim=-1)  # (b, H, 3)
         J = jac * chain.view(b, 1, 1, H, 3) * gm.unsqueeze(-1).unsqueeze(-1)
         return r.reshape(b, 2 * G), J.reshape(b, 2 * G, self.P)
+
+    def _march(
+        self, s: torch.Tensor, f: torch.Tensor, mask: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        u, jac = curvature_and_jacobian(
+            self.query,
+            s,
+            f,
+            self.L,
+            self.EI,
+            mask=mask,
+            max_step_angle=self.opts.max_step_angle,
+            max_steps=_MAX_STEPS,
+        )
+        assert jac is not None
+        return u, jac
 
     def _normal(self, J: torch.Tensor, rows: torch.Tensor, damping: torch.Tensor | float) -> torch.Tensor:
         A = J.transpose(1, 2) @ J
@@ -630,6 +649,7 @@ class _Problem:
             ((s.unsqueeze(-1) - self.query).abs() < _KINK) & present & self.fmask[rows].unsqueeze(-1)
         )  # (b, H, G)
         if not bool(near.any()):
+            self._last_slopes = None
             return J, torch.zeros(b, H, dtype=torch.bool, device=v.device)
         f = vv[..., 1:] * self.f_unit
         dsdz = 0.5 * self.L * torch.cos(z)
@@ -645,6 +665,7 @@ class _Problem:
         g_prox = (prox * rr).sum((1, 2))  # (b, H): d(loss/2)/dz from the proximal side
         g_dist = (dist * rr).sum((1, 2))
         on = near.any(-1)
+        self._last_slopes = (g_prox, g_dist, near)
         pinned = on & (g_prox <= 0) & (g_dist >= 0)
         use_dist = on & ~pinned & ((g_dist < 0) & ((g_prox <= 0) | (-g_dist > g_prox)))
         new_col = torch.where(use_dist.unsqueeze(1).unsqueeze(1), dist, prox)
@@ -717,12 +738,14 @@ class _Problem:
         self.cur_hopeless = self.cur_hopeless.index_copy(0, rows, self._hopeless(loss, dec, rows))
 
     def _hopeless(self, loss: torch.Tensor, dec: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-        """Rows whose loss, even lowered by the Gauss-Newton prediction, stays above twice the misfit limit of
-        their count (only with known critical values)."""
+        """Rows stagnating far from acceptable: the Gauss-Newton prediction ``dec`` (no location held) would not
+        even halve their loss, and the loss it leaves stays above twice the misfit limit of their count (only with
+        known critical values). Such a fit sits near a poor local minimum; it counts as final for settlement."""
         if self.misfit is None:
             return torch.zeros_like(loss, dtype=torch.bool)
         limit = self.misfit.reshape(-1)[self.cell[rows]]
-        return (loss - dec) > 2.0 * limit.clamp(min=0.0)
+        left = loss - dec
+        return (left > 2.0 * limit.clamp(min=0.0)) & (left > 0.5 * loss)
 
     def settled(self, running: torch.Tensor) -> torch.Tensor:
         """(B,) bool: readings whose count is decided whatever their still-running fits do (known sigma or the
@@ -777,22 +800,48 @@ class _Problem:
         running = torch.ones(R, dtype=torch.bool, device=device)
         tol = self.opts.decrement_tolerance
         self._reset_state(r, torch.full_like(loss, float("inf")), torch.zeros_like(running))
+        # Kink probes: a fit that converges onto a kink that is a local minimum (the loss rises on both sides) is
+        # restarted once from the middle of the grating interval on the gentler side, its solution kept aside; the
+        # better of the two is kept. A kink is a trap smooth descent cannot leave, the true minimum may be beyond.
+        probed = torch.zeros(R, dtype=torch.bool, device=device)
+        best_v, best_r, best_J, best_loss = v, r, J, torch.full_like(loss, float("inf"))
         for it in range(iterations + 1):
             idx = running.nonzero().squeeze(1)
             if idx.numel() == 0:
                 break
             Ji, ri, vi = J[idx], r[idx], v[idx]
             Jk, vmin = self.kinks(ri, Ji, idx, vi)
+            slopes = self._last_slopes
             st = stuck[idx] & self._near_kink(vi, idx)
             _, dec = self._gn_step(Jk, ri, idx, 1e-9, st | vmin)
             small = dec <= tol * self.sigma2(ri, idx)
             done = small & ~(st & ~vmin).any(1)
-            self._update_state(idx, loss[idx], dec, done)
+            probe = done & vmin.any(1) & ~probed[idx] & (it < iterations)
+            if bool(probe.any()):
+                at = probe.nonzero().squeeze(1)
+                rows_p = idx[at]
+                best_v = best_v.index_copy(0, rows_p, vi[at])
+                best_r = best_r.index_copy(0, rows_p, ri[at])
+                best_J = best_J.index_copy(0, rows_p, Ji[at])
+                best_loss = best_loss.index_copy(0, rows_p, loss[rows_p])
+                v_probe = self._probe_point(vi[at], vmin[at], slopes, at, rows_p)
+                r_p, J_p = self.residual(v_probe, rows_p)
+                v = v.index_copy(0, rows_p, v_probe)
+                r = r.index_copy(0, rows_p, r_p)
+                J = J.index_copy(0, rows_p, J_p)
+                loss = loss.index_copy(0, rows_p, r_p.square().sum(-1))
+                probed = probed.index_fill(0, rows_p, True)
+                stuck = stuck.index_fill(0, rows_p, False)
+                lam = lam.index_fill(0, rows_p, 1e-3)
+                done = done & ~probe
+                taken = taken.index_add(0, rows_p, torch.ones_like(rows_p))
+            _, dec_free = self._gn_step(Jk, ri, idx, 1e-9, vmin)
+            self._update_state(idx, torch.minimum(loss[idx], best_loss[idx]), dec_free, done)
             running = running.index_copy(0, idx, ~done & (lam[idx] < 1e9))
             running = running & ~self.settled(running)[self.reading]
             if it == iterations:
                 break
-            keep = running[idx]
+            keep = running[idx] & ~probe  # probed rows start afresh next iteration
             idx, Jk, vmin, st, ri, vi, Ji, small = (x[keep] for x in (idx, Jk, vmin, st, ri, vi, Ji, small))
             if idx.numel() == 0:
                 break
@@ -836,8 +885,46 @@ class _Problem:
             stuck = stuck.index_copy(0, idx, torch.where(better.unsqueeze(1), st | landed, stuck[idx]))
             lam = lam.index_copy(0, idx, torch.where(better, lam[idx] / 3.0, lam[idx] * 4.0).clamp(1e-9, 1e9))
             taken = taken.index_add(0, idx, torch.ones_like(idx))
+        # Probed rows whose restart did no better return to their kink solution (converged there).
+        back = probed & (best_loss <= loss)
+        if bool(back.any()):
+            at = back.nonzero().squeeze(1)
+            v = v.index_copy(0, at, best_v[at])
+            r = r.index_copy(0, at, best_r[at])
+            J = J.index_copy(0, at, best_J[at])
+            running = running.index_fill(0, at, False)
+            self.cur_done = self.cur_done.index_fill(0, at, True)
+            self.cur_loss = self.cur_loss.index_copy(0, at, best_loss[at])
+            self.cur_dec = self.cur_dec.index_fill(0, at, 0.0)
         self._polished = (v, r, J, running)
         return v, taken
+
+    def _probe_point(
+        self, v: torch.Tensor, pinned: torch.Tensor, slopes: tuple, at: torch.Tensor, rows: torch.Tensor
+    ) -> torch.Tensor:
+        """v (b, P) with its first pinned force moved off its grating to the middle of the neighbouring interval on
+        the side where the loss rises more gently (``slopes``: the one-sided slopes of :meth:`kinks`)."""
+        b = v.shape[0]
+        g_prox, g_dist, _ = (x[at] for x in slopes)
+        first = pinned & (pinned.cumsum(1) == 1)  # (b, H)
+        vv = v.view(b, self.H, 3).clone()
+        s = 0.5 * self.L * (1.0 + torch.sin(vv[..., 0]))
+        q = self.query
+        present = self.mask[self.reading[rows]]  # (b, G)
+        inf = torch.full_like(s.unsqueeze(-1).expand(-1, -1, q.shape[0]), float("inf"))
+        above = torch.where(present.unsqueeze(1) & (q > s.unsqueeze(-1) + _KINK), q.expand_as(inf), inf).amin(
+            -1
+        )
+        below = torch.where(
+            present.unsqueeze(1) & (q < s.unsqueeze(-1) - _KINK), q.expand_as(inf), -inf
+        ).amax(-1)
+        above = torch.where(torch.isfinite(above), above, torch.full_like(s, self.L))
+        below = torch.where(torch.isfinite(below), below, torch.zeros_like(s))
+        distal = g_dist.abs() <= g_prox.abs()
+        target = torch.where(distal, 0.5 * (s + above), 0.5 * (s + below))
+        z_new = torch.asin((2.0 * target / self.L - 1.0).clamp(-1.0, 1.0))
+        vv[..., 0] = torch.where(first, z_new, vv[..., 0])
+        return vv.view(b, self.P)
 
     def _step_fraction(
         self, v: torch.Tensor, step: torch.Tensor, rows: torch.Tensor
