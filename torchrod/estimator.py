@@ -173,7 +173,8 @@ class EstimateResult:
         num_forces: (B,) long, the chosen count.
         loss: (B,) loss of the chosen fit: sum over present gratings of squared residuals [1/m^2].
         converged: (B,) bool, the chosen fit's refinement stopped on a tolerance.
-        iterations: (B,) long, L-BFGS iterations of the chosen fit; evaluations: (B,) long, its evaluations.
+        iterations: (B,) long, Levenberg-Marquardt polish steps plus L-BFGS iterations of the chosen fit;
+            evaluations: (B,) long, its forward-model evaluations (polish steps plus L-BFGS evaluations).
         std: (B, W, 3) standard deviations of (s [m], f_x [N], f_y [N]); NaN for padding.
         poorly_determined: (B,) bool (:mod:`torchrod.uncertainty`).
         losses_by_count: (B, W) best loss of each count h = 1..W [1/m^2]; NaN where h was not fitted.
