@@ -309,3 +309,22 @@ def test_input_checks_and_dtype(rod):
     records = res32.to_records(["a"])
     assert records[0]["id"] == "a" and records[0]["num_forces"] == 1
     assert set(records[0]["forces"][0]) == {"s", "fx", "fy", "magnitude", "std_s", "std_fx", "std_fy"}
+
+
+def test_warm_start_hook_supplies_starts(rod):
+    """A warm start (model coordinates) is asked once per call, for every count, and its guesses are used."""
+    cases = [[(0.12, -0.9, 1.1), (0.25, 0.6, -0.4)]]
+    truth = tr.PointForces.from_lists(cases)
+    u = tr.simulate(rod, truth).grating_curvature
+    calls = []
+
+    def guess(curvature, mask):
+        calls.append((tuple(curvature.shape), bool(mask.all())))
+        return {2: truth, 7: truth}  # a count that is not fitted is ignored
+
+    result = Estimator(rod, EstimatorOptions(noise=0.0, starts=1), warm_start=guess).estimate(u)
+    assert calls == [((1, rod.num_gratings, 2), True)]
+    assert result.num_forces.item() == 2
+    assert torch.allclose(result.forces.s[0, :2], truth.s[0], atol=1e-6)
+    with pytest.raises(TypeError, match="warm_start"):
+        Estimator(rod, warm_start=42)
