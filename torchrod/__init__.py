@@ -1,13 +1,23 @@
 """torchrod: where a continuum robot is touched, and how hard, from FBG curvature.
 
-The public surface: a :class:`Rod`, :class:`PointForces`, the differentiable body-frame forward model
-:func:`simulate`, and (see the submodules) the global-frame reference, estimation, training and streams.
+The public surface (SI units everywhere: m, N, Pa, 1/m):
+
+- the rod and its loads: :class:`Rod`, :mod:`presets`, :class:`PointForces`;
+- the differentiable, batched body-frame forward model: :func:`simulate`, :func:`grating_curvature`;
+- the shape: :func:`rod_shape`, :class:`Shape`, :func:`bending_angle`;
+- estimation: :class:`Estimator`, :class:`EstimatorOptions`, :class:`EstimateResult`, the batched :func:`lbfgs`;
+- submodules for the rest: :mod:`torchrod.global_bvp` (global-frame reference and the paper's baselines),
+  :mod:`torchrod.synthetic` (training sets and streams), :mod:`torchrod.calibration`, :mod:`torchrod.warm_start`,
+  :mod:`torchrod.training`, :mod:`torchrod.stream`.
 """
 
 from . import presets
 from .body_frame import Simulation, grating_curvature, simulate
+from .estimator import EstimateResult, Estimator, EstimatorOptions
 from .loads import PointForces, spread_to_nodes
+from .refine import LBFGSOptions, RefineResult, lbfgs
 from .rod import Rod, tube_bending_stiffness
+from .shape import Shape, bending_angle, rod_shape
 
 __version__ = "0.1.0"
 
@@ -20,5 +30,14 @@ __all__ = [
     "Simulation",
     "simulate",
     "grating_curvature",
+    "Shape",
+    "rod_shape",
+    "bending_angle",
+    "Estimator",
+    "EstimatorOptions",
+    "EstimateResult",
+    "lbfgs",
+    "LBFGSOptions",
+    "RefineResult",
     "__version__",
 ]
