@@ -19,6 +19,7 @@ there, and turns the forces back. That leaves the MLP one fundamental domain to 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -76,7 +77,7 @@ class NetConfig:
 
     def __post_init__(self) -> None:
         g = tuple(float(x) for x in self.relative_gratings)
-        if not g or any(not (0.0 <= x <= 1.0) for x in g) or any(b <= a for a, b in zip(g, g[1:])):
+        if not g or any(not (0.0 <= x <= 1.0) for x in g) or any(b <= a for a, b in itertools.pairwise(g)):
             raise ValueError(f"relative_gratings must increase inside [0, 1], got {list(g)}")
         object.__setattr__(self, "relative_gratings", g)
         for name in ("max_forces", "hidden", "depth"):
@@ -146,7 +147,17 @@ class WarmStartNet(nn.Module):
         self.config = config
         G, H, W = config.num_gratings, config.max_forces, config.hidden
         layers: list[nn.Module] = []
-        width = 3 * G + 1
+        width = 3 * G + 1 + (3 * (G - 2) if G >= 3 else 0)
+        # Three-point second-derivative weights at the interior gratings (non-uniform spacing), dimensionless.
+        g = torch.tensor(config.relative_gratings, dtype=torch.float64)
+        if G >= 3:
+            h1, h2 = g[1:-1] - g[:-2], g[2:] - g[1:-1]
+            weights = torch.stack((2 / (h1 * (h1 + h2)), -2 / (h1 * h2), 2 / (h2 * (h1 + h2))), dim=1)
+            spacing = float((g[-1] - g[0]) / (G - 1))
+        else:
+            weights, spacing = torch.zeros(0, 3, dtype=torch.float64), 1.0
+        self.register_buffer("stencil", weights.float(), persistent=False)
+        self._spacing2 = spacing * spacing
         for _ in range(config.depth):
             layers += [nn.Linear(width, W), nn.LayerNorm(W), nn.SiLU()]
             width = W
@@ -166,9 +177,10 @@ class WarmStartNet(nn.Module):
         # In the small-deflection regime forces are linear in the reading, so forces are predicted relative to it.
         pf = present.to(dtype)
         rms = ((xc.square().sum(-1) * pf).sum(1) / pf.sum(1).clamp(min=1.0)).sqrt().clamp(min=1e-3 * cfg.curvature_scale)
-        features = torch.cat(
-            ((xc / rms.view(-1, 1, 1)).flatten(1), pf, torch.log(rms / cfg.curvature_scale).unsqueeze(1)), dim=1
-        )  # (B, 3G + 1)
+        parts = [(xc / rms.view(-1, 1, 1)).flatten(1), pf, torch.log(rms / cfg.curvature_scale).unsqueeze(1)]
+        if cfg.num_gratings >= 3:
+            parts += list(self._load_density(xc, pf, rms))
+        features = torch.cat(parts, dim=1)  # (B, 3G + 1 + 3(G - 2))
         force_unit = (rms * (cfg.force_scale / cfg.curvature_scale)).view(-1, 1, 1)
         raw = self.out(self.body(features))
         H = cfg.max_forces
@@ -187,6 +199,23 @@ class WarmStartNet(nn.Module):
             fc = torch.stack((fc[..., 0] * sign.unsqueeze(1), fc[..., 1]), dim=-1)
             f_out.append(_rotate(fc, cos.unsqueeze(1), sin.unsqueeze(1)))
         return NetOutput(count_logits, tuple(s_out), tuple(f_out))
+
+
+    def _load_density(self, xc: torch.Tensor, pf: torch.Tensor, rms: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The distributed load the reading implies at the interior gratings, and where it is defined.
+
+        Between forces U'' = -|U|^2 U / 2 (dimensionless form), so r = U'' + |U|^2 U / 2 vanishes away from the
+        forces and peaks near each of them: counting forces becomes counting peaks. U'' is the three-point
+        difference; r is defined where a grating and both neighbours are read. Returns r h^2 / rms (B, 2(G-2)),
+        with h the mean grating spacing, and the validity (B, G-2).
+        """
+        w = self.stencil.to(xc.dtype)
+        second = w[:, 0, None] * xc[:, :-2] + w[:, 1, None] * xc[:, 1:-1] + w[:, 2, None] * xc[:, 2:]
+        mid = xc[:, 1:-1]
+        r = second + 0.5 * mid.square().sum(-1, keepdim=True) * mid
+        valid = pf[:, :-2] * pf[:, 1:-1] * pf[:, 2:]
+        r = r * valid.unsqueeze(-1) * (self._spacing2 / rms.view(-1, 1, 1))
+        return r.flatten(1), valid
 
 
 def _rotate(v: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,253 @@
+"""Training the warm-start network: the losses, a tiny run, checkpoints and resume, two-process DDP, the CLI."""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+
+import pytest
+import torch
+
+import torchrod as tr
+from torchrod.cli import main as cli_main
+from torchrod.synthetic import LoadSampler, SensorModel, SyntheticSet, generate
+from torchrod.training import (
+    TrainConfig,
+    TrainingData,
+    compute_losses,
+    evaluate_guess,
+    train,
+)
+from torchrod.warm_start import NetConfig, NetOutput, WarmStart, WarmStartGuess, load_checkpoint
+
+TINY = {
+    "batch_size": 64, "validation": 64, "hidden": 32, "depth": 2, "physics_batch": 16, "logdir": None, "progress": False
+}
+
+
+@pytest.fixture(scope="module")
+def tiny_set() -> SyntheticSet:
+    """512 simulated cases of 1 to 3 forces on the paper's rod, noiseless (training adds the noise)."""
+    return generate(tr.presets.nitinol290(), 512, sampler=LoadSampler(), sensor=SensorModel(noise=0.0), seed=5)
+
+
+@pytest.fixture(scope="module")
+def tiny(tiny_set) -> TrainingData:
+    return TrainingData.from_set(tiny_set)
+
+
+def test_training_data_are_dimensionless(tiny_set, tiny):
+    rod = tiny_set.rod
+    L, EI = rod.length, rod.bending_stiffness
+    loads = tiny_set.loads
+    assert tiny.count.tolist() == loads.count.tolist()
+    active = loads.active
+    torch.testing.assert_close(tiny.s[active], (loads.s[active] / L).float())
+    torch.testing.assert_close(tiny.f[active], (loads.f[active] * L * L / EI).float())
+    torch.testing.assert_close(tiny.clean, (tiny_set.clean * L).float())
+    # The unit rod (L = EI = 1, relative gratings) reproduces the dimensionless readings.
+    unit = tr.Rod(length=1.0, bending_stiffness=1.0, gratings=rod.relative_gratings)
+    u = tr.grating_curvature(unit, tr.PointForces(tiny.s[:8].double(), tiny.f[:8].double(), active[:8]))
+    torch.testing.assert_close(u.float(), tiny.clean[:8], rtol=1e-5, atol=1e-5)
+
+
+class _Oracle(torch.nn.Module):
+    """Outputs the given forces for the true count and something else for the other heads."""
+
+    def __init__(self, s: torch.Tensor, f: torch.Tensor, count: torch.Tensor, H: int) -> None:
+        super().__init__()
+        self.s, self.f, self.count, self.H = s, f, count, H
+
+    def forward(self, reading, mask):
+        B = reading.shape[0]
+        logits = torch.nn.functional.one_hot(self.count - 1, self.H).float() * 20.0
+        s_heads, f_heads = [], []
+        for h in range(1, self.H + 1):
+            base = torch.linspace(0.1, 0.9, h).expand(B, h).clone()
+            fb = torch.ones(B, h, 2)
+            sel = self.count == h
+            base[sel] = self.s[sel, :h]
+            fb[sel] = self.f[sel, :h]
+            s_heads.append(base)
+            f_heads.append(fb)
+        return NetOutput(logits, tuple(s_heads), tuple(f_heads))
+
+
+def test_losses_vanish_for_the_true_forces_and_not_otherwise(tiny):
+    idx = torch.arange(32)
+    s, f, count = tiny.s[idx], tiny.f[idx], tiny.count[idx]
+    reading = tiny.clean[idx].clone()
+    present = torch.ones(32, tiny.clean.shape[1], dtype=torch.bool)
+    present[::3, 5] = False
+    reading[~present] = 1e3  # garbage at missing gratings must not enter the physics loss
+    config = NetConfig.for_rod(tiny.rod, **tiny.normalisation())
+    terms = compute_losses(_Oracle(s, f, count, 3), config, reading, present, s, f, count,
+                           physics_weight=1.0, physics_batch=32)
+    assert float(terms["location"]) == 0.0 and float(terms["force"]) == 0.0
+    assert float(terms["count"]) < 1e-6
+    assert float(terms["physics"]) < 1e-6  # the rod model of the true forces reproduces the reading
+    f_wrong = f * 1.2
+    terms = compute_losses(_Oracle(s, f_wrong, count, 3), config, reading, present, s, f, count,
+                           physics_weight=1.0, physics_batch=32)
+    assert float(terms["force"]) > 0.1 and float(terms["physics"]) > 1e-3
+
+
+def test_the_physics_loss_pulls_the_forces_toward_the_reading(tiny):
+    # Gradient of the physics loss alone with respect to the predicted forces: a descent step on forces that are
+    # 20 % too large must shrink them toward the truth and lower the loss (the rod model is differentiable).
+    idx = torch.arange(16)
+    s, f, count = tiny.s[idx], tiny.f[idx], tiny.count[idx]
+    present = torch.ones(16, tiny.clean.shape[1], dtype=torch.bool)
+    config = NetConfig.for_rod(tiny.rod, **tiny.normalisation())
+    scale = torch.tensor(1.2, requires_grad=True)
+
+    def physics(k):
+        terms = compute_losses(_Oracle(s, f * k, count, 3), config, tiny.clean[idx], present, s, f, count,
+                               physics_weight=1.0, physics_batch=16)
+        return terms["physics"]
+
+    loss = physics(scale)
+    (grad,) = torch.autograd.grad(loss, scale)
+    assert float(grad) > 0
+    assert float(physics(scale.detach() - 0.05)) < float(loss.detach())
+
+
+def test_a_tiny_run_lowers_the_loss(tiny, tmp_path):
+    config = TrainConfig(epochs=8, lr=1e-2, checkpoint=str(tmp_path / "c.pt"), **TINY)
+    result = train(config, data=tiny)
+    first, last = result.history[0], result.history[-1]
+    assert last["total"] < 0.75 * first["total"]
+    assert last["location"] < first["location"] and last["force"] < first["force"]
+    assert result.step == 8 * (512 // 64) and result.epoch == 8
+    assert 0.0 <= result.metrics["count_accuracy"] <= 1.0
+
+
+def test_checkpoint_holds_what_resuming_needs_and_resume_matches_an_uninterrupted_run(tiny, tmp_path, monkeypatch):
+    import shutil
+
+    from torchrod import training
+
+    # Keep the checkpoint written after epoch 1 of a 2-epoch run: the state an interrupted run leaves behind.
+    save = training.save_checkpoint
+
+    def save_and_keep(path, net, **kwargs):
+        save(path, net, **kwargs)
+        if kwargs["epoch"] == 1:
+            shutil.copy(path, tmp_path / "epoch1.pt")
+
+    monkeypatch.setattr(training, "save_checkpoint", save_and_keep)
+    straight = train(TrainConfig(epochs=2, checkpoint=str(tmp_path / "a.pt"), **TINY), data=tiny)
+    net, meta = load_checkpoint(tmp_path / "epoch1.pt")
+    assert meta["step"] == 8 and meta["epoch"] == 1
+    assert meta["torchrod_version"] == tr.__version__
+    assert meta["config"]["curvature_scale"] == pytest.approx(tiny.normalisation()["curvature_scale"])
+    assert meta["config"]["force_scale"] == pytest.approx(tiny.normalisation()["force_scale"])
+    assert meta["train_config"]["epochs"] == 2 and "optimizer" in meta and "count_accuracy" in meta["metrics"]
+    assert WarmStart.load(tmp_path / "epoch1.pt", tiny.rod).matches(tiny.rod)
+    resumed = train(
+        TrainConfig(epochs=2, checkpoint=str(tmp_path / "b.pt"), resume=str(tmp_path / "epoch1.pt"), **TINY),
+        data=tiny,
+    )
+    assert resumed.step == straight.step == 16 and len(resumed.history) == 1
+    for (name, a), b in zip(straight.net.state_dict().items(), resumed.net.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=name)
+    # The resumed run really moved on from the checkpoint.
+    assert not torch.allclose(net.state_dict()["out.weight"], resumed.net.state_dict()["out.weight"])
+
+
+def test_evaluate_guess_measures_what_it_says():
+    truth = tr.PointForces.from_lists(
+        [[(0.10, 1.0, 0.0)], [(0.05, 0.0, 1.0), (0.20, 0.5, 0.5)], [(0.15, -1.0, 0.0)]], max_forces=3
+    )
+    probs = torch.tensor([[0.9, 0.1, 0.0], [0.2, 0.8, 0.0], [0.1, 0.3, 0.6]], dtype=torch.float64)
+    forces = {
+        1: tr.PointForces(torch.tensor([[0.102], [0.0], [0.15]], dtype=torch.float64),
+                          torch.tensor([[[1.0, 0.3]], [[0.0, 0.0]], [[-1.0, 0.0]]], dtype=torch.float64)),
+        2: tr.PointForces(torch.tensor([[0.0, 0.1], [0.051, 0.196], [0.1, 0.2]], dtype=torch.float64),
+                          torch.tensor([[[0.0, 0.0], [0.0, 0.0]], [[0.0, 1.0], [0.5, 0.4]], [[0.0, 0.0]] * 2], dtype=torch.float64)),
+        3: tr.PointForces(torch.zeros(3, 3).double(), torch.zeros(3, 3, 2).double()),
+    }
+    m = evaluate_guess(WarmStartGuess(probs, forces), truth)
+    assert m["count_accuracy"] == pytest.approx(2 / 3)
+    # Cases 0 and 2 hold one force (guessed 1 and 3), case 1 holds two (guessed 2); no case holds three.
+    assert m["count_accuracy_1"] == 0.5 and m["count_accuracy_2"] == 1.0 and "count_accuracy_3" not in m
+    assert m["cases_1"] == 2 and m["cases_2"] == 1
+    assert m["location_error_median_1"] == pytest.approx(0.001)  # median of 0.002 and 0.0 (case 2: guess for 1)
+    assert m["force_error_median_1"] == pytest.approx(0.15)
+    assert m["location_error_median_2"] == pytest.approx(0.0025)  # median of 0.001 and 0.004
+    assert m["force_error_median_2"] == pytest.approx(0.05)  # median of 0.0 and 0.1
+
+
+def test_train_config_checks_its_values():
+    with pytest.raises(ValueError, match="epochs"):
+        TrainConfig(epochs=0)
+    with pytest.raises(ValueError, match="missing_prob"):
+        TrainConfig(missing_prob=1.0)
+    with pytest.raises(ValueError, match="device"):
+        TrainConfig(device="tpu")
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _ddp_worker(rank: int, world: int, port: int, folder: str, data_path: str) -> None:
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
+        LOCAL_RANK=str(rank), LOCAL_WORLD_SIZE=str(world),
+    )
+    data = TrainingData.from_set(SyntheticSet.load(data_path))
+    config = TrainConfig(epochs=2, checkpoint=os.path.join(folder, "ddp.pt"), threads=1, device="cpu", **TINY)
+    result = train(config, data=data)
+    torch.save({"state": result.net.state_dict(), "step": result.step}, os.path.join(folder, f"rank{rank}.pt"))
+
+
+@pytest.mark.slow
+def test_two_processes_with_ddp_end_with_identical_weights(tiny_set, tmp_path):
+    import torch.multiprocessing as mp
+
+    data_path = str(tmp_path / "tiny.npz")
+    tiny_set.save(data_path)
+    ctx = mp.start_processes(_ddp_worker, args=(2, _free_port(), str(tmp_path), data_path), nprocs=2,
+                             join=False, start_method="spawn")
+    deadline = time.monotonic() + 120.0
+    try:
+        while not ctx.join(timeout=1.0):
+            assert time.monotonic() < deadline, "two-process training did not finish within 120 s"
+    finally:
+        for p in ctx.processes:
+            if p.is_alive():
+                p.kill()
+    a, b = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
+    # 512 cases over 2 processes in batches of 64: 4 steps per epoch on each.
+    assert a["step"] == b["step"] == 8
+    for name, value in a["state"].items():
+        assert torch.equal(value, b["state"][name]), name
+    net, meta = load_checkpoint(tmp_path / "ddp.pt")  # rank 0 saved the checkpoint
+    assert meta["step"] == 8
+    for name, value in net.state_dict().items():
+        assert torch.equal(value, a["state"][name]), name
+
+
+def test_cli_trains_logs_and_saves(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    ckpt, logs = tmp_path / "ws.pt", tmp_path / "logs"
+    status = cli_main([
+        "train", "--generate", "256", "--validation", "32", "--epochs", "1", "--batch-size", "64",
+        "--hidden", "16", "--depth", "1", "--log-every", "1", "--physics-batch", "8", "--logdir", str(logs),
+        "--checkpoint", str(ckpt), "--quiet",
+    ])
+    assert status == 0
+    ws = WarmStart.load(ckpt, tr.presets.nitinol290())
+    assert ws.meta["step"] == 4
+    events = EventAccumulator(str(logs))
+    events.Reload()
+    scalars = set(events.Tags()["scalars"])
+    assert {"train/loss_total", "train/loss_physics", "train/lr", "val/count_accuracy"} <= scalars
+    assert any(t.startswith("val/location_error_median_mm") for t in scalars)
+    assert any(t.startswith("val/force_error_median") for t in scalars)
+    assert "val/fits" in events.Tags()["images"]
