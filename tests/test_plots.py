@@ -1,0 +1,124 @@
+"""Figures (torchrod.plots) and ``torchrod plot``: files written, PNG, and the numbers the figures show."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import torchrod as tr
+from torchrod import plots
+from torchrod.cli import main
+
+PNG = b"\x89PNG\r\n\x1a\n"
+DATA = Path(__file__).resolve().parents[1] / "data"
+
+
+def _is_png(path: Path) -> bool:
+    data = path.read_bytes()
+    return data[:8] == PNG and len(data) > 5_000
+
+
+def _residual_bars(fig) -> np.ndarray:
+    ax = next(a for a in fig.axes if a.get_title().startswith("residuals"))
+    return np.array([p.get_height() for p in ax.patches])
+
+
+def test_reading_figure_with_the_true_forces_fits_exactly_on_a_biased_rod(tmp_path):
+    rod = tr.presets.nitinol290(calibrated=True)
+    reported = np.array([[0.12, 0.5, -0.2], [0.24, -0.1, 0.3]])
+    model = tr.PointForces(
+        torch.from_numpy(reported[None, :, 0] - rod.location_bias),
+        torch.from_numpy(reported[None, :, 1:].copy()),
+    )
+    u = tr.grating_curvature(rod, model)[0].numpy()
+    fig = plots.reading_figure(rod, u.tolist(), reported, truth=reported, title="exact")
+    # The figure maps reported locations back to the model's (reported = model + bias): no residual left.
+    bars = _residual_bars(fig)
+    assert bars.shape == (2 * rod.num_gratings,) and np.abs(bars).max() < 1e-9
+    # A wrong estimate leaves residuals, and a missing grating (None) is drawn as no bar (NaN), not as zero.
+    u_missing = u.tolist()
+    u_missing[3] = None
+    fig2 = plots.reading_figure(rod, u_missing, reported[:1])
+    bars2 = _residual_bars(fig2)
+    assert np.isnan(bars2[[3, rod.num_gratings + 3]]).all()
+    assert np.nanmax(np.abs(bars2)) > 0.1
+    path = plots.save(fig, tmp_path / "sub" / "r.png")
+    assert _is_png(Path(path))
+    # No forces at all: a straight rod, still a figure.
+    assert _is_png(Path(plots.save(plots.reading_figure(rod, u.tolist(), []), tmp_path / "empty.png")))
+    with pytest.raises(ValueError, match="G, 2"):
+        plots.reading_figure(rod, u[:3].tolist(), reported)
+
+
+def _write(path: Path, rows) -> Path:
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return path
+
+
+def test_plot_command_one_figure_per_reading_and_by_id(tmp_path, capsys):
+    rod = tr.presets.nitinol290()
+    forces = [[(0.15, 0.4, 0.1)], [(0.1, -0.3, 0.2), (0.24, 0.2, 0.2)], [(0.2, 0.0, -0.6)]]
+    u = tr.grating_curvature(rod, tr.PointForces.from_lists(forces))
+    readings = _write(
+        tmp_path / "r.jsonl", [{"id": f"case/{k}", "curvature": u[k].tolist()} for k in range(3)]
+    )
+    truth = _write(
+        tmp_path / "t.jsonl",
+        [
+            {"id": f"case/{k}", "forces": [{"s": s, "fx": fx, "fy": fy} for s, fx, fy in f]}
+            for k, f in enumerate(forces)
+        ],
+    )
+    assert main(["estimate", "--rod", "nitinol290", "--noise", "0.01", "--quiet", str(readings)]) == 0
+    estimates = tmp_path / "e.jsonl"
+    estimates.write_text(capsys.readouterr().out)
+    out = tmp_path / "figs"
+    assert main(["plot", str(readings), str(estimates), "--truth", str(truth), "--out", str(out)]) == 0
+    written = capsys.readouterr().out.split()
+    names = sorted(Path(p).name for p in written)
+    assert names == ["reading-case_0.png", "reading-case_1.png", "reading-case_2.png"]
+    assert all(_is_png(Path(p)) for p in written)
+    # --id: one figure, to a file name.
+    one = tmp_path / "one.png"
+    assert main(["plot", str(readings), str(estimates), "--id", "case/1", "--out", str(one)]) == 0
+    assert capsys.readouterr().out.strip() == str(one) and _is_png(one)
+    # Several figures cannot go to one file; an unknown id is an error.
+    assert main(["plot", str(readings), str(estimates), "--out", str(tmp_path / "x.png")]) == 2
+    assert "one file" in capsys.readouterr().err
+    assert main(["plot", str(readings), str(estimates), "--id", "nope", "--out", str(out)]) == 2
+    assert "no reading with id" in capsys.readouterr().err
+
+
+def test_plot_command_stream_against_time_with_truth(tmp_path, capsys):
+    lines = (DATA / "example_stream.jsonl").read_text().splitlines()[:12]
+    readings = tmp_path / "s.jsonl"
+    readings.write_text("\n".join(lines) + "\n")
+    assert main(["estimate", "--rod", "nitinol290", "--noise", "0.1", "--quiet", str(readings)]) == 0
+    estimates = tmp_path / "e.jsonl"
+    estimates.write_text(capsys.readouterr().out)
+    out = tmp_path / "stream"
+    args = [
+        "plot",
+        str(readings),
+        str(estimates),
+        "--truth",
+        str(DATA / "example_stream_truth.jsonl"),
+        "--out",
+    ]
+    assert main(args + [str(out)]) == 0
+    written = [Path(p) for p in capsys.readouterr().out.split()]
+    assert [p.name for p in written] == ["stream.png"] and _is_png(written[0])
+    # The stream figure holds one point per estimated force, at the readings' times.
+    est = [json.loads(x) for x in estimates.read_text().splitlines()]
+    t = [json.loads(x)["t"] for x in lines]
+    fig = plots.stream_figure(t, [[(f["s"], f["fx"], f["fy"]) for f in e["forces"]] for e in est])
+    line = fig.axes[0].get_lines()[0]
+    assert len(line.get_xdata()) == sum(len(e["forces"]) for e in est)
+    assert set(line.get_xdata()) <= set(t)
+    # A reading of the stream by id (its truth drawn too).
+    assert main(args + [str(tmp_path / "f3.png"), "--id", "f000003"]) == 0
+    assert _is_png(tmp_path / "f3.png")
