@@ -55,6 +55,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -101,7 +103,8 @@ class EstimatorOptions:
         noise_floor: [1/m] added in quadrature to sigma: the forward model's accuracy (so a noise-free reading
             is not held to a loss of exactly zero).
         lbfgs: refinement settings (:class:`torchrod.refine.LBFGSOptions`).
-        starts: grid starts per count (the best distinct candidates of the scan).
+        starts: grid starts per count (the best distinct candidates of the scan); 0 skips the scan, which needs
+            other starts for every count (a warm-start network, ``extra_starts``).
         grid_step, start_separation: grid spacing and least separation of the scan [m] (None: from the gratings,
             see :class:`torchrod.starts.GridStarts`).
         max_step_angle: accuracy of the forward model used for fitting (:mod:`torchrod.sensitivity`).
@@ -135,7 +138,7 @@ class EstimatorOptions:
                 raise ValueError(f"{name} must be an integer >= {low}, got {v!r}")
 
         integer("max_forces", 1)
-        integer("starts", 1)
+        integer("starts", 0)
         integer("polish", 0)
         if self.num_forces is not None:
             integer("num_forces", 1)
@@ -301,6 +304,55 @@ class Estimator:
         self.warm_start = warm_start
         self._grids: dict[tuple, GridStarts] = {}
 
+    @classmethod
+    def from_checkpoint(
+        cls,
+        path: str | os.PathLike,
+        rod: Rod,
+        options: EstimatorOptions | None = None,
+        *,
+        warn: Callable[[str], None] | None = None,
+    ) -> Estimator:
+        """An estimator whose starts come from a trained warm-start network.
+
+        The network is used when its grating layout (positions relative to the length) matches ``rod``'s; then
+        the grid scan is skipped (``starts=0``) unless ``options`` say otherwise. When the layout does not match
+        (or the file is missing), the estimator falls back to the start that needs no network and says so once
+        through ``warn`` (default: a :class:`UserWarning`).
+
+        Args:
+            path: a checkpoint written by :mod:`torchrod.training` (loaded with ``weights_only=True``).
+            rod: the rod to estimate on.
+            options: estimator settings; default ``EstimatorOptions(starts=0)`` with the network, else the defaults.
+        """
+        from .warm_start import WarmStart
+
+        try:
+            ws = WarmStart.load(path, rod)
+        except (ValueError, FileNotFoundError) as exc:
+            message = f"torchrod: not using the warm-start network ({exc}); starting from the grid scan instead"
+            if warn is None:
+                warnings.warn(message, UserWarning, stacklevel=2)
+            else:
+                warn(message)
+            return cls(rod, options if options is not None else EstimatorOptions())
+        return cls(rod, options if options is not None else EstimatorOptions(starts=0), warm_start=ws)
+
+    def stream(self, readings: Any, options: Any = None, **overrides: Any) -> Any:
+        """Estimate a stream of readings in order, in latency-bounded batches (:func:`torchrod.stream.stream`).
+
+        Args:
+            readings: any iterable of :class:`torchrod.stream.Reading` (or dicts with ``id``, ``curvature``,
+                optional ``t``).
+            options: :class:`torchrod.stream.StreamOptions` (batch size, latency bound).
+            **overrides: :class:`EstimatorOptions` fields for every batch.
+        Yields:
+            one :class:`torchrod.stream.StreamResult` per reading, in input order.
+        """
+        from .stream import StreamOptions, stream
+
+        return stream(self, readings, options if options is not None else StreamOptions(), **overrides)
+
     def _grid(self, options: EstimatorOptions, dtype: torch.dtype, device: torch.device) -> GridStarts:
         key = (options.grid_step, options.start_separation, dtype, device)
         grid = self._grids.get(key)
@@ -398,13 +450,26 @@ class Estimator:
                     guesses[h].append(self._check_guess(pf, B, h, shift=0.0))
         row_s, row_f, row_h = [], [], []
         for h in counts:
-            st = grid(u_meas, mask, h, opts.starts)
-            s_h, f_h = st.s, st.f  # (B, S, h), (B, S, h, 2)
+            if opts.starts == 0 and not guesses[h]:
+                raise ValueError(
+                    f"starts=0 skips the grid scan, but no other start was given for h = {h} "
+                    "(attach a warm start or pass extra_starts for every count)"
+                )
+            if opts.starts > 0:
+                st = grid(u_meas, mask, h, opts.starts)
+                s_h, f_h = st.s, st.f  # (B, S, h), (B, S, h, 2)
+            else:
+                s_h = u_meas.new_empty(B, 0, h)
+                f_h = u_meas.new_empty(B, 0, h, 2)
             for pf in guesses[h]:
                 ok = (pf.active & torch.isfinite(pf.s) & torch.isfinite(pf.f).all(-1)).all(dim=1).view(B, 1)
-                s_h = torch.cat((s_h, torch.where(ok, pf.s.to(dtype), s_h[:, 0]).unsqueeze(1)), dim=1)
+                # A guess that is unusable for a row falls back to that row's first start (or, with no scan,
+                # to the first guess: the network's, which is always finite).
+                base_s = s_h[:, 0] if s_h.shape[1] else pf.s.to(dtype).nan_to_num(0.5 * rod.length)
+                base_f = f_h[:, 0] if f_h.shape[1] else pf.f.to(dtype).nan_to_num(0.0)
+                s_h = torch.cat((s_h, torch.where(ok, pf.s.to(dtype), base_s).unsqueeze(1)), dim=1)
                 f_h = torch.cat(
-                    (f_h, torch.where(ok.unsqueeze(-1), pf.f.to(dtype), f_h[:, 0]).unsqueeze(1)), dim=1
+                    (f_h, torch.where(ok.unsqueeze(-1), pf.f.to(dtype), base_f).unsqueeze(1)), dim=1
                 )
             S = s_h.shape[1]
             s_rows = s_h.transpose(0, 1).reshape(S * B, h)
