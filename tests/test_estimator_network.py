@@ -70,3 +70,13 @@ def test_starts_zero_needs_another_start():
     extra = {h: tr.PointForces.from_lists([[(0.05 + 0.08 * i, 0.1, 0.0) for i in range(h)]]) for h in (1, 2, 3)}
     r = Estimator(rod, EstimatorOptions(starts=0)).estimate(kappa, extra_starts=extra, noise=0.0)
     assert int(r.num_forces[0]) == 1 and abs(float(r.forces.s[0, 0]) - 0.2) < 1e-4
+
+
+def test_bench_network_runs_and_prints_its_table(capsys):
+    from torchrod.cli import main
+
+    assert main(["bench", "network", "--quick", "--count", "6"]) == 0
+    out = capsys.readouterr().out
+    for k in (1, 2, 3):
+        for name in ("network", "estimator", "estimator+network"):
+            assert any(line.split()[:2] == [str(k), name] for line in out.splitlines()), (k, name)

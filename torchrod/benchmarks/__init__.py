@@ -5,7 +5,8 @@ Each suite is a module ``torchrod/benchmarks/SUITE.py`` that defines, like a com
 names ``torchrod bench`` knows (a suite whose module is missing is reported as not available).
 
 * ``forward``: speed and accuracy of the forward model (exact and node schemes, B = 1, 64, 4096).
-* ``estimate``, ``stream``, ``paper``: estimation, streams, the paper's comparison (added by their own modules).
+* ``estimate``, ``stream``, ``paper``: estimation, streams, the paper's comparison.
+* ``network``: the warm-start network alone, and the estimator with and without it.
 """
 
 from __future__ import annotations
@@ -17,4 +18,5 @@ SUITES: dict[str, str] = {
     "estimate": "force estimation speed and accuracy",
     "stream": "amortised estimation on a stream of readings",
     "paper": "the paper's speed and accuracy comparison",
+    "network": "what the warm-start network buys: the network alone, the estimator with and without it",
 }
