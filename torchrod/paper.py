@@ -78,6 +78,7 @@ __all__ = [
     "Timed",
     "accuracy",
     "accuracy_study",
+    "exact_loss",
     "fit_forces",
     "grid_start",
     "loss_maps",
@@ -364,6 +365,21 @@ def fit_forces(
         success=bool(res.success),
         seconds=seconds,
     )
+
+
+def exact_loss(rod: Rod, curvature, forces, mask=None) -> float:
+    """The curvature loss [1/m^2] of reported rows ``forces`` (h, 3) (s reported, f_x, f_y) for one reading (G, 2),
+    under torchrod's exact point-load model (locations mapped to the model's: s - ``rod.location_bias``): a common
+    yardstick for estimates made with different models."""
+    u, m = _reading(curvature, mask, rod.num_gratings)
+    rows = np.asarray(forces, dtype=np.float64).reshape(-1, 3)
+    if not len(rows):
+        return float((u[m] ** 2).sum())
+    s = np.clip(rows[:, 0] - rod.location_bias, 0.0, rod.length)
+    loads = PointForces(torch.from_numpy(s[None].copy()), torch.from_numpy(rows[None, :, 1:].copy()))
+    with torch.no_grad():
+        model = grating_curvature(rod, loads)[0].numpy()
+    return float(((model - u)[m] ** 2).sum())
 
 
 def grid_start(grid: GridStarts, curvature, h: int, mask=None) -> np.ndarray:
@@ -700,6 +716,7 @@ class SpeedTable:
         torchrod_batched: wall seconds per reading when ``batch_size`` readings are estimated in one call.
         failures: method -> q -> inner solves that did not converge (BVP only).
         batch_size: the readings of the batched call.
+        rod, readings: what was estimated (for :meth:`exact_losses`).
     """
 
     nodes: tuple[int, ...]
@@ -708,6 +725,8 @@ class SpeedTable:
     torchrod_batched: float
     failures: dict[str, dict[int, int]]
     batch_size: int = 1
+    rod: Rod | None = None
+    readings: Readings | None = None
 
     def median(self, method: str, q: int | None = None, what: str = "wall") -> float:
         """Median seconds per estimate of ``method`` (a baseline at ``q``, or ``"torchrod"``)."""
@@ -723,15 +742,32 @@ class SpeedTable:
         runs = self.torchrod if method == "torchrod" else self.baselines[method][q]
         return [r.forces for r in runs]
 
-    def agreement(self, a: str, b: str, q: int) -> tuple[float, float]:
-        """Largest |s_a - s_b| [m] and |f_a - f_b| [N] (vector difference) over the readings, methods ``a`` and
-        ``b`` (baselines at ``q``, or ``"torchrod"``)."""
-        ds = df = 0.0
+    def gaps(self, a: str, b: str, q: int) -> tuple[np.ndarray, np.ndarray]:
+        """Per reading, the largest |s_a - s_b| [m] and |f_a - f_b| [N] (vector difference) over paired forces of
+        methods ``a`` and ``b`` (baselines at ``q``, or ``"torchrod"``)."""
+        ds, df = [], []
         for x, y in zip(self.estimates(a, q), self.estimates(b, q)):
-            for i, j in match_forces(x, y):
-                ds = max(ds, abs(x[i, 0] - y[j, 0]))
-                df = max(df, math.hypot(x[i, 1] - y[j, 1], x[i, 2] - y[j, 2]))
-        return ds, df
+            pairs = match_forces(x, y)
+            ds.append(max((abs(x[i, 0] - y[j, 0]) for i, j in pairs), default=0.0))
+            df.append(max((math.hypot(x[i, 1] - y[j, 1], x[i, 2] - y[j, 2]) for i, j in pairs), default=0.0))
+        return np.array(ds), np.array(df)
+
+    def agreement(self, a: str, b: str, q: int) -> tuple[float, float]:
+        """Largest |s_a - s_b| [m] and |f_a - f_b| [N] over the readings (:meth:`gaps`)."""
+        ds, df = self.gaps(a, b, q)
+        return float(ds.max(initial=0.0)), float(df.max(initial=0.0))
+
+    def exact_losses(self, method: str, q: int | None = None) -> np.ndarray:
+        """(N,) each estimate's curvature loss [1/m^2] under the exact point-load model (:func:`exact_loss`)."""
+        if self.rod is None or self.readings is None:
+            raise ValueError("this table does not hold its rod and readings")
+        rd = self.readings
+        return np.array(
+            [
+                exact_loss(self.rod, rd.curvature[i], x, rd.mask[i])
+                for i, x in enumerate(self.estimates(method, q))
+            ]
+        )
 
 
 def speed_table(
@@ -782,7 +818,7 @@ def speed_table(
         mine.append(Timed(_torchrod_rows(res), wall, cpu))
     batch = readings if batch is None else batch
     _, wall, _ = _timed(estimator.estimate, batch.curvature, batch.mask)
-    return SpeedTable(tuple(nodes), baselines, mine, wall / len(batch), failures, len(batch))
+    return SpeedTable(tuple(nodes), baselines, mine, wall / len(batch), failures, len(batch), rod, readings)
 
 
 @dataclass(frozen=True)
