@@ -93,7 +93,7 @@ def test_plot_command_one_figure_per_reading_and_by_id(tmp_path, capsys):
     assert "no reading with id" in capsys.readouterr().err
 
 
-def test_plot_command_stream_against_time_with_truth(tmp_path, capsys):
+def test_plot_command_stream_against_time_with_truth(tmp_path, capsys, monkeypatch):
     lines = (DATA / "example_stream.jsonl").read_text().splitlines()[:12]
     readings = tmp_path / "s.jsonl"
     readings.write_text("\n".join(lines) + "\n")
@@ -109,9 +109,19 @@ def test_plot_command_stream_against_time_with_truth(tmp_path, capsys):
         str(DATA / "example_stream_truth.jsonl"),
         "--out",
     ]
+    seen = {}
+    original = plots.stream_figure
+
+    def spy(t, est, **kwargs):
+        seen.update(kwargs, t=t)
+        return original(t, est, **kwargs)
+
+    monkeypatch.setattr(plots, "stream_figure", spy)
     assert main(args + [str(out)]) == 0
     written = [Path(p) for p in capsys.readouterr().out.split()]
     assert [p.name for p in written] == ["stream.png"] and _is_png(written[0])
+    # Only the truth of the 12 readings plotted (the truth file covers 500), in time order.
+    assert seen["truth_t"] == sorted(seen["t"]) and len(seen["truth"]) == 12
     # The stream figure holds one point per estimated force, at the readings' times.
     est = [json.loads(x) for x in estimates.read_text().splitlines()]
     t = [json.loads(x)["t"] for x in lines]

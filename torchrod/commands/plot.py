@@ -14,7 +14,7 @@ Figures:
   forces drawn as arrows at their locations (and the true ones, dashed, when TRUTH is given), the measured and the
   fitted curvature at each grating, and the residuals; written as ``reading-ID.png``;
 * for a stream (readings with ``"t"``) without ``--id``: the estimated forces' magnitudes and locations against
-  time, with the ground truth when given; written as ``stream.png``.
+  time, with the ground truth of those readings when given; written as ``stream.png``.
 
 ``--out`` is a folder (default: the current one) or, for a single figure, a file name ending in ``.png``. The paths
 written are printed, one a line. The rod (``--rod``, a rod file or preset name; default nitinol290) must be the one
@@ -143,8 +143,12 @@ def run(args: argparse.Namespace) -> int:
                 raise ValueError(f"{args.estimates}: no estimate matches the readings")
             tt = tv = None
             if truth is not None:
+                # The truth of the readings plotted (all of it when no id matches).
+                mine = {repr(r.id) for r in readings}
+                rows = [v for key, v in truth.items() if key in mine] or list(truth.values())
                 pairs = sorted(
-                    (v.value[1] if v.value[1] is not None else math.nan, v.value[0]) for v in truth.values()
+                    ((v.value[1] if v.value[1] is not None else math.nan, v.value[0]) for v in rows),
+                    key=lambda p: p[0],
                 )
                 tt, tv = [p[0] for p in pairs], [p[1] for p in pairs]
             fig = plots.stream_figure(
