@@ -1,0 +1,481 @@
+"""Streams of readings: order and count, bad and partial readings, tracking a force that comes and goes, latency-
+bounded flushing through a pipe, Ctrl-C and end of input, bounded read-ahead; the CLI and ``torchrod bench stream``."""
+
+from __future__ import annotations
+
+import array
+import fcntl
+import json
+import math
+import os
+import select
+import signal
+import subprocess
+import sys
+import termios
+import time
+
+import pytest
+import torch
+
+import torchrod as tr
+from torchrod.cli import main
+from torchrod.stream import Reading, StreamOptions, StreamResult, StreamStats, stream
+
+NOISE = 0.05
+
+
+def _readings(rod: tr.Rod, cases: list[list[tuple[float, float, float]]], seed: int = 0) -> torch.Tensor:
+    """(T, G, 2) noisy readings [1/m] of the load cases (location, fx, fy), sigma NOISE."""
+    loads = tr.PointForces.from_lists(cases, max_forces=max(1, max(len(c) for c in cases)))
+    u = tr.simulate(rod, loads).grating_curvature
+    g = torch.Generator().manual_seed(seed)
+    return u + NOISE * torch.randn(u.shape, generator=g, dtype=u.dtype)
+
+
+def _one_force_lines(rod: tr.Rod, count: int) -> list[dict]:
+    cases = [[(0.15 + 0.002 * k, 0.3, -0.2)] for k in range(count)]
+    u = _readings(rod, cases).tolist()
+    return [{"id": f"r{k}", "t": 0.01 * k, "curvature": u[k]} for k in range(count)]
+
+
+@pytest.fixture(scope="module")
+def estimator() -> tr.Estimator:
+    return tr.Estimator(tr.presets.nitinol290(), tr.EstimatorOptions(max_forces=2, noise=NOISE))
+
+
+# ---------------------------------------------------------------------------------------------------- the API
+def test_order_count_and_bad_readings(rod, estimator):
+    good = _one_force_lines(rod, 6)
+    G = rod.num_gratings
+    holed = dict(
+        good[3],
+        id="holed",
+        curvature=[None if k in (2, 7) else r for k, r in enumerate(good[3]["curvature"])],
+    )
+    nan_list = dict(good[0], id="nan", curvature=[[math.nan, 0.0]] + good[0]["curvature"][1:])
+    items = [
+        good[0],
+        Reading(id="upstream", error="line 2: not valid JSON"),
+        {"id": "short", "curvature": good[1]["curvature"][:5]},
+        nan_list,
+        good[1],
+        {"id": "empty", "curvature": [None] * G},
+        holed,
+        {"id": "bad-t", "t": "soon", "curvature": good[2]["curvature"]},
+        Reading(id="tensor", curvature=torch.tensor(good[2]["curvature"]), t=5.0),
+        Reading(
+            id="tensor-holed",
+            curvature=torch.tensor(good[4]["curvature"]).index_fill(0, torch.tensor([5]), math.nan),
+        ),
+        "not a reading",
+        good[5],
+    ]
+    out = list(stream(estimator, items, StreamOptions(batch_size=3, max_latency=0.0)))
+    assert [r.id for r in out] == [
+        getattr(x, "id", x.get("id") if isinstance(x, dict) else None) for x in items
+    ]
+    errors = {r.id: r.error for r in out if not r.ok}
+    assert set(errors) == {"upstream", "short", "nan", "empty", "bad-t", None}
+    assert errors["upstream"] == "line 2: not valid JSON"
+    assert "5 gratings" in errors["short"] and "finite" in errors["nan"] and "all gratings" in errors["empty"]
+    assert "t must be" in errors["bad-t"] and "Reading or a dict" in errors[None]
+    for r in out:
+        if r.ok:
+            assert r.record["num_forces"] == 1 and r.estimate.num_forces.tolist() == [1]
+            (f,) = r.record["forces"]
+            assert f["s"] == pytest.approx(0.15, abs=0.03) and f["fx"] == pytest.approx(0.3, abs=0.05)
+            assert r.record["latency_ms"] >= 0 and r.latency > 0
+        else:
+            assert set(r.record) <= {"id", "error", "t"}
+    by_id = {r.id: r.record for r in out}
+    assert by_id["r0"]["t"] == 0.0 and by_id["tensor"]["t"] == 5.0
+    assert "t" not in by_id["tensor-holed"]
+    # a reading with missing gratings is the same fit as its full reading, less the missing residuals
+    full = estimator.estimate(torch.tensor([good[3]["curvature"]], dtype=torch.float64))
+    mask = torch.ones(1, G, dtype=torch.bool)
+    mask[0, [2, 7]] = False
+    masked = estimator.estimate(torch.tensor([good[3]["curvature"]], dtype=torch.float64), mask)
+    assert by_id["holed"]["loss"] == pytest.approx(float(masked.loss[0]), rel=1e-3)
+    assert by_id["holed"]["loss"] < float(full.loss[0])
+
+
+def test_source_error_comes_after_the_readings_before_it(rod, estimator):
+    lines = _one_force_lines(rod, 3)
+
+    def source():
+        yield from lines
+        raise OSError("interrogator gone")
+
+    got = []
+    with pytest.raises(OSError, match="interrogator gone"):
+        for r in stream(estimator, source(), StreamOptions(batch_size=8, max_latency=10.0)):
+            got.append(r.id)
+    assert got == ["r0", "r1", "r2"]
+
+
+def test_latency_bound_flushes_a_slow_source(rod, estimator):
+    """A source slower than the latency bound: each answer comes before the source produces the next reading but
+    one, although the batch (64) never fills."""
+    lines = _one_force_lines(rod, 5)
+    produced: list[float] = []
+
+    def slow():
+        for line in lines:
+            produced.append(time.perf_counter())
+            yield line
+            time.sleep(0.4)
+
+    answered = []
+    for r in stream(estimator, slow(), StreamOptions(batch_size=64, max_latency=0.01)):
+        answered.append((time.perf_counter(), len(produced)))
+        assert r.ok and r.batch == 1
+    assert len(answered) == 5
+    assert all(seen <= k + 2 for k, (_, seen) in enumerate(answered))
+
+
+def test_read_ahead_is_bounded(rod, estimator):
+    """A fast source (100 000 readings ready at once): the stream never takes more than a batch plus the read-ahead
+    (plus the one the reader holds) beyond what it answered."""
+    (line,) = _one_force_lines(rod, 1)
+    taken = [0]
+
+    def source():
+        for k in range(100_000):
+            taken[0] += 1
+            yield dict(line, id=k)
+
+    options = StreamOptions(batch_size=4, max_latency=0.0, read_ahead=8)
+    results = stream(estimator, source(), options)
+    try:
+        first = next(results)
+        time.sleep(0.3)
+        assert first.id == 0
+        assert taken[0] <= 4 + 8 + 1
+        for _ in range(10):
+            next(results)
+        time.sleep(0.3)
+        assert taken[0] <= 4 * math.ceil(11 / 4) + 8 + 1
+    finally:
+        results.close()
+    before = taken[0]
+    time.sleep(0.3)
+    assert taken[0] == before  # the reader thread stopped with the stream
+
+
+def test_interrupt_at_a_yield_flushes_everything_taken(rod, estimator):
+    lines = _one_force_lines(rod, 10)
+    results = stream(estimator, lines, StreamOptions(batch_size=4, max_latency=0.0, read_ahead=16))
+    got = [next(results).id]
+    time.sleep(0.2)  # the reader has queued every line by now
+    got.append(results.throw(KeyboardInterrupt()).id)
+    with pytest.raises(KeyboardInterrupt):
+        for r in results:
+            got.append(r.id)
+    assert got == [f"r{k}" for k in range(10)]
+
+
+def test_tracking_a_force_that_appears_and_vanishes(rod):
+    """A steady force at 0.22 m and a second one at 0.11 m that ramps up, stays and fades away: the stream (previous
+    solutions as starts) gets the count right on the frames where the second force is clearly present or absent,
+    with errors like the static estimator's on the same readings."""
+    T = 36
+    cases, truth = [], []
+    for k in range(T):
+        a = (0.22 - 0.0003 * k, 0.6 * math.cos(0.02 * k), 0.6 * math.sin(0.02 * k))
+        w = min(1.0, max(0.0, (k - 8) / 3)) * min(1.0, max(0.0, (28 - k) / 3))  # 0 before 8, 1 on 11..25
+        forces = [a] if w == 0 else sorted([a, (0.11 + 0.0002 * k, -0.5 * w, 0.3 * w)])
+        cases.append(forces)
+        truth.append(forces)
+    u = _readings(rod, cases, seed=3)
+    estimator = tr.Estimator(rod, tr.EstimatorOptions(max_forces=3, noise=NOISE))
+    items = [Reading(id=k, curvature=u[k], t=0.01 * k) for k in range(T)]
+    out = list(stream(estimator, items, StreamOptions(batch_size=4, max_latency=0.0)))
+    static = estimator.estimate(u).to_records()
+    clear = [k for k in range(T) if k < 8 or 11 <= k <= 25 or k >= 28]
+    right = [k for k in clear if out[k].record["num_forces"] == len(truth[k])]
+    assert len(right) >= len(clear) - 2
+
+    def errors(records):
+        stats = StreamStats()
+        for k in clear:
+            stats.add(StreamResult(records[k]["id"], None, records[k], latency=0.001), truth[k])
+        return stats
+
+    mine, ref = errors([r.record for r in out]), errors(static)
+    assert mine.count_accuracy >= ref.count_accuracy - 0.05
+    assert mine.force_error() <= 1.3 * ref.force_error() + 0.005
+    assert mine.location_error() <= 1.3 * ref.location_error() + 0.5e-3
+    assert mine.force_error() < 0.05 and mine.location_error() < 3e-3
+
+
+def test_stream_stats_quantiles():
+    stats = StreamStats()
+    for k in range(1, 101):
+        rec = {"id": k, "forces": [{"s": 0.1 + 1e-4 * k, "fx": 0.5, "fy": 0.0}]}
+        stats.add(StreamResult(k, None, rec, latency=k * 1e-3), [(0.1, 0.5 + 1e-3 * k, 0.0)])
+    stats.add(StreamResult(None, None, {"id": None, "error": "x"}, error="x"))
+    assert stats.readings == 101 and stats.errors == 1 and stats.count_accuracy == 1.0
+    assert stats.latency(0.5) == pytest.approx(0.050, rel=0.011)
+    assert stats.latency(0.99) == pytest.approx(0.099, rel=0.011)
+    assert stats.force_error() == pytest.approx(0.050, rel=0.011)
+    assert stats.location_error() == pytest.approx(0.005, rel=0.011)
+
+
+def test_options_are_checked():
+    for bad in ({"batch_size": 0}, {"read_ahead": 0}, {"max_latency": -1.0}, {"max_latency": math.inf}):
+        with pytest.raises(ValueError):
+            StreamOptions(**bad)
+
+
+# ---------------------------------------------------------------------------------------------------- the CLI
+def _line_ids(text: str) -> list:
+    return [json.loads(x).get("id") for x in text.splitlines()]
+
+
+def test_cli_jsonl_with_bad_lines(rod, tmp_path, capsys):
+    good = _one_force_lines(rod, 4)
+    lines = [
+        json.dumps(good[0]),
+        "this is not json",
+        '{"id": "nan", "curvature": ' + json.dumps(good[1]["curvature"][:13])[:-1] + ", [NaN, 0.0]]}",
+        json.dumps({"id": "short", "curvature": good[1]["curvature"][:3]}),
+        "",
+        json.dumps(dict(good[1], curvature=[None] + good[1]["curvature"][1:])),
+        json.dumps(dict(good[2], t="noon")),
+        json.dumps(good[3]),
+    ]
+    path = tmp_path / "in.jsonl"
+    path.write_text("\n".join(lines) + "\n")
+    args = [
+        "stream",
+        "--rod",
+        "nitinol290",
+        "--checkpoint",
+        "none",
+        "--noise",
+        str(NOISE),
+        "--max-forces",
+        "2",
+    ]
+    status = main([*args, "--input", str(path), "--batch-size", "2", "--summary"])
+    cap = capsys.readouterr()
+    out = [json.loads(x) for x in cap.out.splitlines()]
+    assert status == 1
+    assert [o["id"] for o in out] == ["r0", None, "nan", "short", "r1", "r2", "r3"]
+    assert [("error" in o) for o in out] == [False, True, True, True, False, True, False]
+    assert out[1]["error"].startswith("line 2: not valid JSON") and "finite" in out[2]["error"]
+    assert "3 gratings" in out[3]["error"] and "line 7: t must be a number" in out[5]["error"]
+    assert out[4]["num_forces"] == 1 and out[4]["t"] == pytest.approx(0.01)
+    assert "7 readings, 4 errors" in cap.err and "latency median" in cap.err
+
+
+def test_cli_csv_with_header_and_missing_gratings(rod, tmp_path, capsys):
+    good = _one_force_lines(rod, 3)
+    G = rod.num_gratings
+    header = ",".join(["id", "t"] + [f"{c}{k}" for k in range(G) for c in ("ux", "uy")])
+
+    def row(line, missing=()):
+        cells = [line["id"], str(line["t"])]
+        for k, (ux, uy) in enumerate(line["curvature"]):
+            cells += ["", ""] if k in missing else [repr(ux), repr(uy)]
+        return ",".join(cells)
+
+    bad_cell = row(good[1]).split(",")
+    bad_cell[5] = "abc"
+    half = row(good[1]).split(",")
+    half[4] = ""
+    rows = [
+        header,
+        row(good[0]),
+        ",".join(bad_cell),
+        row(good[1], missing=(3, 9)),
+        "x,1.0,2.0",
+        ",".join(half),
+    ]
+    rows.append(row(good[2]).replace(repr(good[2]["curvature"][6][0]), "nan", 1))
+    rows.append(row(good[2]))
+    path = tmp_path / "in.csv"
+    path.write_text("\n".join(rows) + "\n")
+    status = main(
+        [
+            "stream",
+            "--rod",
+            "nitinol290",
+            "--checkpoint",
+            "none",
+            "--noise",
+            str(NOISE),
+            "--max-forces",
+            "1",
+            "--input",
+            str(path),
+        ]
+    )
+    out = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert status == 1
+    assert [o["id"] for o in out] == ["r0", "r1", "r1", "x", "r1", "r2", "r2"]
+    assert [("error" in o) for o in out] == [False, True, False, True, True, True, False]
+    assert "curvature[1][1] must be a number" in out[1]["error"] and out[1]["error"].startswith("line 3:")
+    assert "expected 30 cells" in out[3]["error"]
+    assert "curvature[1][0] must be a number, got null" in out[4]["error"]
+    assert "curvature[6][0] must be finite" in out[5]["error"]
+    assert out[2]["forces"][0]["s"] == pytest.approx(0.152, abs=0.03) and out[2]["t"] == pytest.approx(0.01)
+    # --format jsonl refuses the CSV lines one by one
+    assert (
+        main(
+            [
+                "stream",
+                "--rod",
+                "nitinol290",
+                "--checkpoint",
+                "none",
+                "--format",
+                "jsonl",
+                "--max-forces",
+                "1",
+                "--input",
+                str(path),
+            ]
+        )
+        == 1
+    )
+    out = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert len(out) == len(rows) and all("not valid JSON" in o["error"] for o in out)
+
+
+def test_cli_truth_summary(tmp_path, capsys):
+    root = os.path.join(os.path.dirname(__file__), "..", "data")
+    stream_path = os.path.join(root, "example_stream.jsonl")
+    if not os.path.exists(stream_path):
+        pytest.skip("no shipped example stream")
+    with open(stream_path) as fh:
+        lines = fh.read().splitlines()[200:230]
+    path = tmp_path / "part.jsonl"
+    path.write_text("\n".join(lines) + "\n")
+    status = main(
+        [
+            "stream",
+            "--rod",
+            "nitinol290",
+            "--checkpoint",
+            "none",
+            "--noise",
+            "0.1",
+            "--input",
+            str(path),
+            "--summary",
+            "--truth",
+            os.path.join(root, "example_stream_truth.jsonl"),
+        ]
+    )
+    cap = capsys.readouterr()
+    assert status == 0 and len(cap.out.splitlines()) == 30
+    assert "against the truth (30 readings): count accuracy" in cap.err
+    assert "median force error" in cap.err
+
+
+def test_cli_default_checkpoint_is_refused_for_another_layout(tmp_path, capsys):
+    from torchrod.commands.stream import DEFAULT_CHECKPOINT
+
+    if not os.path.exists(DEFAULT_CHECKPOINT):
+        pytest.skip("no shipped checkpoint")
+    rod = tr.Rod(length=0.3, bending_stiffness=7e-3, gratings=(0.05, 0.1, 0.15, 0.2, 0.25))
+    rod_path = tmp_path / "rod.json"
+    rod.to_json(str(rod_path))
+    loads = tr.PointForces.from_lists([[(0.2, 0.3, 0.1)]])
+    u = tr.simulate(rod, loads).grating_curvature[0].tolist()
+    path = tmp_path / "in.jsonl"
+    path.write_text(
+        json.dumps({"id": 1, "curvature": u}) + "\n" + json.dumps({"id": 2, "curvature": u}) + "\n"
+    )
+    assert main(["stream", "--rod", str(rod_path), "--max-forces", "1", "--input", str(path)]) == 0
+    cap = capsys.readouterr()
+    assert cap.err.count("no warm-start network") == 1
+    assert [json.loads(x)["num_forces"] for x in cap.out.splitlines()] == [1, 1]
+
+
+def _unread(pipe) -> int:
+    buf = array.array("i", [0])
+    fcntl.ioctl(pipe.fileno(), termios.FIONREAD, buf)
+    return buf[0]
+
+
+def _start(*options: str) -> subprocess.Popen:
+    cmd = [
+        sys.executable,
+        "-m",
+        "torchrod",
+        "stream",
+        "--rod",
+        "nitinol290",
+        "--noise",
+        str(NOISE),
+        "--max-forces",
+        "1",
+        "--checkpoint",
+        "none",
+        "--threads",
+        "1",
+        *options,
+    ]
+    return subprocess.Popen(
+        cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1
+    )
+
+
+def _read_line(proc: subprocess.Popen, timeout: float) -> str | None:
+    """The next output line, or None if none starts within ``timeout`` (lines are written whole and flushed)."""
+    ready, _, _ = select.select([proc.stdout], [], [], timeout)
+    return proc.stdout.readline() if ready else None
+
+
+def test_cli_pipe_answers_before_the_input_ends(rod):
+    """A slow writer on stdin: every answer arrives while the input is still open (the batch of 64 never fills;
+    the latency bound closes it)."""
+    lines = _one_force_lines(rod, 4)
+    proc = _start("--max-latency-ms", "10")
+    try:
+        for line in lines:
+            proc.stdin.write(json.dumps(line) + "\n")
+            proc.stdin.flush()
+            answer = _read_line(proc, timeout=60)
+            assert answer is not None, proc.stderr.read() if proc.poll() is not None else "no answer"
+            out = json.loads(answer)
+            assert out["id"] == line["id"] and out["num_forces"] == 1
+            time.sleep(0.2)
+        assert proc.poll() is None  # still running: the input is open
+        proc.stdin.close()
+        assert proc.wait(timeout=60) == 0
+    finally:
+        proc.kill() if proc.poll() is None else None
+
+
+@pytest.mark.parametrize("how", ["end of input", "ctrl-c"])
+def test_cli_flushes_pending_readings(rod, how):
+    """Readings pending in a batch that is far from full and a latency bound of a minute are answered at the end of
+    the input, or on Ctrl-C (exit status 130), at once."""
+    lines = _one_force_lines(rod, 3)
+    proc = _start("--max-latency-ms", "60000", "--batch-size", "100")
+    try:
+        proc.stdin.write("".join(json.dumps(line) + "\n" for line in lines))
+        proc.stdin.flush()
+        deadline = time.monotonic() + 60
+        while _unread(proc.stdin) and time.monotonic() < deadline:  # until the command has read them
+            time.sleep(0.05)
+        time.sleep(0.5)
+        assert _read_line(proc, timeout=0.5) is None  # pending: nothing answered yet
+        t0 = time.monotonic()
+        if how == "end of input":
+            proc.stdin.close()
+        else:
+            proc.send_signal(signal.SIGINT)
+        status = proc.wait(timeout=30)
+        assert time.monotonic() - t0 < 20
+        out = proc.stdout.read().splitlines()
+        assert status == (0 if how == "end of input" else 130), proc.stderr.read()
+        assert [json.loads(x)["id"] for x in out] == ["r0", "r1", "r2"]
+        assert "Fatal" not in proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
