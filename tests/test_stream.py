@@ -114,6 +114,47 @@ def test_source_error_comes_after_the_readings_before_it(rod, estimator):
     assert got == ["r0", "r1", "r2"]
 
 
+class _Flaky:
+    """An estimator that fails on any batch holding a reading whose first value is 123 (as a batch can fail on one
+    reading that breaks a solver)."""
+
+    def __init__(self, inner: tr.Estimator) -> None:
+        self.inner, self.rod, self.options = inner, inner.rod, inner.options
+
+    def estimate(self, curvature, mask=None, **kwargs):
+        if bool((curvature[:, 0, 0] == 123.0).any()):
+            raise RuntimeError("solver broke")
+        return self.inner.estimate(curvature, mask, **kwargs)
+
+
+def test_a_failing_batch_is_retried_reading_by_reading(rod, estimator):
+    lines = _one_force_lines(rod, 4)
+    poison = dict(lines[1], id="poison", curvature=[[123.0, 0.0]] + lines[1]["curvature"][1:])
+    items = [lines[0], poison, lines[2], lines[3]]
+    out = list(stream(_Flaky(estimator), items, StreamOptions(batch_size=4, max_latency=1.0)))
+    assert [r.id for r in out] == ["r0", "poison", "r2", "r3"]
+    assert [r.ok for r in out] == [True, False, True, True]
+    assert out[1].error == "estimation failed: solver broke"
+    assert all(r.record["num_forces"] == 1 for r in out if r.ok)
+
+
+def test_bad_overrides_raise_at_once_and_an_unused_stream_reads_nothing(estimator):
+    taken = []
+
+    def source():
+        taken.append(1)
+        yield {}
+
+    with pytest.raises(ValueError, match="max_forces"):
+        stream(estimator, source(), max_forces=0)
+    with pytest.raises(TypeError):
+        stream(estimator, source(), no_such_option=1)
+    results = stream(estimator, source())
+    time.sleep(0.2)
+    assert taken == []
+    del results
+
+
 def test_latency_bound_flushes_a_slow_source(rod, estimator):
     """A source slower than the latency bound: each answer comes before the source produces the next reading but
     one, although the batch (64) never fills."""
@@ -479,3 +520,23 @@ def test_cli_flushes_pending_readings(rod, how):
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_bench_stream_runs_and_reports_every_way(capsys):
+    args = ["bench", "stream", "--count", "40", "--single", "3", "--paced", "20", "--pace", "400"]
+    assert main([*args, "--checkpoint", "none", "--set", "max_forces=2", "--profile"]) == 0
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if "|" in line and not line.startswith("way")]
+    assert [r.split("|")[0].strip() for r in rows] == [
+        "static, batched (B=64)",
+        "static, one at a time",
+        "stream, backlog (B<=64)",
+        "stream, paced 400 Hz",
+        "stream, one at a time",
+    ]
+    readings = [int(r.split("|")[1].split()[0]) for r in rows]
+    assert readings == [40, 3, 40, 20, 3]
+    # the stream over the same readings as the static batches agrees with them on the count
+    static, backlog = (float(rows[k].split("|")[4].split()[0].rstrip("%")) for k in (0, 2))
+    assert abs(static - backlog) <= 10.0
+    assert "max_forces=2" in out and "L-BFGS" in out

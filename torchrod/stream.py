@@ -24,6 +24,7 @@ Readings are :class:`Reading` objects or dicts with the same keys; results are :
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import queue
 import threading
@@ -231,8 +232,8 @@ class _Stream:
         self.previous: PointForces | None = None
         self.finished = False
         self.error: BaseException | None = None
+        # Started by the first ``next``: a stream that is never iterated takes nothing from its source.
         self.thread = threading.Thread(target=_reader, args=(readings, self.q, self.stop), daemon=True)
-        self.thread.start()
 
     def _take(self, entry: tuple[Any, float]) -> None:
         item, arrived = entry
@@ -277,33 +278,22 @@ class _Stream:
             self._take(entry)
 
     def solve(self, batch: Sequence[_Pending]) -> list[StreamResult]:
+        """Estimate the usable readings of ``batch`` together; one result per reading, in order."""
         good = [p for p in batch if p.tensor is not None]
-        records: list[dict[str, Any]] = []
-        result, elapsed = None, 0.0
-        if good:
-            start = time.perf_counter()
-            curvature = torch.stack([p.tensor for p in good]).to(self.device)
-            mask = torch.isfinite(curvature).all(-1)
-            curvature = torch.where(mask.unsqueeze(-1), curvature, torch.zeros((), dtype=curvature.dtype))
-            extra = self._tracking_starts(len(good))
-            result = self.estimator.estimate(curvature, mask, extra_starts=extra, **self.overrides)
-            records = result.to_records([p.reading.id for p in good])
-            elapsed = time.perf_counter() - start
-            if self.options.track:
-                self.previous = _last_solution(result)
+        start = time.perf_counter()
+        answers = self._estimate(good) if good else []
+        elapsed = time.perf_counter() - start
         done = time.perf_counter()
-        out, answers = [], iter(zip(records, range(len(records))))
+        out, answers_it = [], iter(answers)
         for p in batch:
             latency = done - p.arrived
-            if p.tensor is None:
-                rec: dict[str, Any] = {"id": p.reading.id, "error": p.error}
+            result, index, rec, error = (None, 0, None, p.error) if p.tensor is None else next(answers_it)
+            if error is not None:
+                rec = {"id": p.reading.id, "error": error}
                 if p.reading.t is not None:
                     rec["t"] = p.reading.t
-                out.append(
-                    StreamResult(p.reading.id, p.reading.t, rec, latency, p.error, len(batch), elapsed)
-                )
+                out.append(StreamResult(p.reading.id, p.reading.t, rec, latency, error, len(batch), elapsed))
                 continue
-            rec, index = next(answers)
             if p.reading.t is not None:
                 rec["t"] = p.reading.t
             rec["latency_ms"] = round(1e3 * latency, 3)
@@ -311,6 +301,25 @@ class _Stream:
                 StreamResult(p.reading.id, p.reading.t, rec, latency, None, len(good), elapsed, result, index)
             )
         return out
+
+    def _estimate(self, good: Sequence[_Pending]) -> list[tuple[Any, int, dict | None, str | None]]:
+        """(batch result, index in it, record, None) per reading; should the batched call fail, each reading alone,
+        and (None, 0, None, message) for one that fails alone too (the stream goes on)."""
+        curvature = torch.stack([p.tensor for p in good]).to(self.device)
+        mask = torch.isfinite(curvature).all(-1)
+        curvature = torch.where(mask.unsqueeze(-1), curvature, torch.zeros((), dtype=curvature.dtype))
+        try:
+            result = self.estimator.estimate(
+                curvature, mask, extra_starts=self._tracking_starts(len(good)), **self.overrides
+            )
+        except (ValueError, RuntimeError) as exc:
+            if len(good) == 1:
+                return [(None, 0, None, f"estimation failed: {exc}")]
+            return [a for k in range(len(good)) for a in self._estimate(good[k : k + 1])]
+        records = result.to_records([p.reading.id for p in good])
+        if self.options.track:
+            self.previous = _last_solution(result)
+        return [(result, k, rec, None) for k, rec in enumerate(records)]
 
     def _tracking_starts(self, B: int) -> dict[int, PointForces] | None:
         """The last solution as starts for every reading of the batch: its count h, and h - 1 without its weakest
@@ -334,16 +343,20 @@ class _Stream:
                 self.q.get_nowait()
         except queue.Empty:
             pass
-        self.thread.join(timeout=2 * _POLL)
+        if self.thread.is_alive():
+            self.thread.join(timeout=2 * _POLL)
 
 
 def _last_solution(result: Any) -> PointForces | None:
-    """The last reading's forces (reported coordinates, as ``extra_starts`` takes them) as a (1, h) start."""
-    h = int(result.num_forces[-1])
-    if h < 1 or not bool(result.converged[-1]):
+    """The forces of the batch's last converged reading (reported coordinates, as ``extra_starts`` takes them) as a
+    (1, h) start; None if no reading converged."""
+    ok = result.converged & (result.num_forces >= 1)
+    if not bool(ok.any()):
         return None
-    s = result.forces.s[-1:, :h].detach().to(torch.float64)  # sorted by s, padding last
-    f = result.forces.f[-1:, :h].detach().to(torch.float64)
+    b = int(ok.nonzero()[-1])
+    h = int(result.num_forces[b])
+    s = result.forces.s[b : b + 1, :h].detach().to(torch.float64)  # sorted by s, padding last
+    f = result.forces.f[b : b + 1, :h].detach().to(torch.float64)
     if not (bool(torch.isfinite(s).all()) and bool(torch.isfinite(f).all())):
         return None
     return PointForces(s, f)
@@ -372,7 +385,14 @@ def stream(
     """
     if not isinstance(options, StreamOptions):
         raise TypeError(f"options must be StreamOptions, got {type(options).__name__}")
-    state = _Stream(estimator, readings, options, estimate_overrides)
+    base = getattr(estimator, "options", None)
+    if estimate_overrides and dataclasses.is_dataclass(base):
+        dataclasses.replace(base, **estimate_overrides)  # a bad override raises here, not in every batch
+    return _run(_Stream(estimator, readings, options, estimate_overrides), options)
+
+
+def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
+    state.thread.start()
     try:
         interrupted = False
         while True:
