@@ -155,6 +155,41 @@ def test_bad_overrides_raise_at_once_and_an_unused_stream_reads_nothing(estimato
     del results
 
 
+def test_tracking_starts_are_the_last_solution_in_reported_coordinates():
+    """The calibrated rod reports s = s_model + bias: the previous solution goes back as a start unchanged (the
+    estimator takes extra starts in reported coordinates), for batches up to track_limit, not beyond."""
+    rod = tr.presets.nitinol290(calibrated=True)
+    inner = tr.Estimator(rod, tr.EstimatorOptions(max_forces=2, noise=NOISE))
+    seen = []
+
+    class Spy:
+        def __init__(self) -> None:
+            self.rod, self.options = rod, inner.options
+
+        def estimate(self, curvature, mask=None, *, extra_starts=None, **kw):
+            seen.append(extra_starts)
+            result = inner.estimate(curvature, mask, extra_starts=extra_starts, **kw)
+            seen.append(result)
+            return result
+
+    cases = [[(0.12, -0.4, 0.3), (0.22, 0.5, 0.2)]] * 6
+    u = _readings(rod, cases, seed=5)
+    items = [Reading(k, u[k]) for k in range(6)]
+    list(stream(Spy(), items, StreamOptions(batch_size=2, max_latency=0.0, track_limit=2)))
+    starts, results = seen[0::2], seen[1::2]
+    assert starts[0] is None and len(starts) == 3
+    for before, given in zip(results, starts[1:]):
+        h = int(before.num_forces[-1])
+        assert h == 2 and set(given) == {2, 1}
+        torch.testing.assert_close(given[2].s, before.forces.s[-1:, :2].expand(2, 2))
+        torch.testing.assert_close(given[2].f, before.forces.f[-1:, :2].expand(2, 2, 2))
+        weakest = int(torch.linalg.vector_norm(before.forces.f[-1, :2], dim=-1).argmin())
+        torch.testing.assert_close(given[1].s[0], before.forces.s[-1, [1 - weakest]])
+    seen.clear()
+    list(stream(Spy(), items, StreamOptions(batch_size=3, max_latency=0.0, track_limit=2)))
+    assert seen[0::2] == [None, None]
+
+
 def test_latency_bound_flushes_a_slow_source(rod, estimator):
     """A source slower than the latency bound: each answer comes before the source produces the next reading but
     one, although the batch (64) never fills."""

@@ -3,7 +3,8 @@
 Readings: a synthetic trajectory (:func:`torchrod.synthetic.generate_trajectory`) of ``--count`` readings at
 ``--rate`` Hz: 1 to 3 contacts that appear, move, grow and vanish, Gaussian noise ``--noise`` per component. The
 estimator (default options, count chosen among 1..3, told the noise; the warm-start network of ``--checkpoint``
-when it fits the rod) runs the same readings five ways, in one run:
+when it fits the rod, whose guesses then replace the grid scan: ``starts=0``; ``--set`` changes any option) runs
+the same readings five ways, in one run:
 
 * ``static, batched``: :meth:`Estimator.estimate` on consecutive batches of ``--batch-size`` (no tracking);
 * ``static, one at a time``: :meth:`Estimator.estimate` on ``--single`` consecutive readings from the middle of
@@ -218,10 +219,13 @@ def _profile_lines(profile: cProfile.Profile, wall: float) -> list[str]:
     return lines
 
 
-def _options(noise: float, settings: list[str]) -> EstimatorOptions:
-    """EstimatorOptions(noise=noise) with ``FIELD=VALUE`` settings (values as Python literals; ``lbfgs.FIELD``
+def _options(noise: float, settings: list[str], network: Any) -> EstimatorOptions:
+    """EstimatorOptions(noise=noise), ``starts=0`` with a network (its guesses replace the grid scan, as in
+    ``Estimator.from_checkpoint``), then the ``FIELD=VALUE`` settings (values as Python literals; ``lbfgs.FIELD``
     sets a field of the L-BFGS options)."""
     options = EstimatorOptions(noise=noise)
+    if network is not None and network.max_forces >= options.max_forces:
+        options = dataclasses.replace(options, starts=0)
     for setting in settings:
         name, sep, text = setting.partition("=")
         if not sep:
@@ -253,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
     window = list(range((count - single) // 2, (count - single) // 2 + single))
     torch.set_num_threads(args.threads)
     network, network_name = _network(args.checkpoint, rod)
-    estimator = Estimator(rod, _options(args.noise, args.set), warm_start=network)
+    estimator = Estimator(rod, _options(args.noise, args.set, network), warm_start=network)
     trajectory = generate_trajectory(
         rod,
         count,

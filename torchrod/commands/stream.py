@@ -22,7 +22,8 @@ Output: one JSON line per input line, in input order, each written and flushed a
 (the fields of ``torchrod estimate``; ``t`` echoed when given; ``latency_ms`` from the moment the line was read to
 its answer). Readings are solved in batches of up to ``--batch-size``, a batch closing when the oldest reading in it
 has waited ``--max-latency-ms``. Each reading starts from the warm-start network's guess, the grid scan, and the
-previous reading's solution; the number of forces is chosen among 1..``--max-forces`` (``--noise``: the sensor's
+previous reading's solution (with the network, the grid scan is skipped, as in ``Estimator.from_checkpoint``);
+the number of forces is chosen among 1..``--max-forces`` (``--noise``: the sensor's
 sigma [1/m]; without it the noise is estimated per reading). ``--checkpoint`` defaults to the shipped
 ``checkpoints/nitinol290.pt`` when the rod's grating layout matches it, else the stream runs without a network (said
 once on stderr); ``--checkpoint none`` turns the network off.
@@ -42,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import itertools
 import json
 import os
@@ -233,9 +235,12 @@ def run(args: argparse.Namespace) -> int:
     truth = load_truth(args.truth) if args.truth is not None else None
     if args.input != "-" and not os.path.exists(args.input):
         raise FileNotFoundError(f"--input {args.input} not found")
-    estimator = Estimator(
-        rod, EstimatorOptions(max_forces=args.max_forces, noise=args.noise), warm_start=_warm_start(args, rod)
-    )
+    network = _warm_start(args, rod)
+    options = EstimatorOptions(max_forces=args.max_forces, noise=args.noise)
+    if network is not None and network.max_forces >= args.max_forces:
+        # As Estimator.from_checkpoint: the network's guesses replace the grid scan.
+        options = dataclasses.replace(options, starts=0)
+    estimator = Estimator(rod, options, warm_start=network)
     options = StreamOptions(batch_size=args.batch_size, max_latency=args.max_latency_ms / 1e3)
     # Warm-up before the first reading: per-rod caches and first-call costs would otherwise land on its latency.
     warm_up(estimator)
