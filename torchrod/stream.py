@@ -193,10 +193,11 @@ _END = object()
 _POLL = 0.1  # [s] longest uninterrupted wait (keeps the reader thread responsive to stop)
 
 
-def _reader(source: Iterable[Any], q: queue.Queue, stop: threading.Event) -> None:
-    """Pull ``source`` into ``q`` as (item, arrival time); then _END, or the exception the source raised."""
+def _reader(source: Iterable[Any], q: queue.Queue, stop: threading.Event, num_gratings: int) -> None:
+    """Pull ``source`` into ``q`` as checked :class:`_Pending` readings (checked here, in parallel with the solver);
+    then _END, or the exception the source raised."""
 
-    def put(entry: tuple[Any, float]) -> bool:
+    def put(entry: Any) -> bool:
         while not stop.is_set():
             try:
                 q.put(entry, timeout=_POLL)
@@ -207,12 +208,15 @@ def _reader(source: Iterable[Any], q: queue.Queue, stop: threading.Event) -> Non
 
     try:
         for item in source:
-            if not put((item, time.perf_counter())):
+            arrived = time.perf_counter()
+            reading = _as_reading(item)
+            tensor, error = _to_tensor(reading, num_gratings)
+            if not put(_Pending(reading, arrived, tensor, error)):
                 return
     except BaseException as exc:  # noqa: BLE001 - handed to the consumer, raised there
-        put((exc, time.perf_counter()))
+        put(exc)
         return
-    put((_END, time.perf_counter()))
+    put(_END)
 
 
 @dataclass
@@ -240,20 +244,18 @@ class _Stream:
         self.finished = False
         self.error: BaseException | None = None
         # Started by the first ``next``: a stream that is never iterated takes nothing from its source.
-        self.thread = threading.Thread(target=_reader, args=(readings, self.q, self.stop), daemon=True)
+        self.thread = threading.Thread(
+            target=_reader, args=(readings, self.q, self.stop, self.G), daemon=True
+        )
 
-    def _take(self, entry: tuple[Any, float]) -> None:
-        item, arrived = entry
-        if item is _END:
+    def _take(self, entry: Any) -> None:
+        if entry is _END:
             self.finished = True
-            return
-        if isinstance(item, BaseException):
+        elif isinstance(entry, BaseException):
             self.finished = True
-            self.error = item  # raised once the readings before it are answered
-            return
-        reading = _as_reading(item)
-        tensor, error = _to_tensor(reading, self.G)
-        self.pending.append(_Pending(reading, arrived, tensor, error))
+            self.error = entry  # raised once the readings before it are answered
+        else:
+            self.pending.append(entry)
 
     def fill(self) -> None:
         """Take readings until a batch is due: ``batch_size`` pending, the oldest pending waited ``max_latency``
