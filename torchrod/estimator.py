@@ -68,6 +68,7 @@ from .refine import LBFGSOptions, RefineResult, lbfgs
 from .rod import Rod
 from .selection import RULES, count_limits, select_count
 from .sensitivity import ESTIMATION_STEP_ANGLE, curvature_and_jacobian
+from .sensors import check_readings
 from .starts import GridStarts
 from .uncertainty import CONDITION_LIMIT, force_uncertainty
 
@@ -369,31 +370,9 @@ class Estimator:
 
     # ------------------------------------------------------------------ input checks
     def _check(self, curvature: Any, mask: Any) -> tuple[torch.Tensor, torch.Tensor]:
-        if not isinstance(curvature, torch.Tensor) or not curvature.is_floating_point():
-            raise TypeError(
-                f"curvature must be a floating-point tensor, got {getattr(curvature, 'dtype', type(curvature))!r}"
-            )
-        G = self.rod.num_gratings
-        if curvature.dim() != 3 or curvature.shape[1:] != (G, 2) or curvature.shape[0] == 0:
-            raise ValueError(
-                f"curvature must have shape (B, {G}, 2) with B >= 1 for this rod, got {tuple(curvature.shape)}"
-            )
-        B = curvature.shape[0]
-        finite = torch.isfinite(curvature).all(-1)
-        if mask is None:
-            mask = finite
-        else:
-            if not isinstance(mask, torch.Tensor) or mask.shape != (B, G):
-                shape = tuple(mask.shape) if isinstance(mask, torch.Tensor) else type(mask).__name__
-                raise ValueError(f"mask must have shape (B, G) = {(B, G)}, got {shape}")
-            if mask.dtype != torch.bool:
-                raise TypeError(f"mask must be a bool tensor, got {mask.dtype}")
-            if mask.device != curvature.device:
-                raise ValueError(f"mask is on {mask.device} but curvature is on {curvature.device}")
-            bad = mask & ~finite
-            if bool(bad.any()):
-                b, g = (int(x) for x in bad.nonzero()[0])
-                raise ValueError(f"curvature[{b}, {g}] is not finite but the mask marks it present")
+        curvature, mask = check_readings(curvature, mask, self.rod.num_gratings)
+        if curvature.shape[0] == 0:
+            raise ValueError(f"curvature must hold at least one reading, got shape {tuple(curvature.shape)}")
         empty = ~mask.any(dim=1)
         if bool(empty.any()):
             rows = empty.nonzero().squeeze(1).tolist()

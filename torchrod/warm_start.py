@@ -31,6 +31,7 @@ from torch import nn
 
 from .loads import PointForces
 from .rod import Rod
+from .sensors import check_readings
 
 __all__ = [
     "CHECKPOINT_FORMAT",
@@ -408,26 +409,11 @@ class WarmStart:
         Args:
             curvature: (B, G, 2) readings (u_x, u_y) at the rod's gratings [1/m]; values at missing gratings are
                 ignored (they may be NaN).
-            mask: (B, G) bool, True where the grating was read; ``None`` = all read.
+            mask: (B, G) bool, True where the grating was read; ``None`` = the gratings with finite values.
         Returns:
             :class:`WarmStartGuess` with tensors of ``curvature``'s dtype and device (no gradient).
         """
-        if not isinstance(curvature, torch.Tensor) or not curvature.is_floating_point():
-            raise TypeError(f"curvature must be a floating-point tensor, got {getattr(curvature, 'dtype', curvature)!r}")
-        G = self.net.config.num_gratings
-        if curvature.dim() != 3 or curvature.shape[1:] != (G, 2):
-            raise ValueError(f"curvature must have shape (B, {G}, 2) for this rod, got {tuple(curvature.shape)}")
-        B = curvature.shape[0]
-        if mask is None:
-            mask = torch.ones(B, G, dtype=torch.bool, device=curvature.device)
-        else:
-            if not isinstance(mask, torch.Tensor) or mask.shape != (B, G):
-                shape = tuple(mask.shape) if isinstance(mask, torch.Tensor) else type(mask).__name__
-                raise ValueError(f"mask must have shape (B, G) = {(B, G)}, got {shape}")
-            if mask.dtype != torch.bool:
-                raise TypeError(f"mask must be a bool tensor, got {mask.dtype}")
-            if mask.device != curvature.device:
-                raise ValueError(f"mask is on {mask.device} but curvature is on {curvature.device}")
+        curvature, mask = check_readings(curvature, mask, self.net.config.num_gratings)
         dtype, device = curvature.dtype, curvature.device
         L, EI = self.rod.length, self.rod.bending_stiffness
         net = self._net_on(device)
