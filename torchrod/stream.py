@@ -101,7 +101,8 @@ class StreamOptions:
         batch_size: the most readings solved together.
         max_latency: [s] the longest the oldest pending reading waits for more readings before its batch is
             solved (0: solve whatever is available at once).
-        read_ahead: bound on readings taken from the source and queued beyond the pending batch.
+        read_ahead: bound on readings taken from the source and queued beyond the pending batch; None: twice
+            ``batch_size`` (with less, a backlog cannot fill whole batches: a batch takes what is queued).
         track: start the readings of a batch from the last solved reading's forces too, when the batch holds
             at most ``track_limit`` readings. A larger batch (a backlog) spans too many frames for one previous
             solution to be near most of its readings, and the extra starts cost there: measured with
@@ -113,7 +114,7 @@ class StreamOptions:
 
     batch_size: int = 64
     max_latency: float = 0.02
-    read_ahead: int = 256
+    read_ahead: int | None = None
     track: bool = True
     track_limit: int = 16
     device: str | torch.device = "cpu"
@@ -121,6 +122,8 @@ class StreamOptions:
     def __post_init__(self) -> None:
         for name in ("batch_size", "read_ahead", "track_limit"):
             v = getattr(self, name)
+            if v is None and name == "read_ahead":
+                continue
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
         lat = self.max_latency
@@ -236,7 +239,8 @@ class _Stream:
         self.estimator, self.options, self.overrides = estimator, options, overrides
         self.G = estimator.rod.num_gratings
         self.device = torch.device(options.device)
-        self.q: queue.Queue = queue.Queue(maxsize=options.read_ahead)
+        read_ahead = options.read_ahead if options.read_ahead is not None else 2 * options.batch_size
+        self.q: queue.Queue = queue.Queue(maxsize=read_ahead)
         self.stop = threading.Event()
         self.pending: list[_Pending] = []
         # The last solved reading's forces, in reported coordinates, (1, h).
