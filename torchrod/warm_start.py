@@ -33,9 +33,14 @@ from .loads import PointForces
 from .rod import Rod
 from .sensors import check_readings
 
+SHIPPED_CHECKPOINT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "checkpoints", "nitinol290.pt")
+"""The shipped warm-start network, trained for the ``nitinol290`` grating layout (in the repository's checkpoints/;
+present with an editable install from the repository)."""
+
 __all__ = [
     "CHECKPOINT_FORMAT",
     "LAYOUT_TOLERANCE",
+    "SHIPPED_CHECKPOINT",
     "NetConfig",
     "NetOutput",
     "WarmStart",

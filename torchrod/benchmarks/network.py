@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
-from pathlib import Path
 from types import SimpleNamespace
 
 import torch
@@ -26,6 +25,7 @@ import torch
 from ..commands.evaluate import cell_metrics
 from ..estimator import Estimator, EstimatorOptions
 from ..presets import load as load_rod
+from ..warm_start import SHIPPED_CHECKPOINT
 from . import SUITES
 from .estimate import readings
 
@@ -33,12 +33,10 @@ HELP = SUITES["network"]
 
 __all__ = ["HELP", "configure", "run"]
 
-DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[2] / "checkpoints" / "nitinol290.pt"
-
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)")
-    parser.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT), help="warm-start checkpoint")
+    parser.add_argument("--checkpoint", default=SHIPPED_CHECKPOINT, help="warm-start checkpoint")
     parser.add_argument("--noise", type=float, default=0.1, help="sensor sigma [1/m] (default 0.1)")
     parser.add_argument("--count", type=int, default=300, help="held-back readings per k (default 300)")
     parser.add_argument("--single", type=int, default=20, help="readings timed one at a time per k (default 20)")

@@ -39,13 +39,13 @@ import torch
 from .. import paper as P
 from .. import presets
 from ..estimator import Estimator, EstimatorOptions
+from ..warm_start import SHIPPED_CHECKPOINT
 from . import SUITES
 
 HELP = SUITES["paper"]
 
 __all__ = ["HELP", "configure", "default_estimator", "run"]
 
-DEFAULT_CHECKPOINT = os.path.join("checkpoints", "nitinol290.pt")
 
 
 def _ints(text: str) -> list[int]:
@@ -88,7 +88,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=[30, 50, 90, 150, 250],
         help="q of the paper's method in the accuracy study (the last: its threshold rule too)",
     )
-    parser.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT, help="warm-start network for torchrod")
+    parser.add_argument("--checkpoint", default=SHIPPED_CHECKPOINT, help="warm-start network for torchrod")
     parser.add_argument("--no-network", action="store_true", help="torchrod without the warm-start network")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the readings (default 0)")
@@ -101,15 +101,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def _checkpoint_path(path: str) -> str | None:
-    if os.path.exists(path):
-        return path
-    if path == DEFAULT_CHECKPOINT:  # also next to the package (an editable install from the repository)
-        here = os.path.join(
-            os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), path
-        )
-        if os.path.exists(here):
-            return here
-    return None
+    return path if os.path.exists(path) else None
 
 
 def default_estimator(rod, noise: float, checkpoint: str | None, **options) -> tuple[Estimator, str]:
