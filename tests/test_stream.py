@@ -453,9 +453,9 @@ def test_cli_truth_summary(tmp_path, capsys):
 
 
 def test_cli_default_checkpoint_is_refused_for_another_layout(tmp_path, capsys):
-    from torchrod.commands.stream import DEFAULT_CHECKPOINT
+    from torchrod.warm_start import SHIPPED_CHECKPOINT
 
-    if not os.path.exists(DEFAULT_CHECKPOINT):
+    if not os.path.exists(SHIPPED_CHECKPOINT):
         pytest.skip("no shipped checkpoint")
     rod = tr.Rod(length=0.3, bending_stiffness=7e-3, gratings=(0.05, 0.1, 0.15, 0.2, 0.25))
     rod_path = tmp_path / "rod.json"

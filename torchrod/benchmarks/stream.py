@@ -93,12 +93,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def _network(spec: str | None, rod: Any) -> tuple[Any, str]:
-    from ..commands.stream import DEFAULT_CHECKPOINT
-    from ..warm_start import WarmStart
+    from ..warm_start import SHIPPED_CHECKPOINT, WarmStart
 
     if spec is not None and spec.lower() == "none":
         return None, "none"
-    path = spec or DEFAULT_CHECKPOINT
+    path = spec or SHIPPED_CHECKPOINT
     if spec is None and not os.path.exists(path):
         return None, "none (no shipped checkpoint)"
     try:

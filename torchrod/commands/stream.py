@@ -63,14 +63,7 @@ from .estimate import parse_reading
 
 HELP = "amortised estimation on a stream of readings"
 
-__all__ = ["DEFAULT_CHECKPOINT", "HELP", "configure", "load_truth", "read_stream", "run"]
-
-DEFAULT_CHECKPOINT = os.path.join(
-    os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
-    "checkpoints",
-    "nitinol290.pt",
-)
-"""The shipped warm-start network (trained for the nitinol290 grating layout)."""
+__all__ = ["HELP", "configure", "load_truth", "read_stream", "run"]
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -209,17 +202,17 @@ def load_truth(path: str) -> dict[str, list[tuple[float, float, float]]]:
 # ---------------------------------------------------------------------------------------------------- the command
 def _warm_start(args: argparse.Namespace, rod: Rod) -> Any:
     """The network the options ask for, or None (the default checkpoint only when it fits the rod)."""
-    from ..warm_start import WarmStart
+    from ..warm_start import SHIPPED_CHECKPOINT, WarmStart
 
     if args.checkpoint is not None:
         if args.checkpoint.lower() == "none":
             return None
         return WarmStart.load(args.checkpoint, rod)
-    if not os.path.exists(DEFAULT_CHECKPOINT):
-        print(f"torchrod stream: no warm-start network ({DEFAULT_CHECKPOINT} not found)", file=sys.stderr)
+    if not os.path.exists(SHIPPED_CHECKPOINT):
+        print(f"torchrod stream: no warm-start network ({SHIPPED_CHECKPOINT} not found)", file=sys.stderr)
         return None
     try:
-        return WarmStart.load(DEFAULT_CHECKPOINT, rod)
+        return WarmStart.load(SHIPPED_CHECKPOINT, rod)
     except ValueError as exc:
         print(f"torchrod stream: no warm-start network: {exc}", file=sys.stderr)
         return None
