@@ -44,6 +44,7 @@ from ..jsonl import LineWriter, Record, as_number, batched, get_list, read_recor
 from ..presets import load as load_rod
 from ..rod import Rod
 from ..selection import RULES
+from . import check_estimation_options
 
 HELP = "forces from FBG curvature readings (JSON lines in, JSON lines out)"
 
@@ -121,14 +122,7 @@ def parse_reading(obj: dict[str, Any], rod: Rod) -> Reading:
 
 def run(args: argparse.Namespace) -> int:
     rod = load_rod(args.rod)
-    if args.batch_size < 1:
-        raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
-    if args.noise is not None and not args.noise >= 0.0:
-        raise ValueError(f"--noise must be >= 0, got {args.noise}")
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ValueError(f"--threads must be >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
+    check_estimation_options(args)
     estimator = Estimator(rod, options_from_args(args))
     device = torch.device(args.device)
     writer = LineWriter()

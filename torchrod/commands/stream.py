@@ -52,13 +52,12 @@ import time
 from collections.abc import Iterable, Iterator
 from typing import Any
 
-import torch
-
 from ..estimator import Estimator, EstimatorOptions
 from ..jsonl import LineWriter, Record, as_number, check_keys, get_list, get_number, parse_records, read_lines
 from ..presets import load as load_rod
 from ..rod import Rod
 from ..stream import Reading, StreamOptions, StreamResult, StreamStats, stream, warm_up
+from . import check_estimation_options
 from .estimate import parse_reading
 
 HELP = "amortised estimation on a stream of readings"
@@ -220,16 +219,9 @@ def _warm_start(args: argparse.Namespace, rod: Rod) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     rod = load_rod(args.rod)
-    if args.batch_size < 1:
-        raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
+    check_estimation_options(args)
     if not 0.0 <= args.max_latency_ms < float("inf"):
         raise ValueError(f"--max-latency-ms must be >= 0, got {args.max_latency_ms}")
-    if args.noise is not None and not args.noise >= 0.0:
-        raise ValueError(f"--noise must be >= 0, got {args.noise}")
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ValueError(f"--threads must be >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
     if args.truth is not None and not args.summary:
         raise ValueError("--truth is used by --summary; give both")
     truth = load_truth(args.truth) if args.truth is not None else None
