@@ -36,9 +36,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..presets import load as load_rod
-
     from ..calibration import calibrate, read_readings, summary
+    from ..presets import load as load_rod
 
     rod = load_rod(args.rod)
     data = read_readings(args.readings, rod)

@@ -59,7 +59,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..presets import load as load_rod
-
     from ..synthetic import (
         ContactModel,
         LoadSampler,

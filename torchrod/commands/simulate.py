@@ -39,10 +39,10 @@ from typing import Any
 
 import torch
 
-from ..presets import load as load_rod
 from ..body_frame import simulate
 from ..jsonl import LineWriter, Record, batched, check_keys, get_list, get_number, read_records
 from ..loads import PointForces
+from ..presets import load as load_rod
 from ..rod import Rod
 
 HELP = "curvature at the gratings for given point forces (JSON lines in, JSON lines out)"
