@@ -8,8 +8,8 @@ real forces and False for padding; padded forces carry no load whatever their ``
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Iterable, Sequence
 
 import torch
 
@@ -91,18 +91,18 @@ class PointForces:
         """(B, h) [N] force magnitudes (zero for padding)."""
         return torch.linalg.vector_norm(self.masked_f(), dim=-1)
 
-    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> "PointForces":
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> PointForces:
         mask = None if self.mask is None else self.mask.to(device=device)
         return PointForces(self.s.to(dtype=dtype, device=device), self.f.to(dtype=dtype, device=device), mask)
 
-    def __getitem__(self, index) -> "PointForces":
+    def __getitem__(self, index) -> PointForces:
         """Select load cases along the batch dimension (an int keeps a batch of one)."""
         if isinstance(index, int):
             index = slice(index, index + 1 if index != -1 else None)
         mask = None if self.mask is None else self.mask[index]
         return PointForces(self.s[index], self.f[index], mask)
 
-    def sorted(self) -> "PointForces":
+    def sorted(self) -> PointForces:
         """The same forces ordered by location, padding last."""
         key = self.s.masked_fill(~self.active, float("inf"))
         order = key.argsort(dim=1)
@@ -127,7 +127,7 @@ class PointForces:
         max_forces: int | None = None,
         dtype: torch.dtype = torch.float64,
         device: torch.device | str | None = None,
-    ) -> "PointForces":
+    ) -> PointForces:
         """From per-case lists of (s [m], f_x [N], f_y [N]); pads to the largest count (or ``max_forces``)."""
         rows = [[tuple(float(v) for v in force) for force in case] for case in cases]
         for i, row in enumerate(rows):

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from .rod import Rod
 
-__all__ = ["nitinol290", "PAPER_LOCATION_BIAS", "PRESETS", "get", "load"]
+__all__ = ["PAPER_LOCATION_BIAS", "PRESETS", "get", "load", "nitinol290"]
 
 PAPER_LOCATION_BIAS = -3.12e-3  # [m], the paper's calibrated s_bias
 

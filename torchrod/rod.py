@@ -10,11 +10,13 @@ curvature sit at ``gratings`` [m] along it. The location bias [m] is the paper's
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import math
 import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import torch
 
@@ -76,7 +78,7 @@ class Rod:
             raise ValueError(f"gratings must be finite, got {list(g)}")
         if g[0] < 0.0 or g[-1] > self.length:
             raise ValueError(f"gratings must lie inside [0, {self.length}] m, got {list(g)}")
-        if any(b <= a for a, b in zip(g, g[1:])):
+        if any(b <= a for a, b in itertools.pairwise(g)):
             raise ValueError(f"gratings must be strictly increasing, got {list(g)}")
         set_(self, "gratings", g)
         try:
@@ -119,7 +121,7 @@ class Rod:
         gratings: Sequence[float],
         location_bias: float = 0.0,
         poisson_ratio: float | None = None,
-    ) -> "Rod":
+    ) -> Rod:
         """A tube of the given diameters [m] and Young's modulus [Pa]; EI follows from them."""
         d_out = _positive("outer_diameter", outer_diameter)
         d_in = float(inner_diameter)
@@ -138,11 +140,11 @@ class Rod:
         )
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "Rod":
+    def from_dict(cls, data: Mapping[str, Any]) -> Rod:
         """From the JSON form (SI units): ``length``, ``gratings``, ``location_bias`` (optional), and either
         ``outer_diameter`` + ``inner_diameter`` + ``youngs_modulus`` or ``bending_stiffness``."""
         if not isinstance(data, Mapping):
-            raise ValueError(f"a rod description must be a JSON object, got {type(data).__name__}")
+            raise ValueError(f"a rod description must be a JSON object, got {type(data).__name__}")  # noqa: TRY004 (a bad file)
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:
@@ -172,7 +174,7 @@ class Rod:
         return cls(**kwargs)
 
     @classmethod
-    def from_json(cls, path: str | os.PathLike) -> "Rod":
+    def from_json(cls, path: str | os.PathLike) -> Rod:
         """Read a rod file (the JSON form of :meth:`from_dict`)."""
         try:
             with open(path, encoding="utf-8") as fh:
@@ -211,7 +213,7 @@ class Rod:
         """Grating positions as a tensor (G,) [m]."""
         return torch.tensor(self.gratings, dtype=dtype, device=device)
 
-    def with_(self, **changes: Any) -> "Rod":
+    def with_(self, **changes: Any) -> Rod:
         """A copy with some fields changed. Changing ``bending_stiffness`` drops the geometry that no longer
         produces it."""
         if "bending_stiffness" in changes and not {"outer_diameter", "inner_diameter", "youngs_modulus"} & set(changes):
