@@ -88,6 +88,33 @@ def test_sensitivity_padding_and_batch_independence(rod, gen):
         assert torch.equal(ub, u[b : b + 1]) and torch.equal(Jb, J[b : b + 1])
 
 
+@pytest.mark.parametrize("h", [1, 2, 3])
+def test_sensitivity_scalar_rows_equal_the_batched_march(rod, gen, monkeypatch, h):
+    """Small CPU batches march row by row on Python complex numbers: the same numbers as the torch march, also
+    with padded forces, a force exactly on a grating (event order), one at the tip and the step cap binding."""
+    import torchrod.sensitivity as sens
+
+    B = 6
+    q = rod.grating_positions()
+    s = 0.03 + 0.26 * torch.rand(B, h, dtype=F64, generator=gen)
+    s[0, 0] = q[4]  # on a grating: the grating does not see it
+    s[1, -1] = rod.length
+    f = 1.5 * torch.randn(B, h, 2, dtype=F64, generator=gen)
+    mask = torch.rand(B, h, generator=gen) > 0.3
+    mask[:, 0] = True
+    for kwargs in ({}, {"mask": mask}, {"max_steps": 2}, {"jacobian": False}):
+        u1, J1 = curvature_and_jacobian(q, s, f, rod.length, rod.bending_stiffness, **kwargs)
+        monkeypatch.setattr(sens, "SCALAR_ROWS", 0)
+        u2, J2 = curvature_and_jacobian(q, s, f, rod.length, rod.bending_stiffness, **kwargs)
+        monkeypatch.setattr(sens, "SCALAR_ROWS", 8)
+        assert u1.dtype == u2.dtype and u1.shape == u2.shape
+        assert (u1 - u2).abs().max() <= 1e-12 * u2.abs().max()
+        if J2 is None:
+            assert J1 is None
+        else:
+            assert J1.shape == J2.shape and (J1 - J2).abs().max() <= 1e-12 * J2.abs().max()
+
+
 # ---------------------------------------------------------------------------------------------- starts
 def test_grid_starts_are_exact_for_small_forces_on_the_grid(rod):
     grid = GridStarts(rod)
