@@ -59,7 +59,7 @@ import dataclasses
 import math
 import os
 import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -68,7 +68,7 @@ import torch
 from .loads import PointForces
 from .refine import LBFGSOptions, RefineResult, lbfgs
 from .rod import Rod
-from .selection import RULES, count_limits, select_count
+from .selection import RULES, choose_count, count_limits, misfit_limit, select_count
 from .sensitivity import ESTIMATION_STEP_ANGLE, curvature_and_jacobian
 from .sensors import check_readings
 from .starts import GridStarts
@@ -116,6 +116,9 @@ class EstimatorOptions:
             sigma^2 (sigma: the given noise with the floor, else the fit's own loss / degrees of freedom, floored).
         polish: Levenberg-Marquardt steps applied to every start before the L-BFGS refinement (0: plain L-BFGS,
             same accuracy, 2-3x slower; see the module docstring).
+        scalar_readings: calls with at most this many readings on the CPU fit each reading on Python floats
+            (:mod:`torchrod.scalar_fit`: the same iteration without torch's per-operation cost; a reading it
+            cannot finish goes to the batched path); 0: always the batched path. Needs ``polish`` > 0.
     """
 
     max_forces: int = 3
@@ -133,6 +136,7 @@ class EstimatorOptions:
     condition_limit: float = CONDITION_LIMIT
     decrement_tolerance: float = 1e-4
     polish: int = 12
+    scalar_readings: int = 8
 
     def __post_init__(self) -> None:
         def integer(name: str, low: int) -> None:
@@ -143,6 +147,7 @@ class EstimatorOptions:
         integer("max_forces", 1)
         integer("starts", 0)
         integer("polish", 0)
+        integer("scalar_readings", 0)
         if self.num_forces is not None:
             integer("num_forces", 1)
         if self.noise is not None and not (math.isfinite(float(self.noise)) and float(self.noise) >= 0.0):
@@ -333,7 +338,9 @@ class Estimator:
         try:
             ws = WarmStart.load(path, rod)
         except (ValueError, FileNotFoundError) as exc:
-            message = f"torchrod: not using the warm-start network ({exc}); starting from the grid scan instead"
+            message = (
+                f"torchrod: not using the warm-start network ({exc}); starting from the grid scan instead"
+            )
             if warn is None:
                 warnings.warn(message, UserWarning, stacklevel=2)
             else:
@@ -405,22 +412,31 @@ class Estimator:
         """
         opts = dataclasses.replace(self.options, **overrides) if overrides else self.options
         curvature, mask = self._check(curvature, mask)
-        out_dtype, device = curvature.dtype, curvature.device
-        dtype = torch.float64
-        rod = self.rod
+        device, dtype = curvature.device, torch.float64
         B = curvature.shape[0]
-        counts, H = opts.counts, opts.width
         u_meas = torch.where(
             mask.unsqueeze(-1), curvature.to(dtype), torch.zeros((), dtype=dtype, device=device)
         )
+        guesses = self._guesses(curvature, mask, opts, extra_starts)
+        if opts.polish > 0 and device.type == "cpu" and B <= opts.scalar_readings:
+            return self._estimate_small(curvature, mask, u_meas, opts, guesses)
+        return self._estimate_batched(curvature, mask, u_meas, opts, guesses)
 
-        # ---- starts: (s, f) per count, in model coordinates, (B, S_h, h)
-        grid = self._grid(opts, dtype, device)
-        guesses: dict[int, list[PointForces]] = {h: [] for h in counts}
+    def _guesses(
+        self,
+        curvature: torch.Tensor,
+        mask: torch.Tensor,
+        opts: EstimatorOptions,
+        extra_starts: Mapping[int, PointForces] | None,
+    ) -> dict[int, list[PointForces]]:
+        """The starts other than the grid scan, per fitted count, in model coordinates: the caller's
+        ``extra_starts`` (location bias removed), then the warm start's guesses."""
+        B = curvature.shape[0]
+        guesses: dict[int, list[PointForces]] = {h: [] for h in opts.counts}
         if extra_starts:
             for h, pf in extra_starts.items():
                 if h in guesses:
-                    guesses[h].append(self._check_guess(pf, B, h, shift=-rod.location_bias))
+                    guesses[h].append(self._check_guess(pf, B, h, shift=-self.rod.location_bias))
         if self.warm_start is not None:
             if hasattr(self.warm_start, "guess"):
                 net = self.warm_start.guess(curvature, mask)
@@ -429,13 +445,33 @@ class Estimator:
             for h, pf in (net.forces if hasattr(net, "forces") else net).items():
                 if h in guesses:
                     guesses[h].append(self._check_guess(pf, B, h, shift=0.0))
-        row_s, row_f, row_h = [], [], []
-        for h in counts:
+        for h in opts.counts:
             if opts.starts == 0 and not guesses[h]:
                 raise ValueError(
                     f"starts=0 skips the grid scan, but no other start was given for h = {h} "
                     "(attach a warm start or pass extra_starts for every count)"
                 )
+        return guesses
+
+    def _estimate_batched(
+        self,
+        curvature: torch.Tensor,
+        mask: torch.Tensor,
+        u_meas: torch.Tensor,
+        opts: EstimatorOptions,
+        guesses: dict[int, list[PointForces]],
+    ) -> EstimateResult:
+        """All readings' (count, start) rows at once: polish, L-BFGS, best start, count, report."""
+        out_dtype, device = curvature.dtype, curvature.device
+        dtype = torch.float64
+        rod = self.rod
+        B = curvature.shape[0]
+        counts, H = opts.counts, opts.width
+
+        # ---- starts: (s, f) per count, in model coordinates, (B, S_h, h)
+        grid = self._grid(opts, dtype, device)
+        row_s, row_f, row_h = [], [], []
+        for h in counts:
             if opts.starts > 0:
                 st = grid(u_meas, mask, h, opts.starts)
                 s_h, f_h = st.s, st.f  # (B, S, h), (B, S, h, 2)
@@ -490,10 +526,204 @@ class Estimator:
             best_loss[:, ci] = lh.gather(0, j.unsqueeze(0)).squeeze(0)
             best_row[:, ci] = rows_h.gather(0, j.unsqueeze(0)).squeeze(0)
         fit_losses = torch.where(torch.isinf(best_loss), torch.full_like(best_loss, float("nan")), best_loss)
-        chosen, sigma = select_count(
+        chosen, sigma = self._select(fit_losses, problem.residual_count, opts)
+        ci = torch.searchsorted(torch.tensor(counts, device=device), chosen)
+        rows = best_row.gather(1, ci.unsqueeze(1)).squeeze(1)  # (B,)
+
+        # ---- the chosen fits: convergence at the final point, uncertainty, reported form
+        r, J = problem.residual(v_star[rows], rows)
+        decrement, sigma2_rows = problem.decrement(r, J, rows, v_star[rows])
+        s, f, fm = problem.forces(v_star[rows], rows)
+        return self._report(
+            s,
+            f,
+            fm,
+            mask,
+            opts,
+            chosen=chosen,
+            sigma=sigma,
+            loss=r.square().sum(-1),
+            converged=decrement <= opts.decrement_tolerance * sigma2_rows,
+            iterations=res.iterations[rows] + polish_iterations[rows],
+            evaluations=res.evaluations[rows] + polish_iterations[rows],
+            fit_losses=fit_losses,
+            out_dtype=out_dtype,
+        )
+
+    def _estimate_small(
+        self,
+        curvature: torch.Tensor,
+        mask: torch.Tensor,
+        u_meas: torch.Tensor,
+        opts: EstimatorOptions,
+        guesses: dict[int, list[PointForces]],
+    ) -> EstimateResult:
+        """A few readings on the CPU, each fitted on Python floats (:mod:`torchrod.scalar_fit`); the readings it
+        hands back (a fit left unconverged or on a kink where the count depends on it) take the batched path."""
+        from .scalar_fit import Fit, ReadingFit
+
+        rod, B, device = self.rod, curvature.shape[0], curvature.device
+        counts, H, C = opts.counts, opts.width, len(opts.counts)
+        query = rod.gratings
+        sigma2 = None if opts.noise is None else float(opts.noise) ** 2 + float(opts.noise_floor) ** 2
+        present = mask.tolist()
+        n_res = [2 * sum(p) for p in present]
+        rows = u_meas.tolist()
+        # Early stop among a count's starts (module docstring of scalar_fit): a converged fit whose loss its
+        # count accepts, with known critical values only.
+        if opts.selection == "threshold":
+            limit = [[float(opts.threshold)] * C for _ in range(B)]
+        elif sigma2 is not None:
+            limit = [[misfit_limit(n, h, opts.significance) * sigma2 for h in counts] for n in n_res]
+        else:
+            limit = None
+        guess_rows = {
+            h: [(pf.s.tolist(), pf.f.tolist(), pf.active.tolist()) for pf in guesses[h]] for h in counts
+        }
+        grid_rows: dict[int, tuple[list, list]] = {}
+
+        def grid_starts(h: int) -> tuple[list, list]:
+            if h not in grid_rows:
+                st = self._grid(opts, torch.float64, device)(u_meas, mask, h, opts.starts)
+                grid_rows[h] = (st.s.tolist(), st.f.tolist())
+            return grid_rows[h]
+
+        def starts_of(b: int, h: int) -> Iterator[tuple[list, list]]:
+            """Reading b's starts for h forces: the guesses first (a network's is usually the best), then the
+            grid scan's (computed on first need, for all readings at once)."""
+            for s_g, f_g, on in guess_rows[h]:
+                s_b, f_b = s_g[b], f_g[b]
+                if all(on[b]) and all(math.isfinite(x) for x in s_b + [c for p in f_b for c in p]):
+                    yield s_b, f_b
+                elif opts.starts == 0:  # as the batched path: the unusable guess with NaNs replaced
+                    yield (
+                        [x if math.isfinite(x) else 0.5 * rod.length for x in s_b],
+                        [[x if math.isfinite(x) else 0.0 for x in p] for p in f_b],
+                    )
+            if opts.starts > 0:
+                gs, gf = grid_starts(h)
+                yield from zip(gs[b], gf[b])
+
+        def final(fit: Fit) -> bool:
+            return fit.converged and not fit.on_kink
+
+        def optimistic(fit: Fit) -> float:
+            """The loss, or for an unfinished fit the Gauss-Newton prediction of where it would end."""
+            return fit.loss if final(fit) else max(fit.loss - fit.decrement, 0.0)
+
+        decidable = C > 1 and (opts.selection == "threshold" or sigma2 is not None)
+        rule = {
+            "rule": opts.selection,
+            "sigma2": sigma2,
+            "threshold": opts.threshold,
+            "significance": opts.significance,
+            "num_gratings": rod.num_gratings,
+        }
+        fits = []  # per reading: per count, the kept Fit
+        for b in range(B):
+            problem = ReadingFit(
+                query,
+                rod.length,
+                rod.bending_stiffness,
+                rows[b],
+                present[b],
+                sigma2=sigma2,
+                floor2=float(opts.noise_floor) ** 2,
+                tolerance=opts.decrement_tolerance,
+                max_step_angle=opts.max_step_angle,
+                max_steps=_MAX_STEPS,
+                edge=_EDGE,
+                max_dphi=_MAX_DPHI,
+                max_dz=_MAX_DZ,
+                kink=_KINK,
+            )
+            kept: list[Fit] = []
+            at_start: dict[int, Fit] = {}  # larger counts evaluated at their first start only
+            for ci, h in enumerate(counts):
+                best, best_key = None, math.inf
+                for s0, f0 in starts_of(b, h):
+                    fit = problem.fit(s0, f0, opts.polish)
+                    key = fit.loss - 10.0 * opts.decrement_tolerance * fit.sigma2 * final(fit)
+                    if best is None or key < best_key:
+                        best, best_key = fit, key
+                    if final(fit) and limit is not None and fit.loss <= limit[b][ci]:
+                        break
+                assert best is not None
+                kept.append(best)
+                if decidable and ci < C - 1:
+                    # Settled already? The larger counts at their first start: if the choice is the same with
+                    # their current losses and with the losses they might reach, they need no fitting.
+                    for cj in range(ci + 1, C):
+                        if cj not in at_start:
+                            at_start[cj] = problem.fit(*next(starts_of(b, counts[cj])), 0)
+                    trial = kept + [at_start[cj] for cj in range(ci + 1, C)]
+                    high = choose_count([x.loss for x in trial], counts, n_res[b], **rule)
+                    low = choose_count([optimistic(x) for x in trial], counts, n_res[b], **rule)
+                    if high == low and high <= ci and final(trial[high]):
+                        kept = trial
+                        break
+            fits.append(kept)
+
+        # The count, from the kept fits' losses; it must not depend on how far the unfinished fits would still
+        # fall (their losses minus decrements as the optimistic bound), and the chosen fit must be final.
+        dtype = torch.float64
+        upper = torch.tensor([[fit.loss for fit in kept] for kept in fits], dtype=dtype, device=device)
+        residual_count = torch.tensor(n_res, device=device)
+        chosen, sigma = self._select(upper, residual_count, opts)
+        handled = [True] * B
+        if C > 1 and not all(final(fit) for kept in fits for fit in kept):
+            lower = torch.tensor(
+                [[optimistic(fit) for fit in kept] for kept in fits], dtype=dtype, device=device
+            )
+            handled = (chosen == self._select(lower, residual_count, opts)[0]).tolist()
+        chosen_fits = [kept[counts.index(h)] for kept, h in zip(fits, chosen.tolist())]
+        handled = [ok and final(fit) for ok, fit in zip(handled, chosen_fits)]
+        if not any(handled):
+            return self._estimate_batched(curvature, mask, u_meas, opts, guesses)
+
+        pad = [H - len(fit.s) for fit in chosen_fits]
+        steps = torch.tensor([fit.steps for fit in chosen_fits], device=device)
+        out = self._report(
+            torch.tensor(
+                [list(fit.s) + [0.0] * p for fit, p in zip(chosen_fits, pad)], dtype=dtype, device=device
+            ),
+            torch.tensor(
+                [[list(x) for x in fit.f] + [[0.0, 0.0]] * p for fit, p in zip(chosen_fits, pad)],
+                dtype=dtype,
+                device=device,
+            ),
+            torch.tensor([[True] * (H - p) + [False] * p for p in pad], device=device),
+            mask,
+            opts,
+            chosen=chosen,
+            sigma=sigma,
+            loss=torch.tensor([fit.loss for fit in chosen_fits], dtype=dtype, device=device),
+            converged=torch.tensor([fit.converged for fit in chosen_fits], device=device),
+            iterations=steps,
+            evaluations=steps,
+            fit_losses=upper,
+            out_dtype=curvature.dtype,
+        )
+        if all(handled):
+            return out
+        back = [b for b in range(B) if not handled[b]]
+        idx = torch.tensor(back, device=device)
+        part = self._estimate_batched(
+            curvature[idx],
+            mask[idx],
+            u_meas[idx],
+            opts,
+            {h: [pf[idx] for pf in g] for h, g in guesses.items()},
+        )
+        return _merge(out, part, idx)
+
+    def _select(
+        self, fit_losses: torch.Tensor, residual_count: torch.Tensor, opts: EstimatorOptions
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        return select_count(
             fit_losses,
-            counts,
-            problem.residual_count,
+            opts.counts,
+            residual_count,
             rule=opts.selection,
             noise=opts.noise,
             threshold=opts.threshold,
@@ -501,14 +731,28 @@ class Estimator:
             floor=opts.noise_floor,
             num_gratings=self.rod.num_gratings,
         )
-        ci = torch.searchsorted(torch.tensor(counts, device=device), chosen)
-        rows = best_row.gather(1, ci.unsqueeze(1)).squeeze(1)  # (B,)
 
-        # ---- the chosen fits: convergence at the final point, uncertainty, reported form
-        r, J = problem.residual(v_star[rows], rows)
-        decrement, sigma2_rows = problem.decrement(r, J, rows, v_star[rows])
-        converged = decrement <= opts.decrement_tolerance * sigma2_rows
-        s, f, fm = problem.forces(v_star[rows], rows)
+    def _report(
+        self,
+        s: torch.Tensor,
+        f: torch.Tensor,
+        fm: torch.Tensor,
+        mask: torch.Tensor,
+        opts: EstimatorOptions,
+        *,
+        chosen: torch.Tensor,
+        sigma: torch.Tensor,
+        loss: torch.Tensor,
+        converged: torch.Tensor,
+        iterations: torch.Tensor,
+        evaluations: torch.Tensor,
+        fit_losses: torch.Tensor,
+        out_dtype: torch.dtype,
+    ) -> EstimateResult:
+        """The chosen fits (model locations s (B, H) [m], f (B, H, 2) [N], force mask fm) in reported form: the
+        Gauss-Newton uncertainty, forces sorted by s, locations shifted by the rod's location bias."""
+        rod = self.rod
+        B, H = fm.shape
         unc = force_uncertainty(
             rod,
             s,
@@ -525,21 +769,21 @@ class Estimator:
         fm = fm.gather(1, order)
         std = unc.std.gather(1, order.unsqueeze(-1).expand(-1, -1, 3))
         s_rep = torch.where(fm, s + rod.location_bias, torch.zeros_like(s))
-        by_count = torch.full((B, H), float("nan"), dtype=dtype, device=device)
-        for k, h in enumerate(counts):
+        by_count = torch.full((B, H), float("nan"), dtype=s.dtype, device=s.device)
+        for k, h in enumerate(opts.counts):
             by_count[:, h - 1] = fit_losses[:, k]
         cast = lambda x: x.to(out_dtype)
         return EstimateResult(
             forces=PointForces(cast(s_rep), cast(f), fm),
             num_forces=chosen,
-            loss=cast(r.square().sum(-1)),
+            loss=cast(loss),
             converged=converged,
-            iterations=res.iterations[rows] + polish_iterations[rows],
+            iterations=iterations,
             std=cast(std),
             poorly_determined=unc.poorly_determined,
             losses_by_count=cast(by_count),
             noise=cast(sigma),
-            evaluations=res.evaluations[rows] + polish_iterations[rows],
+            evaluations=evaluations,
         )
 
     def _check_guess(self, pf: Any, B: int, h: int, shift: float) -> PointForces:
@@ -1102,3 +1346,21 @@ class _Problem:
             iterations=zeros.index_copy(0, idx, res.iterations),
             evaluations=zeros.index_copy(0, idx, res.evaluations),
         )
+
+
+def _merge(base: EstimateResult, part: EstimateResult, idx: torch.Tensor) -> EstimateResult:
+    """``base`` with its readings ``idx`` (k,) replaced by the k readings of ``part``."""
+
+    def put(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        a = a.clone()
+        a[idx] = b.to(a.dtype)
+        return a
+
+    fields: dict[str, Any] = {}
+    for field in dataclasses.fields(base):
+        a, b = getattr(base, field.name), getattr(part, field.name)
+        if field.name == "forces":
+            fields["forces"] = PointForces(put(a.s, b.s), put(a.f, b.f), put(a.active, b.active))
+        else:
+            fields[field.name] = None if a is None or b is None else put(a, b)
+    return EstimateResult(**fields)

@@ -34,10 +34,13 @@ reading's count is decided.
 
 from __future__ import annotations
 
+import functools
+import math
+
 import torch
 from scipy import stats
 
-__all__ = ["MISFIT_FACTOR", "RULES", "count_limits", "select_count"]
+__all__ = ["MISFIT_FACTOR", "RULES", "choose_count", "count_limits", "misfit_limit", "select_count"]
 
 RULES = ("noise", "threshold")
 
@@ -76,19 +79,30 @@ def count_limits(
                 continue
             d1 = 3 * (h2 - h)
             if dof_reference is None:
-                drop[:, i, j] = float(stats.chi2.ppf(1.0 - a, d1))
+                drop[:, i, j] = _chi2_quantile(1.0 - a, d1)
             else:
                 d2 = dof_reference.clamp(min=1).cpu().double().numpy()
                 drop[:, i, j] = torch.as_tensor(d1 * stats.f.ppf(1.0 - a, d1, d2), dtype=dtype)
     n = residuals.cpu().to(dtype).unsqueeze(1) - 3.0 * torch.tensor(counts, dtype=dtype)
     if dof_reference is None:
-        q = torch.as_tensor(
-            stats.chi2.ppf(1.0 - significance / MISFIT_FACTOR, n.clamp(min=1.0).numpy()), dtype=dtype
-        )
-        misfit = torch.where(n > 0, q, torch.full_like(q, -1.0))
+        values = {int(r): [misfit_limit(int(r), h, significance) for h in counts] for r in residuals.tolist()}
+        misfit = torch.tensor([values[int(r)] for r in residuals.tolist()], dtype=dtype).view(B, C)
     else:
         misfit = torch.where(n > 0, torch.full_like(n, float("inf")), torch.full_like(n, -1.0))
     return drop.to(device), misfit.to(device)
+
+
+@functools.lru_cache(maxsize=4096)
+def _chi2_quantile(p: float, dof: int) -> float:
+    return float(stats.chi2.ppf(p, dof))
+
+
+def misfit_limit(residuals: int, h: int, significance: float) -> float:
+    """The misfit guard of the ``"noise"`` rule with known sigma: the largest allowed ``loss_h / sigma^2`` for h
+    forces fitted to ``residuals`` residuals (-1 where 3h >= residuals). Cached: the quantile is the same for
+    every reading with the same gratings present."""
+    dof = residuals - 3 * h
+    return _chi2_quantile(1.0 - significance / MISFIT_FACTOR, dof) if dof > 0 else -1.0
 
 
 def select_count(
@@ -167,3 +181,42 @@ def select_count(
         dc = dof.gather(1, first_ok.unsqueeze(1)).squeeze(1)
         sigma2 = torch.where(dc > 0, lc / dc.clamp(min=1.0), torch.zeros_like(lc)) + floor2
     return chosen, sigma2.sqrt()
+
+
+def choose_count(
+    losses: list[float],
+    counts: list[int],
+    residuals: int,
+    *,
+    rule: str,
+    sigma2: float | None,
+    threshold: float,
+    significance: float,
+    num_gratings: int,
+) -> int:
+    """:func:`select_count` for ONE reading on Python floats, where its critical values are known (a given sigma, or
+    the threshold rule): the index into ``counts`` of the chosen count. For the estimator's one-reading path, which
+    asks many times per reading whether its count is already decided.
+
+    Args:
+        losses: C best losses [1/m^2] for ``counts`` (NaN: not fitted); residuals: n = 2 x present gratings.
+        sigma2: the given sigma^2 with the floor [1/m^2] (required by the ``"noise"`` rule).
+        rule, threshold, significance, num_gratings: as in :func:`select_count`.
+    """
+    fitted = [not math.isnan(x) for x in losses]
+    last = max((i for i, ok in enumerate(fitted) if ok), default=0)
+    if rule == "threshold":
+        ok = [fit and x < threshold for fit, x in zip(fitted, losses)]
+    else:
+        if sigma2 is None:
+            raise ValueError("choose_count needs the noise (sigma2) with the 'noise' rule")
+        a = significance / max(1, num_gratings)
+        ok = []
+        for i, h in enumerate(counts):
+            good = fitted[i] and residuals - 3 * h > 0
+            good = good and losses[i] <= misfit_limit(residuals, h, significance) * sigma2
+            for j in range(i + 1, len(counts)):
+                if good and losses[i] - losses[j] > _chi2_quantile(1.0 - a, 3 * (counts[j] - h)) * sigma2:
+                    good = False  # a NaN (unfitted) larger count never rejects
+            ok.append(good)
+    return next((i for i, good in enumerate(ok) if good), last)

@@ -422,11 +422,12 @@ class WarmStart:
         dtype, device = curvature.dtype, curvature.device
         L, EI = self.rod.length, self.rod.bending_stiffness
         net = self._net_on(device)
-        with torch.no_grad():
+        with torch.inference_mode():  # cheaper than no_grad at small batch (~0.1 ms of 0.55 at B = 1)
             out = net(curvature.detach() * L, mask)
-            probs = torch.softmax(out.count_logits, dim=1).to(dtype)
-            forces = {
-                h: PointForces((s * L).to(dtype), (f * (EI / (L * L))).to(dtype))
-                for h, (s, f) in enumerate(zip(out.s, out.f), start=1)
-            }
+        # Outside inference mode: the results are ordinary tensors (callers may modify them in place).
+        probs = torch.softmax(out.count_logits, dim=1).to(dtype)
+        forces = {
+            h: PointForces((s * L).to(dtype), (f * (EI / (L * L))).to(dtype))
+            for h, (s, f) in enumerate(zip(out.s, out.f), start=1)
+        }
         return WarmStartGuess(probs, forces)
