@@ -68,7 +68,7 @@ import torch
 from .loads import PointForces
 from .refine import LBFGSOptions, RefineResult, lbfgs
 from .rod import Rod
-from .selection import RULES, choose_count, count_limits, misfit_limit, select_count
+from .selection import RULES, choose_count, count_limits, noise_quantile, select_count
 from .sensitivity import ESTIMATION_STEP_ANGLE, curvature_and_jacobian
 from .sensors import check_readings
 from .starts import GridStarts
@@ -89,6 +89,8 @@ _MAX_DPHI = 10.0  # largest force change per polish step, in units of EI / L^2
 _MAX_DZ = 0.5  # largest change of z per polish step [rad]
 _MAX_STEPS = 12  # cap on integrator steps per segment while fitting (far-off trial points need no accuracy)
 _GROUP_ROWS = 256  # rows from which a residual evaluation marches each force count separately
+_TYPICAL = 0.5
+_SUSPECT = 0.95
 _KINK = 1e-5  # [m] a location this close to a grating sits on the loss's kink (see _Problem.decrement)
 
 
@@ -569,14 +571,15 @@ class Estimator:
         present = mask.tolist()
         n_res = [2 * sum(p) for p in present]
         rows = u_meas.tolist()
-        # Early stop among a count's starts (module docstring of scalar_fit): a converged fit whose loss its
-        # count accepts, with known critical values only.
-        if opts.selection == "threshold":
-            limit = [[float(opts.threshold)] * C for _ in range(B)]
-        elif sigma2 is not None:
-            limit = [[misfit_limit(n, h, opts.significance) * sigma2 for h in counts] for n in n_res]
+        # Early stop among a count's starts (module docstring of scalar_fit): a final fit whose loss is typical of
+        # noise alone (below the chi-square median); and a reading whose chosen fit is worse than noise explains
+        # (above the chi-square quantile _SUSPECT) goes to the batched path (its kink handling and lock-step
+        # starts find better minima). Both need the noise.
+        if sigma2 is not None:
+            limit = [[noise_quantile(n, h, _TYPICAL) * sigma2 for h in counts] for n in n_res]
+            suspect = [[noise_quantile(n, h, _SUSPECT) * sigma2 for h in counts] for n in n_res]
         else:
-            limit = None
+            limit = suspect = None
         guess_rows = {
             h: [(pf.s.tolist(), pf.f.tolist(), pf.active.tolist()) for pf in guesses[h]] for h in counts
         }
@@ -678,6 +681,11 @@ class Estimator:
             handled = (chosen == self._select(lower, residual_count, opts)[0]).tolist()
         chosen_fits = [kept[counts.index(h)] for kept, h in zip(fits, chosen.tolist())]
         handled = [ok and final(fit) for ok, fit in zip(handled, chosen_fits)]
+        if suspect is not None:
+            handled = [
+                ok and fit.loss <= suspect[b][counts.index(h)]
+                for b, (ok, fit, h) in enumerate(zip(handled, chosen_fits, chosen.tolist()))
+            ]
         if not any(handled):
             return self._estimate_batched(curvature, mask, u_meas, opts, guesses)
 

@@ -40,7 +40,15 @@ import math
 import torch
 from scipy import stats
 
-__all__ = ["MISFIT_FACTOR", "RULES", "choose_count", "count_limits", "misfit_limit", "select_count"]
+__all__ = [
+    "MISFIT_FACTOR",
+    "RULES",
+    "choose_count",
+    "count_limits",
+    "misfit_limit",
+    "noise_quantile",
+    "select_count",
+]
 
 RULES = ("noise", "threshold")
 
@@ -103,6 +111,13 @@ def misfit_limit(residuals: int, h: int, significance: float) -> float:
     every reading with the same gratings present."""
     dof = residuals - 3 * h
     return _chi2_quantile(1.0 - significance / MISFIT_FACTOR, dof) if dof > 0 else -1.0
+
+
+def noise_quantile(residuals: int, h: int, p: float) -> float:
+    """The p-quantile of ``loss_h / sigma^2`` for a correct fit of h forces to ``residuals`` residuals: chi-square
+    with residuals - 3h degrees of freedom (inf where there are none). Cached."""
+    dof = residuals - 3 * h
+    return _chi2_quantile(p, dof) if dof > 0 else math.inf
 
 
 def select_count(
