@@ -12,12 +12,10 @@ Gauss-Newton decrement at most ``decrement_tolerance`` x sigma^2).
 What this path does not do, it hands back: :class:`ReadingFit.fit` reports a fit that has not converged within the
 polish budget, or that ends with a force on a grating (on the loss's kink, whose one-sided handling and probes live
 in the batched path), and the estimator then solves that reading with the batched path (polish with kink handling,
-then L-BFGS). Where a reading's fits agree, the two paths reach the same optimum to within the stopping tolerance
-(tests/test_estimator.py compares them).
-
-Starts are tried in order (the caller's guesses first: a network's guess is usually the best), and with a known
-sigma (or the paper's threshold rule) a count stops trying starts once one fit has converged with a loss its count
-accepts (the misfit limit of :func:`torchrod.selection.count_limits`): the batched path's settlement, per count.
+then L-BFGS); so does a chosen fit whose loss is worse than the noise explains (a likely local minimum). Where a
+reading's fits agree, the two paths reach the same optimum to within the stopping tolerance (tests/test_estimator.py
+compares them). How starts are tried and when a reading's count is decided is the estimator's part
+(:meth:`torchrod.estimator.Estimator.estimate`, module docstring).
 """
 
 from __future__ import annotations
