@@ -109,8 +109,8 @@ def misfit_limit(residuals: int, h: int, significance: float) -> float:
     """The misfit guard of the ``"noise"`` rule with known sigma: the largest allowed ``loss_h / sigma^2`` for h
     forces fitted to ``residuals`` residuals (-1 where 3h >= residuals). Cached: the quantile is the same for
     every reading with the same gratings present."""
-    dof = residuals - 3 * h
-    return _chi2_quantile(1.0 - significance / MISFIT_FACTOR, dof) if dof > 0 else -1.0
+    q = noise_quantile(residuals, h, 1.0 - significance / MISFIT_FACTOR)
+    return q if math.isfinite(q) else -1.0
 
 
 def noise_quantile(residuals: int, h: int, p: float) -> float:
