@@ -439,9 +439,16 @@ def test_input_checks_and_dtype(rod):
         est.estimate(torch.zeros(1, rod.num_gratings, 2, dtype=torch.long))
     with pytest.raises(ValueError, match="max_forces"):
         EstimatorOptions(max_forces=0)
+    with pytest.raises(ValueError, match="scalar_readings"):
+        EstimatorOptions(scalar_readings=-1)
     _, u = readings(rod, CLEAN_CASES[:1])
     res32 = est.estimate(u.float(), noise=0.01)
     assert res32.forces.s.dtype == torch.float32 and res32.std.dtype == torch.float32
+    batched32 = est.estimate(
+        u.float(), noise=0.01, scalar_readings=0
+    )  # both paths report in the input's dtype
+    assert batched32.forces.s.dtype == torch.float32 and batched32.std.dtype == torch.float32
+    assert torch.allclose(res32.forces.s, batched32.forces.s, atol=1e-6)
     records = res32.to_records(["a"])
     assert records[0]["id"] == "a" and records[0]["num_forces"] == 1
     assert set(records[0]["forces"][0]) == {"s", "fx", "fy", "magnitude", "std_s", "std_fx", "std_fy"}
