@@ -444,9 +444,8 @@ def test_input_checks_and_dtype(rod):
     _, u = readings(rod, CLEAN_CASES[:1])
     res32 = est.estimate(u.float(), noise=0.01)
     assert res32.forces.s.dtype == torch.float32 and res32.std.dtype == torch.float32
-    batched32 = est.estimate(
-        u.float(), noise=0.01, scalar_readings=0
-    )  # both paths report in the input's dtype
+    # both paths report in the input's dtype
+    batched32 = est.estimate(u.float(), noise=0.01, scalar_readings=0)
     assert batched32.forces.s.dtype == torch.float32 and batched32.std.dtype == torch.float32
     assert torch.allclose(res32.forces.s, batched32.forces.s, atol=1e-6)
     records = res32.to_records(["a"])
