@@ -7,7 +7,7 @@ import re
 import torch
 
 from torchrod.cli import main
-from torchrod.commands import bench
+from torchrod.cli.commands import bench
 
 
 def test_bench_forward_quick_prints_both_tables(capsys):

@@ -21,7 +21,7 @@ import torch
 from rod_reference import reference_solution
 
 import torchrod as tr
-from torchrod import body_frame
+from torchrod.model import body_frame
 
 F64 = torch.float64
 

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from torchrod import PointForces, Rod, grating_curvature, presets
-from torchrod.calibration import CalibrationData, calibrate, read_readings
 from torchrod.cli import main
+from torchrod.estimate.calibration import CalibrationData, calibrate, read_readings
 
 F64 = torch.float64
 ROD = presets.nitinol290()

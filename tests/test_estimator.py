@@ -8,12 +8,12 @@ import pytest
 import torch
 
 import torchrod as tr
-from torchrod.body_frame import integrate_curvature
-from torchrod.estimator import EstimateResult, Estimator, EstimatorOptions
-from torchrod.selection import count_limits, select_count
-from torchrod.sensitivity import curvature_and_jacobian
-from torchrod.starts import GridStarts
-from torchrod.uncertainty import gauss_newton_covariance
+from torchrod.estimate.estimator import EstimateResult, Estimator, EstimatorOptions
+from torchrod.estimate.selection import count_limits, select_count
+from torchrod.estimate.starts import GridStarts
+from torchrod.estimate.uncertainty import gauss_newton_covariance
+from torchrod.model.body_frame import integrate_curvature
+from torchrod.model.sensitivity import curvature_and_jacobian
 
 F64 = torch.float64
 
@@ -36,7 +36,7 @@ def sampled(
     separation=0.025,
     force=(0.05, 2.0),
 ):
-    from torchrod.synthetic import LoadSampler, SensorModel, generate
+    from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
 
     sampler = LoadSampler(
         min_forces=k, max_forces=k, force_range=force, min_separation=separation, s_range=(s_min, rod.length)
@@ -92,7 +92,7 @@ def test_sensitivity_padding_and_batch_independence(rod, gen):
 def test_sensitivity_scalar_rows_equal_the_batched_march(rod, gen, monkeypatch, h):
     """Small CPU batches march row by row on Python complex numbers: the same numbers as the torch march, also
     with padded forces, a force exactly on a grating (event order), one at the tip and the step cap binding."""
-    import torchrod.sensitivity as sens
+    import torchrod.model.sensitivity as sens
 
     B = 6
     q = rod.grating_positions()
@@ -279,7 +279,7 @@ def test_small_batch_path_hands_kinks_to_the_batched_path(rod, monkeypatch):
 
 def test_choose_count_is_select_count_for_one_reading(gen):
     """The one-reading twin of the count selection gives select_count's choice (random losses, NaN = unfitted)."""
-    from torchrod.selection import choose_count
+    from torchrod.estimate.selection import choose_count
 
     counts = [1, 2, 3]
     for trial in range(300):
@@ -314,7 +314,7 @@ def test_choose_count_is_select_count_for_one_reading(gen):
 
 
 def test_scalar_gauss_newton_step_is_the_cholesky_solution(gen):
-    from torchrod.scalar_fit import ReadingFit
+    from torchrod.estimate.scalar_fit import ReadingFit
 
     for P in (3, 6, 9):
         J = torch.randn(28, P, generator=gen, dtype=F64)

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 import torchrod as tr
-from torchrod.estimator import Estimator, EstimatorOptions
-from torchrod.warm_start import WarmStart
+from torchrod.estimate.estimator import Estimator, EstimatorOptions
+from torchrod.learn.warm_start import WarmStart
 
 CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "nitinol290.pt"
 

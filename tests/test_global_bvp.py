@@ -9,7 +9,12 @@ import pytest
 import torch
 
 import torchrod as tr
-from torchrod.global_bvp import BVPSolution, ShootingSolver, reference_grating_curvature, solve_reference
+from torchrod.model.global_bvp import (
+    BVPSolution,
+    ShootingSolver,
+    reference_grating_curvature,
+    solve_reference,
+)
 
 ROD = tr.presets.nitinol290()
 L, EI = ROD.length, ROD.bending_stiffness

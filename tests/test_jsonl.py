@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from torchrod.jsonl import (
+from torchrod.io.jsonl import (
     LineWriter,
     as_number,
     batched,

@@ -13,8 +13,8 @@ import torch
 from scipy.integrate import solve_ivp
 
 import torchrod as tr
-from torchrod import nystrom
-from torchrod.body_frame import step_counts
+from torchrod.model import nystrom
+from torchrod.model.body_frame import step_counts
 
 F64 = torch.float64
 SEGMENTS = ((0.5, (3.0, 0.0)), (0.7, (0.0, 4.0)))  # (length, kick before it)

@@ -10,10 +10,10 @@ import pytest
 import torch
 
 import torchrod as tr
-from torchrod import paper as P
 from torchrod.cli import main
-from torchrod.estimator import Estimator, EstimatorOptions
-from torchrod.starts import GridStarts
+from torchrod.estimate.estimator import Estimator, EstimatorOptions
+from torchrod.estimate.starts import GridStarts
+from torchrod.eval import paper as P
 
 
 @pytest.fixture

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 import torchrod as tr
-from torchrod import plots
 from torchrod.cli import main
+from torchrod.eval import plots
 
 PNG = b"\x89PNG\r\n\x1a\n"
 DATA = Path(__file__).resolve().parents[1] / "data"

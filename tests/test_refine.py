@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from torchrod import PointForces, grating_curvature, presets
-from torchrod.body_frame import integrate_curvature
-from torchrod.refine import LBFGSOptions, RefineResult, lbfgs
+from torchrod.estimate.refine import LBFGSOptions, RefineResult, lbfgs
+from torchrod.model.body_frame import integrate_curvature
 
 F64 = torch.float64
 

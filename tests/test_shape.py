@@ -9,8 +9,8 @@ import pytest
 import torch
 
 import torchrod as tr
-from torchrod.global_bvp import solve_reference
-from torchrod.shape import Shape, bending_angle, rod_shape, shape
+from torchrod.model.global_bvp import solve_reference
+from torchrod.model.shape import Shape, bending_angle, rod_shape, shape
 
 ROD = tr.presets.nitinol290()
 L, EI = ROD.length, ROD.bending_stiffness

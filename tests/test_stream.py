@@ -20,7 +20,7 @@ import torch
 
 import torchrod as tr
 from torchrod.cli import main
-from torchrod.stream import Reading, StreamOptions, StreamResult, StreamStats, stream
+from torchrod.io.stream import Reading, StreamOptions, StreamResult, StreamStats, stream
 
 NOISE = 0.05
 
@@ -453,7 +453,7 @@ def test_cli_truth_summary(tmp_path, capsys):
 
 
 def test_cli_default_checkpoint_is_refused_for_another_layout(tmp_path, capsys):
-    from torchrod.warm_start import SHIPPED_CHECKPOINT
+    from torchrod.learn.warm_start import SHIPPED_CHECKPOINT
 
     if not os.path.exists(SHIPPED_CHECKPOINT):
         pytest.skip("no shipped checkpoint")

@@ -12,8 +12,8 @@ import pytest
 import torch
 
 import torchrod as tr
-from torchrod import synthetic as sy
 from torchrod.cli import main
+from torchrod.learn import synthetic as sy
 
 
 @pytest.fixture(scope="module")

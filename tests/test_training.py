@@ -11,15 +11,15 @@ import torch
 
 import torchrod as tr
 from torchrod.cli import main as cli_main
-from torchrod.synthetic import LoadSampler, SensorModel, SyntheticSet, generate
-from torchrod.training import (
+from torchrod.learn.synthetic import LoadSampler, SensorModel, SyntheticSet, generate
+from torchrod.learn.training import (
     TrainConfig,
     TrainingData,
     compute_losses,
     evaluate_guess,
     train,
 )
-from torchrod.warm_start import NetConfig, NetOutput, WarmStart, WarmStartGuess, load_checkpoint
+from torchrod.learn.warm_start import NetConfig, NetOutput, WarmStart, WarmStartGuess, load_checkpoint
 
 TINY = {
     "batch_size": 64, "validation": 64, "hidden": 32, "depth": 2, "physics_batch": 16, "logdir": None, "progress": False
@@ -126,7 +126,7 @@ def test_a_tiny_run_lowers_the_loss(tiny, tmp_path):
 def test_checkpoint_holds_what_resuming_needs_and_resume_matches_an_uninterrupted_run(tiny, tmp_path, monkeypatch):
     import shutil
 
-    from torchrod import training
+    from torchrod.learn import training
 
     # Keep the checkpoint written after epoch 1 of a 2-epoch run: the state an interrupted run leaves behind.
     save = training.save_checkpoint

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import torchrod as tr
-from torchrod.warm_start import (
+from torchrod.learn.warm_start import (
     LAYOUT_TOLERANCE,
     NetConfig,
     WarmStart,
@@ -212,8 +212,8 @@ def test_layout_mismatch(rod, tmp_path):
 def test_the_shipped_checkpoint_guesses_well_on_fresh_readings(rod):
     from pathlib import Path
 
-    from torchrod.synthetic import LoadSampler, SensorModel, generate
-    from torchrod.training import evaluate_guess
+    from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
+    from torchrod.learn.training import evaluate_guess
 
     path = Path(__file__).resolve().parents[1] / "checkpoints" / "nitinol290.pt"
     ws = WarmStart.load(path, rod)

@@ -12,12 +12,12 @@ The public surface (SI units everywhere: m, N, Pa, 1/m):
 """
 
 from . import presets
-from .body_frame import Simulation, grating_curvature, simulate
-from .estimator import EstimateResult, Estimator, EstimatorOptions
+from .estimate.estimator import EstimateResult, Estimator, EstimatorOptions
+from .estimate.refine import LBFGSOptions, RefineResult, lbfgs
 from .loads import PointForces, spread_to_nodes
-from .refine import LBFGSOptions, RefineResult, lbfgs
+from .model.body_frame import Simulation, grating_curvature, simulate
+from .model.shape import Shape, bending_angle, rod_shape
 from .rod import Rod, tube_bending_stiffness
-from .shape import Shape, bending_angle, rod_shape
 
 __version__ = "0.1.0"
 

@@ -11,7 +11,7 @@ Run ``python train/train_warm_start.py --help`` for every option.
 
 import sys
 
-from torchrod.training import main
+from torchrod.learn.training import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,0 +1,22 @@
+"""The benchmarks behind ``torchrod bench SUITE``.
+
+Each suite is a module ``torchrod/cli/benchmarks/SUITE.py`` that defines, like a command, ``HELP`` (one line),
+``configure(parser)`` and ``run(args) -> int``. Suites are imported only when they run; :data:`SUITES` lists the
+names ``torchrod bench`` knows (a suite whose module is missing is reported as not available).
+
+* ``forward``: speed and accuracy of the forward model (exact and node schemes, B = 1, 64, 4096).
+* ``estimate``, ``stream``, ``paper``: estimation, streams, the paper's comparison.
+* ``network``: the warm-start network alone, and the estimator with and without it.
+"""
+
+from __future__ import annotations
+
+__all__ = ["SUITES"]
+
+SUITES: dict[str, str] = {
+    "forward": "forward model speed and accuracy: exact and node schemes at B = 1, 64, 4096",
+    "estimate": "force estimation speed and accuracy",
+    "stream": "amortised estimation on a stream of readings",
+    "paper": "the paper's speed and accuracy comparison",
+    "network": "what the warm-start network buys: the network alone, the estimator with and without it",
+}

@@ -1,0 +1,111 @@
+"""``torchrod bench estimate``: speed of force estimation, one reading at a time and batched.
+
+Readings: the envelope of ``torchrod evaluate`` (k forces at least 25 mm apart, 0.05 to 2 N in any body-frame
+direction, locations uniform from the rod's second grating to the tip, bending <= 90 degrees), Gaussian noise
+``--noise`` per component, for k = 1, 2, 3 and for a mix of the three. The estimator runs with its default options,
+the count chosen automatically among 1..3, and is told the noise (as a calibrated sensor would).
+
+Per k: B = 1 (``--single`` readings estimated one after the other: mean, median and 90th percentile of the wall time
+per call, and the mean process CPU time, which a busy machine inflates less) and batched (``--batched`` readings in
+calls of ``--batch-size``: readings per second, wall and CPU). Count accuracy is printed as a sanity check. Every
+timing follows a warm-up call (per-rod caches: the grid bases of the starts); torch runs on ``--threads`` threads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import time
+
+import torch
+
+from ...estimate.estimator import Estimator, EstimatorOptions
+from ...presets import load as load_rod
+from . import SUITES
+
+HELP = SUITES["estimate"]
+
+__all__ = ["HELP", "configure", "readings", "run"]
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)"
+    )
+    parser.add_argument("--noise", type=float, default=0.1, help="sensor sigma [1/m] (default 0.1)")
+    parser.add_argument(
+        "--single", type=int, default=40, help="readings timed one at a time per k (default 40)"
+    )
+    parser.add_argument(
+        "--batched", type=int, default=1000, help="readings timed batched per k (default 1000)"
+    )
+    parser.add_argument("--batch-size", type=int, default=500, help="readings per batched call (default 500)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the readings (default 0)")
+    parser.add_argument("--quick", action="store_true", help="a smoke run: 3 single and 20 batched readings")
+
+
+def readings(rod, k: int | None, count: int, noise: float, seed: int):
+    """A :class:`torchrod.synthetic.SyntheticSet` of ``count`` readings with k forces (None: 1 to 3)."""
+    from ...learn.synthetic import LoadSampler, SensorModel, generate
+
+    lo = rod.gratings[1] if rod.num_gratings > 1 else 0.02 * rod.length
+    sampler = LoadSampler(
+        min_forces=k or 1,
+        max_forces=k or 3,
+        force_range=(0.05, 2.0),
+        s_range=(lo, rod.length),
+        max_bending=math.pi / 2,
+    )
+    sensor = SensorModel(noise=noise, location_bias=rod.location_bias)
+    return generate(rod, count, sampler=sampler, sensor=sensor, seed=seed)
+
+
+def run(args: argparse.Namespace) -> int:
+    rod = load_rod(args.rod)
+    if args.threads < 1:
+        raise ValueError(f"--threads must be >= 1, got {args.threads}")
+    single, batched, batch_size = args.single, args.batched, args.batch_size
+    if args.quick:
+        single, batched = 3, 20
+    if min(single, batched, batch_size) < 1:
+        raise ValueError("--single, --batched and --batch-size must be >= 1")
+    torch.set_num_threads(args.threads)
+    estimator = Estimator(rod, EstimatorOptions(noise=args.noise))
+    print(
+        f"# torchrod bench estimate: {rod.num_gratings} gratings, noise {args.noise:g} 1/m (known), count chosen in 1..3, "
+        f"torch threads {torch.get_num_threads()}"
+    )
+    print(
+        f"{'forces':>6} | {'B=1 ms mean':>11} {'median':>7} {'p90':>7} {'cpu':>7} | {'batched rd/s':>12} "
+        f"{'ms/rd':>7} {'cpu ms/rd':>9} | {'count ok':>8}"
+    )
+    for k in (1, 2, 3, None):
+        data = readings(rod, k, max(single, batched), args.noise, args.seed + (k or 0))
+        curvature, mask = data.curvature, data.mask
+        truth = data.loads.count
+        estimator.estimate(curvature[:1], mask[:1])  # warm-up
+        walls, cpus, right = [], [], 0
+        for b in range(single):
+            w0, c0 = time.perf_counter(), time.process_time()
+            res = estimator.estimate(curvature[b : b + 1], mask[b : b + 1])
+            walls.append(time.perf_counter() - w0)
+            cpus.append(time.process_time() - c0)
+            right += int(res.num_forces[0] == truth[b])
+        w0, c0 = time.perf_counter(), time.process_time()
+        for b0 in range(0, batched, batch_size):
+            res = estimator.estimate(
+                curvature[b0 : min(batched, b0 + batch_size)], mask[b0 : min(batched, b0 + batch_size)]
+            )
+            right += int((res.num_forces == truth[b0 : b0 + res.num_forces.shape[0]]).sum())
+        wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+        walls_ms = sorted(1e3 * w for w in walls)
+        p90 = walls_ms[min(len(walls_ms) - 1, math.ceil(0.9 * len(walls_ms)) - 1)]
+        label = str(k) if k else "1-3"
+        print(
+            f"{label:>6} | {statistics.mean(walls_ms):>11.1f} {statistics.median(walls_ms):>7.1f} {p90:>7.1f} "
+            f"{1e3 * statistics.mean(cpus):>7.1f} | {batched / wall:>12.0f} {1e3 * wall / batched:>7.2f} "
+            f"{1e3 * cpu / batched:>9.2f} | {100 * right / (single + batched):>7.1f}%"
+        )
+    return 0

@@ -1,0 +1,117 @@
+"""``torchrod bench network``: what the warm-start network buys, on a held-back simulated set.
+
+Readings: the envelope of ``torchrod evaluate`` (k = 1, 2, 3 forces at least 25 mm apart, 0.05 to 2 N in any
+body-frame direction, locations from the second grating to the tip, bending <= 90 degrees), Gaussian noise
+``--noise``, drawn from a seed the shipped checkpoint was not trained on. Three rows per k:
+
+* ``network``: the network alone (its most probable count and that count's forces);
+* ``estimator``: the estimator without a network (grid-scan starts, L-BFGS);
+* ``estimator+network``: :meth:`torchrod.estimator.Estimator.from_checkpoint` (network starts, no scan, L-BFGS).
+
+Columns: count accuracy, median force error (|f_est - f_true| / |f_true|, %) and location error (mm) over readings
+whose count is right, median L-BFGS iterations of the chosen fit, time per reading batched (``--batch-size``) and
+one reading at a time (``--single`` readings, median). All rows run side by side in one process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from types import SimpleNamespace
+
+import torch
+
+from ...estimate.estimator import Estimator, EstimatorOptions
+from ...learn.warm_start import SHIPPED_CHECKPOINT
+from ...presets import load as load_rod
+from ..commands.evaluate import cell_metrics
+from . import SUITES
+from .estimate import readings
+
+HELP = SUITES["network"]
+
+__all__ = ["HELP", "configure", "run"]
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)")
+    parser.add_argument("--checkpoint", default=SHIPPED_CHECKPOINT, help="warm-start checkpoint")
+    parser.add_argument("--noise", type=float, default=0.1, help="sensor sigma [1/m] (default 0.1)")
+    parser.add_argument("--count", type=int, default=300, help="held-back readings per k (default 300)")
+    parser.add_argument("--single", type=int, default=20, help="readings timed one at a time per k (default 20)")
+    parser.add_argument("--batch-size", type=int, default=500, help="readings per batched call (default 500)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--seed", type=int, default=777, help="seed of the held-back readings (default 777)")
+    parser.add_argument("--quick", action="store_true", help="a smoke run: 12 readings per k, 2 timed singly")
+
+
+def _network_alone(warm_start, data, k: int) -> dict:
+    guess = warm_start.guess(data.curvature, data.mask)
+    count = guess.count
+    H = max(guess.forces)
+    s = torch.zeros(count.shape[0], H, dtype=data.curvature.dtype)
+    f = torch.zeros(count.shape[0], H, 2, dtype=data.curvature.dtype)
+    for h, pf in guess.forces.items():
+        rows = count == h
+        s[rows, :h] = pf.s[rows].to(s.dtype)
+        f[rows, :h] = pf.f[rows].to(f.dtype)
+    fake = SimpleNamespace(
+        num_forces=count,
+        forces=SimpleNamespace(s=s, f=f),
+        poorly_determined=torch.zeros_like(count, dtype=torch.bool),
+    )
+    return cell_metrics([fake], data.loads.s, data.loads.f, k)
+
+
+def _timed(estimator: Estimator, data, batch_size: int, single: int) -> tuple[list, float, float]:
+    estimator.estimate(data.curvature[:2], data.mask[:2])  # warm-up (per-rod caches)
+    results = []
+    start = time.perf_counter()
+    for b0 in range(0, data.curvature.shape[0], batch_size):
+        results.append(estimator.estimate(data.curvature[b0 : b0 + batch_size], data.mask[b0 : b0 + batch_size]))
+    batched = (time.perf_counter() - start) / data.curvature.shape[0]
+    times = []
+    for i in range(min(single, data.curvature.shape[0])):
+        t0 = time.perf_counter()
+        estimator.estimate(data.curvature[i : i + 1], data.mask[i : i + 1])
+        times.append(time.perf_counter() - t0)
+    return results, batched, statistics.median(times) if times else float("nan")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ...learn.warm_start import WarmStart
+
+    torch.set_num_threads(args.threads)
+    rod = load_rod(args.rod)
+    count, single = (12, 2) if args.quick else (args.count, args.single)
+    warm_start = WarmStart.load(args.checkpoint, rod)
+    plain = Estimator(rod, EstimatorOptions(noise=args.noise))
+    with_net = Estimator.from_checkpoint(args.checkpoint, rod, EstimatorOptions(noise=args.noise, starts=0))
+    print(
+        f"torchrod bench network: {rod.num_gratings} gratings, noise {args.noise} 1/m, {count} held-back readings "
+        f"per k (seed {args.seed}), torch threads {torch.get_num_threads()}, checkpoint {args.checkpoint}"
+    )
+    header = (
+        f"{'k':>2} {'method':<18} {'count ok':>9} {'force err':>10} {'loc err':>8} {'iters':>6} "
+        f"{'ms/reading':>11} {'ms at B=1':>10}"
+    )
+    print(header)
+    print("-" * len(header))
+    for k in (1, 2, 3):
+        data = readings(rod, k, count, args.noise, args.seed + k)
+        rows = [("network", _network_alone(warm_start, data, k), None, None, None)]
+        for name, est in (("estimator", plain), ("estimator+network", with_net)):
+            results, batched, one = _timed(est, data, args.batch_size, single)
+            iters = torch.cat([r.iterations for r in results]).double().median().item()
+            rows.append((name, cell_metrics(results, data.loads.s, data.loads.f, k), iters, batched, one))
+        for name, m, iters, batched, one in rows:
+            print(
+                f"{k:>2} {name:<18} {100 * m['count_accuracy']:>8.1f}% {m['force_error_median']:>9.2f}% "
+                f"{m['location_error_median']:>6.2f}mm "
+                f"{'-' if iters is None else f'{iters:.0f}':>6} "
+                f"{'-' if batched is None else f'{1e3 * batched:.2f}':>11} "
+                f"{'-' if one is None else f'{1e3 * one:.1f}':>10}",
+                flush=True,
+            )
+    return 0

@@ -1,0 +1,329 @@
+"""``torchrod bench stream``: amortised estimation on a stream of readings against one reading at a time.
+
+Readings: a synthetic trajectory (:func:`torchrod.synthetic.generate_trajectory`) of ``--count`` readings at
+``--rate`` Hz: 1 to 3 contacts that appear, move, grow and vanish, Gaussian noise ``--noise`` per component. The
+estimator (default options, count chosen among 1..3, told the noise; the warm-start network of ``--checkpoint``
+when it fits the rod, whose guesses then replace the grid scan: ``starts=0``; ``--set`` changes any option) runs
+the same readings five ways, in one run:
+
+* ``static, batched``: :meth:`Estimator.estimate` on consecutive batches of ``--batch-size`` (no tracking);
+* ``static, one at a time``: :meth:`Estimator.estimate` on ``--single`` consecutive readings from the middle of
+  the trajectory, one call each (latency: the call's wall time);
+* ``stream, backlog``: :func:`torchrod.stream.stream` over all readings available at once (throughput; latency is
+  then mostly the wait in the read-ahead queue);
+* ``stream, paced``: the first ``--paced`` readings, the source releasing reading k at k / ``--pace`` seconds (as an
+  interrogator would; default: the trajectory's own rate, real time); latency from release to answer, batches
+  closed by ``--max-latency-ms``;
+* ``stream, one at a time``: batches of one on the same readings as ``static, one at a time``, each released when
+  the previous answer is out (latency: release to answer; previous-solution starts always one frame old).
+
+Per way: readings per second (wall), process CPU time per reading, latency median and 99th percentile, readings
+per batch, and the accuracy against the truth: count accuracy, and over the readings whose count is right the median
+force error |f_est - f_true| [N] and location error [mm] (forces paired in order of location).
+``--profile`` adds where the time goes in a backlog stream of (at most) the first 2000 readings, a separate pass
+under cProfile (cumulative times): starts (grid scan and network), the Levenberg-Marquardt polish, L-BFGS, count
+selection, uncertainty, the rest of ``estimate``, and the stream's own work (batching, checking readings,
+result records). Every timing follows a warm-up; torch runs on ``--threads`` threads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import cProfile
+import dataclasses
+import math
+import os
+import pstats
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any
+
+import torch
+
+from ...estimate.estimator import Estimator, EstimatorOptions
+from ...io.stream import Reading, StreamOptions, StreamResult, StreamStats, stream, warm_up
+from ...presets import load as load_rod
+from . import SUITES
+
+HELP = SUITES["stream"]
+
+__all__ = ["HELP", "configure", "run"]
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)"
+    )
+    parser.add_argument(
+        "--count", type=int, default=10_000, help="readings in the trajectory (default 10000)"
+    )
+    parser.add_argument("--rate", type=float, default=100.0, help="trajectory frame rate [Hz] (default 100)")
+    parser.add_argument("--noise", type=float, default=0.1, help="sensor sigma [1/m] (default 0.1)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the trajectory (default 0)")
+    parser.add_argument("--batch-size", type=int, default=64, help="readings per batch (default 64)")
+    parser.add_argument(
+        "--max-latency-ms", type=float, default=20.0, help="stream latency bound (default 20)"
+    )
+    parser.add_argument(
+        "--pace", type=float, default=None, help="paced stream release rate [Hz] (default: --rate, real time)"
+    )
+    parser.add_argument("--paced", type=int, default=2000, help="readings of the paced stream (default 2000)")
+    parser.add_argument("--single", type=int, default=500, help="readings run one at a time (default 500)")
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="warm-start network, or 'none' (default: the shipped one if it fits)",
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="an EstimatorOptions field for every way (repeatable; e.g. polish=12, starts=1, lbfgs.max_iter=10)",
+    )
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument(
+        "--profile", action="store_true", help="where the time goes (a separate profiled pass)"
+    )
+    parser.add_argument(
+        "--quick", action="store_true", help="a smoke run: 300 readings, 100 paced, 20 one at a time"
+    )
+
+
+def _network(spec: str | None, rod: Any) -> tuple[Any, str]:
+    from ...learn.warm_start import SHIPPED_CHECKPOINT, WarmStart
+
+    if spec is not None and spec.lower() == "none":
+        return None, "none"
+    path = spec or SHIPPED_CHECKPOINT
+    if spec is None and not os.path.exists(path):
+        return None, "none (no shipped checkpoint)"
+    try:
+        return WarmStart.load(path, rod), os.path.relpath(path)
+    except ValueError as exc:
+        if spec is not None:
+            raise
+        return None, f"none ({exc})"
+
+
+class _Row:
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.stats = StreamStats()
+        self.wall = self.cpu = 0.0
+
+    def line(self) -> str:
+        s = self.stats
+        n = s.readings
+        solved = n - s.errors
+        per_batch = solved / s.batches if s.batches else math.nan
+        ferr, serr = (s.force_error(), 1e3 * s.location_error()) if s.right else (math.nan, math.nan)
+        return (
+            f"{self.name:<28} | {n:>6} {n / self.wall:>7.0f} {1e3 * self.cpu / n:>7.2f} | "
+            f"{1e3 * s.latency(0.5):>7.1f} {1e3 * s.latency(0.99):>7.1f} | {per_batch:>6.1f} | "
+            f"{100 * s.count_accuracy:>6.1f}% {ferr:>8.4f} {serr:>7.2f}"
+        )
+
+
+def _timed(row: _Row, results: Iterable[StreamResult], truth: list[list[tuple[float, float, float]]]) -> None:
+    """Drain ``results`` into ``row``; ids are trajectory frame indices."""
+    w0, c0 = time.perf_counter(), time.process_time()
+    for r in results:
+        row.stats.add(r, truth[r.id])
+    row.wall, row.cpu = time.perf_counter() - w0, time.process_time() - c0
+
+
+def _static_batched(
+    estimator: Estimator, curvature: torch.Tensor, mask: torch.Tensor, B: int
+) -> Iterator[StreamResult]:
+    for b0 in range(0, curvature.shape[0], B):
+        t0 = time.perf_counter()
+        res = estimator.estimate(curvature[b0 : b0 + B], mask[b0 : b0 + B])
+        records = res.to_records(list(range(b0, b0 + res.batch_size)))
+        dt = time.perf_counter() - t0
+        for rec in records:
+            yield StreamResult(rec["id"], None, rec, latency=dt, batch=len(records), solve_time=dt)
+
+
+def _static_single(
+    estimator: Estimator, curvature: torch.Tensor, mask: torch.Tensor, frames: list[int]
+) -> Iterator[StreamResult]:
+    for k in frames:
+        t0 = time.perf_counter()
+        (rec,) = estimator.estimate(curvature[k : k + 1], mask[k : k + 1]).to_records([k])
+        dt = time.perf_counter() - t0
+        yield StreamResult(k, None, rec, latency=dt, solve_time=dt)
+
+
+def _paced(items: list[Reading], rate: float) -> Iterator[Reading]:
+    t0 = time.perf_counter()
+    for k, item in enumerate(items):
+        wait = t0 + k / rate - time.perf_counter()
+        if wait > 0:
+            time.sleep(wait)
+        yield item
+
+
+class _LockStep:
+    """A source that releases the next reading only once the previous answer is out (``answered()``)."""
+
+    def __init__(self, items: list[Reading]) -> None:
+        self.items = items
+        self.ready = threading.Semaphore(1)
+
+    def __iter__(self) -> Iterator[Reading]:
+        for item in self.items:
+            self.ready.acquire()
+            yield item
+
+    def answered(self, results: Iterable[StreamResult]) -> Iterator[StreamResult]:
+        for r in results:
+            self.ready.release()
+            yield r
+
+
+_PHASES: list[tuple[str, Callable[[str, str], bool]]] = [
+    ("starts (grid scan)", lambda f, n: f.endswith("starts.py") and n == "__call__"),
+    ("starts (network)", lambda f, n: f.endswith("warm_start.py") and n == "guess"),
+    ("polish (LM)", lambda f, n: f.endswith("estimator.py") and n == "polish"),
+    ("L-BFGS", lambda f, n: f.endswith("estimator.py") and n == "refine"),
+    ("count selection", lambda f, n: f.endswith("selection.py") and n == "select_count"),
+    ("uncertainty", lambda f, n: f.endswith("uncertainty.py") and n == "force_uncertainty"),
+]
+
+
+def _profile_lines(profile: cProfile.Profile, wall: float, readings: int) -> list[str]:
+    stats = pstats.Stats(profile).stats  # type: ignore[attr-defined]
+
+    def cumulative(match: Callable[[str, str], bool]) -> float:
+        return sum(ct for (f, _, n), (_, _, _, ct, _) in stats.items() if match(f, n))
+
+    total = cumulative(lambda f, n: f.endswith("estimator.py") and n == "estimate")
+    head = (
+        f"# where the time goes: backlog stream of the first {readings} readings under cProfile, {wall:.2f} s"
+    )
+    lines = [head + " wall (profiler overhead included):"]
+    inside = 0.0  # the phases within estimate
+    for name, match in _PHASES:
+        t = cumulative(match)
+        inside += t
+        lines.append(f"#   {name:<20} {t:>7.2f} s  {100 * t / wall:>5.1f}%")
+    rest, other = total - inside, wall - total
+    lines.append(f"#   {'rest of estimate':<20} {rest:>7.2f} s  {100 * rest / wall:>5.1f}%")
+    # The reader thread's work shows up wherever the main thread waits for the GIL, mostly outside estimate.
+    lines.append(f"#   {'stream, records':<20} {other:>7.2f} s  {100 * other / wall:>5.1f}%")
+    calls = sum(
+        cc for (f, _, n), (cc, *_rest) in stats.items() if f.endswith("estimator.py") and n == "residual"
+    )
+    lines.append(f"#   forward-sensitivity evaluations (batched residual calls): {calls}")
+    return lines
+
+
+def _options(noise: float, settings: list[str], network: Any) -> EstimatorOptions:
+    """EstimatorOptions(noise=noise), ``starts=0`` with a network (its guesses replace the grid scan, as in
+    ``Estimator.from_checkpoint``), then the ``FIELD=VALUE`` settings (values as Python literals; ``lbfgs.FIELD``
+    sets a field of the L-BFGS options)."""
+    options = EstimatorOptions(noise=noise)
+    if network is not None and network.max_forces >= options.max_forces:
+        options = dataclasses.replace(options, starts=0)
+    for setting in settings:
+        name, sep, text = setting.partition("=")
+        if not sep:
+            raise ValueError(f"--set takes FIELD=VALUE, got {setting!r}")
+        try:
+            value = ast.literal_eval(text.strip())
+        except (ValueError, SyntaxError):
+            raise ValueError(f"--set {setting!r}: the value must be a Python literal") from None
+        name = name.strip()
+        if name.startswith("lbfgs."):
+            lbfgs = dataclasses.replace(options.lbfgs, **{name[len("lbfgs.") :]: value})
+            options = dataclasses.replace(options, lbfgs=lbfgs)
+        else:
+            options = dataclasses.replace(options, **{name: value})
+    return options
+
+
+def run(args: argparse.Namespace) -> int:
+    from ...learn.synthetic import SensorModel, generate_trajectory
+
+    rod = load_rod(args.rod)
+    count, single, paced = (300, 20, 100) if args.quick else (args.count, args.single, args.paced)
+    if min(count, single, paced, args.batch_size, args.threads) < 1:
+        raise ValueError("--count, --single, --paced, --batch-size and --threads must be >= 1")
+    pace = args.rate if args.pace is None else args.pace
+    if not (pace > 0 and args.rate > 0 and args.max_latency_ms >= 0):
+        raise ValueError("--pace and --rate must be positive, --max-latency-ms >= 0")
+    single, paced = min(single, count), min(paced, count)
+    window = list(range((count - single) // 2, (count - single) // 2 + single))
+    torch.set_num_threads(args.threads)
+    network, network_name = _network(args.checkpoint, rod)
+    estimator = Estimator(rod, _options(args.noise, args.set, network), warm_start=network)
+    trajectory = generate_trajectory(
+        rod,
+        count,
+        rate=args.rate,
+        sensor=SensorModel(noise=args.noise, location_bias=rod.location_bias),
+        seed=args.seed,
+    )
+    truth = [[(f["s"], f["fx"], f["fy"]) for f in t["forces"]] for t in trajectory.truth]
+    curvature, mask = trajectory.curvature, trajectory.mask
+    items = [
+        Reading(k, torch.where(mask[k].unsqueeze(-1), curvature[k], math.nan), float(trajectory.t[k]))
+        for k in range(count)
+    ]
+    B = args.batch_size
+    options = StreamOptions(batch_size=B, max_latency=args.max_latency_ms / 1e3)
+    counts = [len(t) for t in truth]
+    print(
+        f"# torchrod bench stream: {count} readings of a {args.rate:g} Hz trajectory "
+        f"({', '.join(f'{sum(c == h for c in counts)} with {h}' for h in sorted(set(counts)))} forces), "
+        f"noise {args.noise:g} 1/m (known), count chosen in 1..{estimator.options.max_forces}, "
+        f"network {network_name}, torch threads {torch.get_num_threads()}"
+    )
+    print(
+        "# estimator options: "
+        + ", ".join(f"{k}={v!r}" for k, v in dataclasses.asdict(estimator.options).items() if k != "lbfgs")
+        + f"; lbfgs: {dataclasses.asdict(estimator.options.lbfgs)}"
+    )
+    warm_up(estimator)
+    rows = []
+
+    row = _Row(f"static, batched (B={B})")
+    _timed(row, _static_batched(estimator, curvature, mask, B), truth)
+    rows.append(row)
+
+    row = _Row("static, one at a time")
+    _timed(row, _static_single(estimator, curvature, mask, window), truth)
+    rows.append(row)
+
+    row = _Row(f"stream, backlog (B<={B})")
+    _timed(row, stream(estimator, items, options), truth)
+    rows.append(row)
+
+    row = _Row(f"stream, paced {pace:g} Hz")
+    _timed(row, stream(estimator, _paced(items[:paced], pace), options), truth)
+    rows.append(row)
+
+    lock = _LockStep([items[k] for k in window])
+    row = _Row("stream, one at a time")
+    _timed(row, lock.answered(stream(estimator, lock, StreamOptions(batch_size=1, max_latency=0.0))), truth)
+    rows.append(row)
+
+    print(
+        f"{'way':<28} | {'rd':>6} {'rd/s':>7} {'cpu ms':>7} | {'lat ms':>7} {'p99':>7} | {'rd/bt':>6} | "
+        f"{'count':>7} {'f err N':>8} {'s err mm':>7}"
+    )
+    for row in rows:
+        print(row.line())
+    if args.profile:
+        # A separate pass, so that the profiler's overhead stays out of the table.
+        profiled = _Row("profiled")
+        profile = cProfile.Profile()
+        profile.enable()
+        _timed(profiled, stream(estimator, items[: min(count, 2000)], options), truth)
+        profile.disable()
+        for line in _profile_lines(profile, profiled.wall, profiled.stats.readings):
+            print(line)
+    return 0

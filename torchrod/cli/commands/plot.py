@@ -1,0 +1,174 @@
+"""``torchrod plot``: figures of readings and their estimates (PNG).
+
+Usage: ``torchrod plot READINGS.jsonl ESTIMATES.jsonl [--rod ROD] [--truth TRUTH.jsonl] [--id ID] [--out DIR|FILE]``.
+
+READINGS: the input of ``torchrod estimate``/``torchrod stream`` (``{"id", "curvature": [[ux, uy] or null, ...]}``,
+``"t"`` [s] for a stream). ESTIMATES: their output, one JSON line per reading (``{"id", "forces": [{"s", "fx",
+"fy"}, ...]}``; error lines are skipped). Estimates are matched to readings by id when every reading has a distinct
+id, else by line order. TRUTH (optional): the true forces, ``{"id", "t", "forces": [{"s", "fx", "fy"}, ...]}`` per
+line (the format of ``data/example_stream_truth.jsonl``), matched by id.
+
+Figures:
+
+* per reading (all of them, or the one named by ``--id``): the rod's 3-D shape from the estimated forces with the
+  forces drawn as arrows at their locations (and the true ones, dashed, when TRUTH is given), the measured and the
+  fitted curvature at each grating, and the residuals; written as ``reading-ID.png``;
+* for a stream (readings with ``"t"``) without ``--id``: the estimated forces' magnitudes and locations against
+  time, with the ground truth of those readings when given; written as ``stream.png``.
+
+``--out`` is a folder (default: the current one) or, for a single figure, a file name ending in ``.png``. The paths
+written are printed, one a line. The rod (``--rod``, a rod file or preset name; default nitinol290) must be the one
+the estimates were made with: its location bias maps reported locations back to the model's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import re
+from typing import Any
+
+from ...io.jsonl import as_number, get_list, read_records
+from ...presets import load as load_rod
+from ...rod import Rod
+
+HELP = "figures of readings and their estimates"
+
+__all__ = ["HELP", "configure", "parse_forces", "run"]
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = "\n\n".join((__doc__ or "").split("\n\n")[1:]).replace("``", "")
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.add_argument("readings", metavar="READINGS.jsonl", help="readings, one JSON object a line")
+    parser.add_argument(
+        "estimates", metavar="ESTIMATES.jsonl", help="their estimates (torchrod estimate/stream)"
+    )
+    parser.add_argument(
+        "--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)"
+    )
+    parser.add_argument("--truth", metavar="TRUTH.jsonl", help="true forces per reading (optional)")
+    parser.add_argument("--id", dest="ident", metavar="ID", help="only the reading with this id")
+    parser.add_argument("--out", default=".", help="output folder, or a .png file for one figure (default .)")
+    parser.add_argument("--dpi", type=int, default=90, help="resolution of the PNGs (default 90)")
+
+
+def parse_forces(obj: dict[str, Any]) -> list[tuple[float, float, float]]:
+    """The ``"forces"`` of a JSON object as rows (s [m], f_x [N], f_y [N]); ``ValueError``/``TypeError`` name a bad
+    entry."""
+    rows = []
+    for k, f in enumerate(get_list(obj, "forces")):
+        if not isinstance(f, dict):
+            raise TypeError(f"forces[{k}] must be an object with s, fx, fy, got {f!r}")
+        try:
+            rows.append(tuple(as_number(f[key], f"forces[{k}].{key}") for key in ("s", "fx", "fy")))
+        except KeyError as exc:
+            raise ValueError(f"forces[{k}] lacks {exc.args[0]!r}") from None
+    return rows
+
+
+def _time(obj: dict[str, Any]) -> float | None:
+    return as_number(obj["t"], "t") if obj.get("t") is not None else None
+
+
+def _reading(rod: Rod):
+    from .estimate import parse_reading
+
+    def parse(obj: dict[str, Any]):
+        return parse_reading(obj, rod), _time(obj)
+
+    return parse
+
+
+def _forces_and_time(obj: dict[str, Any]):
+    if "error" in obj and "forces" not in obj:
+        raise ValueError(str(obj["error"]))
+    return parse_forces(obj), _time(obj)
+
+
+def _file_name(ident: Any, line: int) -> str:
+    text = f"line{line}" if ident is None else str(ident)
+    return "reading-" + (re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("._") or f"line{line}") + ".png"
+
+
+def run(args: argparse.Namespace) -> int:
+    from ...eval import plots
+
+    rod = load_rod(args.rod)
+    if args.dpi < 10:
+        raise ValueError(f"--dpi must be >= 10, got {args.dpi}")
+    readings = [r for r in read_records(args.readings, _reading(rod))]
+    bad = [r.error for r in readings if not r.ok]
+    readings = [r for r in readings if r.ok]
+    if not readings:
+        raise ValueError(f"{args.readings}: no usable reading" + (f" ({bad[0]})" if bad else ""))
+    estimates = list(read_records(args.estimates, _forces_and_time))
+    ids = [r.id for r in readings]
+    by_id = all(i is not None for i in ids) and len(set(map(repr, ids))) == len(ids)
+    if by_id:
+        table = {repr(e.id): e for e in estimates if e.ok}
+        matched = [table.get(repr(i)) for i in ids]
+    else:
+        ok = [e for e in estimates]
+        matched = [ok[k] if k < len(ok) and ok[k].ok else None for k in range(len(readings))]
+    truth = None
+    if args.truth:
+        truth = {repr(t.id): t for t in read_records(args.truth, _forces_and_time) if t.ok}
+
+    stream = any(r.value[1] is not None for r in readings)
+    if args.ident is not None:
+        chosen = [k for k, r in enumerate(readings) if r.id is not None and str(r.id) == args.ident]
+        if not chosen:
+            raise ValueError(f"no reading with id {args.ident!r} in {args.readings}")
+        jobs = [("reading", k) for k in chosen[:1]]
+    elif stream:
+        jobs = [("stream", None)]
+    else:
+        jobs = [("reading", k) for k in range(len(readings))]
+    single_file = args.out.lower().endswith(".png")
+    if single_file and len(jobs) > 1:
+        raise ValueError(
+            f"--out {args.out} names one file but {len(jobs)} figures are due: give a folder or --id"
+        )
+
+    def target(name: str) -> str:
+        return args.out if single_file else os.path.join(args.out, name)
+
+    for kind, k in jobs:
+        if kind == "stream":
+            t = [r.value[1] for r, e in zip(readings, matched) if e is not None]
+            est = [e.value[0] for e in matched if e is not None]
+            if not est:
+                raise ValueError(f"{args.estimates}: no estimate matches the readings")
+            tt = tv = None
+            if truth is not None:
+                # The truth of the readings plotted (all of it when no id matches).
+                mine = {repr(r.id) for r in readings}
+                rows = [v for key, v in truth.items() if key in mine] or list(truth.values())
+                pairs = sorted(
+                    ((v.value[1] if v.value[1] is not None else math.nan, v.value[0]) for v in rows),
+                    key=lambda p: p[0],
+                )
+                tt, tv = [p[0] for p in pairs], [p[1] for p in pairs]
+            fig = plots.stream_figure(
+                t, est, truth_t=tt, truth=tv, title=f"{os.path.basename(args.readings)}: {len(est)} readings"
+            )
+            path = target("stream.png")
+        else:
+            r, e = readings[k], matched[k]
+            if e is None:
+                raise ValueError(f"no estimate for reading {r.id!r} (line {r.line}) in {args.estimates}")
+            curvature, t = r.value
+            true_rows = None
+            if truth is not None and repr(r.id) in truth:
+                true_rows = truth[repr(r.id)].value[0]
+            title = (
+                f"reading {r.id!r}"
+                + (f", t = {t:g} s" if t is not None else "")
+                + f": {len(e.value[0])} force(s)"
+            )
+            fig = plots.reading_figure(rod, curvature, e.value[0], truth=true_rows, title=title)
+            path = target(_file_name(r.id, r.line))
+        print(plots.save(fig, path, dpi=args.dpi))
+    return 0

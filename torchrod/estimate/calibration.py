@@ -1,0 +1,505 @@
+"""Calibration of a rod from readings with known forces: the location bias, then the bending stiffness.
+
+The paper calibrates in two steps (its "Model Calibration"): first the location bias, then the stiffness. Both are
+fitted here by nonlinear least squares on the curvatures themselves (not on re-estimated forces), with the forward
+model :func:`torchrod.body_frame.grating_curvature` and its gradients by autograd:
+
+1. Location bias b [m]. The gratings sit at the rod's ``gratings`` in the model's coordinate; the known forces are
+   located in the true (fibre's) coordinate. With the sign of :class:`~torchrod.rod.Rod` (reported location =
+   ``s_model + location_bias``) the model sees each force at ``s_model = s_true - b``. The force components are left
+   free (two per force, per reading), so that an error in the stiffness or in the known components cannot leak into
+   b: unknowns (b, f_x, f_y of every force), nominal EI.
+   The curvature field depends on the loads only through the distances between gratings and forces (the rod is
+   integrated from the free tip, where U = U' = 0 beyond the last force), so moving the forces by -b is exactly
+   the same as moving the gratings by +b.
+2. Bending stiffness EI [N m^2], with b fixed: the curvature depends on the forces only through f / EI (the
+   body-frame equations scale exactly), so EI is the one scale between the known force magnitudes and the
+   curvatures: unknown log(EI / EI_nominal). With ``directions="known"`` the known (f_x, f_y) are used as given;
+   with ``directions="free"`` only their magnitudes are trusted and each force's direction is a free angle.
+
+Solver: ``scipy.optimize.least_squares`` (trust-region reflective, bounds keep every ``s_true - b`` inside
+[0, L]) with the exact Jacobian, which autograd assembles per reading (the unknowns of one reading touch only its
+own residuals). Standard errors are the Gauss-Newton ones, ``sigma^2 (J^T J)^-1`` with ``sigma^2 = RSS / (n - p)``
+estimated from the residuals (n observed curvature components, p unknowns). The stiffness step keeps b fixed but
+its covariance includes b's column, so the stiffness's error carries the bias's uncertainty (with b held exactly,
+it would come out about 25 % too small: the two are correlated through the forces' lever arms).
+
+Input readings (JSON lines, :func:`read_readings`): ``{"id": ..., "curvature": [[u_x, u_y] or null, ...],
+"forces": [{"s": ..., "fx": ..., "fy": ...}, ...]}``, one curvature pair per grating [1/m] (null for a grating
+without a reading), the known forces with ``s`` [m] in the true coordinate and components [N] in the body frame.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from ..loads import PointForces
+from ..model.body_frame import grating_curvature
+from ..rod import Rod
+
+__all__ = ["CalibrationData", "CalibrationResult", "calibrate", "parse_reading", "read_readings", "summary"]
+
+Directions = Literal["known", "free"]
+
+
+@dataclass(frozen=True)
+class CalibrationData:
+    """R readings with known forces.
+
+    Attributes:
+        curvature: (R, G, 2) measured (u_x, u_y) at the gratings [1/m]; 0 where missing.
+        present: (R, G) bool, True where the grating has a reading.
+        forces: R known force sets, ``s`` [m] in the true (fibre's) coordinate, ``f`` [N] body frame.
+        ids: the readings' ids (None where absent).
+    """
+
+    curvature: torch.Tensor
+    present: torch.Tensor
+    forces: PointForces
+    ids: tuple[Any, ...] = ()
+
+    def __post_init__(self) -> None:
+        c, p, f = self.curvature, self.present, self.forces
+        if not isinstance(c, torch.Tensor) or c.dim() != 3 or c.shape[2] != 2:
+            shape = tuple(c.shape) if isinstance(c, torch.Tensor) else type(c).__name__
+            raise ValueError(f"curvature must have shape (R, G, 2), got {shape}")
+        if not isinstance(p, torch.Tensor) or p.shape != c.shape[:2]:
+            shape = tuple(p.shape) if isinstance(p, torch.Tensor) else type(p).__name__
+            raise ValueError(f"present must have shape (R, G) = {tuple(c.shape[:2])}, got {shape}")
+        if not isinstance(f, PointForces) or f.batch_size != c.shape[0]:
+            raise ValueError(f"forces must be PointForces for the {c.shape[0]} readings")
+        object.__setattr__(self, "present", p.to(torch.bool))
+        ids = tuple(self.ids) if self.ids else (None,) * c.shape[0]
+        if len(ids) != c.shape[0]:
+            raise ValueError(f"ids must hold one id per reading ({c.shape[0]}), got {len(ids)}")
+        object.__setattr__(self, "ids", ids)
+
+    @property
+    def num_readings(self) -> int:
+        return self.curvature.shape[0]
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """Fitted location bias and bending stiffness, with Gauss-Newton standard errors.
+
+    Attributes:
+        location_bias: b [m] (reported location = s_model + b).
+        location_bias_std: its standard error [m].
+        bending_stiffness: EI [N m^2].
+        bending_stiffness_std: its standard error [N m^2] (b's uncertainty included).
+        nominal_stiffness: the EI the calibration started from [N m^2].
+        rms_location_step, rms_stiffness_step: RMS curvature residual of each step [1/m].
+        fitted_forces: the step-1 free forces (model coordinate ``s_true - b``; components at the nominal EI, so
+            they equal the true ones times nominal / true EI) [m, N].
+        converged: both least-squares solves ended on a tolerance.
+        observations: number of observed curvature components used.
+    """
+
+    location_bias: float
+    location_bias_std: float
+    bending_stiffness: float
+    bending_stiffness_std: float
+    nominal_stiffness: float
+    rms_location_step: float
+    rms_stiffness_step: float
+    fitted_forces: PointForces
+    converged: bool
+    observations: int
+
+    @property
+    def stiffness_ratio(self) -> float:
+        """Fitted over nominal EI."""
+        return self.bending_stiffness / self.nominal_stiffness
+
+    def apply(self, rod: Rod) -> Rod:
+        """``rod`` with the fitted bias and stiffness. A rod described by its geometry keeps it and gets its
+        Young's modulus scaled by the stiffness ratio (EI is proportional to E), as the paper calibrates E; a rod
+        given by its EI gets the new EI."""
+        if rod.youngs_modulus is not None:
+            return rod.with_(
+                location_bias=self.location_bias,
+                youngs_modulus=rod.youngs_modulus * self.bending_stiffness / rod.bending_stiffness,
+                bending_stiffness=self.bending_stiffness,
+            )
+        return rod.with_(location_bias=self.location_bias, bending_stiffness=self.bending_stiffness)
+
+
+# ---------------------------------------------------------------------------------------------- reading files
+def _number(value: Any, what: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{what} must be a number, got {value!r}")  # noqa: TRY004 (bad file content)
+    x = float(value)
+    if not math.isfinite(x):
+        raise ValueError(f"{what} must be finite, got {value!r}")
+    return x
+
+
+def parse_reading(
+    obj: Any, num_gratings: int
+) -> tuple[list[list[float] | None], list[tuple[float, float, float]]]:
+    """One calibration record: the curvature pairs (None where missing) and the known forces (s, f_x, f_y)."""
+    if not isinstance(obj, dict):
+        raise ValueError(f"a reading must be a JSON object, got {type(obj).__name__}")  # noqa: TRY004
+    unknown = sorted(set(obj) - {"id", "curvature", "forces"})
+    if unknown:
+        raise ValueError(f"unknown keys {unknown}; a reading holds 'id', 'curvature' and 'forces'")
+    for key in ("curvature", "forces"):
+        if key not in obj:
+            raise ValueError(f"missing {key!r}")
+    curv = obj["curvature"]
+    if not isinstance(curv, list) or len(curv) != num_gratings:
+        n = len(curv) if isinstance(curv, list) else type(curv).__name__
+        raise ValueError(
+            f"curvature must be a list of {num_gratings} [u_x, u_y] pairs (one per grating), got {n}"
+        )
+    pairs: list[list[float] | None] = []
+    for k, pair in enumerate(curv):
+        if pair is None:
+            pairs.append(None)
+            continue
+        if not isinstance(pair, list) or len(pair) != 2:
+            raise ValueError(f"curvature[{k}] must be [u_x, u_y] or null, got {pair!r}")
+        pairs.append([_number(pair[0], f"curvature[{k}][0]"), _number(pair[1], f"curvature[{k}][1]")])
+    if all(p is None for p in pairs):
+        raise ValueError("curvature has no grating with a reading")
+    forces = obj["forces"]
+    if not isinstance(forces, list):
+        raise ValueError(f"forces must be a list of {{'s', 'fx', 'fy'}} objects, got {type(forces).__name__}")  # noqa: TRY004
+    known = []
+    for j, force in enumerate(forces):
+        if not isinstance(force, dict) or set(force) != {"s", "fx", "fy"}:
+            raise ValueError(f"forces[{j}] must be an object with keys 's', 'fx', 'fy', got {force!r}")
+        s, fx, fy = (_number(force[k], f"forces[{j}].{k}") for k in ("s", "fx", "fy"))
+        if fx == 0.0 and fy == 0.0:
+            raise ValueError(f"forces[{j}] has zero magnitude: a known force must be nonzero")
+        known.append((s, fx, fy))
+    return pairs, known
+
+
+def read_readings(
+    path: str | os.PathLike,
+    rod: Rod,
+    *,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+) -> CalibrationData:
+    """Read a JSON-lines file of readings with known forces (format in the module docstring).
+
+    Raises ``ValueError`` naming the line for a record that cannot be used, or when no reading is found.
+    """
+    rows, forces, ids = [], [], []
+    with open(path, encoding="utf-8") as fh:
+        for number, text in enumerate(fh, start=1):
+            if not text.strip():
+                continue
+            try:
+                obj = json.loads(text)
+                pairs, known = parse_reading(obj, rod.num_gratings)
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"{path}, line {number}: not valid JSON ({exc.msg})") from None
+            except ValueError as exc:
+                raise ValueError(f"{path}, line {number}: {exc}") from None
+            rows.append(pairs)
+            forces.append(known)
+            ids.append(obj.get("id"))
+    if not rows:
+        raise ValueError(f"{path}: no readings")
+    present = torch.tensor([[p is not None for p in r] for r in rows], dtype=torch.bool, device=device)
+    curvature = torch.tensor(
+        [[p if p is not None else [0.0, 0.0] for p in r] for r in rows], dtype=dtype, device=device
+    )
+    loads = PointForces.from_lists(forces, dtype=dtype, device=device)
+    return CalibrationData(curvature, present, loads, tuple(ids))
+
+
+# ---------------------------------------------------------------------------------------------- least squares
+@dataclass(frozen=True)
+class _Fit:
+    x: np.ndarray  # global + local unknowns at the solution
+    std: np.ndarray  # their standard errors (NaN if not determined)
+    rms: float  # RMS residual [1/m]
+    converged: bool
+
+
+class _Problem:
+    """Curvature residuals of R readings as a function of n_g global unknowns and per-reading local ones.
+
+    ``model(X)`` maps the per-reading parameter rows X (R, n_g + K) (globals repeated on every row, then the
+    reading's K local slots) to the curvature (R, G, 2). ``local_used`` (R, K) marks the slots that are unknowns;
+    the others keep ``local_fixed``'s values. The global unknown vector is [globals, used local slots in row-major
+    order]; its Jacobian is assembled from one reverse pass per curvature component (2G passes), each giving the
+    derivative of every reading's residual w.r.t. that reading's own row of X.
+    """
+
+    def __init__(
+        self,
+        model: Callable[[torch.Tensor], torch.Tensor],
+        data: CalibrationData,
+        n_global: int,
+        local_used: torch.Tensor,
+        local_fixed: torch.Tensor,
+    ) -> None:
+        self.model, self.data, self.n_global = model, data, n_global
+        self.local_used, self.local_fixed = local_used, local_fixed
+        self.obs = data.present.unsqueeze(-1).expand(-1, -1, 2)  # (R, G, 2)
+        R, K = local_used.shape
+        used = local_used.reshape(-1).cpu().numpy()
+        self.col = np.full(R * K, -1, dtype=np.int64)
+        self.col[used] = n_global + np.arange(int(used.sum()))
+        self.col = self.col.reshape(R, K)
+        self.num_unknowns = n_global + int(used.sum())
+        obs = self.obs.cpu().numpy()
+        self.num_obs = int(obs.sum())
+        self.obs_reading = np.broadcast_to(np.arange(R)[:, None, None], obs.shape)[
+            obs
+        ]  # reading of each residual
+        self._cache: tuple[bytes, np.ndarray, np.ndarray] | None = None
+
+    def rows(self, theta: np.ndarray) -> torch.Tensor:
+        d = self.data.curvature
+        t = torch.as_tensor(theta, dtype=d.dtype, device=d.device)
+        R = self.local_used.shape[0]
+        local = self.local_fixed.clone()
+        local[self.local_used] = t[self.n_global :]
+        return torch.cat((t[: self.n_global].expand(R, -1), local), dim=1)
+
+    def residual(self, theta: np.ndarray) -> np.ndarray:
+        """Observed residuals (n,) [1/m] at ``theta``."""
+        with torch.no_grad():
+            resid = self.model(self.rows(theta)) - self.data.curvature
+        return resid[self.obs].cpu().numpy()
+
+    def evaluate(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Observed residuals (n,) and their Jacobian (n, p) w.r.t. all unknowns at ``theta`` (cached)."""
+        key = np.asarray(theta, dtype=np.float64).tobytes()
+        if self._cache is not None and self._cache[0] == key:
+            return self._cache[1], self._cache[2]
+        X = self.rows(theta).requires_grad_(True)
+        with torch.enable_grad():
+            resid = self.model(X) - self.data.curvature  # (R, G, 2)
+            R, G, _ = resid.shape
+            J = torch.zeros(R, G, 2, X.shape[1], dtype=X.dtype, device=X.device)
+            present_any = self.data.present.any(0).tolist()
+            for g in range(G):
+                if not present_any[g]:
+                    continue
+                for c in range(2):
+                    (grad,) = torch.autograd.grad(resid[:, g, c].sum(), X, retain_graph=True)
+                    J[:, g, c] = grad
+        r = resid.detach()[self.obs].cpu().numpy()
+        Jo = J[self.obs].cpu().numpy()  # (n, n_global + K)
+        full = np.zeros((self.num_obs, self.num_unknowns))
+        full[:, : self.n_global] = Jo[:, : self.n_global]
+        cols = self.col[self.obs_reading]  # (n, K)
+        n_idx, k_idx = np.nonzero(cols >= 0)
+        full[n_idx, cols[n_idx, k_idx]] = Jo[n_idx, self.n_global + k_idx]
+        self._cache = (key, r, full)
+        return r, full
+
+    def solve(
+        self, theta0: np.ndarray, lower: np.ndarray, upper: np.ndarray, free: np.ndarray | None = None
+    ) -> _Fit:
+        """Least squares over the unknowns marked ``free`` (default all; the others stay at ``theta0``). The
+        standard errors come from the Jacobian of ALL unknowns: a fixed one counts as estimated from the same data,
+        so its uncertainty and correlations propagate into the others'."""
+        from scipy.optimize import least_squares
+
+        p, n = self.num_unknowns, self.num_obs
+        if n <= p:
+            raise ValueError(f"{n} observed curvature components cannot determine {p} unknowns: add readings")
+        free = np.ones(p, dtype=bool) if free is None else np.asarray(free, dtype=bool)
+        base = np.array(theta0, dtype=np.float64)
+
+        def full(sub: np.ndarray) -> np.ndarray:
+            theta = base.copy()
+            theta[free] = sub
+            return theta
+
+        sol = least_squares(
+            lambda sub: self.residual(full(sub)),
+            base[free],
+            jac=lambda sub: self.evaluate(full(sub))[1][:, free],
+            bounds=(lower[free], upper[free]),
+            method="trf",
+            x_scale="jac",
+            ftol=1e-12,
+            xtol=1e-12,
+            gtol=1e-12,
+            max_nfev=200,
+        )
+        theta = full(sol.x)
+        r, J = self.evaluate(theta)
+        rss = float(r @ r)
+        sigma2 = rss / (n - p)
+        std = _standard_errors(J, sigma2)
+        return _Fit(x=theta, std=std, rms=math.sqrt(rss / n), converged=bool(sol.status > 0))
+
+
+def _standard_errors(J: np.ndarray, sigma2: float) -> np.ndarray:
+    """sqrt(diag(sigma^2 (J^T J)^-1)), taken in unit-diagonal form; NaN when J^T J is numerically singular."""
+    A = J.T @ J
+    d = np.sqrt(np.diag(A))
+    if not np.all(d > 0):
+        return np.full(J.shape[1], np.nan)
+    C = A / np.outer(d, d)
+    w = np.linalg.eigvalsh(C)
+    if w[0] <= w[-1] * 1e-13:
+        return np.full(J.shape[1], np.nan)
+    cov = np.linalg.inv(C) / np.outer(d, d) * sigma2
+    return np.sqrt(np.diag(cov))
+
+
+# ---------------------------------------------------------------------------------------------- calibration
+def calibrate(
+    rod: Rod,
+    data: CalibrationData,
+    *,
+    directions: Directions = "known",
+    initial_bias: float = 0.0,
+) -> CalibrationResult:
+    """Fit the location bias, then the bending stiffness, from readings with known forces (module docstring).
+
+    Args:
+        rod: the rod being calibrated: its gratings, length and nominal EI (its location_bias is not used).
+        data: R readings with known forces (:func:`read_readings`), s in the true coordinate.
+        directions: ``"known"``: step 2 uses the known (f_x, f_y); ``"free"``: only their magnitudes.
+        initial_bias: starting value of b [m].
+    Returns:
+        :class:`CalibrationResult`; ``result.apply(rod)`` is the calibrated rod.
+    """
+    if not isinstance(rod, Rod):
+        raise TypeError(f"rod must be a Rod, got {type(rod).__name__}")
+    if not isinstance(data, CalibrationData):
+        raise TypeError(f"data must be CalibrationData, got {type(data).__name__}")
+    if directions not in ("known", "free"):
+        raise ValueError(f"directions must be 'known' or 'free', got {directions!r}")
+    R, G, _ = data.curvature.shape
+    if G != rod.num_gratings:
+        raise ValueError(f"readings hold {G} gratings, the rod has {rod.num_gratings}")
+    loads = data.forces
+    if loads.dtype != data.curvature.dtype or loads.device != data.curvature.device:
+        raise ValueError("forces and curvature must share dtype and device")
+    active = loads.active
+    if not bool(active.any()):
+        raise ValueError("no known force in the readings: the bias and the stiffness cannot be fitted")
+    s_true = loads.s
+    s_real = s_true[active]
+    if bool(((s_real < 0) | (s_real > rod.length)).any()):
+        raise ValueError(f"known force locations must lie in [0, L = {rod.length}] m, got {s_real.tolist()}")
+    # s_true - b must stay in [0, L] for every real force
+    lo_b, hi_b = float(s_real.max()) - rod.length, float(s_real.min())
+    if not lo_b <= initial_bias <= hi_b:
+        raise ValueError(
+            f"initial_bias {initial_bias} m would move a force off the rod; allowed [{lo_b}, {hi_b}] m"
+        )
+    ei0 = rod.bending_stiffness
+    h = loads.max_forces
+    mask = loads.mask
+
+    # ---- step 1: b with free force components, nominal EI
+    def model_bias(X: torch.Tensor) -> torch.Tensor:
+        s = torch.where(active, s_true - X[:, :1], s_true)
+        return grating_curvature(rod, PointForces(s, X[:, 1:].reshape(R, h, 2), mask), bending_stiffness=ei0)
+
+    used = active.unsqueeze(-1).expand(-1, -1, 2).reshape(R, 2 * h)
+    fixed = loads.masked_f().reshape(R, 2 * h).detach()
+    step1 = _Problem(model_bias, data, 1, used, fixed)
+    theta0 = np.concatenate(([initial_bias], fixed[used].cpu().numpy()))
+    lower = np.full_like(theta0, -np.inf)
+    upper = np.full_like(theta0, np.inf)
+    lower[0], upper[0] = lo_b, hi_b
+    fit1 = step1.solve(theta0, lower, upper)
+    bias, bias_std = float(fit1.x[0]), float(fit1.std[0])
+    fitted = step1.rows(fit1.x).detach()
+    s_model = torch.where(active, s_true - bias, s_true)
+    fitted_forces = PointForces(s_model, fitted[:, 1:].reshape(R, h, 2), mask)
+
+    # ---- step 2: EI with b fixed: curvature(s, f, EI) = curvature(s, f * EI0 / EI, EI0). The unknowns are
+    # (b, log(EI / EI0), [angles]); b stays at its step-1 value but is kept in the Jacobian so that its
+    # uncertainty propagates into the stiffness's standard error.
+    magnitude = loads.magnitude()  # (R, h)
+
+    def shifted(X: torch.Tensor) -> torch.Tensor:
+        return torch.where(active, s_true - X[:, :1], s_true)
+
+    if directions == "known":
+        f_known = loads.masked_f()
+
+        def model_stiffness(X: torch.Tensor) -> torch.Tensor:
+            scale = torch.exp(-X[:, 1:2]).unsqueeze(-1)
+            return grating_curvature(
+                rod, PointForces(shifted(X), f_known * scale, mask), bending_stiffness=ei0
+            )
+
+        used2 = torch.zeros(R, 0, dtype=torch.bool, device=active.device)
+        fixed2 = torch.zeros(R, 0, dtype=loads.dtype, device=loads.device)
+        theta0 = np.array([bias, 0.0])
+    else:
+        # start each direction from the step-1 fit of that force
+        angle0 = torch.atan2(fitted_forces.f[..., 1], fitted_forces.f[..., 0])
+
+        def model_stiffness(X: torch.Tensor) -> torch.Tensor:
+            scale = torch.exp(-X[:, 1:2])
+            phi = X[:, 2:]
+            f = torch.stack((torch.cos(phi), torch.sin(phi)), -1) * (magnitude * scale).unsqueeze(-1)
+            return grating_curvature(rod, PointForces(shifted(X), f, mask), bending_stiffness=ei0)
+
+        used2, fixed2 = active, angle0.detach()
+        theta0 = np.concatenate(([bias, 0.0], angle0[active].cpu().numpy()))
+    # a sensible start: the magnitude ratio of the step-1 fit (EI / EI0 = |f_known| / |f_fitted|)
+    ratio = float(
+        (magnitude[active] ** 2).sum() / (magnitude[active] * fitted_forces.magnitude()[active]).sum()
+    )
+    if math.isfinite(ratio) and ratio > 0:
+        theta0[1] = math.log(ratio)
+    step2 = _Problem(model_stiffness, data, 2, used2, fixed2)
+    free = np.ones_like(theta0, dtype=bool)
+    free[0] = False
+    unbounded = np.full_like(theta0, np.inf)
+    fit2 = step2.solve(theta0, -unbounded, unbounded, free)
+    ei = ei0 * math.exp(float(fit2.x[1]))
+    ei_std = ei * float(fit2.std[1])
+    return CalibrationResult(
+        location_bias=bias,
+        location_bias_std=bias_std,
+        bending_stiffness=ei,
+        bending_stiffness_std=ei_std,
+        nominal_stiffness=ei0,
+        rms_location_step=fit1.rms,
+        rms_stiffness_step=fit2.rms,
+        fitted_forces=fitted_forces,
+        converged=fit1.converged and fit2.converged,
+        observations=step1.num_obs,
+    )
+
+
+def summary(result: CalibrationResult, rod: Rod | None = None) -> Sequence[str]:
+    """Human-readable lines: fitted values with standard errors, residuals, and the new Young's modulus."""
+    change = (result.stiffness_ratio - 1) * 100
+    lines = [
+        f"location_bias     = {result.location_bias * 1e3:+.4f} +/- {result.location_bias_std * 1e3:.4f} mm",
+        (
+            f"bending_stiffness = {result.bending_stiffness:.6e} +/- {result.bending_stiffness_std:.2e} N m^2"
+            f" ({change:+.3f} % from {result.nominal_stiffness:.6e})"
+        ),
+    ]
+    if rod is not None and rod.youngs_modulus is not None:
+        e = rod.youngs_modulus * result.bending_stiffness / rod.bending_stiffness
+        e_std = e * result.bending_stiffness_std / result.bending_stiffness
+        lines.append(f"youngs_modulus    = {e / 1e9:.4f} +/- {e_std / 1e9:.4f} GPa")
+    lines.append(
+        f"rms residual      = {result.rms_location_step:.4g} 1/m (bias step), {result.rms_stiffness_step:.4g} 1/m"
+        f" (stiffness step), {result.observations} curvature components"
+    )
+    if not result.converged:
+        lines.append("warning: a least-squares solve stopped on its evaluation limit")
+    return lines

@@ -1,0 +1,1 @@
+"""Evaluation: the paper's methods and comparison, figures."""

@@ -1,0 +1,1 @@
+"""Readings in, records out: JSON lines and CSV, reading checks, streams."""

@@ -1,0 +1,1 @@
+"""Simulated data and the warm-start network: synthetic sets and streams, the network, its training."""

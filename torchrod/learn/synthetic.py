@@ -1,0 +1,1130 @@
+"""Synthetic load cases and FBG readings: training sets, their file format, and synthetic reading streams.
+
+Load cases (:class:`LoadSampler`, :func:`sample_loads`)
+    The number of forces k is drawn first, uniformly in ``[min_forces, max_forces]``. Given k, the locations are
+    uniform over all configurations in ``s_range`` whose neighbours lie at least ``min_separation`` apart (drawn
+    exactly, without rejection: k sorted uniforms in a range shortened by ``(k - 1) * min_separation``, the j-th
+    shifted by ``j * min_separation``). Magnitudes are uniform in ``force_range`` [N], directions uniform in the
+    body-frame (f_x, f_y) plane.
+
+    Bending limit: a case is rejected when its total turning angle ``int_0^L |u(s)| ds`` exceeds ``max_bending``.
+    The total turning bounds the angle between the base and tip tangents from above, and equals it for planar
+    loads. It is computed from the forward model (the body-frame IVP of :mod:`torchrod.body_frame`) sampled at
+    129 uniform positions and integrated by the trapezoid rule; |u| has kinks at the forces, so the quadrature error
+    is of order (L/128)^2 |f|/EI / 8, about 2e-4 rad at the paper's rod and 2 N (a test checks it against a fine
+    grid). A rejected case is redrawn with the same k (only the rejected rows are redrawn, vectorised), so the
+    counts keep their uniform distribution and, given k, the cases are uniform over the admissible set.
+
+Sensor effects (:class:`SensorModel`)
+    ``clean`` is the noise-free reading: the forward model's curvature at the gratings, for the forces moved to
+    ``s - location_bias`` (clamped to [0, L]) when a location bias is simulated (the meaning of
+    :attr:`torchrod.rod.Rod.location_bias`: reported = model + bias). The reading is
+    ``curvature = clean + offsets + noise * N(0, 1)``; ``offsets`` (G, 2) are drawn once per set
+    (``offset_std * N(0, 1)``) and stored; each grating is missing independently with ``missing_prob`` (mask
+    False, curvature 0.0). The loads are independent of the sensor model: one seed gives the same loads and clean
+    readings whatever the noise.
+
+Reproducibility (:func:`generate`)
+    All randomness comes from ``torch.Generator`` objects seeded from ``seed``: the cases are split into chunks of
+    :data:`CHUNK` rows, and chunk c draws its loads and its sensor noise from generators seeded with a hash of
+    ``(seed, c)``. The per-case forward model uses a fixed number of steps per segment, so a case's result does not
+    depend on the other cases in its batch. One seed gives the same arrays whatever ``batch_size`` and device
+    (bitwise for the draws, the loads and the masks; curvature equal to rounding in the last bits).
+
+File format (``.npz``, ``format_version`` 1)
+    Written with numpy (:meth:`SyntheticSet.save`, ``numpy.savez_compressed``), read with ``allow_pickle=False``.
+    Arrays, with N cases, h = ``max_forces``, G gratings:
+
+    ============== ============ ======= =============================================================
+    name           shape        dtype   meaning
+    ============== ============ ======= =============================================================
+    ``s``          (N, h)       float64 force locations [m], sorted, padding last (0.0)
+    ``f``          (N, h, 2)    float64 body-frame (f_x, f_y) [N], 0.0 for padding
+    ``force_mask`` (N, h)       bool    True for a real force
+    ``count``      (N,)         int64   number of real forces
+    ``clean``      (N, G, 2)    float64 noise-free curvature at the gratings [1/m]
+    ``curvature``  (N, G, 2)    float64 noisy curvature [1/m], 0.0 where missing
+    ``mask``       (N, G)       bool    True where the grating has a reading
+    ``offsets``    (G, 2)       float64 the set's constant per-grating offsets [1/m]
+    ``meta``       ()           unicode JSON: see below
+    ============== ============ ======= =============================================================
+
+    ``meta`` holds ``{"format": "torchrod-dataset", "format_version": 1, "torchrod_version", "rod":
+    Rod.to_dict(), "sampler", "sensor" (the dataclasses' fields), "seed", "count", "candidates" (cases examined,
+    for the rejection rate), "sha256"}``. The hash runs over the arrays in name order, each as its name, its dtype
+    string, its shape and its C-order bytes. :meth:`SyntheticSet.load` raises ``ValueError`` for a file that is not
+    a torchrod set, a newer format version, unreadable, missing or altered arrays (hash), inconsistent shapes or
+    dtypes, and a rod whose length, stiffness or gratings differ from the one given.
+
+Streams (:func:`generate_trajectory`)
+    A sequence of readings at ``rate`` Hz whose contacts appear, drift, grow, shrink and vanish smoothly; see
+    :class:`ContactModel` and :func:`write_trajectory` for the JSON-lines files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import itertools
+import json
+import math
+import os
+import sys
+import tempfile
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..loads import PointForces
+from ..model.body_frame import integrate_curvature
+from ..rod import Rod
+
+__all__ = [
+    "CHUNK",
+    "FORMAT",
+    "FORMAT_VERSION",
+    "ContactModel",
+    "LoadSampler",
+    "SensorModel",
+    "SyntheticDataset",
+    "SyntheticSet",
+    "Trajectory",
+    "generate",
+    "generate_trajectory",
+    "sample_loads",
+    "total_turning",
+    "write_trajectory",
+]
+
+FORMAT = "torchrod-dataset"
+FORMAT_VERSION = 1
+CHUNK = 256
+"""Rows per seed chunk: generation batches hold whole chunks, so ``batch_size`` is rounded up to a multiple."""
+
+PROFILE_SAMPLES = 129
+"""Uniform positions on [0, L] where |u| is sampled for the total turning angle (trapezoid rule)."""
+_STEPS = 1  # fixed Runge-Kutta-Nystrom steps per segment (segments <= L/128): grating curvature within ~4e-7 1/m
+_COARSE_SAMPLES = 17  # first pass: prune candidates far beyond the bending limit
+_COARSE_MARGIN = 0.1  # [rad], five times the coarse pass's largest error seen near the limit
+_MAX_ROUNDS = 24  # redraw rounds before giving up on a case
+_REPEATS = (1, 1, 2, 2, 4, 4, 8, 8, 16, 16, 32, 32, 64)  # candidates per pending case, by round
+
+_ARRAYS = ("s", "f", "force_mask", "count", "clean", "curvature", "mask", "offsets")
+
+
+# ---------------------------------------------------------------------------------------------------- options
+def _finite(name: str, value: Any) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    return v
+
+
+def _pair(name: str, value: Any) -> tuple[float, float]:
+    try:
+        lo, hi = value
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a pair (low, high), got {value!r}") from None
+    lo, hi = _finite(f"{name}[0]", lo), _finite(f"{name}[1]", hi)
+    if hi < lo:
+        raise ValueError(f"{name} must have low <= high, got {value!r}")
+    return lo, hi
+
+
+def _int(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be an integer, got {value!r}")
+    return int(value)
+
+
+@dataclass(frozen=True)
+class LoadSampler:
+    """How random load cases are drawn (see the module docstring).
+
+    Attributes:
+        min_forces, max_forces: the number of forces per case, uniform in [min_forces, max_forces] (>= 1).
+        force_range: (low, high) magnitude [N], uniform; the direction is uniform in the (f_x, f_y) plane.
+        min_separation: least distance between two forces of a case [m].
+        s_range: (low, high) locations [m]; ``None`` means (0.02 L, L).
+        max_bending: limit on the total turning angle int_0^L |u| ds [rad]; cases beyond are redrawn
+            (``math.inf``: no limit).
+    """
+
+    min_forces: int = 1
+    max_forces: int = 3
+    force_range: tuple[float, float] = (0.05, 2.0)
+    min_separation: float = 0.025
+    s_range: tuple[float, float] | None = None
+    max_bending: float = math.pi / 2
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__
+        lo, hi = _int("min_forces", self.min_forces), _int("max_forces", self.max_forces)
+        if lo < 1 or hi < lo:
+            raise ValueError(f"need 1 <= min_forces <= max_forces, got min_forces={lo}, max_forces={hi}")
+        set_(self, "min_forces", lo)
+        set_(self, "max_forces", hi)
+        f_lo, f_hi = _pair("force_range", self.force_range)
+        if f_lo < 0.0:
+            raise ValueError(f"force_range must be non-negative, got {self.force_range!r}")
+        set_(self, "force_range", (f_lo, f_hi))
+        sep = _finite("min_separation", self.min_separation)
+        if sep < 0.0:
+            raise ValueError(f"min_separation must be >= 0, got {self.min_separation!r}")
+        set_(self, "min_separation", sep)
+        if self.s_range is not None:
+            s_lo, s_hi = _pair("s_range", self.s_range)
+            if s_lo < 0.0:
+                raise ValueError(f"s_range must be non-negative, got {self.s_range!r}")
+            if s_hi - s_lo < (hi - 1) * sep:
+                raise ValueError(
+                    f"s_range {self.s_range!r} is too short for {hi} forces {sep} m apart "
+                    f"(needs {(hi - 1) * sep} m)"
+                )
+            set_(self, "s_range", (s_lo, s_hi))
+        mb = float(self.max_bending)
+        if not mb > 0.0:
+            raise ValueError(f"max_bending must be positive (rad), got {self.max_bending!r}")
+        set_(self, "max_bending", mb)
+
+    def location_range(self, rod: Rod) -> tuple[float, float]:
+        """The (low, high) location range [m] on ``rod``, checked against its length and the separation."""
+        lo, hi = (0.02 * rod.length, rod.length) if self.s_range is None else self.s_range
+        if hi > rod.length:
+            raise ValueError(f"s_range {self.s_range!r} reaches beyond the rod's length {rod.length} m")
+        if hi - lo < (self.max_forces - 1) * self.min_separation:
+            raise ValueError(
+                f"location range ({lo}, {hi}) m is too short for {self.max_forces} forces "
+                f"{self.min_separation} m apart"
+            )
+        return lo, hi
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["force_range"] = list(self.force_range)
+        d["s_range"] = None if self.s_range is None else list(self.s_range)
+        d["max_bending"] = self.max_bending if math.isfinite(self.max_bending) else None
+        return d
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> LoadSampler:
+        data = dict(data)
+        if data.get("max_bending", 0.0) is None:
+            data["max_bending"] = math.inf
+        for key in ("force_range", "s_range"):
+            if data.get(key) is not None:
+                data[key] = tuple(data[key])
+        return cls(**data)
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """Sensor effects applied to the clean curvature (see the module docstring).
+
+    Attributes:
+        noise: Gaussian sigma of each component [1/m], independent per grating and reading.
+        offset_std: sigma of constant per-grating offsets [1/m], drawn once per set and stored.
+        missing_prob: probability that a grating has no reading, independently per grating and reading.
+        location_bias: [m], with the meaning of :attr:`torchrod.rod.Rod.location_bias` (reported location =
+            model location + bias): readings are simulated with the forces at ``s - location_bias`` (clamped to
+            [0, L]), what a fibre registered at the wrong place sees, so an estimator whose rod carries the same
+            bias reports the true ``s``. The stored loads stay at ``s``.
+    """
+
+    noise: float = 0.1
+    offset_std: float = 0.0
+    missing_prob: float = 0.0
+    location_bias: float = 0.0
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__
+        for name in ("noise", "offset_std"):
+            v = _finite(name, getattr(self, name))
+            if v < 0.0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+            set_(self, name, v)
+        p = _finite("missing_prob", self.missing_prob)
+        if not 0.0 <= p < 1.0:
+            raise ValueError(f"missing_prob must lie in [0, 1), got {self.missing_prob!r}")
+        set_(self, "missing_prob", p)
+        set_(self, "location_bias", _finite("location_bias", self.location_bias))
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> SensorModel:
+        return cls(**data)
+
+
+# ---------------------------------------------------------------------------------------------------- physics
+def _profile(rod: Rod, loads: PointForces) -> tuple[torch.Tensor, torch.Tensor]:
+    """Grating curvature (B, G, 2) [1/m] and total turning angle (B,) [rad] with a fixed step count.
+
+    The fixed step count (``_STEPS`` per segment, segments no longer than L/128) makes each case's result
+    independent of the rest of the batch; the adaptive default would take its steps from the batch's worst case.
+    """
+    dtype, device = loads.dtype, loads.device
+    grat = rod.grating_positions(dtype, device)
+    grid = torch.linspace(0.0, rod.length, PROFILE_SAMPLES, dtype=dtype, device=device)
+    curv, _ = integrate_curvature(torch.cat((grat, grid)), loads, rod.length, rod.bending_stiffness, steps=_STEPS)
+    G = grat.shape[0]
+    turning = torch.trapezoid(torch.linalg.vector_norm(curv[:, G:], dim=-1), dx=rod.length / (PROFILE_SAMPLES - 1))
+    return curv[:, :G], turning
+
+
+def _admissible(rod: Rod, loads: PointForces, limit: float) -> torch.Tensor:
+    """(B,) bool: False where a coarse estimate of the total turning (17 samples, one step per segment, error
+    below 0.02 rad for cases near the limit) exceeds the limit by more than ``_COARSE_MARGIN``. A cheap first pass:
+    the decision on the remaining cases is taken by :func:`_profile`."""
+    if not math.isfinite(limit):
+        return torch.ones(loads.batch_size, dtype=torch.bool, device=loads.device)
+    grid = torch.linspace(0.0, rod.length, _COARSE_SAMPLES, dtype=loads.dtype, device=loads.device)
+    curv, _ = integrate_curvature(grid, loads, rod.length, rod.bending_stiffness, steps=1)
+    coarse = torch.trapezoid(torch.linalg.vector_norm(curv, dim=-1), dx=rod.length / (_COARSE_SAMPLES - 1))
+    return coarse <= limit + _COARSE_MARGIN
+
+
+def total_turning(rod: Rod, loads: PointForces, *, samples: int = PROFILE_SAMPLES) -> torch.Tensor:
+    """Total turning angle ``int_0^L |u(s)| ds`` [rad], (B,), from :func:`torchrod.simulate` on ``samples``
+    uniform positions (trapezoid rule). An upper bound of the base-to-tip tangent angle, exact for planar loads."""
+    from ..model.body_frame import simulate
+
+    if samples < 2:
+        raise ValueError(f"samples must be >= 2, got {samples}")
+    sim = simulate(rod, loads, samples=samples)
+    return torch.trapezoid(sim.curvature_magnitude(), sim.s, dim=-1)
+
+
+def _shifted(rod: Rod, loads: PointForces, bias: float) -> PointForces:
+    """The loads moved to s + bias, clamped to [0, L] (padding stays put)."""
+    if bias == 0.0:
+        return loads
+    s = torch.where(loads.active, (loads.s + bias).clamp(0.0, rod.length), loads.s)
+    return PointForces(s, loads.f, loads.mask)
+
+
+# ---------------------------------------------------------------------------------------------------- sampling
+def _derive_seed(seed: int, *parts: Any) -> int:
+    """A 63-bit seed for one purpose (and chunk), from the user's seed: a hash, so streams do not overlap."""
+    digest = hashlib.sha256(repr((int(seed), *parts)).encode()).digest()
+    return int.from_bytes(digest[:8], "little") & ((1 << 63) - 1)
+
+
+def _draw(
+    counts: torch.Tensor, sampler: LoadSampler, s_range: tuple[float, float], generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Candidate cases with the given force counts (n,): s (n, h), f (n, h, 2), mask (n, h), float64 on the
+    generator's device. Draws a fixed amount per row (whatever its count), so the streams stay aligned."""
+    n, h = counts.shape[0], sampler.max_forces
+    opts = {"generator": generator, "dtype": torch.float64, "device": generator.device}
+    u = torch.rand(n, h, **opts)
+    mag = torch.rand(n, h, **opts)
+    ang = torch.rand(n, h, **opts)
+    counts = counts.to(generator.device)
+    col = torch.arange(h, device=generator.device)
+    mask = col < counts.unsqueeze(1)
+    lo, hi = s_range
+    sep = sampler.min_separation
+    u = torch.where(mask, u, torch.inf).sort(dim=1).values
+    span = (hi - lo) - (counts - 1).to(torch.float64) * sep  # (n,)
+    s = torch.where(mask, lo + u * span.unsqueeze(1) + col.to(torch.float64) * sep, 0.0)
+    s = s.clamp(max=hi)  # rounding only
+    f_lo, f_hi = sampler.force_range
+    m = f_lo + (f_hi - f_lo) * mag
+    a = 2.0 * math.pi * ang
+    f = torch.stack((m * torch.cos(a), m * torch.sin(a)), dim=-1) * mask.unsqueeze(-1)
+    return s, f, mask
+
+
+def _sample_rows(
+    rod: Rod,
+    sampler: LoadSampler,
+    chunks: Sequence[tuple[torch.Generator, int]],
+    device: torch.device,
+) -> tuple[PointForces, torch.Tensor, int]:
+    """Accepted cases for a list of (generator, rows) chunks, evaluated together; each chunk's draws depend only
+    on its own generator and its own cases' outcomes.
+
+    Returns the loads (n, h) and their grating curvature (n, G, 2) on ``device``, and the number of candidates
+    examined (for each case, its draws up to and including the accepted one).
+    """
+    s_range = sampler.location_range(rod)
+    h = sampler.max_forces
+    G = rod.num_gratings
+    counts = [
+        torch.randint(sampler.min_forces, sampler.max_forces + 1, (n,), generator=g, device=g.device).cpu()
+        for g, n in chunks
+    ]
+    total = sum(n for _, n in chunks)
+    out_s = torch.zeros(total, h, dtype=torch.float64, device=device)
+    out_f = torch.zeros(total, h, 2, dtype=torch.float64, device=device)
+    out_m = torch.zeros(total, h, dtype=torch.bool, device=device)
+    out_c = torch.zeros(total, G, 2, dtype=torch.float64, device=device)
+    offsets = [0]
+    for _, n in chunks:
+        offsets.append(offsets[-1] + n)
+    pending = [torch.arange(n) for _, n in chunks]  # per chunk, local rows still to fill
+    examined = 0
+    for round_ in range(_MAX_ROUNDS):
+        r = _REPEATS[min(round_, len(_REPEATS) - 1)]
+        parts, rows = [], []
+        for (g, _), cnt, pend, off in zip(chunks, counts, pending, offsets):
+            if pend.numel() == 0:
+                continue
+            parts.append(_draw(cnt[pend].repeat_interleave(r), sampler, s_range, g))
+            rows.append(pend + off)
+        if not parts:
+            break
+        s = torch.cat([p[0] for p in parts]).to(device)
+        f = torch.cat([p[1] for p in parts]).to(device)
+        m = torch.cat([p[2] for p in parts]).to(device)
+        ok = _admissible(rod, PointForces(s, f, m), sampler.max_bending)
+        keep = ok.nonzero().flatten()
+        grating = torch.zeros(s.shape[0], G, 2, dtype=torch.float64, device=device)
+        if keep.numel():
+            grating_kept, turning = _profile(rod, PointForces(s[keep], f[keep], m[keep]))
+            grating[keep] = grating_kept
+            ok[keep] = turning <= sampler.max_bending
+        ok = ok.reshape(-1, r)  # (P, r)
+        has = ok.any(dim=1)
+        first = ok.to(torch.int8).argmax(dim=1)  # first accepted candidate of each pending case
+        examined += int(torch.where(has, first + 1, r).sum())
+        rows_all = torch.cat(rows).to(device)
+        pick = torch.arange(ok.shape[0], device=device) * r + first
+        pick, dest = pick[has], rows_all[has]
+        out_s[dest], out_f[dest], out_m[dest], out_c[dest] = s[pick], f[pick], m[pick], grating[pick]
+        filled = has.cpu()
+        start = 0
+        for i, pend in enumerate(pending):
+            k = pend.numel()
+            pending[i] = pend[~filled[start : start + k]]
+            start += k
+    else:
+        left = sum(p.numel() for p in pending)
+        raise ValueError(
+            f"{left} load cases still exceed max_bending={sampler.max_bending} rad after {_MAX_ROUNDS} rounds of "
+            "redraws: the sampler almost never meets the bending limit (lower force_range or max_forces, or "
+            "raise max_bending)"
+        )
+    return PointForces(out_s, out_f, out_m), out_c, examined
+
+
+def sample_loads(rod: Rod, count: int, sampler: LoadSampler = LoadSampler(), generator: torch.Generator | None = None) -> PointForces:
+    """``count`` random load cases within the sampler's limits (module docstring), drawn from ``generator``.
+
+    Args:
+        rod: the rod (length, stiffness: the bending limit depends on them).
+        count: number of cases.
+        sampler: the distribution.
+        generator: the source of randomness (required for reproducibility; a fresh unseeded one if ``None``).
+    Returns:
+        :class:`PointForces` with s (count, max_forces) [m], f (count, max_forces, 2) [N] and a mask, float64 on
+        CPU, sorted by s with padding last (padded s and f are 0.0).
+    """
+    count = _int("count", count)
+    if count < 0:
+        raise ValueError(f"count must be >= 0, got {count}")
+    if not isinstance(sampler, LoadSampler):
+        raise TypeError(f"sampler must be a LoadSampler, got {type(sampler).__name__}")
+    g = torch.Generator() if generator is None else generator
+    if not isinstance(g, torch.Generator):
+        raise TypeError(f"generator must be a torch.Generator, got {type(g).__name__}")
+    parts = []
+    for start in range(0, count, 4096):
+        loads, _, _ = _sample_rows(rod, sampler, [(g, min(4096, count - start))], torch.device("cpu"))
+        parts.append(loads)
+    if not parts:
+        h = sampler.max_forces
+        z = torch.zeros(0, h, dtype=torch.float64)
+        return PointForces(z, torch.zeros(0, h, 2, dtype=torch.float64), torch.zeros(0, h, dtype=torch.bool))
+    return PointForces(
+        torch.cat([p.s for p in parts]), torch.cat([p.f for p in parts]), torch.cat([p.active for p in parts])
+    )
+
+
+def _sensor_draws(
+    n: int, G: int, generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Standard normal noise (n, G, 2) and uniforms (n, G) for the missing gratings, on CPU."""
+    noise = torch.randn(n, G, 2, generator=generator, dtype=torch.float64)
+    missing = torch.rand(n, G, generator=generator, dtype=torch.float64)
+    return noise, missing
+
+
+def _apply_sensor(
+    clean: torch.Tensor, offsets: torch.Tensor, noise: torch.Tensor, missing_u: torch.Tensor, sensor: SensorModel
+) -> tuple[torch.Tensor, torch.Tensor]:
+    mask = ~(missing_u < sensor.missing_prob)
+    curvature = clean + offsets + sensor.noise * noise
+    curvature = torch.where(mask.unsqueeze(-1), curvature, 0.0)
+    return curvature, mask
+
+
+# ---------------------------------------------------------------------------------------------------- the set
+class SyntheticDataset(torch.utils.data.Dataset):
+    """A :class:`SyntheticSet` as a map-style dataset.
+
+    Item i is a dict: ``curvature`` (G, 2) [1/m] (0.0 where missing), ``mask`` (G,) bool, ``s`` (h,) [m],
+    ``f`` (h, 2) [N], ``force_mask`` (h,) bool, ``count`` () int64. The whole columns are attributes of the same
+    names (first dimension N) for batched indexing.
+    """
+
+    def __init__(self, synthetic: SyntheticSet, dtype: torch.dtype = torch.float64) -> None:
+        self.curvature = synthetic.curvature.to(dtype)
+        self.mask = synthetic.mask
+        self.s = synthetic.loads.s.to(dtype)
+        self.f = synthetic.loads.f.to(dtype)
+        self.force_mask = synthetic.loads.active
+        self.count = synthetic.loads.count.to(torch.int64)
+
+    def __len__(self) -> int:
+        return self.curvature.shape[0]
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        return {
+            "curvature": self.curvature[index],
+            "mask": self.mask[index],
+            "s": self.s[index],
+            "f": self.f[index],
+            "force_mask": self.force_mask[index],
+            "count": self.count[index],
+        }
+
+
+@dataclass
+class SyntheticSet:
+    """N synthetic load cases and their readings (shapes: N cases, h = ``sampler.max_forces``, G gratings).
+
+    Attributes:
+        rod, sampler, sensor, seed: how the set was made.
+        loads: the forces, s (N, h) [m] and f (N, h, 2) [N] with mask, sorted by s, padding last.
+        clean: (N, G, 2) noise-free curvature at the gratings [1/m].
+        curvature: (N, G, 2) the readings [1/m]: clean + offsets + noise, 0.0 where missing.
+        mask: (N, G) bool, True where the grating has a reading.
+        offsets: (G, 2) constant per-grating offsets of this set [1/m] (zeros if ``None`` is given).
+        candidates: cases examined while sampling (``1 - N / candidates`` is the rejection rate), if known.
+    """
+
+    rod: Rod
+    sampler: LoadSampler
+    sensor: SensorModel
+    seed: int
+    loads: PointForces
+    clean: torch.Tensor
+    curvature: torch.Tensor
+    mask: torch.Tensor
+    offsets: torch.Tensor | None = None
+    candidates: int | None = None
+
+    def __post_init__(self) -> None:
+        N, h = self.loads.s.shape
+        G = self.rod.num_gratings
+        if self.offsets is None:
+            self.offsets = torch.zeros(G, 2, dtype=self.clean.dtype, device=self.clean.device)
+        if h != self.sampler.max_forces:
+            raise ValueError(f"loads hold {h} forces per case, the sampler's max_forces is {self.sampler.max_forces}")
+        for name, want in (("clean", (N, G, 2)), ("curvature", (N, G, 2)), ("mask", (N, G)), ("offsets", (G, 2))):
+            got = tuple(getattr(self, name).shape)
+            if got != want:
+                raise ValueError(f"{name} must have shape {want} (N cases, G = {G} gratings), got {got}")
+        if self.mask.dtype != torch.bool:
+            raise ValueError(f"mask must be bool, got {self.mask.dtype}")
+
+    def __len__(self) -> int:
+        return self.loads.s.shape[0]
+
+    @property
+    def rejection_rate(self) -> float | None:
+        """Fraction of examined cases rejected by the bending limit (``None`` if unknown)."""
+        if not self.candidates:
+            return None
+        return 1.0 - len(self) / self.candidates
+
+    def to_dataset(self, dtype: torch.dtype = torch.float64) -> SyntheticDataset:
+        """A :class:`SyntheticDataset` over this set (float tensors in ``dtype``)."""
+        return SyntheticDataset(self, dtype)
+
+    # ------------------------------------------------------------------ file format
+    def _arrays(self) -> dict[str, np.ndarray]:
+        def a(x: torch.Tensor, dtype: Any) -> np.ndarray:
+            return np.ascontiguousarray(x.detach().cpu().numpy().astype(dtype, copy=False))
+
+        return {
+            "s": a(self.loads.s, np.float64),
+            "f": a(self.loads.f, np.float64),
+            "force_mask": a(self.loads.active, np.bool_),
+            "count": a(self.loads.count, np.int64),
+            "clean": a(self.clean, np.float64),
+            "curvature": a(self.curvature, np.float64),
+            "mask": a(self.mask, np.bool_),
+            "offsets": a(self.offsets, np.float64),
+        }
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the set to ``path`` (``.npz``, format in the module docstring; written atomically, the name is
+        kept as given)."""
+        from .. import __version__
+
+        arrays = self._arrays()
+        meta = {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "torchrod_version": __version__,
+            "rod": self.rod.to_dict(),
+            "sampler": self.sampler.to_dict(),
+            "sensor": self.sensor.to_dict(),
+            "seed": int(self.seed),
+            "count": len(self),
+            "candidates": None if self.candidates is None else int(self.candidates),
+            "sha256": _digest(arrays),
+        }
+        path = os.fspath(path)
+        folder = os.path.dirname(os.path.abspath(path))
+        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".npz", dir=folder)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez_compressed(fh, meta=np.array(json.dumps(meta)), **arrays)
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, rod: Rod | None = None) -> SyntheticSet:
+        """Read a set written by :meth:`save`, checking it (``ValueError`` naming the problem).
+
+        Args:
+            path: the ``.npz`` file.
+            rod: if given, the set's rod must have the same length, bending stiffness and gratings (the
+                quantities the readings depend on; the location bias and the description may differ).
+        """
+        path = os.fspath(path)
+        if not os.path.exists(path):
+            raise FileNotFoundError(f"no such data set: {path}")
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                names = set(npz.files)
+                if "meta" not in names:
+                    raise ValueError(f"{path}: not a torchrod data set (no 'meta' entry)")
+                meta_raw = npz["meta"]
+                if meta_raw.shape != () or meta_raw.dtype.kind != "U":
+                    raise ValueError(f"{path}: not a torchrod data set ('meta' is not a JSON string)")
+                meta = json.loads(str(meta_raw))
+                if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+                    raise ValueError(f"{path}: not a torchrod data set (format tag {meta.get('format')!r})")
+                version = meta.get("format_version")
+                if not isinstance(version, int):
+                    raise ValueError(f"{path}: format_version is missing or not an integer ({version!r})")  # noqa: TRY004
+                if version > FORMAT_VERSION:
+                    raise ValueError(
+                        f"{path}: format_version {version} was written by a newer torchrod "
+                        f"({meta.get('torchrod_version')}); this one reads up to {FORMAT_VERSION}"
+                    )
+                missing = [n for n in _ARRAYS if n not in names]
+                extra = sorted(names - set(_ARRAYS) - {"meta"})
+                if missing or extra:
+                    raise ValueError(f"{path}: corrupt data set: missing arrays {missing}, unexpected arrays {extra}")
+                arrays = {n: npz[n] for n in _ARRAYS}
+        except ValueError as exc:
+            if str(exc).startswith(path):
+                raise
+            raise ValueError(f"{path}: corrupt or unreadable data set ({exc})") from None
+        except Exception as exc:  # noqa: BLE001 -- zipfile.BadZipFile, zlib.error, EOFError, OSError, ...: a damaged file
+            raise ValueError(f"{path}: corrupt or unreadable data set ({type(exc).__name__}: {exc})") from None
+        if meta.get("sha256") != _digest(arrays):
+            raise ValueError(f"{path}: corrupt data set: the arrays do not match the stored sha256")
+        try:
+            stored_rod = Rod.from_dict(meta["rod"])
+            sampler = LoadSampler.from_dict(meta["sampler"])
+            sensor = SensorModel.from_dict(meta["sensor"])
+            seed, count = int(meta["seed"]), int(meta["count"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: corrupt data set metadata ({exc})") from None
+        _check_arrays(path, arrays, count, sampler.max_forces, stored_rod.num_gratings)
+        if rod is not None:
+            diff = _rod_differences(stored_rod, rod)
+            if diff:
+                raise ValueError(f"{path}: the set was made for a different rod ({'; '.join(diff)})")
+        loads = PointForces(
+            torch.from_numpy(arrays["s"]), torch.from_numpy(arrays["f"]), torch.from_numpy(arrays["force_mask"])
+        )
+        return cls(
+            rod=stored_rod,
+            sampler=sampler,
+            sensor=sensor,
+            seed=seed,
+            loads=loads,
+            clean=torch.from_numpy(arrays["clean"]),
+            curvature=torch.from_numpy(arrays["curvature"]),
+            mask=torch.from_numpy(arrays["mask"]),
+            offsets=torch.from_numpy(arrays["offsets"]),
+            candidates=meta.get("candidates"),
+        )
+
+
+def _digest(arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(name.encode())
+        h.update(a.dtype.str.encode())
+        h.update(repr(tuple(a.shape)).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _check_arrays(path: str, arrays: dict[str, np.ndarray], N: int, h: int, G: int) -> None:
+    want = {
+        "s": ((N, h), np.float64),
+        "f": ((N, h, 2), np.float64),
+        "force_mask": ((N, h), np.bool_),
+        "count": ((N,), np.int64),
+        "clean": ((N, G, 2), np.float64),
+        "curvature": ((N, G, 2), np.float64),
+        "mask": ((N, G), np.bool_),
+        "offsets": ((G, 2), np.float64),
+    }
+    for name, (shape, dtype) in want.items():
+        a = arrays[name]
+        if a.shape != shape or a.dtype != dtype:
+            raise ValueError(
+                f"{path}: inconsistent data set: {name!r} is {a.dtype}{list(a.shape)}, expected "
+                f"{np.dtype(dtype)}{list(shape)} (N = {N} cases, h = {h} forces, G = {G} gratings)"
+            )
+        if a.dtype == np.float64 and not np.isfinite(a).all():
+            raise ValueError(f"{path}: inconsistent data set: {name!r} holds non-finite values")
+    if not np.array_equal(arrays["force_mask"].sum(axis=1), arrays["count"]):
+        raise ValueError(f"{path}: inconsistent data set: 'count' disagrees with 'force_mask'")
+
+
+def _rod_differences(a: Rod, b: Rod) -> list[str]:
+    out = []
+    if not math.isclose(a.length, b.length, rel_tol=1e-12):
+        out.append(f"length {a.length} m vs {b.length} m")
+    if not math.isclose(a.bending_stiffness, b.bending_stiffness, rel_tol=1e-9):
+        out.append(f"bending_stiffness {a.bending_stiffness} vs {b.bending_stiffness} N m^2")
+    if len(a.gratings) != len(b.gratings) or any(abs(x - y) > 1e-12 for x, y in zip(a.gratings, b.gratings)):
+        out.append(f"gratings {list(a.gratings)} vs {list(b.gratings)}")
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------- generate
+def generate(
+    rod: Rod,
+    count: int,
+    *,
+    sampler: LoadSampler = LoadSampler(),
+    sensor: SensorModel = SensorModel(),
+    seed: int = 0,
+    batch_size: int = 4096,
+    progress: bool = False,
+    device: torch.device | str | None = None,
+) -> SyntheticSet:
+    """A synthetic set of ``count`` load cases and their readings (module docstring: distribution, sensor model,
+    reproducibility).
+
+    Args:
+        rod: the rod.
+        count: number of cases N.
+        sampler, sensor: the load distribution and the sensor effects.
+        seed: the only source of randomness; the same seed gives the same set whatever ``batch_size``.
+        batch_size: cases evaluated together (memory ~ 5 kB per case), rounded up to a multiple of :data:`CHUNK`.
+        progress: a tqdm progress bar on stderr.
+        device: where the forward model runs (random draws stay on CPU); the set is returned on CPU.
+    Returns:
+        :class:`SyntheticSet` (float64, CPU).
+    """
+    count = _int("count", count)
+    seed = _int("seed", seed)
+    batch_size = _int("batch_size", batch_size)
+    if count < 0:
+        raise ValueError(f"count must be >= 0, got {count}")
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    if not isinstance(rod, Rod):
+        raise TypeError(f"rod must be a Rod, got {type(rod).__name__}")
+    if not isinstance(sampler, LoadSampler) or not isinstance(sensor, SensorModel):
+        raise TypeError("sampler must be a LoadSampler and sensor a SensorModel")
+    sampler.location_range(rod)
+    dev = torch.device("cpu") if device is None else torch.device(device)
+    G, h = rod.num_gratings, sampler.max_forces
+    per_batch = max(1, math.ceil(batch_size / CHUNK))
+    sizes = [min(CHUNK, count - start) for start in range(0, count, CHUNK)]
+    offsets = sensor.offset_std * torch.randn(
+        G, 2, generator=torch.Generator().manual_seed(_derive_seed(seed, "offsets")), dtype=torch.float64
+    )
+    s_parts, f_parts, m_parts, clean_parts, curv_parts, mask_parts = [], [], [], [], [], []
+    examined = 0
+    bar = _progress(count, progress, "cases")
+    try:
+        for b0 in range(0, len(sizes), per_batch):
+            idx = range(b0, min(b0 + per_batch, len(sizes)))
+            chunks = [(torch.Generator().manual_seed(_derive_seed(seed, "loads", c)), sizes[c]) for c in idx]
+            loads, clean, n_examined = _sample_rows(rod, sampler, chunks, dev)
+            examined += n_examined
+            if sensor.location_bias != 0.0:
+                clean, _ = _profile(rod, _shifted(rod, loads, -sensor.location_bias))
+            draws = [
+                _sensor_draws(sizes[c], G, torch.Generator().manual_seed(_derive_seed(seed, "sensor", c)))
+                for c in idx
+            ]
+            noise = torch.cat([d[0] for d in draws])
+            missing = torch.cat([d[1] for d in draws])
+            clean = clean.cpu()
+            curvature, mask = _apply_sensor(clean, offsets, noise, missing, sensor)
+            s_parts.append(loads.s.cpu())
+            f_parts.append(loads.f.cpu())
+            m_parts.append(loads.active.cpu())
+            clean_parts.append(clean)
+            curv_parts.append(curvature)
+            mask_parts.append(mask)
+            bar.update(loads.batch_size)
+    finally:
+        bar.close()
+
+    def cat(parts: list[torch.Tensor], shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+        return torch.cat(parts) if parts else torch.zeros(shape, dtype=dtype)
+
+    loads = PointForces(
+        cat(s_parts, (0, h), torch.float64), cat(f_parts, (0, h, 2), torch.float64), cat(m_parts, (0, h), torch.bool)
+    )
+    return SyntheticSet(
+        rod=rod,
+        sampler=sampler,
+        sensor=sensor,
+        seed=seed,
+        loads=loads,
+        clean=cat(clean_parts, (0, G, 2), torch.float64),
+        curvature=cat(curv_parts, (0, G, 2), torch.float64),
+        mask=cat(mask_parts, (0, G), torch.bool),
+        offsets=offsets,
+        candidates=examined,
+    )
+
+
+def _progress(total: int, enabled: bool, unit: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, disable=not enabled, file=sys.stderr, unit=unit, dynamic_ncols=True, leave=False)
+
+
+# ---------------------------------------------------------------------------------------------------- streams
+@dataclass(frozen=True)
+class ContactModel:
+    """How the contacts of a synthetic stream live (times in s, lengths in m).
+
+    A contact appears at a random free location (at least ``min_separation + margin`` from the others) with the
+    sampler's smallest magnitude, ramps up (smoothstep over ``ramp`` seconds) to a peak magnitude, wobbles by up to
+    ``wobble`` of its peak, ramps down and vanishes after ``duration`` seconds. Its location drifts at a constant
+    speed up to ``drift_speed`` and bounces off the ends of the location range and off its neighbours; its
+    direction turns at up to ``rotation_speed`` rad/s. New contacts arrive at ``arrival_rate`` per second while
+    fewer than ``max_forces`` are present, and at once when fewer than ``min_forces`` are. The peak magnitude is
+    drawn in ``force_range`` capped by the single-force small-deflection bound ``2 EI max_bending / s^2``; a
+    per-frame factor c <= 1, smoothed over ``smoothing`` seconds (an erosion then a moving average, which never
+    exceeds the needed factor), then scales all forces of a frame so that the bending limit holds at every frame.
+    """
+
+    drift_speed: float = 0.005
+    rotation_speed: float = 0.3
+    duration: tuple[float, float] = (1.5, 5.0)
+    ramp: tuple[float, float] = (0.5, 1.2)
+    wobble: float = 0.15
+    arrival_rate: float = 0.8
+    margin: float = 0.002
+    smoothing: float = 0.5
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__
+        for name in ("drift_speed", "rotation_speed", "wobble", "arrival_rate", "margin", "smoothing"):
+            v = _finite(name, getattr(self, name))
+            if v < 0.0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+            set_(self, name, v)
+        if self.wobble >= 1.0:
+            raise ValueError(f"wobble must be < 1, got {self.wobble!r}")
+        for name in ("duration", "ramp"):
+            lo, hi = _pair(name, getattr(self, name))
+            if lo <= 0.0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
+            set_(self, name, (lo, hi))
+
+
+@dataclass
+class Trajectory:
+    """A synthetic stream: T readings at ``rate`` Hz and their ground truth.
+
+    Attributes:
+        readings: T dicts ``{"id": "f000123", "t": seconds, "curvature": [[ux, uy], ...]}`` ([1/m]; ``None`` for
+            a missing grating).
+        truth: T dicts ``{"id", "t", "forces": [{"s", "fx", "fy"}, ...]}`` (m, N; sorted by s).
+        t: (T,) times [s].
+        loads: the forces, (T, max_forces) padded, sorted by s.
+        clean, curvature: (T, G, 2) [1/m]; mask (T, G) bool; offsets (G, 2) [1/m] (as in :class:`SyntheticSet`).
+        events: frames where a contact appears or vanishes (the only frames where forces may jump).
+        scale: (T,) the bending-limit factor c applied to each frame's forces.
+    """
+
+    readings: list[dict[str, Any]]
+    truth: list[dict[str, Any]]
+    t: torch.Tensor
+    loads: PointForces
+    clean: torch.Tensor
+    curvature: torch.Tensor
+    mask: torch.Tensor
+    offsets: torch.Tensor
+    events: list[int] = field(default_factory=list)
+    scale: torch.Tensor | None = None
+
+
+class _Contact:
+    __slots__ = ("angle", "down", "end", "ident", "omega", "peak", "period", "phase", "s", "start", "up", "v", "wob")
+
+
+def _smoothstep(x: float) -> float:
+    x = min(1.0, max(0.0, x))
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _plan(
+    rod: Rod, count: int, rate: float, sampler: LoadSampler, model: ContactModel, g: torch.Generator
+) -> tuple[list[list[tuple[int, float, float, float]]], list[int]]:
+    """Frame by frame, the contacts as (id, s, fx, fy) before the bending scale, and the event frames."""
+    lo, hi = sampler.location_range(rod)
+    f_lo, f_hi = sampler.force_range
+    gap = sampler.min_separation + model.margin
+    dt = 1.0 / rate
+    ei = rod.bending_stiffness
+
+    def rand() -> float:
+        return float(torch.rand((), generator=g, dtype=torch.float64))
+
+    def uniform(a: float, b: float) -> float:
+        return a + (b - a) * rand()
+
+    active: list[_Contact] = []
+    next_id = 0
+
+    def spawn(k: int) -> bool:
+        nonlocal next_id
+        for _ in range(64):
+            s = uniform(lo, hi)
+            if all(abs(s - c.s) >= gap for c in active):
+                break
+        else:
+            return False
+        c = _Contact()
+        c.ident, next_id = next_id, next_id + 1
+        c.s = s
+        c.v = uniform(-model.drift_speed, model.drift_speed)
+        c.angle = uniform(0.0, 2.0 * math.pi)
+        c.omega = uniform(-model.rotation_speed, model.rotation_speed)
+        cap = 2.0 * ei * sampler.max_bending / max(s, 1e-9) ** 2
+        c.peak = uniform(f_lo, max(f_lo, min(f_hi, cap)))
+        duration = uniform(*model.duration)
+        c.start = k
+        c.end = k + max(1, round(duration * rate))  # last frame where it is present
+        up, down = uniform(*model.ramp), uniform(*model.ramp)
+        if up + down > duration:
+            up, down = up * duration / (up + down), down * duration / (up + down)
+        c.up, c.down = up, down
+        c.wob = uniform(0.0, model.wobble)
+        c.period = uniform(1.0, 3.0)
+        c.phase = uniform(0.0, 2.0 * math.pi)
+        active.append(c)
+        return True
+
+    frames: list[list[tuple[int, float, float, float]]] = []
+    events: list[int] = []
+    for k in range(count):
+        before = {c.ident for c in active}
+        active[:] = [c for c in active if c.end >= k]
+        if k == 0:
+            n0 = sampler.min_forces + int(rand() * (sampler.max_forces - sampler.min_forces + 1))
+            for _ in range(min(n0, sampler.max_forces)):
+                spawn(k)
+        else:
+            # Move: constant drift, bounce off the range ends; moves that would bring two contacts closer than
+            # min_separation are undone and those contacts turn back (a valid previous state always exists).
+            old = {c.ident: c.s for c in active}
+            for c in active:
+                s_new = c.s + c.v * dt
+                if s_new < lo or s_new > hi:
+                    c.v = -c.v
+                    s_new = c.s
+                c.s = s_new
+            while True:
+                order = sorted(active, key=lambda c: c.s)
+                clash = {
+                    c.ident
+                    for a, b in itertools.pairwise(order)
+                    if b.s - a.s < sampler.min_separation
+                    for c in (a, b)
+                    if c.s != old[c.ident]
+                }
+                if not clash:
+                    break
+                for c in active:
+                    if c.ident in clash:
+                        c.s, c.v = old[c.ident], -c.v
+            while len(active) < sampler.min_forces and spawn(k):
+                pass
+            if len(active) < sampler.max_forces and rand() < model.arrival_rate * dt:
+                spawn(k)
+        if {c.ident for c in active} != before and k > 0:
+            events.append(k)
+        row = []
+        for c in active:
+            age, left = (k - c.start) * dt, (c.end - k) * dt
+            env = _smoothstep(age / c.up) * _smoothstep(left / c.down)
+            wob = 1.0 + c.wob * math.sin(2.0 * math.pi * age / c.period + c.phase)
+            mag = min(f_hi, f_lo + (c.peak * wob - f_lo) * env)
+            ang = c.angle + c.omega * age
+            row.append((c.ident, c.s, mag * math.cos(ang), mag * math.sin(ang)))
+        frames.append(sorted(row, key=lambda x: x[1]))
+    return frames, events
+
+
+def _bending_scale(rod: Rod, loads: PointForces, limit: float, window: int) -> torch.Tensor:
+    """A smooth per-frame factor c (T,) in (0, 1] with total turning of (c f) <= limit at every frame."""
+    T = loads.batch_size
+
+    def turning(c: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        sub = PointForces(loads.s[rows], loads.f[rows] * c.unsqueeze(-1).unsqueeze(-1), loads.mask[rows])
+        return _profile(rod, sub)[1]
+
+    c = torch.ones(T, dtype=torch.float64)
+    for _ in range(6):
+        beta = turning(c, torch.arange(T))
+        bad = (beta > limit).nonzero().flatten()
+        if bad.numel() == 0:
+            return c
+        # Bisection on the frames beyond the limit: the largest factor (within 1e-3) that satisfies it.
+        lo, hi = torch.zeros(bad.numel(), dtype=torch.float64), c[bad].clone()
+        for _ in range(12):
+            mid = 0.5 * (lo + hi)
+            ok = turning(mid, bad) <= 0.995 * limit
+            lo, hi = torch.where(ok, mid, lo), torch.where(ok, hi, mid)
+        need = c.clone()
+        need[bad] = lo
+        c = _opening(need, window)
+    raise AssertionError("bending-limit scaling did not converge")  # pragma: no cover
+
+
+def _opening(c: torch.Tensor, w: int) -> torch.Tensor:
+    """Erosion (min over +-w) then moving average (over +-w): smooth, and <= c at every frame."""
+    if w <= 0:
+        return c
+    pad = torch.nn.functional.pad(c.view(1, 1, -1), (2 * w, 2 * w), value=1.0).view(-1)
+    eroded = pad.unfold(0, 2 * w + 1, 1).amin(dim=1)  # frames -w .. T+w-1
+    return eroded.unfold(0, 2 * w + 1, 1).mean(dim=1)
+
+
+def generate_trajectory(
+    rod: Rod,
+    count: int,
+    *,
+    rate: float = 100.0,
+    sensor: SensorModel = SensorModel(),
+    sampler: LoadSampler = LoadSampler(),
+    contacts: ContactModel = ContactModel(),
+    seed: int = 0,
+    decimals: int | None = None,
+) -> Trajectory:
+    """A synthetic stream of ``count`` readings at ``rate`` Hz with moving, growing, appearing contacts.
+
+    At most ``sampler.max_forces`` contacts at a time, at least ``min_separation`` apart, within the sampler's
+    location range and bending limit at every frame (see :class:`ContactModel`). Readings carry the sensor effects
+    of ``sensor`` (offsets drawn once for the stream).
+
+    Args:
+        rod: the rod.
+        count: number of readings T.
+        rate: readings per second [Hz].
+        sensor, sampler, contacts: sensor effects, force limits, and how contacts live.
+        seed: the only source of randomness.
+        decimals: round the readings' curvature to this many decimals [1/m] in ``readings`` (the tensors and
+            the truth keep full precision).
+    Returns:
+        :class:`Trajectory`.
+    """
+    count, seed = _int("count", count), _int("seed", seed)
+    if count < 1:
+        raise ValueError(f"count must be >= 1, got {count}")
+    rate = _finite("rate", rate)
+    if rate <= 0.0:
+        raise ValueError(f"rate must be positive (Hz), got {rate}")
+    if decimals is not None:
+        decimals = _int("decimals", decimals)
+    frames, events = _plan(
+        rod, count, rate, sampler, contacts, torch.Generator().manual_seed(_derive_seed(seed, "trajectory"))
+    )
+    h = sampler.max_forces
+    loads = PointForces.from_lists([[(s, fx, fy) for _, s, fx, fy in row] for row in frames], max_forces=h)
+    window = round(contacts.smoothing * rate)
+    scale = _bending_scale(rod, loads, sampler.max_bending, window) if math.isfinite(sampler.max_bending) else None
+    if scale is not None:
+        loads = PointForces(loads.s, loads.f * scale.view(-1, 1, 1), loads.mask)
+    G = rod.num_gratings
+    clean, _ = _profile(rod, _shifted(rod, loads, -sensor.location_bias))
+    sg = torch.Generator().manual_seed(_derive_seed(seed, "trajectory-sensor"))
+    offsets = sensor.offset_std * torch.randn(G, 2, generator=sg, dtype=torch.float64)
+    noise, missing = _sensor_draws(count, G, sg)
+    curvature, mask = _apply_sensor(clean, offsets, noise, missing, sensor)
+    t = torch.arange(count, dtype=torch.float64) / rate
+    readings, truth = [], []
+    values = curvature.tolist()
+    present = mask.tolist()
+    times = t.tolist()
+    for k, forces in enumerate(loads.to_lists()):
+        ident = f"f{k:06d}"
+        row = [
+            ([round(u, decimals) for u in uv] if decimals is not None else uv) if ok else None
+            for uv, ok in zip(values[k], present[k])
+        ]
+        readings.append({"id": ident, "t": times[k], "curvature": row})
+        truth.append({"id": ident, "t": times[k], "forces": [{"s": s, "fx": fx, "fy": fy} for s, fx, fy in forces]})
+    return Trajectory(
+        readings=readings,
+        truth=truth,
+        t=t,
+        loads=loads,
+        clean=clean,
+        curvature=curvature,
+        mask=mask,
+        offsets=offsets,
+        events=events,
+        scale=scale,
+    )
+
+
+def truth_path(path: str | os.PathLike) -> str:
+    """The default ground-truth file beside a stream: ``PATH.jsonl`` -> ``PATH_truth.jsonl``."""
+    root, ext = os.path.splitext(os.fspath(path))
+    return f"{root}_truth{ext or '.jsonl'}"
+
+
+def write_trajectory(
+    trajectory: Trajectory, path: str | os.PathLike, truth: str | os.PathLike | None = None
+) -> tuple[str, str]:
+    """Write the readings to ``path`` and the ground truth to ``truth`` (default :func:`truth_path`), one JSON
+    object per line. Returns both paths."""
+    path = os.fspath(path)
+    truth = truth_path(path) if truth is None else os.fspath(truth)
+    _write_lines(path, trajectory.readings)
+    _write_lines(truth, trajectory.truth)
+    return path, truth
+
+
+def _write_lines(path: str, rows: Iterable[dict[str, Any]]) -> None:
+    with open(path, "w", encoding="utf-8") as fh:
+        for row in rows:
+            fh.write(json.dumps(row, separators=(",", ":")))
+            fh.write("\n")

@@ -1,0 +1,729 @@
+"""Training the warm-start network (:mod:`torchrod.warm_start`) on simulated readings.
+
+One entry point, :func:`train`, driven by a frozen :class:`TrainConfig`; ``python train/train_warm_start.py`` and
+``torchrod train`` build the config from the command line (:func:`add_arguments`, :func:`config_from_args`) and call
+it. Under ``torchrun --nproc_per_node=N`` it trains with DistributedDataParallel (gloo on CPU, nccl on CUDA), each
+process taking its share of every epoch through a DistributedSampler; only rank 0 logs and saves.
+
+Data. The load cases and their clean readings come from a :class:`torchrod.synthetic.SyntheticSet` (``data``: a
+saved set) or are generated at start (``generate`` cases, seeded). Every training step draws fresh sensor noise and
+fresh missing gratings for its batch (a per-step seed, so a resumed run draws what the uninterrupted run would
+have): the noise level of each case is ``noise * U(1 - noise_jitter, 1 + noise_jitter)`` [1/m]. A held-back set
+(``validation`` cases, another seed, noise exactly ``noise``) measures the network after every epoch.
+
+Loss, all dimensionless (s / L, f L^2 / EI, u L; :mod:`torchrod.warm_start`):
+
+* cross-entropy of the count logits, weighted by ``count_weight``;
+* for the head of the true count h, a Huber loss on the h locations (in units of ``LOCATION_UNIT``) and on the h
+  force components (in units of ``FORCE_UNIT`` x the network's force scale). Both the truth and the head are
+  sorted by location, so they pair up in order;
+* the physics loss, weighted by ``physics_weight``: the differentiable rod model
+  (:func:`torchrod.body_frame.grating_curvature` on the unit rod) applied to the true count's predicted forces,
+  against the noisy input reading, mean squared over the read gratings, in units of the curvature scale. It runs
+  on the first ``physics_batch`` cases of each batch (measured on two CPU cores, batch 512: a step takes about
+  11 ms without it and 14 to 15 ms with 64 to 256 cases in it).
+
+Logs (tensorboard, ``logdir``): the loss terms, learning rate, and after each epoch on the held-back set the count
+accuracy (overall and by number of forces), the median location [mm] and force [N] errors by number of forces, and
+a figure of a few fits. Checkpoints (``checkpoint``) hold the network config and normalisation, the weights, the
+torchrod version, step and epoch, the training config and the optimiser state; ``resume`` continues from one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+
+from ..loads import PointForces
+from ..model.body_frame import grating_curvature
+from ..presets import load as load_rod
+from ..rod import Rod
+from .warm_start import (
+    NetConfig,
+    WarmStart,
+    WarmStartGuess,
+    WarmStartNet,
+    load_checkpoint,
+    save_checkpoint,
+    unit_rod,
+)
+
+__all__ = [
+    "FORCE_UNIT",
+    "LOCATION_UNIT",
+    "TrainConfig",
+    "TrainResult",
+    "TrainingData",
+    "add_arguments",
+    "config_from_args",
+    "evaluate_guess",
+    "format_metrics",
+    "main",
+    "run",
+    "train",
+]
+
+LOCATION_UNIT = 0.02
+"""Location errors enter the loss in units of 0.02 L (about 6 mm on the 290 mm rod)."""
+FORCE_UNIT = 0.05
+"""Force errors enter the loss in units of 0.05 x the network's force scale."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run depends on (the command line turns into one of these at the edge).
+
+    Attributes:
+        rod: preset name (``nitinol290``) or rod JSON file; ignored when ``data`` is given (the set's rod is used).
+        data: a saved :class:`~torchrod.synthetic.SyntheticSet`, or None to generate ``generate`` cases.
+        generate: number of training cases generated at start when ``data`` is None.
+        validation: number of held-back cases, generated with another seed.
+        max_forces: largest number of forces (H) in the data and the network.
+        epochs: passes over the training cases (a resumed run continues up to this many).
+        batch_size: cases per step and per process.
+        lr: peak learning rate (AdamW; linear warm-up over ``warmup`` of the steps, then cosine decay to 1 %).
+        weight_decay: AdamW weight decay.
+        warmup: fraction of the steps spent warming up.
+        seed: seeds the data, the initial weights, the shuffling and the per-step sensor noise.
+        count_weight: weight of the count cross-entropy (the regression terms have weight 1).
+        physics_weight: weight of the physics loss (0 switches it off).
+        physics_batch: cases per batch that enter the physics loss.
+        noise: sensor noise level sigma [1/m] (training jitters it per case, validation uses it exactly).
+        noise_jitter: relative spread of the training noise level, in [0, 1).
+        missing_prob: probability that a grating is missing in a reading.
+        hidden, depth: network width and number of hidden layers.
+        logdir: tensorboard folder, or None for no logs.
+        checkpoint: where the checkpoint is written after every epoch.
+        resume: a checkpoint to continue from (network, optimiser, step, epoch), or None.
+        optimizer_state: store the optimiser state in the checkpoint (what ``resume`` needs to continue exactly;
+            without it a resumed run starts a fresh optimiser, and the file is three times smaller).
+        log_every: steps between logged training losses.
+        figure_cases: held-back cases drawn in the fit figure after each epoch.
+        device: ``auto`` (CUDA when present), ``cpu`` or ``cuda``.
+        threads: CPU threads per process (None: torch's default, divided among local processes).
+        progress: print a line per epoch (rank 0).
+    """
+
+    rod: str = "nitinol290"
+    data: str | None = None
+    generate: int = 200_000
+    validation: int = 4096
+    max_forces: int = 3
+    epochs: int = 30
+    batch_size: int = 512
+    lr: float = 3e-3
+    weight_decay: float = 1e-4
+    warmup: float = 0.03
+    seed: int = 0
+    count_weight: float = 5.0
+    physics_weight: float = 0.1
+    physics_batch: int = 128
+    noise: float = 0.1
+    noise_jitter: float = 0.5
+    missing_prob: float = 0.05
+    hidden: int = 256
+    depth: int = 4
+    logdir: str | None = "runs/warm_start"
+    checkpoint: str = "checkpoints/warm_start.pt"
+    resume: str | None = None
+    optimizer_state: bool = True
+    log_every: int = 50
+    figure_cases: int = 4
+    device: str = "auto"
+    threads: int | None = None
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        positive = ("generate", "validation", "max_forces", "epochs", "batch_size", "hidden", "depth", "log_every")
+        for name in positive:
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        for name in ("lr", "noise_jitter", "missing_prob", "warmup", "weight_decay", "physics_weight", "noise",
+                     "count_weight"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        if self.lr <= 0:
+            raise ValueError(f"lr must be positive, got {self.lr}")
+        if self.noise_jitter >= 1 or self.missing_prob >= 1 or self.warmup >= 1:
+            raise ValueError(
+                f"noise_jitter, missing_prob and warmup must be < 1, got {self.noise_jitter}, "
+                f"{self.missing_prob}, {self.warmup}"
+            )
+        if not isinstance(self.physics_batch, int) or self.physics_batch < 0:
+            raise ValueError(f"physics_batch must be an integer >= 0, got {self.physics_batch!r}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
+        if self.threads is not None and (not isinstance(self.threads, int) or self.threads < 1):
+            raise ValueError(f"threads must be a positive integer or None, got {self.threads!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+# ---------------------------------------------------------------------------------------------------- data
+
+
+@dataclass(frozen=True)
+class TrainingData:
+    """Load cases and their clean readings, dimensionless (see :mod:`torchrod.warm_start`).
+
+    Attributes:
+        rod: the rod the cases were simulated on (its length and stiffness made them dimensionless).
+        s: (N, H) locations s / L, sorted, padding last (any value).
+        f: (N, H, 2) forces f L^2 / EI (zero for padding).
+        count: (N,) number of forces, 1..H.
+        clean: (N, G, 2) noiseless readings u L.
+        mask: (N, G) bool, gratings the data set says are read (fresh random gaps are added on top in training).
+    """
+
+    rod: Rod
+    s: torch.Tensor
+    f: torch.Tensor
+    count: torch.Tensor
+    clean: torch.Tensor
+    mask: torch.Tensor
+
+    @classmethod
+    def from_loads(
+        cls, rod: Rod, loads: PointForces, clean: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> TrainingData:
+        """From SI load cases (N, H) and their clean readings (N, G, 2) [1/m] on ``rod``."""
+        loads = loads.sorted()
+        L, EI = rod.length, rod.bending_stiffness
+        active = loads.active
+        if bool((active.sum(1) == 0).any()):
+            raise ValueError("every training case needs at least one force")
+        N, G = clean.shape[0], rod.num_gratings
+        if clean.shape != (N, G, 2) or loads.batch_size != N:
+            raise ValueError(f"clean must have shape (N, G, 2) = ({loads.batch_size}, {G}, 2), got {tuple(clean.shape)}")
+        if mask is None:
+            mask = torch.ones(N, G, dtype=torch.bool)
+        s = torch.where(active, loads.s / L, torch.zeros_like(loads.s))
+        f = loads.masked_f() * (L * L / EI)
+        return cls(
+            rod=rod,
+            s=s.to(torch.float32).cpu(),
+            f=f.to(torch.float32).cpu(),
+            count=active.sum(1).cpu(),
+            clean=(clean * L).to(torch.float32).cpu(),
+            mask=mask.to(torch.bool).cpu(),
+        )
+
+    @classmethod
+    def from_set(cls, data: Any) -> TrainingData:
+        """From a :class:`torchrod.synthetic.SyntheticSet` (its clean readings and mask)."""
+        return cls.from_loads(data.rod, data.loads, data.clean, data.mask)
+
+    def __len__(self) -> int:
+        return self.s.shape[0]
+
+    @property
+    def max_forces(self) -> int:
+        return self.s.shape[1]
+
+    def normalisation(self) -> dict[str, float]:
+        """Typical scales: RMS |u L| over all readings and RMS |f L^2/EI| over all real forces."""
+        u = torch.linalg.vector_norm(self.clean, dim=-1)
+        active = torch.arange(self.max_forces).unsqueeze(0) < self.count.unsqueeze(1)
+        fm = torch.linalg.vector_norm(self.f, dim=-1)[active]
+        return {
+            "curvature_scale": float(u.square().mean().sqrt()),
+            "force_scale": float(fm.square().mean().sqrt()),
+        }
+
+
+
+
+def _simulated(rod: Rod, count: int, max_forces: int, seed: int, noise: float, missing_prob: float):
+    from .synthetic import LoadSampler, SensorModel, generate
+
+    return generate(
+        rod,
+        count,
+        sampler=LoadSampler(max_forces=max_forces),
+        sensor=SensorModel(noise=noise, missing_prob=missing_prob),
+        seed=seed,
+    )
+
+
+def _mix(*parts: int) -> int:
+    """A 63-bit seed from integers (SplitMix64-style), so per-step generators never collide in practice."""
+    x = 0x9E3779B97F4A7C15
+    for p in parts:
+        x = (x ^ (int(p) & 0xFFFFFFFFFFFFFFFF)) * 0xBF58476D1CE4E5B9 & 0xFFFFFFFFFFFFFFFF
+        x = (x ^ (x >> 31)) * 0x94D049BB133111EB & 0xFFFFFFFFFFFFFFFF
+    return x >> 1
+
+
+def noisy_batch(
+    data: TrainingData,
+    index: torch.Tensor,
+    *,
+    noise: float,
+    jitter: float,
+    missing_prob: float,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Readings u L (B, G, 2) with fresh noise and their masks (B, G) for the cases ``index`` (on the CPU)."""
+    clean = data.clean[index]
+    B, G, _ = clean.shape
+    level = noise * data.rod.length * (1.0 + jitter * (2.0 * torch.rand(B, 1, 1, generator=generator) - 1.0))
+    reading = clean + level * torch.randn(clean.shape, generator=generator)
+    present = data.mask[index] & (torch.rand(B, G, generator=generator) >= missing_prob)
+    return reading, present
+
+
+# ---------------------------------------------------------------------------------------------------- losses
+
+
+def _padded_head(out_s: tuple[torch.Tensor, ...], out_f: tuple[torch.Tensor, ...], count: torch.Tensor):
+    """The true count's head of every case, padded to H: s (B, H), f (B, H, 2), mask (B, H)."""
+    H = len(out_s)
+    B = count.shape[0]
+    s = out_s[0].new_zeros(B, H)
+    f = out_f[0].new_zeros(B, H, 2)
+    for h in range(1, H + 1):
+        sel = (count == h).to(s.dtype)
+        s = s + sel.unsqueeze(1) * F.pad(out_s[h - 1], (0, H - h))
+        f = f + sel.view(B, 1, 1) * F.pad(out_f[h - 1], (0, 0, 0, H - h))
+    mask = torch.arange(H, device=count.device).unsqueeze(0) < count.unsqueeze(1)
+    return s, f, mask
+
+
+def compute_losses(
+    net: torch.nn.Module,
+    config: NetConfig,
+    reading: torch.Tensor,
+    present: torch.Tensor,
+    s_true: torch.Tensor,
+    f_true: torch.Tensor,
+    count: torch.Tensor,
+    *,
+    physics_weight: float,
+    physics_batch: int,
+    count_weight: float = 1.0,
+) -> dict[str, torch.Tensor]:
+    """The loss terms of one batch (dimensionless tensors, see the module docstring); ``total`` is their sum."""
+    out = net(reading, present)
+    ce = F.cross_entropy(out.count_logits, count - 1)
+    s, f, mask = _padded_head(out.s, out.f, count)
+    w = mask.to(s.dtype)
+    n = w.sum()
+    loc = (F.smooth_l1_loss(s / LOCATION_UNIT, s_true / LOCATION_UNIT, reduction="none") * w).sum() / n
+    funit = FORCE_UNIT * config.force_scale
+    force = (F.smooth_l1_loss(f / funit, f_true / funit, reduction="none").sum(-1) * w).sum() / n
+    total = count_weight * ce + loc + force
+    terms = {"count": ce, "location": loc, "force": force}
+    if physics_weight > 0 and physics_batch > 0:
+        P = min(physics_batch, reading.shape[0])
+        loads = PointForces(s[:P], f[:P], mask[:P])
+        rod = unit_rod(config.relative_gratings)
+        u = grating_curvature(rod, loads)
+        r = (u - reading[:P]) / config.curvature_scale
+        wp = present[:P].to(r.dtype).unsqueeze(-1)
+        physics = (r.square() * wp).sum() / (2.0 * wp.sum()).clamp(min=1.0)
+        total = total + physics_weight * physics
+        terms["physics"] = physics
+    terms["total"] = total
+    terms["_logits"] = out.count_logits
+    return terms
+
+
+# ---------------------------------------------------------------------------------------------------- evaluation
+
+
+def evaluate_guess(guess: WarmStartGuess, truth: PointForces) -> dict[str, float]:
+    """Accuracy of warm-start guesses against the true loads (SI).
+
+    The count accuracy compares the most probable count with the true one; the location [m] and force [N] errors
+    take, for a case with h forces, the guess for h forces (both sorted by location, paired in order), per force.
+    Returns ``count_accuracy``, and for each h present in ``truth``: ``count_accuracy_h``, ``cases_h``,
+    ``location_error_median_h`` [m], ``force_error_median_h`` [N] (the norm of the (f_x, f_y) error).
+    """
+    truth = truth.sorted()
+    count = truth.count.to(guess.count.device)
+    metrics: dict[str, float] = {"count_accuracy": float((guess.count == count).double().mean())}
+    for h in range(1, guess.max_forces + 1):
+        sel = count == h
+        if not bool(sel.any()):
+            continue
+        g = guess.forces[h]
+        ds = (g.s[sel] - truth.s[sel, :h].to(g.s)).abs()
+        df = torch.linalg.vector_norm(g.f[sel] - truth.f[sel, :h].to(g.f), dim=-1)
+        metrics[f"cases_{h}"] = float(sel.sum())
+        metrics[f"count_accuracy_{h}"] = float((guess.count[sel] == h).double().mean())
+        metrics[f"location_error_median_{h}"] = float(ds.flatten().quantile(0.5))
+        metrics[f"force_error_median_{h}"] = float(df.flatten().quantile(0.5))
+    return metrics
+
+
+def fit_figure(rod: Rod, curvature: torch.Tensor, mask: torch.Tensor, guess: WarmStartGuess, truth: PointForces):
+    """A matplotlib figure of a few readings (dots), the curvature of the guessed forces (lines, the most probable
+    count) and the true (dashed) and guessed (solid) force locations."""
+    from matplotlib.figure import Figure
+
+    from ..model.body_frame import simulate
+
+    B = curvature.shape[0]
+    fig = Figure(figsize=(4.0 * B, 3.2), layout="constrained")
+    axes = fig.subplots(1, B, squeeze=False)[0]
+    grat = [1e3 * g for g in rod.gratings]
+    counts = guess.count.tolist()
+    truth_lists = truth.to_lists()
+    for b, ax in enumerate(axes):
+        h = counts[b]
+        loads = guess.forces[h][b].to(torch.float64, "cpu")
+        loads = PointForces(loads.s.clamp(0.0, rod.length), loads.f)
+        sim = simulate(rod, loads, samples=120)
+        sx = (1e3 * sim.s).tolist()
+        m = mask[b].cpu().tolist()
+        for k, (name, colour) in enumerate((("u_x", "tab:blue"), ("u_y", "tab:orange"))):
+            ax.plot(sx, sim.curvature[0, :, k].tolist(), color=colour, label=f"{name} guess")
+            ys = curvature[b, :, k].cpu().tolist()
+            ax.plot([g for g, keep in zip(grat, m) if keep], [y for y, keep in zip(ys, m) if keep], "o",
+                    color=colour, ms=3, label=f"{name} read")
+        for s, _, _ in truth_lists[b]:
+            ax.axvline(1e3 * s, color="k", ls="--", lw=0.8)
+        for s in loads.s[0].tolist():
+            ax.axvline(1e3 * s, color="tab:red", lw=0.8)
+        ax.set_title(f"true {len(truth_lists[b])} forces, guess {h} (p={float(guess.count_probs[b, h - 1]):.2f})",
+                     fontsize=9)
+        ax.set_xlabel("s [mm]")
+    axes[0].set_ylabel("curvature [1/m]")
+    axes[0].legend(fontsize=7)
+    return fig
+
+
+# ---------------------------------------------------------------------------------------------------- training
+
+
+@dataclass
+class TrainResult:
+    """What :func:`train` returns (on every rank).
+
+    Attributes:
+        net: the trained network (unwrapped, on the training device).
+        step: optimiser steps taken in total (resumed runs included).
+        epoch: last completed epoch (1-based).
+        metrics: held-back metrics after the last epoch (rank 0; empty on the other ranks).
+        history: per epoch, the mean training loss terms (this process's batches).
+    """
+
+    net: WarmStartNet
+    step: int
+    epoch: int
+    metrics: dict[str, float]
+    history: list[dict[str, float]]
+
+
+def _lr_at(step: int, total: int, config: TrainConfig) -> float:
+    warm = max(1, int(config.warmup * total))
+    if step < warm:
+        return config.lr * (step + 1) / warm
+    t = min(1.0, (step - warm) / max(1, total - warm))
+    return config.lr * (0.01 + 0.99 * 0.5 * (1.0 + math.cos(math.pi * t)))
+
+
+class _Sized:
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+    def __len__(self) -> int:
+        return self.n
+
+
+def _distributed_env() -> tuple[int, int, int]:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local = int(os.environ.get("LOCAL_RANK", str(rank)))
+    return world, rank, local
+
+
+def train(config: TrainConfig, *, data: TrainingData | None = None, log: Callable[[str], None] | None = None) -> TrainResult:
+    """Train (or resume training) the warm-start network as ``config`` says; see the module docstring.
+
+    Args:
+        config: the run.
+        data: training cases to use instead of ``config.data`` / ``config.generate`` (tests; the held-back set is
+            still generated).
+        log: where progress lines go (rank 0); default: stderr when ``config.progress``.
+    Returns:
+        :class:`TrainResult`.
+
+    Distributed: with ``WORLD_SIZE`` > 1 in the environment (torchrun sets it, with RANK, LOCAL_RANK,
+    MASTER_ADDR and MASTER_PORT) the process group is initialised here and destroyed at the end.
+    """
+    import torch.distributed as dist
+    from torch.nn.parallel import DistributedDataParallel
+    from torch.utils.data.distributed import DistributedSampler
+
+    world, rank, local_rank = _distributed_env()
+    if config.device == "cuda" or (config.device == "auto" and torch.cuda.is_available()):
+        device = torch.device("cuda", local_rank if world > 1 else torch.cuda.current_device())
+        torch.cuda.set_device(device)
+    else:
+        device = torch.device("cpu")
+    # Process-level settings belong to the entry point: this function is one (the script and the CLI call it).
+    if config.threads is not None:
+        torch.set_num_threads(config.threads)
+    elif world > 1 and device.type == "cpu":
+        local_world = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // local_world))
+    distributed = world > 1
+    owns_group = False
+    if distributed and not dist.is_initialized():
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        owns_group = True
+    main_rank = rank == 0
+    if log is None:
+        log = (lambda msg: print(msg, file=sys.stderr, flush=True)) if config.progress else (lambda msg: None)
+    say = log if main_rank else (lambda msg: None)
+
+    try:
+        return _train(config, data, device, world, rank, distributed, main_rank, say,
+                      DistributedDataParallel, DistributedSampler)
+    finally:
+        if owns_group:
+            dist.destroy_process_group()
+
+
+def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, DistributedSampler) -> TrainResult:
+    t0 = time.perf_counter()
+    if data is None:
+        if config.data is not None:
+            from .synthetic import SyntheticSet
+
+            data = TrainingData.from_set(SyntheticSet.load(config.data))
+            say(f"loaded {len(data)} cases from {config.data}")
+        else:
+            rod = load_rod(config.rod)
+            data = TrainingData.from_set(_simulated(rod, config.generate, config.max_forces, config.seed, 0.0, 0.0))
+            say(f"generated {len(data)} cases in {time.perf_counter() - t0:.1f} s")
+    rod = data.rod
+    if data.max_forces != config.max_forces:
+        raise ValueError(f"the data hold up to {data.max_forces} forces but max_forces is {config.max_forces}")
+    held = _simulated(rod, config.validation, config.max_forces, _mix(config.seed, 1), config.noise,
+                      config.missing_prob) if main_rank else None
+
+    meta: dict[str, Any] = {}
+    if config.resume is not None:
+        net, meta = load_checkpoint(config.resume)
+        net_config = net.config
+        if len(net_config.relative_gratings) != rod.num_gratings or not WarmStart(net, rod).matches(rod):
+            raise ValueError(f"{config.resume}: its network does not match the rod's grating layout")
+        say(f"resuming from {config.resume} (epoch {meta['epoch']}, step {meta['step']})")
+    else:
+        net_config = NetConfig.for_rod(rod, max_forces=config.max_forces, hidden=config.hidden,
+                                       depth=config.depth, **data.normalisation())
+        with torch.random.fork_rng(devices=[]):  # the initial weights, from the seed alone: the same on every rank
+            torch.manual_seed(config.seed)
+            net = WarmStartNet(net_config)
+    net = net.to(device).train()
+    model = DDP(net, device_ids=[device] if device.type == "cuda" else None) if distributed else net
+    optimiser = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    if "optimizer" in meta:
+        optimiser.load_state_dict(meta["optimizer"])
+    elif config.resume is not None:
+        say(f"{config.resume} holds no optimiser state: continuing with a fresh optimiser")
+    step = int(meta.get("step", 0))
+    first_epoch = int(meta.get("epoch", 0)) + 1
+
+    sampler = DistributedSampler(_Sized(len(data)), num_replicas=world, rank=rank, shuffle=True,
+                                 seed=config.seed, drop_last=True)
+    steps_per_epoch = len(sampler) // config.batch_size
+    if steps_per_epoch < 1:
+        raise ValueError(f"{len(data)} cases over {world} processes make no batch of {config.batch_size}")
+    total_steps = steps_per_epoch * config.epochs
+    writer = None
+    if main_rank and config.logdir is not None:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(config.logdir, purge_step=step if step else None)
+        if step == 0:
+            writer.add_text("config", "\n".join(f"    {k}: {v}" for k, v in config.to_dict().items()))
+    say(f"training {sum(p.numel() for p in net.parameters())} parameters on {device} x {world}, "
+        f"{steps_per_epoch} steps per epoch, epochs {first_epoch}..{config.epochs}")
+
+    metrics: dict[str, float] = {}
+    history: list[dict[str, float]] = []
+    epoch = first_epoch - 1
+    try:
+        for epoch in range(first_epoch, config.epochs + 1):
+            sampler.set_epoch(epoch)
+            order = torch.tensor(list(iter(sampler)), dtype=torch.long)
+            sums: dict[str, float] = {}
+            window: dict[str, float] = {}
+            window_n = 0
+            correct = 0
+            seen = 0
+            te = time.perf_counter()
+            for i in range(steps_per_epoch):
+                index = order[i * config.batch_size : (i + 1) * config.batch_size]
+                gen = torch.Generator().manual_seed(_mix(config.seed, step, rank))
+                reading, present = noisy_batch(data, index, noise=config.noise, jitter=config.noise_jitter,
+                                               missing_prob=config.missing_prob, generator=gen)
+                count = data.count[index].to(device)
+                for group in optimiser.param_groups:
+                    group["lr"] = _lr_at(step, total_steps, config)
+                terms = compute_losses(
+                    model, net_config, reading.to(device), present.to(device), data.s[index].to(device),
+                    data.f[index].to(device), count, physics_weight=config.physics_weight,
+                    physics_batch=config.physics_batch, count_weight=config.count_weight,
+                )
+                optimiser.zero_grad(set_to_none=True)
+                terms["total"].backward()
+                torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
+                optimiser.step()
+                step += 1
+                logits = terms.pop("_logits").detach()
+                correct += int((logits.argmax(1) + 1 == count).sum())
+                seen += count.numel()
+                values = {k: float(v.detach()) for k, v in terms.items()}
+                for k, v in values.items():
+                    sums[k] = sums.get(k, 0.0) + v
+                    window[k] = window.get(k, 0.0) + v
+                window_n += 1
+                if writer is not None and step % config.log_every == 0:
+                    for k, v in window.items():
+                        writer.add_scalar(f"train/loss_{k}", v / window_n, step)
+                    writer.add_scalar("train/lr", optimiser.param_groups[0]["lr"], step)
+                    window, window_n = {}, 0
+            means = {k: v / steps_per_epoch for k, v in sums.items()}
+            means["count_accuracy"] = correct / max(1, seen)
+            history.append(means)
+            if main_rank:
+                metrics = _validate(net, rod, held, writer, step, config)
+                train_dict = config.to_dict()
+                save_checkpoint(config.checkpoint, net, step=step, epoch=epoch, train_config=train_dict,
+                                optimizer=optimiser.state_dict() if config.optimizer_state else None,
+                                metrics=metrics)
+                say(
+                    f"epoch {epoch}/{config.epochs} step {step}: loss {means['total']:.4f} "
+                    f"(count {means['count']:.3f}, location {means['location']:.3f}, force {means['force']:.3f}"
+                    + (f", physics {means['physics']:.3f}" if "physics" in means else "")
+                    + f"), held-back count accuracy {metrics['count_accuracy']:.3f}, "
+                    f"{time.perf_counter() - te:.0f} s"
+                )
+    finally:
+        if writer is not None:
+            writer.close()
+    net.eval()
+    return TrainResult(net=net, step=step, epoch=epoch, metrics=metrics, history=history)
+
+
+def _validate(net: WarmStartNet, rod: Rod, held: Any, writer: Any, step: int, config: TrainConfig) -> dict[str, float]:
+    """Held-back metrics (SI) after an epoch, logged to tensorboard with a figure of a few fits."""
+    net.eval()
+    try:
+        ws = WarmStart(net, rod)
+        device = next(net.parameters()).device
+        guess = ws.guess(held.curvature.to(device), held.mask.to(device))
+        metrics = evaluate_guess(guess, held.loads.to(device=device))
+        if writer is not None:
+            for k, v in metrics.items():
+                if k.startswith("cases_"):
+                    continue
+                scale = 1e3 if k.startswith("location") else 1.0
+                name = k.replace("location_error_median", "location_error_median_mm")
+                writer.add_scalar(f"val/{name}", v * scale, step)
+            n = config.figure_cases
+            if n > 0:
+                sub = WarmStartGuess(guess.count_probs[:n], {h: p[:n] for h, p in guess.forces.items()})
+                fig = fit_figure(rod, held.curvature[:n], held.mask[:n], sub, held.loads[:n])
+                writer.add_figure("val/fits", fig, step)
+            writer.flush()
+        return metrics
+    finally:
+        net.train()
+
+
+# ---------------------------------------------------------------------------------------------------- command line
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The training options (shared by ``train/train_warm_start.py`` and ``torchrod train``)."""
+    d = TrainConfig()
+    a = parser.add_argument
+    a("--rod", default=d.rod, help="preset name or rod JSON file (default %(default)s)")
+    a("--data", default=None, help="a saved synthetic set (torchrod generate); default: generate --generate cases")
+    a("--generate", type=int, default=d.generate, help="cases generated at start without --data (%(default)s)")
+    a("--validation", type=int, default=d.validation, help="held-back cases (%(default)s)")
+    a("--max-forces", type=int, default=d.max_forces, help="largest number of forces (%(default)s)")
+    a("--epochs", type=int, default=d.epochs, help="%(default)s")
+    a("--batch-size", type=int, default=d.batch_size, help="cases per step and process (%(default)s)")
+    a("--lr", type=float, default=d.lr, help="peak learning rate (%(default)s)")
+    a("--weight-decay", type=float, default=d.weight_decay, help="%(default)s")
+    a("--seed", type=int, default=d.seed, help="%(default)s")
+    a("--count-weight", type=float, default=d.count_weight, help="weight of the count cross-entropy (%(default)s)")
+    a("--physics-weight", type=float, default=d.physics_weight, help="weight of the physics loss (%(default)s)")
+    a("--physics-batch", type=int, default=d.physics_batch, help="cases per batch in the physics loss (%(default)s)")
+    a("--noise", type=float, default=d.noise, help="sensor noise sigma [1/m] (%(default)s)")
+    a("--noise-jitter", type=float, default=d.noise_jitter, help="relative spread of the training noise (%(default)s)")
+    a("--missing-prob", type=float, default=d.missing_prob, help="probability of a missing grating (%(default)s)")
+    a("--hidden", type=int, default=d.hidden, help="hidden width (%(default)s)")
+    a("--depth", type=int, default=d.depth, help="hidden layers (%(default)s)")
+    a("--logdir", default=d.logdir, help="tensorboard folder (%(default)s); 'none' for no logs")
+    a("--checkpoint", default=d.checkpoint, help="checkpoint written after every epoch (%(default)s)")
+    a("--resume", default=None, help="continue from this checkpoint")
+    a("--no-optimizer-state", dest="optimizer_state", action="store_false",
+      help="leave the optimiser state out of the checkpoint (smaller; --resume then starts a fresh optimiser)")
+    a("--log-every", type=int, default=d.log_every, help="steps between logged losses (%(default)s)")
+    a("--device", default=d.device, choices=("auto", "cpu", "cuda"), help="%(default)s")
+    a("--threads", type=int, default=None, help="CPU threads per process")
+    a("--quiet", action="store_true", help="no progress lines")
+
+
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    logdir = None if args.logdir in (None, "", "none") else args.logdir
+    return TrainConfig(
+        rod=args.rod, data=args.data, generate=args.generate, validation=args.validation,
+        max_forces=args.max_forces, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
+        weight_decay=args.weight_decay, seed=args.seed, count_weight=args.count_weight, physics_weight=args.physics_weight,
+        physics_batch=args.physics_batch, noise=args.noise, noise_jitter=args.noise_jitter,
+        missing_prob=args.missing_prob, hidden=args.hidden, depth=args.depth, logdir=logdir,
+        checkpoint=args.checkpoint, resume=args.resume, optimizer_state=args.optimizer_state, log_every=args.log_every, device=args.device,
+        threads=args.threads, progress=not args.quiet,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python train/train_warm_start.py [options]`` (also under torchrun); returns the exit status."""
+    parser = argparse.ArgumentParser(prog="train_warm_start", description="train the warm-start network")
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+def run(args: argparse.Namespace) -> int:
+    """Train as the parsed options say (see :func:`add_arguments`); rank 0 prints the held-back metrics."""
+    result = train(config_from_args(args))
+    if _distributed_env()[1] == 0 and result.metrics:
+        print(format_metrics(result.metrics))
+    return 0
+
+
+def format_metrics(metrics: Mapping[str, float]) -> str:
+    """The metrics of :func:`evaluate_guess` as readable lines (%, mm, N)."""
+    lines = [f"count accuracy {100 * metrics['count_accuracy']:.1f} %"]
+    h = 1
+    while f"cases_{h}" in metrics or h == 1:
+        if f"cases_{h}" in metrics:
+            lines.append(
+                f"{h} force(s), {int(metrics[f'cases_{h}'])} cases: count accuracy "
+                f"{100 * metrics[f'count_accuracy_{h}']:.1f} %, median location error "
+                f"{1e3 * metrics[f'location_error_median_{h}']:.2f} mm, median force error "
+                f"{metrics[f'force_error_median_{h}']:.3f} N"
+            )
+        h += 1
+    return "\n".join(lines)
