@@ -19,7 +19,7 @@ GRATINGS = [0.01, 0.03, 0.05]
 
 
 def test_nitinol290_bending_stiffness_matches_the_paper():
-    # EI = E pi (d_out^4 - d_in^4) / 64 with the paper's tube: about 7.39e-3 N m^2 (NOTES.md).
+    # EI = E pi (d_out^4 - d_in^4) / 64 with the paper's tube: about 7.39e-3 N m^2 (docs/physics.md).
     rod = tr.presets.nitinol290()
     by_hand = 67e9 * math.pi * ((1.397e-3) ** 4 - (1.118e-3) ** 4) / 64.0
     assert rod.bending_stiffness == pytest.approx(by_hand, rel=1e-12)
@@ -151,3 +151,166 @@ def test_rod_is_frozen():
     rod = tr.presets.nitinol290()
     with pytest.raises(AttributeError):
         rod.length = 1.0  # type: ignore[misc]
+
+
+# ---------------------------------------------------------------------------------------------- damaged rod files
+# Every bad rod file is ONE ValueError line naming the file, the key and (at most ~100 characters of) the value;
+# through the CLI it is `torchrod CMD: error: ...` with exit status 2 and no traceback.
+PRESET = tr.presets.nitinol290()
+GOOD = PRESET.to_dict()
+
+
+def _with(**changes) -> str:
+    return json.dumps(dict(GOOD, **changes))
+
+
+BAD_ROD_FILES = {
+    "null inner_diameter": (_with(inner_diameter=None), r"inner_diameter must be a number \[m\], got null"),
+    "list inner_diameter": (_with(inner_diameter=[1e-3]), r"inner_diameter must be a number \[m\], got \[0.001\]"),
+    "bool length": (_with(length=True), "length must be a number .*got true"),
+    "string length": (_with(length="0.29"), 'length must be a number .*got "0.29"'),
+    "400-digit number": (_with(youngs_modulus=int("6" * 400)), r"youngs_modulus is too large .*400 digits"),
+    "1e400": (_with(length="@").replace('"@"', "1e400"), "length must be finite"),
+    "null grating": (_with(gratings=[0.01, None, 0.05]), r"gratings\[1\] must be a number .*got null"),
+    "grating beyond the tip": (_with(gratings=[0.01, 0.3]), r"gratings\[1\] = 0.3 m must lie inside the rod"),
+    "contradictory stiffness and geometry": (
+        _with(bending_stiffness=7.5e-3), r"bending_stiffness 0.0075 N m\^2 contradicts the geometry"
+    ),
+    "repeated key": ('{"length": 0.29, "length": 0.3}', "'length' appears twice"),
+    "invalid JSON": ('{"length": 0.29,', "not valid JSON"),
+    "empty file": ("", "not valid JSON"),
+    "not UTF-8": (b"\xff\xfe\x00garbage", "not UTF-8"),
+    "not an object": ("[0.29]", "must be a JSON object"),
+}
+
+
+def _write_rod(tmp_path: Path, content: str | bytes) -> Path:
+    path = tmp_path / "rod.json"
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        path.write_text(content, encoding="utf-8")
+    return path
+
+
+def _one_clear_line(message: str) -> None:
+    assert "\n" not in message and len(message) < 400, message
+
+
+@pytest.mark.parametrize("case", sorted(BAD_ROD_FILES))
+def test_a_bad_rod_file_is_one_clear_value_error_naming_the_file_and_key(case, tmp_path):
+    content, match = BAD_ROD_FILES[case]
+    path = _write_rod(tmp_path, content)
+    for read in (Rod.from_json, tr.presets.load):
+        with pytest.raises(ValueError, match=match) as info:
+            read(str(path))
+        assert str(info.value).startswith(f"{path}: ")
+        _one_clear_line(str(info.value))
+
+
+def test_a_directory_or_an_unreadable_path_is_a_value_error(tmp_path):
+    with pytest.raises(ValueError, match="is a directory, not a rod file"):
+        tr.presets.load(str(tmp_path))
+    link = tmp_path / "dangling.json"
+    link.symlink_to(tmp_path / "nowhere.json")
+    with pytest.raises(ValueError, match="cannot read the rod file"):
+        tr.presets.load(str(link))
+    with pytest.raises(ValueError, match="neither a rod file nor a preset"):
+        tr.presets.load(str(tmp_path / "missing.json"))
+
+
+def test_huge_values_are_quoted_briefly():
+    with pytest.raises(ValueError, match="too large") as info:
+        Rod(length=10**400, bending_stiffness=7e-3, gratings=(0.01,))
+    _one_clear_line(str(info.value))
+    assert "(an integer of 401 digits)" in str(info.value)
+    with pytest.raises(ValueError, match="more than 4300 digits|digits"):
+        Rod(length=10**5000, bending_stiffness=7e-3, gratings=(0.01,))
+    with pytest.raises(ValueError, match=r"\.\.\.") as info:
+        Rod(length=0.29, bending_stiffness="x" * 1000, gratings=(0.01,))
+    assert len(str(info.value)) < 200
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"length": True}, "length must be a number"),
+        ({"length": "0.29"}, "length must be a number"),
+        ({"length": None}, "length must be a number"),
+        ({"bending_stiffness": [7e-3]}, "bending_stiffness must be a number"),
+        ({"location_bias": False}, "location_bias must be a number"),
+        ({"location_bias": None}, "location_bias must be a number"),
+        ({"poisson_ratio": "0.3"}, "poisson_ratio must be a number"),
+        ({"poisson_ratio": float("nan")}, "poisson_ratio must be finite"),
+        ({"gratings": (0.01, True)}, r"gratings\[1\] must be a number"),
+        ({"gratings": {"a": 0.01}}, "gratings must be a list"),
+        ({"gratings": {0.01, 0.02}}, "gratings must be a list"),
+        ({"outer_diameter": 1e-3}, "go together"),
+    ],
+)
+def test_a_bool_a_string_or_null_is_not_a_number(kwargs, match):
+    base = {"length": 0.29, "bending_stiffness": 7e-3, "gratings": (0.01, 0.27)}
+    with pytest.raises(ValueError, match=match):
+        Rod(**dict(base, **kwargs))
+
+
+def test_numbers_of_numeric_types_are_accepted():
+    import numpy as np
+
+    rod = Rod(length=np.float32(0.25), bending_stiffness=torch.tensor(7e-3), gratings=np.array([0.01, 0.2]))
+    assert rod.length == pytest.approx(0.25) and rod.gratings == (0.01, 0.2) and type(rod.length) is float
+    assert Rod(length=1, bending_stiffness=1, gratings=[0, 1]).gratings == (0.0, 1.0)  # ints are numbers
+
+
+def test_stiffness_and_geometry_that_agree_are_accepted_and_the_geometry_kept(tmp_path):
+    both = dict(GOOD, bending_stiffness=PRESET.bending_stiffness * (1 + 1e-11))
+    path = _write_rod(tmp_path, json.dumps(both))
+    rod = Rod.from_json(path)
+    assert rod == PRESET and rod.bending_stiffness == PRESET.bending_stiffness
+    with pytest.raises(ValueError, match="contradicts the geometry"):
+        Rod.from_dict(dict(GOOD, bending_stiffness=PRESET.bending_stiffness * (1 + 1e-8)))
+
+
+def test_changing_the_geometry_recomputes_the_stiffness():
+    stiffer = PRESET.with_(youngs_modulus=2 * PRESET.youngs_modulus)
+    assert stiffer.bending_stiffness == pytest.approx(2 * PRESET.bending_stiffness, rel=1e-12)
+    solid = PRESET.with_(inner_diameter=0.0)
+    assert solid.bending_stiffness == pytest.approx(67e9 * math.pi * 1.397e-3**4 / 64, rel=1e-12)
+    with pytest.raises(ValueError, match="contradicts"):
+        PRESET.with_(youngs_modulus=1e9, bending_stiffness=1.0)
+
+
+def test_differences_name_what_a_reading_depends_on():
+    assert PRESET.differences(tr.presets.nitinol290(calibrated=True)) == []  # the bias does not count
+    other = PRESET.with_(length=0.3, bending_stiffness=1e-2)
+    diff = PRESET.differences(other)
+    assert len(diff) == 2 and diff[0] == "length 0.29 m vs 0.3 m" and "bending_stiffness" in diff[1]
+    assert "gratings" in PRESET.differences(PRESET.with_(gratings=PRESET.gratings[:-1]))[0]
+
+
+@pytest.mark.parametrize("case", ["null inner_diameter", "400-digit number", "contradictory stiffness and geometry"])
+def test_the_cli_reports_a_bad_rod_file_with_status_2_and_no_traceback(case, tmp_path, capsys):
+    from torchrod.cli import main
+
+    path = _write_rod(tmp_path, BAD_ROD_FILES[case][0])
+    readings = tmp_path / "r.jsonl"
+    readings.write_text(json.dumps({"curvature": [[0.0, 0.0]] * 14}) + "\n")
+    assert main(["estimate", "--rod", str(path), str(readings)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"torchrod estimate: error: {path}: ") and err.count("\n") == 1, err
+    assert main(["estimate", "--rod", str(tmp_path), str(readings)]) == 2
+    assert "is a directory" in capsys.readouterr().err
+
+
+def test_a_directory_as_rod_through_the_command_line_prints_no_traceback(tmp_path):
+    import subprocess
+    import sys
+
+    readings = tmp_path / "r.jsonl"
+    readings.write_text(json.dumps({"curvature": [[0.0, 0.0]] * 14}) + "\n")
+    done = subprocess.run(
+        [sys.executable, "-m", "torchrod", "plot", str(readings), str(readings), "--rod", str(tmp_path)],
+        check=False, capture_output=True, text=True, timeout=120,
+    )
+    assert done.returncode == 2
+    assert done.stderr == f"torchrod plot: error: {tmp_path}: is a directory, not a rod file\n"

@@ -8,6 +8,8 @@ Its calibrated location bias is -3.12 mm; the preset ships with ``location_bias=
 
 from __future__ import annotations
 
+import os
+
 from .rod import Rod
 
 __all__ = ["PAPER_LOCATION_BIAS", "PRESETS", "get", "load", "nitinol290"]
@@ -38,15 +40,19 @@ def get(name: str) -> Rod:
         raise ValueError(f"unknown rod preset {name!r}; known presets: {sorted(PRESETS)}") from None
 
 
-def load(spec: str) -> Rod:
+def load(spec: str | os.PathLike) -> Rod:
     """A rod from a JSON file path or a preset name (the ``--rod`` argument of every command).
 
-    Raises ``ValueError`` naming both possibilities when ``spec`` is neither an existing file nor a preset.
+    A path that exists is read as a rod file (:meth:`Rod.from_json`: a directory, an unreadable file or a bad
+    description is a ``ValueError`` naming the file and the problem). Otherwise ``spec`` must name a preset; if it
+    does not, the ``ValueError`` names both possibilities.
     """
-    import os
-
-    if os.path.exists(spec):
-        return Rod.from_json(spec)
-    if spec in PRESETS:
-        return PRESETS[spec]()
-    raise ValueError(f"--rod {spec!r} is neither a rod file nor a preset (presets: {sorted(PRESETS)})")
+    if not isinstance(spec, (str, os.PathLike)):
+        raise ValueError(f"a rod must be given as a rod file or a preset name, got {type(spec).__name__}")  # noqa: TRY004
+    name = os.fspath(spec)
+    if os.path.lexists(name):
+        return Rod.from_json(name)
+    if name in PRESETS:
+        return PRESETS[name]()
+    shown = name if len(name) <= 100 else name[:97] + "..."
+    raise ValueError(f"--rod {shown!r} is neither a rod file nor a preset (presets: {sorted(PRESETS)})")

@@ -13,14 +13,26 @@ import dataclasses
 import itertools
 import json
 import math
+import numbers
 import os
-from collections.abc import Mapping, Sequence
+import sys
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
+if TYPE_CHECKING:  # torch is imported where a tensor is made: a rod file can be checked without it
+    import torch
 
-__all__ = ["Rod", "tube_bending_stiffness"]
+__all__ = ["AGREEMENT", "Rod", "tube_bending_stiffness"]
+
+AGREEMENT = 1e-9
+"""Relative tolerance within which a given ``bending_stiffness`` and the one the geometry gives must agree."""
+
+MAX_FILE_BYTES = 16 * 2**20
+"""A rod file larger than this (16 MiB) is refused unread: it cannot be a rod description."""
+
+_GEOMETRY = ("outer_diameter", "inner_diameter", "youngs_modulus")
+_QUOTE = 100  # characters of an offending value quoted in an error message
 
 
 def tube_bending_stiffness(outer_diameter: float, inner_diameter: float, youngs_modulus: float) -> float:
@@ -28,14 +40,87 @@ def tube_bending_stiffness(outer_diameter: float, inner_diameter: float, youngs_
     return youngs_modulus * math.pi * (outer_diameter**4 - inner_diameter**4) / 64.0
 
 
-def _positive(name: str, value: Any) -> float:
+def _clip(text: str) -> str:
+    """``text`` on one line, at most about ``_QUOTE`` characters."""
+    text = " ".join(text.split())
+    return text if len(text) <= _QUOTE else text[: _QUOTE - 3] + "..."
+
+
+def _show(value: Any) -> str:
+    """An offending value as an error message quotes it: JSON spelling where there is one (null, true, "0.29"),
+    at most about 100 characters, and never the whole of a huge integer."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        try:
+            digits = str(abs(value))
+        except ValueError:  # beyond Python's int-to-text limit
+            return f"an integer of more than {sys.get_int_max_str_digits()} digits"
+        if len(digits) > 30:
+            return f"{'-' if value < 0 else ''}{digits[:12]}... (an integer of {len(digits)} digits)"
+        return str(value)
+    if isinstance(value, (str, list, tuple, dict)):
+        try:
+            return _clip(json.dumps(value if not isinstance(value, tuple) else list(value), default=repr))
+        except (TypeError, ValueError, RecursionError):
+            pass
     try:
-        v = float(value)
+        return _clip(repr(value))
+    except Exception:  # noqa: BLE001 -- a value whose repr fails is still named by its type
+        return f"a {type(value).__name__}"
+
+
+def _is_number(value: Any) -> bool:
+    """A real number: int, float, numpy's real scalars, a 0-d tensor or array of a numeric dtype. Not a bool,
+    a string, null or a container, which ``float()`` would turn into a number or a confusing error."""
+    if isinstance(value, bool):
+        return False
+    if isinstance(value, numbers.Real):
+        return True
+    dtype = getattr(value, "dtype", None)
+    return getattr(value, "ndim", None) == 0 and dtype is not None and "bool" not in str(dtype)
+
+
+def _real(name: str, value: Any, unit: str = "") -> float:
+    """``value`` as a finite float, or ``ValueError`` naming ``name`` and the value."""
+    if not _is_number(value):
+        raise ValueError(f"{name} must be a number{unit}, got {_show(value)}")
+    try:
+        x = float(value)
+    except OverflowError:
+        raise ValueError(f"{name} is too large{unit}, got {_show(value)}") from None
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v) or v <= 0.0:
-        raise ValueError(f"{name} must be positive and finite, got {value!r}")
-    return v
+        raise ValueError(f"{name} must be a number{unit}, got {_show(value)}") from None
+    if not math.isfinite(x):
+        raise ValueError(f"{name} must be finite{unit}, got {_show(value)}")
+    return x
+
+
+def _positive(name: str, value: Any, unit: str = "") -> float:
+    x = _real(name, value, unit)
+    if x <= 0.0:
+        raise ValueError(f"{name} must be positive{unit}, got {_show(value)}")
+    return x
+
+
+def _geometry_stiffness(outer_diameter: Any, inner_diameter: Any, youngs_modulus: Any) -> tuple[float, float, float, float]:
+    """Checked (d_out [m], d_in [m], E [Pa], EI [N m^2]) of a tube; ``ValueError`` naming the bad one."""
+    d_out = _positive("outer_diameter", outer_diameter, " [m]")
+    d_in = _real("inner_diameter", inner_diameter, " [m]")
+    if d_in < 0.0:
+        raise ValueError(f"inner_diameter must be >= 0 [m] (0 for a solid rod), got {_show(inner_diameter)}")
+    if d_in >= d_out:
+        raise ValueError(f"inner_diameter ({_show(inner_diameter)} m) must be smaller than outer_diameter ({d_out} m)")
+    e = _positive("youngs_modulus", youngs_modulus, " [Pa]")
+    ei = tube_bending_stiffness(d_out, d_in, e)
+    if not (math.isfinite(ei) and ei > 0.0):
+        raise ValueError(
+            f"outer_diameter {d_out} m, inner_diameter {d_in} m and youngs_modulus {e} Pa give a bending "
+            f"stiffness of {ei} N m^2, not a positive finite number"
+        )
+    return d_out, d_in, e, ei
 
 
 @dataclass(frozen=True)
@@ -49,10 +134,13 @@ class Rod:
         location_bias: the paper's s_bias [m]; reported locations are ``s_model + location_bias``.
         outer_diameter, inner_diameter: tube diameters [m], if the stiffness came from geometry.
         youngs_modulus: E [Pa], if the stiffness came from geometry.
-        poisson_ratio: nu, optional (torsion never enters the model: see NOTES.md, erratum 2).
+        poisson_ratio: nu, optional (torsion never enters the model: see ``docs/physics.md``, erratum 2).
 
     Build one with :meth:`from_geometry`, the constructor (stiffness given directly), :meth:`from_dict` or
-    :meth:`from_json`. The constructor validates everything and raises ``ValueError`` naming the offending value.
+    :meth:`from_json`. The constructor validates everything strictly (a bool, a string or null is not a number;
+    every value finite and in its physical range) and raises ``ValueError`` naming the offending key and value.
+    Given both the stiffness and the geometry, they must agree to ``AGREEMENT`` (relative); the geometry's value
+    is then kept, so that a rod and its JSON form compare equal.
     """
 
     length: float
@@ -66,48 +154,40 @@ class Rod:
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
-        set_(self, "length", _positive("length", self.length))
-        set_(self, "bending_stiffness", _positive("bending_stiffness", self.bending_stiffness))
-        try:
-            g = tuple(float(x) for x in self.gratings)
-        except (TypeError, ValueError):
-            raise ValueError(f"gratings must be a sequence of numbers, got {self.gratings!r}") from None
-        if len(g) == 0:
-            raise ValueError("gratings must hold at least one position, got none")
-        if not all(math.isfinite(x) for x in g):
-            raise ValueError(f"gratings must be finite, got {list(g)}")
-        if g[0] < 0.0 or g[-1] > self.length:
-            raise ValueError(f"gratings must lie inside [0, {self.length}] m, got {list(g)}")
-        if any(b <= a for a, b in itertools.pairwise(g)):
-            raise ValueError(f"gratings must be strictly increasing, got {list(g)}")
-        set_(self, "gratings", g)
-        try:
-            bias = float(self.location_bias)
-        except (TypeError, ValueError):
-            raise ValueError(f"location_bias must be a number, got {self.location_bias!r}") from None
-        if not math.isfinite(bias) or abs(bias) >= self.length:
-            raise ValueError(f"location_bias must be finite and smaller than the length, got {self.location_bias!r}")
+        length = _positive("length", self.length, " [m]")
+        set_(self, "length", length)
+        ei = _positive("bending_stiffness", self.bending_stiffness, " [N m^2]")
+        set_(self, "gratings", _check_gratings(self.gratings, length))
+        bias = _real("location_bias", self.location_bias, " [m]")
+        if abs(bias) >= length:
+            raise ValueError(
+                f"location_bias must be smaller in size than the length ({length} m), got {_show(self.location_bias)}"
+            )
         set_(self, "location_bias", bias)
-        geometry = (self.outer_diameter, self.inner_diameter, self.youngs_modulus)
-        if any(x is not None for x in geometry):
-            if any(x is None for x in geometry):
+        geometry = {k: getattr(self, k) for k in _GEOMETRY}
+        given = [k for k, v in geometry.items() if v is not None]
+        if given:
+            if len(given) < 3:
+                missing = [k for k in _GEOMETRY if k not in given]
                 raise ValueError(
-                    "outer_diameter, inner_diameter and youngs_modulus go together, got "
-                    f"{geometry}"
+                    f"outer_diameter, inner_diameter and youngs_modulus go together: {given} given, {missing} missing"
                 )
-            d_out = _positive("outer_diameter", self.outer_diameter)
-            d_in = float(self.inner_diameter)
-            if not math.isfinite(d_in) or d_in < 0.0:
-                raise ValueError(f"inner_diameter must be >= 0, got {self.inner_diameter!r}")
-            if d_in >= d_out:
-                raise ValueError(f"inner_diameter ({d_in}) must be smaller than outer_diameter ({d_out})")
+            d_out, d_in, e, ei_geometry = _geometry_stiffness(*geometry.values())
+            if not math.isclose(ei, ei_geometry, rel_tol=AGREEMENT, abs_tol=0.0):
+                raise ValueError(
+                    f"bending_stiffness {_show(self.bending_stiffness)} N m^2 contradicts the geometry "
+                    f"(outer_diameter {d_out} m, inner_diameter {d_in} m, youngs_modulus {e} Pa give "
+                    f"{ei_geometry:.9g} N m^2): give one or the other, or values that agree to {AGREEMENT:g}"
+                )
+            ei = ei_geometry
             set_(self, "outer_diameter", d_out)
             set_(self, "inner_diameter", d_in)
-            set_(self, "youngs_modulus", _positive("youngs_modulus", self.youngs_modulus))
+            set_(self, "youngs_modulus", e)
+        set_(self, "bending_stiffness", ei)
         if self.poisson_ratio is not None:
-            nu = float(self.poisson_ratio)
+            nu = _real("poisson_ratio", self.poisson_ratio)
             if not (-1.0 < nu < 0.5):
-                raise ValueError(f"poisson_ratio must lie in (-1, 0.5), got {self.poisson_ratio!r}")
+                raise ValueError(f"poisson_ratio must lie in (-1, 0.5), got {_show(self.poisson_ratio)}")
             set_(self, "poisson_ratio", nu)
 
     # ------------------------------------------------------------------ constructors
@@ -123,65 +203,77 @@ class Rod:
         poisson_ratio: float | None = None,
     ) -> Rod:
         """A tube of the given diameters [m] and Young's modulus [Pa]; EI follows from them."""
-        d_out = _positive("outer_diameter", outer_diameter)
-        d_in = float(inner_diameter)
-        if d_in < 0.0 or d_in >= d_out:
-            raise ValueError(f"inner_diameter ({inner_diameter}) must lie in [0, outer_diameter={d_out})")
-        ei = tube_bending_stiffness(d_out, d_in, _positive("youngs_modulus", youngs_modulus))
+        d_out, d_in, e, ei = _geometry_stiffness(outer_diameter, inner_diameter, youngs_modulus)
         return cls(
             length=length,
             bending_stiffness=ei,
-            gratings=tuple(gratings),
+            gratings=gratings,
             location_bias=location_bias,
             outer_diameter=d_out,
             inner_diameter=d_in,
-            youngs_modulus=youngs_modulus,
+            youngs_modulus=e,
             poisson_ratio=poisson_ratio,
         )
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Rod:
-        """From the JSON form (SI units): ``length``, ``gratings``, ``location_bias`` (optional), and either
-        ``outer_diameter`` + ``inner_diameter`` + ``youngs_modulus`` or ``bending_stiffness``."""
+        """From the JSON form (SI units): ``length``, ``gratings``, ``location_bias`` (optional), and
+        ``bending_stiffness`` or ``outer_diameter`` + ``inner_diameter`` + ``youngs_modulus`` (or both, if they
+        agree to ``AGREEMENT``), ``poisson_ratio`` (optional). Unknown keys are refused (a misspelt key would
+        otherwise be ignored)."""
         if not isinstance(data, Mapping):
             raise ValueError(f"a rod description must be a JSON object, got {type(data).__name__}")  # noqa: TRY004 (a bad file)
         known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - known)
+        unknown = sorted(_show(k) if not isinstance(k, str) else k for k in data if k not in known)
         if unknown:
-            raise ValueError(f"unknown rod keys {unknown}; known keys are {sorted(known)}")
+            raise ValueError(_clip(f"unknown rod keys {unknown}; known keys are {sorted(known)}"))
         for key in ("length", "gratings"):
             if key not in data:
                 raise ValueError(f"rod description is missing {key!r}")
-        geometry = [k for k in ("outer_diameter", "inner_diameter", "youngs_modulus") if k in data]
+        geometry = [k for k in _GEOMETRY if k in data]
         if geometry and len(geometry) < 3:
             raise ValueError(
                 f"rod description gives {geometry}: outer_diameter, inner_diameter and youngs_modulus go together"
             )
         if "bending_stiffness" not in data and not geometry:
             raise ValueError("rod description needs bending_stiffness, or outer_diameter, inner_diameter and youngs_modulus")
-        kwargs = dict(data)
-        if "bending_stiffness" not in kwargs:
-            return cls.from_geometry(
-                length=kwargs["length"],
-                outer_diameter=kwargs["outer_diameter"],
-                inner_diameter=kwargs["inner_diameter"],
-                youngs_modulus=kwargs["youngs_modulus"],
-                gratings=_as_sequence(kwargs["gratings"]),
-                location_bias=kwargs.get("location_bias", 0.0),
-                poisson_ratio=kwargs.get("poisson_ratio"),
-            )
-        kwargs["gratings"] = tuple(_as_sequence(kwargs["gratings"]))
-        return cls(**kwargs)
+        if "bending_stiffness" not in data:
+            return cls.from_geometry(**data)
+        return cls(**data)
 
     @classmethod
     def from_json(cls, path: str | os.PathLike) -> Rod:
-        """Read a rod file (the JSON form of :meth:`from_dict`)."""
+        """Read a rod file (the JSON form of :meth:`from_dict`, UTF-8).
+
+        Every problem is one ``ValueError`` naming the file: a directory, an unreadable or missing file, a file
+        over ``MAX_FILE_BYTES``, text that is not JSON (or repeats a key), and what :meth:`from_dict` refuses.
+        """
+        name = os.fspath(path)
+        if os.path.isdir(name):
+            raise ValueError(f"{name}: is a directory, not a rod file")
         try:
-            with open(path, encoding="utf-8") as fh:
-                data = json.load(fh)
+            with open(name, "rb") as fh:
+                raw = fh.read(MAX_FILE_BYTES + 1)
+        except OSError as exc:
+            raise ValueError(f"{name}: cannot read the rod file ({exc.strerror or type(exc).__name__})") from None
+        if len(raw) > MAX_FILE_BYTES:
+            raise ValueError(f"{name}: larger than {MAX_FILE_BYTES // 2**20} MiB, not a rod file")
+        try:
+            text = raw.decode("utf-8-sig")
+        except UnicodeDecodeError:
+            raise ValueError(f"{name}: not a rod file (not UTF-8 text)") from None
+        try:
+            data = json.loads(text, object_pairs_hook=_no_repeated_keys)
         except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not valid JSON ({exc})") from None
-        return cls.from_dict(data)
+            raise ValueError(f"{name}: not valid JSON ({exc})") from None
+        except RecursionError:
+            raise ValueError(f"{name}: not a rod file (nested too deeply)") from None
+        except ValueError as exc:  # a repeated key, or an integer beyond Python's int-to-text limit
+            raise ValueError(f"{name}: {_clip(str(exc))}") from None
+        try:
+            return cls.from_dict(data)
+        except ValueError as exc:
+            raise ValueError(f"{name}: {exc}") from None
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form; geometry is written when known, else ``bending_stiffness``."""
@@ -209,16 +301,42 @@ class Rod:
     def num_gratings(self) -> int:
         return len(self.gratings)
 
-    def grating_positions(self, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> torch.Tensor:
-        """Grating positions as a tensor (G,) [m]."""
-        return torch.tensor(self.gratings, dtype=dtype, device=device)
+    def grating_positions(
+        self, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+    ) -> torch.Tensor:
+        """Grating positions as a tensor (G,) [m] (``dtype`` default float64)."""
+        import torch
+
+        return torch.tensor(self.gratings, dtype=torch.float64 if dtype is None else dtype, device=device)
 
     def with_(self, **changes: Any) -> Rod:
-        """A copy with some fields changed. Changing ``bending_stiffness`` drops the geometry that no longer
-        produces it."""
-        if "bending_stiffness" in changes and not {"outer_diameter", "inner_diameter", "youngs_modulus"} & set(changes):
+        """A copy with some fields changed. Changing ``bending_stiffness`` alone drops the geometry that no longer
+        produces it; changing the geometry alone recomputes the stiffness from it."""
+        touched = set(_GEOMETRY) & set(changes)
+        if "bending_stiffness" in changes and not touched:
             changes.update(outer_diameter=None, inner_diameter=None, youngs_modulus=None)
+        elif touched and "bending_stiffness" not in changes:
+            geometry = [changes.get(k, getattr(self, k)) for k in _GEOMETRY]
+            if all(v is not None for v in geometry):
+                changes["bending_stiffness"] = _geometry_stiffness(*geometry)[3]
         return dataclasses.replace(self, **changes)
+
+    def differences(self, other: Rod, rel_tol: float = AGREEMENT) -> list[str]:
+        """What a reading depends on that differs between ``self`` and ``other``: the length, the bending stiffness
+        and the grating positions (relative tolerance ``rel_tol``; the location bias and how the stiffness was
+        given do not count). Empty when they agree; else one phrase each, ``self``'s value first."""
+        out = []
+        if not math.isclose(self.length, other.length, rel_tol=rel_tol):
+            out.append(f"length {self.length} m vs {other.length} m")
+        if not math.isclose(self.bending_stiffness, other.bending_stiffness, rel_tol=rel_tol):
+            out.append(f"bending_stiffness {self.bending_stiffness:.9g} vs {other.bending_stiffness:.9g} N m^2")
+        tol = rel_tol * max(self.length, other.length)
+        if self.num_gratings != other.num_gratings or any(
+            abs(a - b) > tol for a, b in zip(self.gratings, other.gratings)
+        ):
+            out.append(_clip(f"{self.num_gratings} gratings at {list(self.gratings)}") + " vs "
+                       + _clip(f"{other.num_gratings} at {list(other.gratings)}"))
+        return out
 
     @property
     def relative_gratings(self) -> tuple[float, ...]:
@@ -226,7 +344,31 @@ class Rod:
         return tuple(g / self.length for g in self.gratings)
 
 
-def _as_sequence(x: Any) -> Sequence[float]:
-    if isinstance(x, (str, bytes)) or not hasattr(x, "__iter__"):
-        raise ValueError(f"gratings must be a list of positions in m, got {x!r}")
-    return list(x)
+def _check_gratings(gratings: Any, length: float) -> tuple[float, ...]:
+    """Grating positions [m] as a tuple of floats: a list of finite numbers, strictly increasing inside [0, L]."""
+    if (
+        isinstance(gratings, (str, bytes, Mapping, set, frozenset))
+        or not isinstance(gratings, Iterable)
+        or getattr(gratings, "ndim", 1) != 1
+    ):
+        raise ValueError(f"gratings must be a list of positions [m], got {_show(gratings)}")
+    g = tuple(_real(f"gratings[{k}]", x, " [m]") for k, x in enumerate(gratings))
+    if not g:
+        raise ValueError("gratings must hold at least one position, got none")
+    for k, x in enumerate(g):
+        if not 0.0 <= x <= length:
+            raise ValueError(f"gratings[{k}] = {x} m must lie inside the rod, [0, {length}] m")
+    for k, (a, b) in enumerate(itertools.pairwise(g), start=1):
+        if b <= a:
+            raise ValueError(f"gratings must be strictly increasing: gratings[{k}] = {b} m follows {a} m")
+    return g
+
+
+def _no_repeated_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object as a dict, refusing a key given twice (``json`` would silently keep the last)."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise ValueError(_clip(f"the key {key!r} appears twice in one object"))
+        out[key] = value
+    return out
