@@ -1,7 +1,8 @@
 """The ``torchrod`` command: one subcommand per task, each implemented in ``torchrod/cli/commands/<name>.py``.
 
 Every command module defines ``HELP`` (one line), ``configure(parser)`` and ``run(args) -> int``; they are imported
-only when their subcommand runs, so ``torchrod --help`` stays fast.
+only when their subcommand runs, and ``import torchrod`` loads nothing heavy, so ``torchrod --version`` and
+``torchrod --help`` answer without importing torch. :data:`COMMANDS` holds what ``--help`` tells a user about each.
 """
 
 from __future__ import annotations
@@ -9,31 +10,59 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import textwrap
 from collections.abc import Sequence
 
-__all__ = ["COMMANDS", "main"]
+__all__ = ["COMMANDS", "DESCRIPTION", "main"]
+
+DESCRIPTION = (
+    "Where a thin elastic rod (catheter, needle, concentric tube) is touched, and how hard,\n"
+    "from the curvature that fibre Bragg gratings (FBG) along it read."
+)
 
 COMMANDS: dict[str, str] = {
-    "simulate": "curvature at the gratings for given point forces (JSON lines in, JSON lines out)",
-    "estimate": "forces from FBG curvature readings (JSON lines in, JSON lines out)",
-    "calibrate": "fit the location bias and bending stiffness from readings with known forces",
-    "evaluate": "accuracy of the estimator on simulated readings over a realistic envelope",
-    "generate": "synthetic training sets and synthetic reading streams",
-    "train": "train the warm-start network",
-    "stream": "amortised estimation on a stream of readings",
-    "bench": "benchmarks: forward model, estimation, streams, the paper's comparison",
-    "plot": "figures of readings and their estimates",
+    "estimate": "contact forces (where and how hard, with uncertainties) from FBG curvature readings, "
+    "JSON lines in and out",
+    "stream": "contact forces from a live stream of readings (JSON lines or CSV), batched under a latency bound",
+    "simulate": "the curvature the gratings would read under given point forces (to test or to make data)",
+    "plot": "figures of readings and their estimates: the bent rod with its forces, the fit, forces over time",
+    "calibrate": "fit a rod's location bias and bending stiffness from readings with known forces",
+    "generate": "synthetic training sets and synthetic reading streams with their true forces",
+    "train": "train the warm-start network that gives the estimator its first guess",
+    "evaluate": "how accurate the estimator is on simulated readings, by number of forces and noise level",
+    "bench": "speed and accuracy benchmarks, measured side by side (startup, forward, estimate, stream, ...)",
 }
+
+EPILOG = (
+    "ROD (the --rod option) is a rod JSON file or a preset name (nitinol290).\n"
+    "Units are SI: m, N, 1/m. 'torchrod COMMAND --help' lists a command's options."
+)
+
+
+def _command_list(width: int = 88) -> str:
+    """The commands and what each is for, as ``torchrod --help`` lists them."""
+    indent = 2 + max(map(len, COMMANDS)) + 2
+    lines = ["commands:"]
+    for name, text in COMMANDS.items():
+        lines += textwrap.wrap(
+            text, width, initial_indent=f"  {name:<{indent - 2}}", subsequent_indent=" " * indent
+        )
+    return "\n".join(lines)
 
 
 def _build_parser() -> argparse.ArgumentParser:
     from .. import __version__
 
-    parser = argparse.ArgumentParser(prog="torchrod", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="torchrod",
+        description=DESCRIPTION,
+        epilog=f"{_command_list()}\n\n{EPILOG}",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--version", action="version", version=f"torchrod {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, help_ in COMMANDS.items():
-        sub.add_parser(name, help=help_, add_help=False)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", help="one of the commands below")
+    for name in COMMANDS:
+        sub.add_parser(name, add_help=False)
     return parser
 
 
@@ -70,7 +99,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         quiet_closed_pipe(sys.stdout)
         return 141
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, OSError) as exc:
+        # A bad input, option, rod file or checkpoint (OSError: a directory, a missing or unreadable file):
+        # one line, no traceback.
         print(f"torchrod {name}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -7,6 +7,7 @@ names ``torchrod bench`` knows (a suite whose module is missing is reported as n
 * ``forward``: speed and accuracy of the forward model (exact and node schemes, B = 1, 64, 4096).
 * ``estimate``, ``stream``, ``paper``: estimation, streams, the paper's comparison.
 * ``network``: the warm-start network alone, and the estimator with and without it.
+* ``startup``: time to the first answer (``--version``, ``--help``, a one-reading estimate) against importing torch.
 """
 
 from __future__ import annotations
@@ -19,4 +20,5 @@ SUITES: dict[str, str] = {
     "stream": "amortised estimation on a stream of readings",
     "paper": "the paper's speed and accuracy comparison",
     "network": "what the warm-start network buys: the network alone, the estimator with and without it",
+    "startup": "time to the first answer (--version, --help, a one-reading estimate) against importing torch",
 }

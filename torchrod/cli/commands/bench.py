@@ -13,7 +13,7 @@ from types import ModuleType
 
 from ..benchmarks import SUITES
 
-HELP = "benchmarks: forward model, estimation, streams, the paper's comparison"
+HELP = "speed and accuracy benchmarks, measured side by side (startup, forward, estimate, stream, ...)"
 
 __all__ = ["HELP", "configure", "load_suite", "run"]
 
