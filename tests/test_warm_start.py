@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import pickle
 from unittest import mock
 
 import pytest
@@ -178,7 +177,7 @@ def test_loading_uses_weights_only(rod, tmp_path):
     payload["extra"] = _Payload()
     evil = tmp_path / "evil.pt"
     torch.save(payload, evil)
-    with pytest.raises(pickle.UnpicklingError):
+    with pytest.raises(ValueError, match=r"refused: .* Python object \(print\), and building it could run code"):
         load_checkpoint(evil)
 
 
@@ -225,3 +224,132 @@ def test_the_shipped_checkpoint_guesses_well_on_fresh_readings(rod):
     assert m["count_accuracy"] > 0.75 and m["count_accuracy_1"] > 0.93
     assert m["location_error_median_1"] < 0.003 and m["force_error_median_1"] < 0.04
     assert m["location_error_median_3"] < 0.010 and m["force_error_median_3"] < 0.2
+
+
+# ---------------------------------------------------------------------------------------------- damaged checkpoints
+# Each kind of damage is ONE ValueError line naming the file and what is wrong; through the CLI it is
+# `torchrod stream: error: ...` with exit status 2 and no traceback.
+
+
+def _payload(rod: tr.Rod, tmp_path) -> dict:
+    good = tmp_path / "good.pt"
+    save_checkpoint(good, _net(rod), step=3, epoch=1)
+    return torch.load(good, weights_only=True)
+
+
+def _damage(kind: str, rod: tr.Rod, tmp_path):
+    """A damaged checkpoint of the given kind, and what its error must say."""
+    import random
+
+    path = tmp_path / f"{kind}.pt"
+    good = tmp_path / "good.pt"
+    save_checkpoint(good, _net(rod), step=3, epoch=1)
+    raw = good.read_bytes()
+    payload = torch.load(good, weights_only=True)
+    if kind == "truncated":
+        path.write_bytes(raw[: len(raw) // 2])
+        return path, "not a readable checkpoint \\(truncated, damaged or not a torch file"
+    if kind == "random bytes":
+        path.write_bytes(random.Random(0).randbytes(4096))
+        return path, "not a readable checkpoint"
+    if kind == "empty":
+        path.write_bytes(b"")
+        return path, "the checkpoint file is empty"
+    if kind == "directory":
+        path.mkdir()
+        return path, "is a directory, not a checkpoint"
+    if kind == "wrong shape":
+        payload["state_dict"]["body.0.weight"] = payload["state_dict"]["body.0.weight"][:, :-1].clone()
+        torch.save(payload, path)
+        return path, r"weights do not fit .*'body.0.weight' has shape \(32, \d+\), the config asks for \(32, \d+\)"
+    if kind == "missing weights":
+        del payload["state_dict"]["out.bias"]
+        torch.save(payload, path)
+        return path, r"weights do not fit .*lacks \['out.bias'\]"
+    if kind == "missing config":
+        del payload["config"]
+        torch.save(payload, path)
+        return path, "damaged checkpoint: no 'config'"
+    if kind == "invalid config":
+        payload["config"]["hidden"] = True
+        torch.save(payload, path)
+        return path, "invalid network config: hidden must be a positive integer, got True"
+    if kind == "config larger than the weights":
+        payload["config"]["hidden"] = 10**7  # building it would need terabytes: refused before any is allocated
+        torch.save(payload, path)
+        return path, "the config describes at least \\d+ weights .* the file holds \\d+"
+    if kind == "wrong format":
+        payload["format"] = "torchrod.warm_start/99"
+        torch.save(payload, path)
+        return path, "not a warm-start checkpoint \\(format 'torchrod.warm_start/99'"
+    if kind == "missing step":
+        del payload["step"]
+        torch.save(payload, path)
+        return path, "'step' must be an integer >= 0, got nothing"
+    if kind == "NaN weights":
+        payload["state_dict"]["out.weight"][0, 0] = float("nan")
+        torch.save(payload, path)
+        return path, "weight 'out.weight' holds 1 non-finite value\\(s\\) \\(NaN or inf\\)"
+    if kind == "malicious pickle":
+        payload["extra"] = _Payload()
+        torch.save(payload, path)
+        return path, r"refused: .* Python object \(print\)"
+    raise AssertionError(kind)
+
+
+DAMAGE = [
+    "truncated", "random bytes", "empty", "directory", "wrong shape", "missing weights", "missing config",
+    "invalid config", "config larger than the weights", "wrong format", "missing step", "NaN weights",
+    "malicious pickle",
+]
+
+
+@pytest.mark.parametrize("kind", DAMAGE)
+def test_a_damaged_checkpoint_is_one_clear_value_error_naming_the_file(kind, rod, tmp_path, capsys):
+    path, match = _damage(kind, rod, tmp_path)
+    for load in (load_checkpoint, lambda p: WarmStart.load(p, rod)):
+        with pytest.raises(ValueError, match=match) as info:
+            load(path)
+        message = str(info.value)
+        assert message.startswith(f"{path}: ") and "\n" not in message and len(message) < 300, message
+    assert "this must never run" not in capsys.readouterr().out
+
+
+def test_a_missing_checkpoint_is_file_not_found(tmp_path, rod):
+    with pytest.raises(FileNotFoundError, match="no such checkpoint"):
+        WarmStart.load(tmp_path / "nowhere.pt", rod)
+
+
+def test_a_layout_mismatch_names_the_file(rod, tmp_path):
+    path = tmp_path / "ws.pt"
+    save_checkpoint(path, _net(rod))
+    with pytest.raises(ValueError, match=rf"^{path}: the warm-start network was trained for gratings"):
+        WarmStart.load(path, rod.with_(length=0.35))
+
+
+@pytest.mark.parametrize("kind", ["truncated", "random bytes", "empty", "directory", "wrong shape", "missing config",
+                                  "NaN weights", "malicious pickle"])
+def test_the_cli_refuses_a_damaged_checkpoint_with_status_2_and_no_traceback(kind, rod, tmp_path, capsys):
+    from torchrod.cli import main
+
+    path, _ = _damage(kind, rod, tmp_path)
+    readings = tmp_path / "r.jsonl"
+    readings.write_text('{"id": 0, "curvature": ' + str([[0.1, 0.0]] * rod.num_gratings) + "}\n")
+    capsys.readouterr()
+    status = main(["stream", "--rod", "nitinol290", "--checkpoint", str(path), "--input", str(readings)])
+    err = capsys.readouterr().err
+    assert status == 2 and err.startswith(f"torchrod stream: error: {path}: ") and err.count("\n") == 1, err
+
+
+def test_a_damaged_checkpoint_through_the_command_line_prints_no_traceback(rod, tmp_path):
+    import subprocess
+    import sys
+
+    path, _ = _damage("truncated", rod, tmp_path)
+    done = subprocess.run(
+        [sys.executable, "-m", "torchrod", "stream", "--rod", "nitinol290", "--checkpoint", str(path), "--input",
+         str(path)],
+        check=False, capture_output=True, text=True, timeout=300,
+    )
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert done.stderr.startswith(f"torchrod stream: error: {path}: not a readable checkpoint"), done.stderr

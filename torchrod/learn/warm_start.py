@@ -21,8 +21,9 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import numbers
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -84,19 +85,25 @@ class NetConfig:
     force_scale: float = 5.0
 
     def __post_init__(self) -> None:
-        g = tuple(float(x) for x in self.relative_gratings)
+        raw = self.relative_gratings
+        if isinstance(raw, (str, bytes, Mapping)) or not isinstance(raw, Iterable):
+            raise ValueError(f"relative_gratings must be a list of numbers, got {_brief(raw)}")  # noqa: TRY004
+        raw = tuple(raw)
+        if any(isinstance(x, bool) or not isinstance(x, numbers.Real) for x in raw):
+            raise ValueError(f"relative_gratings must be a list of numbers, got {_brief(list(raw))}")
+        g = tuple(float(x) for x in raw)
         if not g or any(not (0.0 <= x <= 1.0) for x in g) or any(b <= a for a, b in itertools.pairwise(g)):
-            raise ValueError(f"relative_gratings must increase inside [0, 1], got {list(g)}")
+            raise ValueError(f"relative_gratings must increase inside [0, 1], got {_brief(list(g))}")
         object.__setattr__(self, "relative_gratings", g)
         for name in ("max_forces", "hidden", "depth"):
             v = getattr(self, name)
-            if not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {_brief(v)}")
         for name in ("curvature_scale", "force_scale"):
-            v = float(getattr(self, name))
-            if not math.isfinite(v) or v <= 0.0:
-                raise ValueError(f"{name} must be positive and finite, got {v!r}")
-            object.__setattr__(self, name, v)
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or v <= 0.0:
+                raise ValueError(f"{name} must be positive and finite, got {_brief(v)}")
+            object.__setattr__(self, name, float(v))
 
     @property
     def num_gratings(self) -> int:
@@ -109,13 +116,16 @@ class NetConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> NetConfig:
+        """From :meth:`to_dict`'s form; ``ValueError`` naming an unknown or missing key or a bad value."""
+        if not isinstance(data, Mapping):
+            raise ValueError(f"a network config must be a mapping, got {type(data).__name__}")  # noqa: TRY004
         known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - known)
+        unknown = sorted(str(k) for k in data if k not in known)
         if unknown:
             raise ValueError(f"unknown network config keys {unknown}; known keys are {sorted(known)}")
-        kwargs = dict(data)
-        kwargs["relative_gratings"] = tuple(kwargs["relative_gratings"])
-        return cls(**kwargs)
+        if "relative_gratings" not in data:
+            raise ValueError("the network config lacks 'relative_gratings' (the grating layout)")
+        return cls(**data)
 
     @classmethod
     def for_rod(cls, rod: Rod, **kwargs: Any) -> NetConfig:
@@ -315,18 +325,152 @@ def load_checkpoint(
     """Read a checkpoint written by :func:`save_checkpoint` (``torch.load(..., weights_only=True)``: no code runs).
 
     Returns the network (eval mode, float32) and the rest of the checkpoint (format, version, config, step, epoch,
-    train_config, optimizer, metrics, as stored). Raises ``ValueError`` for a file that is not such a checkpoint.
+    train_config, optimizer, metrics, and any further entries, as stored).
+
+    Raises ``FileNotFoundError`` for a missing file and otherwise one ``ValueError`` naming the file and what is
+    wrong: a directory or unreadable file; an empty, truncated or damaged one (not a torch file); one that holds
+    Python objects other than tensors and plain containers (refused unread by torch's ``weights_only`` check,
+    since unpickling them could run code); another format tag; a missing or invalid ``config``, ``step`` or
+    ``epoch``; weights missing, unexpected or of another shape than the config describes; non-finite weights.
     """
-    payload = torch.load(os.fspath(path), map_location=map_location, weights_only=True)
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
-        raise ValueError(f"{path}: not a warm-start checkpoint (format {found!r}, expected {CHECKPOINT_FORMAT!r})")
-    config = NetConfig.from_dict(payload["config"])
+    name = os.fspath(path)
+    payload = _read_checkpoint(name, map_location)
+    if not isinstance(payload, dict):
+        raise ValueError(  # noqa: TRY004 (a bad file)
+            f"{name}: not a warm-start checkpoint (it holds a {type(payload).__name__}, expected a dict with "
+            f"format {CHECKPOINT_FORMAT!r})"
+        )
+    found = payload.get("format")
+    if found != CHECKPOINT_FORMAT:
+        shown = "no format tag" if "format" not in payload else f"format {_brief(found)}"
+        raise ValueError(f"{name}: not a warm-start checkpoint ({shown}, expected {CHECKPOINT_FORMAT!r})")
+    config = _checkpoint_config(name, payload)
+    for key in ("step", "epoch"):
+        value = payload.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            got = "nothing" if key not in payload else _brief(value)
+            raise ValueError(f"{name}: damaged checkpoint: {key!r} must be an integer >= 0, got {got}")
+    for key in ("train_config", "optimizer", "metrics"):
+        if key in payload and not isinstance(payload[key], Mapping):
+            raise ValueError(
+                f"{name}: damaged checkpoint: {key!r} must be a mapping, got {type(payload[key]).__name__}"
+            )
     net = WarmStartNet(config)
-    net.load_state_dict(payload["state_dict"])
+    net.load_state_dict(_checkpoint_weights(name, payload, net))
     net.eval()
     meta = {k: v for k, v in payload.items() if k != "state_dict"}
     return net, meta
+
+
+def _clip(text: str, limit: int = 100) -> str:
+    """``text`` on one line, at most ``limit`` characters (for error messages)."""
+    text = " ".join(text.split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _brief(value: Any) -> str:
+    """``repr(value)`` on one line, at most about 100 characters (for error messages)."""
+    try:
+        return _clip(repr(value))
+    except Exception:  # noqa: BLE001 -- a value whose repr fails is still named by its type
+        return f"a {type(value).__name__}"
+
+
+def _read_checkpoint(name: str, map_location: str | torch.device | None) -> Any:
+    """``torch.load(name, weights_only=True)``, every failure turned into one line naming the file."""
+    import pickle
+
+    if os.path.isdir(name):
+        raise ValueError(f"{name}: is a directory, not a checkpoint")
+    if not os.path.lexists(name):
+        raise FileNotFoundError(f"no such checkpoint: {name}")
+    try:
+        with open(name, "rb") as fh:
+            empty = fh.read(1) == b""
+    except OSError as exc:
+        raise ValueError(f"{name}: cannot read the checkpoint ({exc.strerror or type(exc).__name__})") from None
+    if empty:
+        raise ValueError(f"{name}: the checkpoint file is empty")
+    try:
+        return torch.load(name, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        # torch's weights_only unpickler refuses anything but tensors and plain containers: either the file names
+        # Python objects (unsafe to build, so refused unread) or its bytes are not a pickle at all.
+        text = str(exc)
+        detail = text.split("WeightsUnpickler error:", 1)[1] if "WeightsUnpickler error:" in text else ""
+        detail = " ".join(detail.split("Check the documentation", 1)[0].split())
+        if detail.startswith("Unsupported global"):
+            words = detail.split()
+            what = _clip(words[3], 60) if len(words) > 3 and words[2] == "GLOBAL" else "an unknown global"
+            raise ValueError(
+                f"{name}: refused: besides tensors and plain containers it holds a Python object ({what}), and "
+                "building it could run code (torch's weights_only check)"
+            ) from None
+        why = detail or f"{type(exc).__name__}: {exc}"
+    except Exception as exc:  # noqa: BLE001 -- RuntimeError (zip reader), EOFError, KeyError, ...: a damaged file
+        why = f"{type(exc).__name__}: {exc}"
+    raise ValueError(f"{name}: not a readable checkpoint (truncated, damaged or not a torch file: {_clip(why, 80)})")
+
+
+def _checkpoint_config(name: str, payload: Mapping[str, Any]) -> NetConfig:
+    """The checkpoint's :class:`NetConfig`, checked, and not larger than the weights the file holds (so a damaged
+    config cannot make us build a huge network)."""
+    if "config" not in payload:
+        raise ValueError(f"{name}: damaged checkpoint: no 'config' (the network's layout and size)")
+    raw = payload["config"]
+    if not isinstance(raw, Mapping):
+        raise ValueError(f"{name}: damaged checkpoint: 'config' must be a mapping, got {type(raw).__name__}")  # noqa: TRY004
+    try:
+        config = NetConfig.from_dict(raw)
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        raise ValueError(f"{name}: invalid network config: {_clip(str(exc), 160)}") from None
+    state = payload.get("state_dict")
+    held = sum(v.numel() for v in state.values() if isinstance(v, torch.Tensor)) if isinstance(state, Mapping) else 0
+    # Every hidden layer is at least hidden x hidden (the first at least hidden x 3G), the output at least
+    # hidden x max_forces: a lower bound on the weights the config describes.
+    least = config.hidden * (3 * config.num_gratings + config.max_forces + (config.depth - 1) * config.hidden)
+    if least > held:
+        raise ValueError(
+            f"{name}: its weights do not fit its config: the config describes at least {least} weights "
+            f"(hidden {config.hidden}, depth {config.depth}, {config.num_gratings} gratings), the file holds {held}"
+        )
+    return config
+
+
+def _checkpoint_weights(name: str, payload: Mapping[str, Any], net: WarmStartNet) -> dict[str, torch.Tensor]:
+    """The checkpoint's weights, checked against ``net`` (the network its config describes): the same names and
+    shapes, floating point, finite."""
+    state = payload.get("state_dict")
+    if not isinstance(state, Mapping):
+        got = "nothing" if "state_dict" not in payload else type(state).__name__
+        raise ValueError(f"{name}: damaged checkpoint: 'state_dict' must be a mapping of weights, got {got}")  # noqa: TRY004
+    expected = net.state_dict()
+    missing = [k for k in expected if k not in state]
+    unexpected = [str(k) for k in state if k not in expected]
+    if missing or unexpected:
+        parts = ([f"lacks {_brief(missing)}"] if missing else []) + (
+            [f"has unexpected {_brief(unexpected)}"] if unexpected else []
+        )
+        raise ValueError(f"{name}: its weights do not fit the network its config describes: {'; '.join(parts)}")
+    out: dict[str, torch.Tensor] = {}
+    for key, want in expected.items():
+        value = state[key]
+        if not isinstance(value, torch.Tensor) or not value.is_floating_point():
+            kind = f"a {value.dtype} tensor" if isinstance(value, torch.Tensor) else f"a {type(value).__name__}"
+            raise ValueError(f"{name}: weight {key!r} must be a floating-point tensor, got {kind}")
+        if value.shape != want.shape:
+            raise ValueError(
+                f"{name}: its weights do not fit the network its config describes: {key!r} has shape "
+                f"{tuple(value.shape)}, the config asks for {tuple(want.shape)}"
+            )
+        bad = int((~torch.isfinite(value)).sum())
+        if bad:
+            raise ValueError(
+                f"{name}: weight {key!r} holds {bad} non-finite value(s) (NaN or inf): a diverged or damaged "
+                "training run"
+            )
+        out[key] = value
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------- inference
@@ -375,9 +519,16 @@ class WarmStart:
 
     @classmethod
     def load(cls, path: str | os.PathLike, rod: Rod) -> WarmStart:
-        """The network in checkpoint ``path`` for ``rod``; raises ``ValueError`` if the layouts differ."""
+        """The network in checkpoint ``path`` for ``rod``.
+
+        Raises what :func:`load_checkpoint` raises for a bad file, and ``ValueError`` naming the file if the
+        network's grating layout differs from ``rod``'s.
+        """
         net, meta = load_checkpoint(path)
-        return cls(net, rod, meta)
+        try:
+            return cls(net, rod, meta)
+        except ValueError as exc:
+            raise ValueError(f"{os.fspath(path)}: {exc}") from None
 
     @property
     def config(self) -> NetConfig:
