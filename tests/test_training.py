@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import time
@@ -251,3 +252,30 @@ def test_cli_trains_logs_and_saves(tmp_path):
     assert any(t.startswith("val/location_error_median_mm") for t in scalars)
     assert any(t.startswith("val/force_error_median") for t in scalars)
     assert "val/fits" in events.Tags()["images"]
+
+
+def test_cli_train_refuses_a_rod_that_contradicts_the_data_set_and_accepts_one_that_agrees(tiny_set, tmp_path, capsys):
+    data = tmp_path / "set.npz"
+    tiny_set.save(data)
+    softer = tmp_path / "softer.json"
+    tr.presets.nitinol290().with_(youngs_modulus=60e9).to_json(softer)
+    small = ["--validation", "32", "--epochs", "1", "--batch-size", "64", "--hidden", "16", "--depth", "1",
+             "--physics-batch", "8", "--logdir", "none", "--quiet"]
+    ckpt = tmp_path / "ws.pt"
+    status = cli_main(["train", "--data", str(data), "--rod", str(softer), "--checkpoint", str(ckpt), *small])
+    err = capsys.readouterr().err
+    assert status == 2 and not ckpt.exists()
+    assert err.startswith(f"torchrod train: error: --rod {softer} contradicts the data set {data}, made for another rod: "
+                          "bending_stiffness 0.00738830604 vs 0.00661639347 N m^2"), err
+    assert err.count("\n") == 1
+    # A rod that agrees (the preset by name, or the same rod written as a file with its stiffness) is accepted.
+    same = tmp_path / "same.json"
+    rod = tr.presets.nitinol290()
+    same.write_text(json.dumps({"length": rod.length, "bending_stiffness": rod.bending_stiffness,
+                                "gratings": list(rod.gratings)}))
+    for given in ("nitinol290", str(same)):
+        assert cli_main(["train", "--data", str(data), "--rod", given, "--checkpoint", str(ckpt), *small]) == 0
+        assert WarmStart.load(ckpt, rod).meta["epoch"] == 1
+        ckpt.unlink()
+    # Without --rod, the set's rod (a network for a 16-grating set, say) is used without a check.
+    assert TrainConfig().rod is None

@@ -59,6 +59,7 @@ from .warm_start import (
 )
 
 __all__ = [
+    "DEFAULT_ROD",
     "FORCE_UNIT",
     "LOCATION_UNIT",
     "TrainConfig",
@@ -73,6 +74,9 @@ __all__ = [
     "train",
 ]
 
+DEFAULT_ROD = "nitinol290"
+"""The rod simulated when generating training cases without ``rod`` (the paper's tube)."""
+
 LOCATION_UNIT = 0.02
 """Location errors enter the loss in units of 0.02 L (about 6 mm on the 290 mm rod)."""
 FORCE_UNIT = 0.05
@@ -84,7 +88,9 @@ class TrainConfig:
     """Everything a training run depends on (the command line turns into one of these at the edge).
 
     Attributes:
-        rod: preset name (``nitinol290``) or rod JSON file; ignored when ``data`` is given (the set's rod is used).
+        rod: preset name or rod JSON file. Generating (no ``data``): the rod to simulate, None meaning
+            ``DEFAULT_ROD``. With ``data`` the set's own rod is used; a ``rod`` given as well must agree with it
+            (length, stiffness, gratings: :meth:`Rod.differences`), else ``ValueError`` naming both.
         data: a saved :class:`~torchrod.synthetic.SyntheticSet`, or None to generate ``generate`` cases.
         generate: number of training cases generated at start when ``data`` is None.
         validation: number of held-back cases, generated with another seed.
@@ -114,7 +120,7 @@ class TrainConfig:
         progress: print a line per epoch (rank 0).
     """
 
-    rod: str = "nitinol290"
+    rod: str | None = None
     data: str | None = None
     generate: int = 200_000
     validation: int = 4096
@@ -501,6 +507,7 @@ def train(config: TrainConfig, *, data: TrainingData | None = None, log: Callabl
 
 def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, DistributedSampler) -> TrainResult:
     t0 = time.perf_counter()
+    given = load_rod(config.rod) if config.rod is not None else None  # a bad --rod fails before any data loads
     if data is None:
         if config.data is not None:
             from .synthetic import SyntheticSet
@@ -508,10 +515,16 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
             data = TrainingData.from_set(SyntheticSet.load(config.data))
             say(f"loaded {len(data)} cases from {config.data}")
         else:
-            rod = load_rod(config.rod)
+            rod = given if given is not None else load_rod(DEFAULT_ROD)
             data = TrainingData.from_set(_simulated(rod, config.generate, config.max_forces, config.seed, 0.0, 0.0))
             say(f"generated {len(data)} cases in {time.perf_counter() - t0:.1f} s")
     rod = data.rod
+    if given is not None and (diff := rod.differences(given)):
+        source = f"the data set {config.data}" if config.data is not None else "the training data"
+        raise ValueError(
+            f"--rod {config.rod} contradicts {source}, made for another rod: {'; '.join(diff)} (the set's value "
+            "first); leave out --rod to train for the set's rod"
+        )
     if data.max_forces != config.max_forces:
         raise ValueError(f"the data hold up to {data.max_forces} forces but max_forces is {config.max_forces}")
     held = _simulated(rod, config.validation, config.max_forces, _mix(config.seed, 1), config.noise,
@@ -656,7 +669,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The training options (shared by ``train/train_warm_start.py`` and ``torchrod train``)."""
     d = TrainConfig()
     a = parser.add_argument
-    a("--rod", default=d.rod, help="preset name or rod JSON file (default %(default)s)")
+    a("--rod", default=None, help=f"preset name or rod JSON file (default {DEFAULT_ROD} when generating; with "
+      "--data the set's rod, which a --rod given must match)")
     a("--data", default=None, help="a saved synthetic set (torchrod generate); default: generate --generate cases")
     a("--generate", type=int, default=d.generate, help="cases generated at start without --data (%(default)s)")
     a("--validation", type=int, default=d.validation, help="held-back cases (%(default)s)")

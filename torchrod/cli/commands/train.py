@@ -2,14 +2,18 @@
 
 ``torchrod train --rod nitinol290 --generate 150000 --epochs 20 --checkpoint checkpoints/nitinol290.pt``; under
 ``torchrun --nproc_per_node=N -m torchrod train ...`` it trains with DistributedDataParallel. See
-:mod:`torchrod.training` for the options and what is logged.
+:mod:`torchrod.learn.training` for the options and what is logged.
+
+The rod: generating, ``--rod`` (default nitinol290). With ``--data SET`` the network is trained for the set's rod;
+a ``--rod`` given as well must agree with it (length, bending stiffness, gratings), else the command stops with
+an error naming both instead of silently training for the set's rod.
 """
 
 from __future__ import annotations
 
 import argparse
 
-HELP = "train the warm-start network"
+HELP = "train the warm-start network that gives the estimator its first guess"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
