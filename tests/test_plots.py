@@ -77,19 +77,20 @@ def test_plot_command_one_figure_per_reading_and_by_id(tmp_path, capsys):
     estimates = tmp_path / "e.jsonl"
     estimates.write_text(capsys.readouterr().out)
     out = tmp_path / "figs"
-    assert main(["plot", str(readings), str(estimates), "--truth", str(truth), "--out", str(out)]) == 0
+    plot = ["plot", str(readings), str(estimates), "--rod", "nitinol290"]
+    assert main([*plot, "--truth", str(truth), "--out", str(out)]) == 0
     written = capsys.readouterr().out.split()
     names = sorted(Path(p).name for p in written)
     assert names == ["reading-case_0.png", "reading-case_1.png", "reading-case_2.png"]
     assert all(_is_png(Path(p)) for p in written)
     # --id: one figure, to a file name.
     one = tmp_path / "one.png"
-    assert main(["plot", str(readings), str(estimates), "--id", "case/1", "--out", str(one)]) == 0
+    assert main([*plot, "--id", "case/1", "--out", str(one)]) == 0
     assert capsys.readouterr().out.strip() == str(one) and _is_png(one)
     # Several figures cannot go to one file; an unknown id is an error.
-    assert main(["plot", str(readings), str(estimates), "--out", str(tmp_path / "x.png")]) == 2
+    assert main([*plot, "--out", str(tmp_path / "x.png")]) == 2
     assert "one file" in capsys.readouterr().err
-    assert main(["plot", str(readings), str(estimates), "--id", "nope", "--out", str(out)]) == 2
+    assert main([*plot, "--id", "nope", "--out", str(out)]) == 2
     assert "no reading with id" in capsys.readouterr().err
 
 
@@ -105,6 +106,8 @@ def test_plot_command_stream_against_time_with_truth(tmp_path, capsys, monkeypat
         "plot",
         str(readings),
         str(estimates),
+        "--rod",
+        "nitinol290",
         "--truth",
         str(DATA / "example_stream_truth.jsonl"),
         "--out",
@@ -132,3 +135,29 @@ def test_plot_command_stream_against_time_with_truth(tmp_path, capsys, monkeypat
     # A reading of the stream by id (its truth drawn too).
     assert main(args + [str(tmp_path / "f3.png"), "--id", "f000003"]) == 0
     assert _is_png(tmp_path / "f3.png")
+
+
+def test_plot_needs_the_rod_unless_the_inputs_name_it(tmp_path, capsys):
+    # A 16-grating rod: plot used to assume nitinol290 and fail with "the rod has 14".
+    rod = tr.Rod(length=0.34, bending_stiffness=7e-3, gratings=tuple(0.01 + 0.02 * k for k in range(16)))
+    rod.to_json(tmp_path / "rod16.json")
+    u = tr.grating_curvature(rod, tr.PointForces.from_lists([[(0.2, 0.3, -0.2)]]))
+    rows = [{"id": "a", "curvature": u[0].tolist()}]
+    readings = _write(tmp_path / "r.jsonl", rows)
+    estimates = _write(tmp_path / "e.jsonl", [{"id": "a", "forces": [{"s": 0.2, "fx": 0.3, "fy": -0.2}]}])
+    out = tmp_path / "a.png"
+    assert main(["plot", str(readings), str(estimates), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("torchrod plot: error: which rod? pass --rod ROD") and "14" not in err, err
+    assert main(["plot", str(readings), str(estimates), "--rod", str(tmp_path / "rod16.json"),
+                 "--out", str(out)]) == 0
+    assert capsys.readouterr().out.strip() == str(out) and _is_png(out)
+    # The inputs may name it: a rod file beside them, a preset, or a rod object; all lines must agree.
+    for named in ("rod16.json", rod.to_dict()):
+        _write(readings, [dict(rows[0], rod=named)])
+        out.unlink()
+        assert main(["plot", str(readings), str(estimates), "--out", str(out)]) == 0 and _is_png(out)
+        capsys.readouterr()
+    _write(estimates, [{"id": "a", "rod": "nitinol290", "forces": []}])
+    assert main(["plot", str(readings), str(estimates), "--out", str(out)]) == 2
+    assert "name 2 different rods; pass --rod" in capsys.readouterr().err

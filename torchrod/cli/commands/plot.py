@@ -1,6 +1,6 @@
 """``torchrod plot``: figures of readings and their estimates (PNG).
 
-Usage: ``torchrod plot READINGS.jsonl ESTIMATES.jsonl [--rod ROD] [--truth TRUTH.jsonl] [--id ID] [--out DIR|FILE]``.
+Usage: ``torchrod plot READINGS.jsonl ESTIMATES.jsonl --rod ROD [--truth TRUTH.jsonl] [--id ID] [--out DIR|FILE]``.
 
 READINGS: the input of ``torchrod estimate``/``torchrod stream`` (``{"id", "curvature": [[ux, uy] or null, ...]}``,
 ``"t"`` [s] for a stream). ESTIMATES: their output, one JSON line per reading (``{"id", "forces": [{"s", "fx",
@@ -17,8 +17,10 @@ Figures:
   time, with the ground truth of those readings when given; written as ``stream.png``.
 
 ``--out`` is a folder (default: the current one) or, for a single figure, a file name ending in ``.png``. The paths
-written are printed, one a line. The rod (``--rod``, a rod file or preset name; default nitinol290) must be the one
-the estimates were made with: its location bias maps reported locations back to the model's.
+written are printed, one a line. The rod (``--rod``, a rod file or preset name) must be the one the estimates were
+made with: its location bias maps reported locations back to the model's. There is no default: without ``--rod``
+the inputs must say which rod, by a ``"rod"`` field (a preset name, a rod file relative to the input's folder, or
+a rod object) in their lines, all naming the same rod.
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "estimates", metavar="ESTIMATES.jsonl", help="their estimates (torchrod estimate/stream)"
     )
     parser.add_argument(
-        "--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)"
+        "--rod", help="rod JSON file or preset name the estimates were made with (required unless the inputs say)"
     )
     parser.add_argument("--truth", metavar="TRUTH.jsonl", help="true forces per reading (optional)")
     parser.add_argument("--id", dest="ident", metavar="ID", help="only the reading with this id")
@@ -87,6 +89,38 @@ def _forces_and_time(obj: dict[str, Any]):
     return parse_forces(obj), _time(obj)
 
 
+def _rod_named_in(*paths: str) -> Rod:
+    """The rod the ``"rod"`` fields of the input lines name (all the same), else ``ValueError``: which rod?"""
+    import json
+
+    named: dict[str, tuple[str, Any]] = {}
+    for path in paths:
+        with open(path, encoding="utf-8") as fh:
+            for line in fh:
+                if '"rod"' not in line:
+                    continue
+                try:
+                    obj = json.loads(line)
+                except ValueError:
+                    continue
+                if isinstance(obj, dict) and obj.get("rod") is not None:
+                    named.setdefault(json.dumps(obj["rod"], sort_keys=True), (path, obj["rod"]))
+    if not named:
+        raise ValueError(
+            "which rod? pass --rod ROD (the rod file or preset name the estimates were made with); "
+            f"neither {paths[0]} nor {paths[1]} says"
+        )
+    if len(named) > 1:
+        raise ValueError(f"the inputs name {len(named)} different rods; pass --rod ROD")
+    path, spec = next(iter(named.values()))
+    if isinstance(spec, dict):
+        return Rod.from_dict(spec)
+    if not isinstance(spec, str):
+        raise ValueError(f"{path}: \"rod\" must be a preset name, a rod file or a rod object, got {spec!r:.60}")  # noqa: TRY004
+    beside = os.path.join(os.path.dirname(path), spec)
+    return load_rod(beside if not os.path.isabs(spec) and os.path.exists(beside) else spec)
+
+
 def _file_name(ident: Any, line: int) -> str:
     text = f"line{line}" if ident is None else str(ident)
     return "reading-" + (re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("._") or f"line{line}") + ".png"
@@ -95,7 +129,7 @@ def _file_name(ident: Any, line: int) -> str:
 def run(args: argparse.Namespace) -> int:
     from ...eval import plots
 
-    rod = load_rod(args.rod)
+    rod = load_rod(args.rod) if args.rod is not None else _rod_named_in(args.readings, args.estimates)
     if args.dpi < 10:
         raise ValueError(f"--dpi must be >= 10, got {args.dpi}")
     readings = [r for r in read_records(args.readings, _reading(rod))]
