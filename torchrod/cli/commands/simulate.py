@@ -8,7 +8,7 @@ Each input line is a load case::
     {"id": "c1", "forces": [{"s": 0.12, "fx": 0.3, "fy": -0.1}, ...]}
 
 with ``s`` the force location [m] from the clamped base and ``fx``, ``fy`` its body-frame components [N] (standard
-Cosserat sign, NOTES.md: a small ``fy > 0`` at s_i gives u_x = -fy (s_i - s)/EI proximal to it). ``forces`` may be
+Cosserat sign, docs/physics.md: a small ``fy > 0`` at s_i gives u_x = -fy (s_i - s)/EI proximal to it). ``forces`` may be
 empty (a straight rod); ``id`` is optional (any JSON value, echoed back); other top-level keys are ignored. A rod
 with a location bias (a calibrated rod, paper: s_est = s_model + s_bias) takes ``s`` in the same coordinate its
 estimates are reported in, and simulates at s_model = s - location_bias, which must lie in [0, L].
