@@ -12,7 +12,8 @@ The runs are interleaved (round after round, each command once per round, after 
 a change in the machine's load hits every command alike; each line gives the median and the fastest of ``--runs``
 wall times [s] and the median's ratio to the torch import. The aim is an estimate within 1.3x the torch import.
 Unless ``--quick``, a last run with ``-X importtime`` lists the heavy imports (cumulative time >= ``--min-ms``) that
-torchrod's own modules make during that estimate, with the module that made each: what to make lazy next.
+torchrod makes during that estimate, with the module that made each (or "run time" for an import inside a
+function): what to make lazy, or avoid, next.
 """
 
 from __future__ import annotations
@@ -79,13 +80,18 @@ def _time(argv: Sequence[str], cwd: str, env: dict[str, str]) -> float:
     return wall
 
 
+RUN_TIME = "run time (an import inside a function)"
+"""The importer :func:`heavy_imports` names for a package first imported while torchrod code runs."""
+
+
 def heavy_imports(importtime: str, min_seconds: float) -> list[tuple[str, float, str]]:
     """From ``python -X importtime`` output: (package, cumulative seconds, importer) for the imports of packages
-    other than torchrod and torch made directly by a torchrod module and taking at least ``min_seconds``, slowest first.
+    other than torchrod and torch made by torchrod, taking at least ``min_seconds`` each, slowest first.
 
     The output lists each module after the modules it imported, one nesting level deeper; a module's importer is
-    the next line at a shallower level. Lines are grouped by the first two parts of the name (``scipy.stats``),
-    since a lazily loaded package may show only its submodules.
+    the next line at a shallower level. A top-level line after torchrod's first is an import made at run time
+    (inside a function), named ``RUN_TIME``. Lines are grouped by the first two parts of the name
+    (``scipy.stats``), since a lazily loaded package may show only its submodules.
     """
     rows: list[tuple[int, float, str]] = []
     for line in importtime.splitlines():
@@ -96,13 +102,15 @@ def heavy_imports(importtime: str, min_seconds: float) -> list[tuple[str, float,
             continue
         depth = len(name) - len(name.lstrip(" "))
         rows.append((depth, int(cumulative) * 1e-6, name.strip()))
+    top = min((d for d, _, _ in rows), default=0)
+    first = next((k for k, (_, _, n) in enumerate(rows) if n.split(".")[0] == "torchrod"), len(rows))
     groups: dict[tuple[str, str], float] = {}
     for k, (depth, seconds, name) in enumerate(rows):
         if name.split(".")[0] in ("torchrod", "torch"):  # torchrod itself; torch is the floor measured above
             continue
         importer = next((n for d, _, n in rows[k + 1 :] if d < depth), "")
-        if importer == "torchrod" or importer.startswith("torchrod."):
-            key = (".".join(name.split(".")[:2]), importer)
+        if importer.split(".")[0] == "torchrod" or (depth == top and k > first and not importer):
+            key = (".".join(name.split(".")[:2]), importer or RUN_TIME)
             groups[key] = groups.get(key, 0.0) + seconds
     out = [(name, seconds, importer) for (name, importer), seconds in groups.items() if seconds >= min_seconds]
     return sorted(out, key=lambda row: -row[1])
@@ -160,9 +168,9 @@ def run(args: argparse.Namespace) -> int:
           f"({ratio:.2f}x)")
     if imports is not None:
         if imports:
-            print(f"imports of {args.min_ms:g} ms or more made by torchrod modules during that estimate:")
+            print(f"imports of {args.min_ms:g} ms or more made by torchrod during that estimate:")
             for name, seconds, importer in imports:
-                print(f"  {name:<32} {seconds:6.2f} s  imported by {importer}")
+                print(f"  {name:<24} {seconds:6.2f} s  imported by {importer}")
         else:
-            print(f"no import of {args.min_ms:g} ms or more made by a torchrod module besides torch's own")
+            print(f"no import of {args.min_ms:g} ms or more made by torchrod besides torch")
     return 0
