@@ -72,8 +72,8 @@ def test_records_carry_ids_values_and_errors_in_order():
     assert [r.ok for r in records] == [True, False, False, False, False, True, False]
     assert records[1].error.startswith("line 2: not valid JSON")
     assert records[2].error == 'line 3: x must be a number, got a string "2"'
-    assert records[3].error == "line 4: x must be finite, got nan"
-    assert records[4].error == "line 5: expected a JSON object, got a string"
+    assert records[3].error == "line 4: x must be finite, got NaN"
+    assert records[4].error == 'line 5: expected a JSON object, got a string "just a string"'
     assert records[6].error == "line 7: missing 'x'"
 
 

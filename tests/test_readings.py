@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from torchrod.io.sensors import check_readings
+from torchrod.io.readings import check_readings
 
 
 def test_nan_gratings_are_masked_not_zeroed():
