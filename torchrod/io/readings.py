@@ -328,7 +328,10 @@ def csv_number(text: str, what: str, *, bound: float | None = None, unit: str = 
             f"{what} must be a number, got {quote(cell)}: a CSV number is decimal digits with an optional sign, "
             "point and exponent (no underscores, hexadecimal or separators)"
         )
-    return as_number(float(cell), what, bound=bound, unit=unit)
+    x = float(cell)
+    if math.isinf(x):
+        raise ValueError(f"{what} must be a finite number, got {quote(cell)}, which overflows a float")
+    return as_number(x, what, bound=bound, unit=unit)
 
 
 # ---------------------------------------------------------------------------------------------------- fields
