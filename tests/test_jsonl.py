@@ -299,3 +299,20 @@ def test_sigterm_raises_terminated_inside_the_block_only():
     assert isinstance(info.value, KeyboardInterrupt) and interrupt_status(info.value) == 143
     assert interrupt_status(KeyboardInterrupt()) == 130
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_a_halted_reader_yields_the_lines_it_holds_then_ends(tmp_path):
+    """After ReadControl.halt() the reader gives the complete lines already read from the file (one 64 KiB read)
+    and stops reading: the flush after an interrupt answers what was read, no more."""
+    from torchrod.io.jsonl import ReadControl
+
+    line = '{"x": 1, "pad": "' + "p" * 80 + '"}\n'
+    path = tmp_path / "big.jsonl"
+    path.write_text(line * 2000)
+    control = ReadControl()
+    lines = read_lines(path, control)
+    first = next(lines)
+    control.halt()
+    rest = list(lines)
+    assert first[0] == 1 and 1 + len(rest) == 2**16 // len(line) < 2000
+    assert [n for n, _ in rest] == list(range(2, 2 + len(rest)))

@@ -272,6 +272,22 @@ def test_interrupt_answers_the_reading_the_reader_holds(rod, estimator):
     assert got == [f"r{k}" for k in range(taken[0])] and taken[0] < len(lines)
 
 
+def test_interrupt_answers_every_line_a_file_source_already_read(rod, estimator, tmp_path):
+    """A ReadingSource (the CLI's) is ended at the lines it already read: all 40 lines of a small file, read at
+    once, are answered after an interrupt, although the queue held only a few of them."""
+    from torchrod.io.readings import ReadingSource
+
+    path = tmp_path / "in.jsonl"
+    path.write_text("".join(json.dumps(line) + "\n" for line in _one_force_lines(rod, 40)))
+    source = ReadingSource(str(path), rod.num_gratings, rod.gratings)
+    results = stream(estimator, source, StreamOptions(batch_size=2, max_latency=0.0, read_ahead=2))
+    got = [next(results).id]
+    got.append(results.throw(KeyboardInterrupt()).id)
+    with pytest.raises(KeyboardInterrupt):
+        got.extend(r.id for r in results)
+    assert got == [f"r{k}" for k in range(40)]
+
+
 def test_an_interrupt_is_raised_again_as_it_came(rod, estimator):
     """A subclass of KeyboardInterrupt (the CLI's SIGTERM) comes out of the flush as itself."""
     from torchrod.io.jsonl import Terminated

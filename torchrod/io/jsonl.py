@@ -32,7 +32,8 @@ as soon as it is made. :meth:`LineWriter.write` refuses ``NaN``/``inf`` (``Value
 :meth:`LineWriter.answer` writes an error line in place of an answer JSON cannot hold, so one line always comes out.
 
 Ending: :func:`open_output` opens ``--out``; :func:`sigterm_as_interrupt` makes SIGTERM raise :class:`Terminated`
-(a ``KeyboardInterrupt``) so that a command flushes on it as on Ctrl-C; :func:`interrupt_status` gives 130 or 143.
+(a ``KeyboardInterrupt``) so that a command flushes on it as on Ctrl-C; :func:`interrupt_status` gives 130 or 143;
+a :class:`ReadControl` ends :func:`read_lines` at the lines it already read, for that flush.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ from .readings import HugeInteger, as_number, check_id, describe, id_problem, in
 __all__ = [
     "MAX_LINE_BYTES",
     "LineWriter",
+    "ReadControl",
     "Record",
     "Terminated",
     "as_number",
@@ -105,7 +107,25 @@ class Overlong(str):
 
 
 # ---------------------------------------------------------------------------------------------------- reading
-def read_lines(source: str | os.PathLike | IO[str]) -> Iterator[tuple[int, str]]:
+class ReadControl:
+    """Lets another thread end a line reader at the lines it already holds (the flush after an interrupt).
+
+    After :meth:`halt`, :func:`read_lines` yields the complete lines already read from the file descriptor, then ends
+    as at the end of the input instead of reading more. ``waiting`` is set while the reader waits on the input (it
+    then holds no complete line).
+    """
+
+    def __init__(self) -> None:
+        self.halted = threading.Event()
+        self.waiting = threading.Event()
+
+    def halt(self) -> None:
+        self.halted.set()
+
+
+def read_lines(
+    source: str | os.PathLike | IO[str], control: ReadControl | None = None
+) -> Iterator[tuple[int, str]]:
     """Non-blank lines of ``source`` with their 1-based numbers, lazily.
 
     ``source`` is a path, ``"-"`` for standard input (looked up when reading starts, so tests may replace it), or an
@@ -113,33 +133,46 @@ def read_lines(source: str | os.PathLike | IO[str]) -> Iterator[tuple[int, str]]
     buffer lock is held while waiting, so a reader thread blocked on a pipe never hangs the interpreter's exit) and
     decoded line by line as UTF-8 (module docstring); a path is closed when the iterator is exhausted or closed.
     Raises FileNotFoundError for a missing path when iteration starts. A line over :data:`MAX_LINE_BYTES` comes as
-    an :class:`Overlong`.
+    an :class:`Overlong`. ``control`` (:class:`ReadControl`) lets another thread end the reading early.
     """
+    control = control if control is not None else ReadControl()
     if isinstance(source, (str, os.PathLike)) and os.fspath(source) == "-":
         stdin = sys.stdin
         try:
             fd = stdin.fileno()
         except (AttributeError, OSError, ValueError):  # a replaced stdin (tests): a text stream
-            yield from _numbered(stdin)
+            yield from _numbered(stdin, control)
         else:
-            yield from _numbered_bytes(lambda n: os.read(fd, n))
+            yield from _numbered_bytes(lambda n: os.read(fd, n), control)
     elif isinstance(source, (str, os.PathLike)):
         with open(source, "rb", buffering=0) as fh:
-            yield from _numbered_bytes(fh.read)
+            yield from _numbered_bytes(fh.read, control)
     else:
-        yield from _numbered(source)
+        yield from _numbered(source, control)
 
 
-def _numbered(stream: IO[str]) -> Iterator[tuple[int, str]]:
+def _numbered(stream: IO[str], control: ReadControl) -> Iterator[tuple[int, str]]:
     # readline() rather than iteration: a pipe's lines come through as soon as they arrive.
-    for number, text in enumerate(iter(stream.readline, ""), start=1):
+    number = 0
+    while not control.halted.is_set():
+        control.waiting.set()
+        try:
+            text = stream.readline()
+        finally:
+            control.waiting.clear()
+        if not text:
+            return
+        number += 1
         if text.strip():
             yield number, text
 
 
-def _raw_lines(read: Callable[[int], bytes], chunk: int = 2**16) -> Iterator[bytes | None]:
-    """Lines (with their ``\n``) from an unbuffered ``read``, as soon as each is complete; None for a line over
-    :data:`MAX_LINE_BYTES` (dropped as it is read, so memory stays bounded)."""
+def _raw_lines(
+    read: Callable[[int], bytes], control: ReadControl, chunk: int = 2**16
+) -> Iterator[bytes | None]:
+    """Lines (with their newline) from an unbuffered ``read``, as soon as each is complete; None for a line over
+    :data:`MAX_LINE_BYTES` (dropped as it is read, so memory stays bounded). Once ``control`` is halted, ends when
+    the complete lines in memory are out (a partial line is dropped)."""
     buf = bytearray()
     pos = 0  # start of the current line in buf
     scanned = 0  # buf[pos:scanned] holds no newline
@@ -157,7 +190,13 @@ def _raw_lines(read: Callable[[int], bytes], chunk: int = 2**16) -> Iterator[byt
             overlong = True
             buf.clear()
             scanned = 0
-        data = read(chunk)
+        if control.halted.is_set():
+            return
+        control.waiting.set()
+        try:
+            data = read(chunk)
+        finally:
+            control.waiting.clear()
         if not data:
             if overlong:
                 yield None
@@ -167,8 +206,8 @@ def _raw_lines(read: Callable[[int], bytes], chunk: int = 2**16) -> Iterator[byt
         buf += data
 
 
-def _numbered_bytes(read: Callable[[int], bytes]) -> Iterator[tuple[int, str]]:
-    for number, raw in enumerate(_raw_lines(read), start=1):
+def _numbered_bytes(read: Callable[[int], bytes], control: ReadControl) -> Iterator[tuple[int, str]]:
+    for number, raw in enumerate(_raw_lines(read, control), start=1):
         if raw is None:
             yield number, Overlong("")
             continue

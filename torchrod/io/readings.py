@@ -56,9 +56,11 @@ __all__ = [
     "MAX_CURVATURE",
     "MAX_ID_CHARS",
     "MAX_ID_DEPTH",
+    "MAX_INT_DIGITS",
     "QUOTE_CHARS",
     "HugeInteger",
     "Reading",
+    "ReadingSource",
     "as_number",
     "check_gratings",
     "check_id",
@@ -120,8 +122,7 @@ class Reading:
 
 
 class HugeInteger:
-    """A JSON integer literal with more digits than Python converts (``sys.get_int_max_str_digits()``, 4300 by
-    default). The JSON decoder of :mod:`torchrod.io.jsonl` yields it in place of the integer, so such a line fails
+    """A JSON integer literal of more than :func:`int_digit_limit` digits (4300, Python's default limit). The JSON decoder of :mod:`torchrod.io.jsonl` yields it in place of the integer, so such a line fails
     with a message naming the field instead of aborting the run. Keeps only the head of the digits."""
 
     __slots__ = ("digits", "head", "negative")
@@ -136,10 +137,17 @@ class HugeInteger:
         return f"{'-' if self.negative else ''}{self.head}... ({self.digits} digits)"
 
 
+MAX_INT_DIGITS = 4300
+"""The most digits of an integer read from JSON (Python's default int <-> str limit): converting longer ones costs
+time quadratic in their length, and Python refuses to write them back."""
+
+
 def int_digit_limit() -> int:
-    """Python's limit on the digits of an int <-> str conversion (0: none)."""
+    """The most digits of an integer read or written: Python's int <-> str limit when it is set lower than
+    :data:`MAX_INT_DIGITS`, else that."""
     get = getattr(sys, "get_int_max_str_digits", None)
-    return int(get()) if get is not None else 0
+    limit = int(get()) if get is not None else 0
+    return min(limit, MAX_INT_DIGITS) if limit > 0 else MAX_INT_DIGITS
 
 
 # ---------------------------------------------------------------------------------------------------- quoting
@@ -628,7 +636,11 @@ FORMATS = ("auto", "jsonl", "csv")
 
 
 def iter_readings(
-    source: Any, num_gratings: int, gratings: Sequence[float] | None = None, fmt: str = "jsonl"
+    source: Any,
+    num_gratings: int,
+    gratings: Sequence[float] | None = None,
+    fmt: str = "jsonl",
+    control: Any = None,
 ) -> Iterator[Reading]:
     """Readings from ``source`` (a path, ``"-"`` for standard input, or an open text stream), lazily, one
     :class:`Reading` per non-blank line in order (a CSV header row excepted): checked, or with ``error`` set
@@ -637,12 +649,13 @@ def iter_readings(
     Args:
         fmt: ``"jsonl"``, ``"csv"`` (module docstring), or ``"auto"``: JSON lines when the first non-blank line
             starts with ``{``, else CSV.
+        control: a :class:`torchrod.io.jsonl.ReadControl` to end the reading at the lines already read.
     """
     from .jsonl import parse_records, read_lines
 
     if fmt not in FORMATS:
         raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    lines: Iterator[tuple[int, str]] = iter(read_lines(source))
+    lines: Iterator[tuple[int, str]] = iter(read_lines(source, control))
     if fmt == "auto":
         head = next(lines, None)
         if head is None:
@@ -657,6 +670,33 @@ def iter_readings(
             yield replace(record.value, line=record.line)
         else:
             yield Reading(record.id, error=record.error, line=record.line)
+
+
+class ReadingSource:
+    """The readings of a file or standard input (:func:`iter_readings`), as an iterable that the flush after an
+    interrupt can end at the lines already read: :meth:`halt` makes it yield the readings of the complete lines it
+    holds in memory and then end instead of reading more; :attr:`waiting` is true while it waits on the input
+    (holding no complete line). :func:`torchrod.io.stream.stream` uses both when its source has them."""
+
+    def __init__(
+        self, source: Any, num_gratings: int, gratings: Sequence[float] | None = None, fmt: str = "jsonl"
+    ) -> None:
+        from .jsonl import ReadControl
+
+        if fmt not in FORMATS:
+            raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+        self.control = ReadControl()
+        self._readings = iter_readings(source, num_gratings, gratings, fmt, self.control)
+
+    def __iter__(self) -> Iterator[Reading]:
+        return self._readings
+
+    def halt(self) -> None:
+        self.control.halt()
+
+    @property
+    def waiting(self) -> bool:
+        return self.control.waiting.is_set()
 
 
 def _chain(head: tuple[int, str], rest: Iterator[tuple[int, str]]) -> Iterator[tuple[int, str]]:

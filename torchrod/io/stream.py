@@ -196,6 +196,7 @@ class _Stream:
         self.error: BaseException | None = None
         # Started by the first ``next``: a stream that is never iterated takes nothing from its source.
         self.thread = threading.Thread(target=_reader, args=(self, readings), daemon=True)
+        self.source = readings
 
     def _take(self, entry: Any) -> None:
         if entry is _END or entry is _HALTED:
@@ -227,15 +228,24 @@ class _Stream:
             self._take(entry)
 
     def drain(self) -> None:
-        """The flush after an interrupt: stop the reader taking from the source, then take everything it already
-        took (the queue, and the reading in its hands); return once it has stopped, or when it waits on the source
-        (it then holds nothing)."""
-        self.halt.set()
+        """The flush after an interrupt: take everything the reader already took (the queue, and the reading in
+        its hands) and no more. A source with ``halt()`` and ``waiting`` (:class:`~torchrod.io.readings.
+        ReadingSource`) is asked to end after the lines it already read, and the reader runs until it ends or
+        waits on its input; any other source is left at once: the reader stops after the reading in its hands and
+        is left alone once it waits on the source (it then holds nothing)."""
+        halt = getattr(self.source, "halt", None)
+        cooperative = callable(halt) and hasattr(self.source, "waiting")
+        if cooperative:
+            halt()
+        else:
+            self.halt.set()
         while not self.finished:
             try:
                 entry = self.q.get(timeout=_POLL / 4)
             except queue.Empty:
-                if self.in_source.is_set() or not self.thread.is_alive():
+                if not self.thread.is_alive():
+                    return
+                if self.source.waiting if cooperative else self.in_source.is_set():
                     return
                 continue
             self._take(entry)
@@ -532,8 +542,9 @@ class StreamStats:
             if latency > 2.0 * solve + 0.05:
                 lines.append(
                     "latency includes queueing: the input came faster than it was solved (as when a file is read "
-                    "at once), so readings waited behind earlier ones; the solve time is the estimation's cost, "
-                    "and a source at its real rate sees about one batch's solve time plus the batching wait"
+                    "at once), so readings waited behind earlier ones; the solve time per reading is the cost of "
+                    "estimation, and a source no faster than the solver sees about a small batch's solve time plus "
+                    "the batching wait"
                 )
         if self.judged:
             lines.append(

@@ -46,7 +46,6 @@ import argparse
 import os
 import sys
 import time
-from collections.abc import Iterable
 from typing import Any
 
 import torch
@@ -54,7 +53,7 @@ import torch
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.selection import RULES
 from ...io.jsonl import LineWriter, check_input, interrupt_status, open_output, sigterm_as_interrupt
-from ...io.readings import FORMATS, Reading, iter_readings, stack_readings
+from ...io.readings import FORMATS, Reading, ReadingSource, stack_readings
 from ...presets import load as load_rod
 from ...rod import Rod
 from . import check_estimation_options
@@ -178,7 +177,7 @@ def _run(args: argparse.Namespace) -> int:
     network = load_network(args.checkpoint, rod)
     estimator = Estimator(rod, options_from_args(args, network), warm_start=network)
     device = torch.device(args.device)
-    readings = iter_readings(args.readings, rod.num_gratings, rod.gratings, args.format)
+    readings = ReadingSource(args.readings, rod.num_gratings, rod.gratings, args.format)
     from tqdm import tqdm
 
     with open_output(args.out, [args.readings]) as out:
@@ -209,7 +208,7 @@ class _Answers:
         self.pending: list[Reading] = []  # read, not yet answered
         self.ready: list[dict[str, Any]] = []  # the answers of pending[: len(ready)]
 
-    def run(self, readings: Iterable[Reading], batch_size: int) -> None:
+    def run(self, readings: ReadingSource, batch_size: int) -> None:
         try:
             for reading in readings:
                 self.pending.append(reading)
@@ -217,7 +216,12 @@ class _Answers:
                     self.flush()
             self.flush()
         except KeyboardInterrupt:
-            self.flush()  # what was read before the interrupt (a second interrupt is not caught)
+            # Everything read before the interrupt: the lines already in memory too (when the interrupt came
+            # while estimating; one that came inside the reader ended it), then the pending readings. A second
+            # interrupt is not caught.
+            readings.halt()
+            self.pending.extend(readings)
+            self.flush()
             raise
 
     def flush(self) -> None:

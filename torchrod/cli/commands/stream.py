@@ -58,7 +58,6 @@ import json
 import os
 import sys
 import time
-from collections.abc import Iterator
 from typing import Any
 
 from ...estimate.estimator import Estimator, EstimatorOptions
@@ -74,7 +73,7 @@ from ...io.jsonl import (
     read_lines,
     sigterm_as_interrupt,
 )
-from ...io.readings import Reading, iter_readings
+from ...io.readings import ReadingSource
 from ...io.stream import StreamOptions, StreamResult, StreamStats, stream, warm_up
 from ...presets import load as load_rod
 from ...rod import Rod
@@ -122,11 +121,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 # ---------------------------------------------------------------------------------------------------- input
-def read_stream(source: str, rod: Rod, fmt: str = "auto") -> Iterator[Reading]:
+def read_stream(source: str, rod: Rod, fmt: str = "auto") -> ReadingSource:
     """Readings from ``source`` (a path or ``"-"``) in format ``"jsonl"``, ``"csv"`` or ``"auto"`` (JSON lines if
     the first non-blank line starts with ``{``), lazily, checked by :mod:`torchrod.io.readings`: unusable lines
-    become readings with an ``error``."""
-    return iter_readings(source, rod.num_gratings, rod.gratings, fmt)
+    become readings with an ``error``. The flush after an interrupt ends it at the lines already read."""
+    return ReadingSource(source, rod.num_gratings, rod.gratings, fmt)
 
 
 def load_truth(path: str) -> dict[str, list[tuple[float, float, float]]]:
