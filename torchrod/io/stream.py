@@ -21,8 +21,9 @@ iterable of readings and yields one result per reading, in input order, as soon 
   reader thread);
 - a ``KeyboardInterrupt`` (Ctrl-C, or SIGTERM as :class:`torchrod.io.jsonl.Terminated` in the CLI) raised while
   the stream waits or solves, or thrown into the generator at a ``yield``, first flushes: the reader thread stops
-  taking from the source, every reading already taken from it (queued, or in the reader's hands) is solved and
-  yielded, then the same exception is raised again. The end of the input flushes the same way.
+  taking from the source (a :class:`~torchrod.io.readings.ReadingSource`, the CLI's, first gives the readings of
+  the lines it has already read), every reading already taken from it (queued, or in the reader's hands) is
+  solved and yielded, then the same exception is raised again. The end of the input flushes the same way.
 
 Readings are :class:`~torchrod.io.readings.Reading` objects or dicts with the same keys; results are
 :class:`StreamResult`.

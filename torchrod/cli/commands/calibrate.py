@@ -1,6 +1,6 @@
 """``torchrod calibrate``: fit the location bias and the bending stiffness from readings with known forces.
 
-Usage: ``torchrod calibrate --rod ROD READINGS.jsonl [--out NEW_ROD.json] [--directions known|free]`` (``-`` reads
+Usage: ``torchrod calibrate --rod ROD READINGS.jsonl [--out NEW_ROD.json] [--directions known|free]`` ('-' reads
 the readings from standard input). ROD is a rod JSON file or a preset name such as ``nitinol290``.
 
 Input: READINGS.jsonl holds one reading with its known forces per line::
@@ -16,7 +16,7 @@ stops with status 2 naming the bad lines (a calibration from a silently thinned 
 
 Output: the calibrated rod (``location_bias``, and the stiffness: a rod given by its geometry keeps it and gets a
 new ``youngs_modulus``; a rod given by ``bending_stiffness`` gets a new one) goes to ``--out`` (default: standard
-output); the fitted values with their standard errors go to standard error. See :mod:`torchrod.calibration` for
+output); the fitted values with their standard errors go to standard error. See torchrod.estimate.calibration for
 the method.
 """
 

@@ -1,7 +1,7 @@
 """``torchrod estimate``: contact forces from FBG curvature readings (JSON lines in, JSON lines out).
 
-Usage: ``torchrod estimate --rod ROD READINGS.jsonl [--out FILE]`` (``-`` reads standard input). ROD is a rod JSON
-file (see torchrod.Rod.from_json) or a preset name such as ``nitinol290``.
+Usage: ``torchrod estimate --rod ROD READINGS.jsonl [--out FILE]`` ('-' reads standard input). ROD is a rod
+JSON file (see torchrod.Rod.from_json) or a preset name such as ``nitinol290``.
 
 Each input line is one reading, as ``torchrod simulate`` writes them::
 
