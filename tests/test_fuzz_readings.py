@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 import torchrod as tr
 from torchrod.cli import main
-from torchrod.io.readings import MAX_CURVATURE, check_readings, id_problem, iter_readings, to_reading
+from torchrod.io.readings import MAX_CURVATURE, Reading, check_readings, id_problem, iter_readings, to_reading
 
 ROD = tr.presets.nitinol290()
 G = ROD.num_gratings
@@ -220,9 +220,7 @@ python_values = st.recursive(
 
 
 @SETTINGS
-@given(
-    st.one_of(python_values, st.builds(tr.io.readings.Reading, python_values, python_values, python_values))
-)
+@given(st.one_of(python_values, st.builds(Reading, python_values, python_values, python_values)))
 def test_python_api_readings_never_raise(item):
     """The stream API's entry: any Python object becomes a checked reading or an error reading."""
     reading = to_reading(item, G, ROD.gratings)
