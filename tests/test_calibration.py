@@ -175,3 +175,42 @@ def test_cli_reports_a_bad_file(tmp_path, capsys):
     readings.write_text('{"curvature": [[0, 0]], "forces": []}\n')
     assert main(["calibrate", "--rod", "nitinol290", str(readings)]) == 2
     assert "line 1" in capsys.readouterr().err
+
+
+def test_cli_reads_standard_input_and_its_help_gives_the_format(tmp_path, monkeypatch, capsys):
+    """``calibrate -`` reads the readings from standard input (it used to look for a file named '-'), and
+    ``calibrate --help`` says what a line holds."""
+    import io
+
+    readings = tmp_path / "cal.jsonl"
+    write_readings(readings, simulate_readings(noise=0.05, seed=3))
+    assert main(["calibrate", "--rod", "nitinol290", str(readings)]) == 0
+    from_file = json.loads(capsys.readouterr().out)
+    monkeypatch.setattr("sys.stdin", io.StringIO(readings.read_text()))
+    assert main(["calibrate", "--rod", "nitinol290", "-"]) == 0
+    assert json.loads(capsys.readouterr().out) == from_file
+    with pytest.raises(SystemExit):
+        main(["calibrate", "--help"])
+    text = capsys.readouterr().out
+    assert (
+        '"curvature": [[ux, uy], null, ...]' in text and '"forces": [{"s"' in text and "'-' for stdin" in text
+    )
+
+
+def test_read_readings_lists_the_bad_lines_by_the_shared_rules(tmp_path):
+    """Every line is checked by the rules of every reading; the error names the bad lines (five at most)."""
+    ok = {"id": 0, "curvature": [[0, 0]] * 14, "forces": []}
+    lines = [json.dumps(ok)] + [
+        json.dumps(dict(ok, id=k, curvature=[[1e7, 0]] + [[0, 0]] * 13)) for k in range(1, 8)
+    ]
+    path = tmp_path / "bad.jsonl"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(
+        ValueError, match=r"7 unusable line\(s\): line 2: curvature\[0\]\[0\] = 10000000.0 1/m"
+    ) as info:
+        read_readings(path, ROD)
+    assert (
+        "line 6:" in str(info.value)
+        and "line 7:" not in str(info.value)
+        and "(and 2 more)" in str(info.value)
+    )

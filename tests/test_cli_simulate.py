@@ -324,3 +324,56 @@ def test_integer_json_numbers_are_numbers(capsys, tmp_path, rod):
     path = write_lines(tmp_path / "in.jsonl", ['{"id": 1, "forces": [{"s": 0, "fx": 1, "fy": 0}]}'])
     status, out, _ = run_cli(capsys, "--rod", "nitinol290", str(path))
     assert status == 0 and out[0]["curvature"] == [[0.0, 0.0]] * rod.num_gratings
+
+
+def test_noise_is_gaussian_reproducible_and_independent_of_the_batch_size(capsys, tmp_path, rod):
+    """--noise SIGMA --seed N: the curvature is the exact one plus N(0, SIGMA^2) per component, the same for the
+    same seed whatever the batch size, different for another seed; profile and tip angle stay exact; an error line
+    draws no noise."""
+    cases = [case_line(k, [(0.05 + 0.0008 * k, 0.3, -0.2)]) for k in range(200)]
+    path = write_lines(tmp_path / "in.jsonl", cases[:100] + ["oops"] + cases[100:])
+    exact = run_cli(capsys, "--rod", "nitinol290", "--samples", "3", str(path))[1]
+    noisy = run_cli(
+        capsys, "--rod", "nitinol290", "--samples", "3", "--noise", "0.05", "--seed", "7", str(path)
+    )
+    again = run_cli(
+        capsys, "--rod", "nitinol290", "--noise", "0.05", "--seed", "7", "--batch-size", "7", str(path)
+    )
+    other = run_cli(capsys, "--rod", "nitinol290", "--noise", "0.05", "--seed", "8", str(path))
+    assert noisy[0] == again[0] == 1 and noisy[1][100]["id"] is None
+    diff = np.array(
+        [np.subtract(n["curvature"], e["curvature"]) for n, e in zip(noisy[1], exact) if "error" not in e]
+    )
+    assert diff.shape == (200, rod.num_gratings, 2)
+    assert abs(diff.std() - 0.05) < 0.003 and abs(diff.mean()) < 0.003
+    # the same draws: equal to the discretisation of the batched simulation (1e-6 relative at most)
+    np.testing.assert_allclose(
+        [o["curvature"] for o in noisy[1] if "error" not in o],
+        [o["curvature"] for o in again[1] if "error" not in o],
+        atol=1e-5,
+    )
+    assert np.abs(np.subtract(noisy[1][0]["curvature"], other[1][0]["curvature"])).max() > 1e-3
+    assert all(n["profile"] == e["profile"] for n, e in zip(noisy[1], exact) if "error" not in e)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--noise", "-0.1"], "--noise must be a finite sigma >= 0"),
+        (["--noise", "nan"], "--noise must be a finite sigma >= 0"),
+        (["--seed", "3"], "--seed sets the noise of --noise"),
+        (["--out", "/no/such/folder/out.jsonl"], "cannot write there"),
+    ],
+)
+def test_noise_and_out_options_are_checked(capsys, argv, message):
+    status = main(["simulate", "--rod", "nitinol290", *argv, str(EXAMPLE)])
+    captured = capsys.readouterr()
+    assert status == 2 and captured.out == "" and message in captured.err
+
+
+def test_out_writes_the_answers_to_a_file(capsys, tmp_path):
+    target = tmp_path / "readings.jsonl"
+    assert main(["simulate", "--rod", "nitinol290", str(EXAMPLE), "--out", str(target)]) == 0
+    assert capsys.readouterr().out == ""
+    reference = run_cli(capsys, "--rod", "nitinol290", str(EXAMPLE))[1]
+    assert [json.loads(x) for x in target.read_text().splitlines()] == reference

@@ -72,8 +72,8 @@ def test_records_carry_ids_values_and_errors_in_order():
     assert [r.ok for r in records] == [True, False, False, False, False, True, False]
     assert records[1].error.startswith("line 2: not valid JSON")
     assert records[2].error == 'line 3: x must be a number, got a string "2"'
-    assert records[3].error == "line 4: x must be finite, got nan"
-    assert records[4].error == "line 5: expected a JSON object, got a string"
+    assert records[3].error == "line 4: x must be finite, got NaN"
+    assert records[4].error == 'line 5: expected a JSON object, got a string "just a string"'
     assert records[6].error == "line 7: missing 'x'"
 
 
@@ -181,3 +181,138 @@ def test_field_helpers():
         check_keys(obj, ("s",), where="f")
     with pytest.raises(ValueError, match="f must be an object, got a number"):
         check_keys(3, ("s",), where="f")
+
+
+# ---------------------------------------------------------------------------------------------- hostile lines
+def test_numbers_json_cannot_carry_become_error_records_with_their_line():
+    """Integers over 4300 digits (Python's conversion limit) and non-finite ids fail their own line, naming the
+    field; the other lines are read."""
+    huge = "7" * 5000
+    text = "\n".join(
+        [
+            '{"id": "a", "x": ' + huge + "}",
+            '{"id": ' + huge + ', "x": 1}',
+            '{"id": NaN, "x": 1}',
+            '{"id": -Infinity, "x": 1}',
+            '{"id": 1e999, "x": 1}',
+            '{"id": "b", "other": ' + huge + ', "x": 2}',
+            '{"id": "c", "x": ' + "1" * 400 + "}",
+        ]
+    )
+    records = list(read_records(io.StringIO(text), numbers))
+    assert [r.id for r in records] == ["a", None, None, None, None, "b", "c"]
+    assert [r.value for r in records] == [None, None, None, None, None, 2.0, None]
+    assert records[0].error.startswith("line 1: x must be a finite number, got an integer of 5000 digits")
+    assert records[1].error.startswith("line 2: id holds an integer of 5000 digits")
+    assert records[2].error.startswith("line 3: id NaN cannot be written as JSON")
+    assert records[3].error.startswith("line 4: id -Infinity cannot be written as JSON")
+    assert records[4].error.startswith("line 5: id Infinity cannot be written as JSON")
+    assert "overflows a float" in records[6].error
+    assert all(len(r.error) < 400 for r in records if not r.ok)
+
+
+def test_deep_nesting_and_huge_values_give_short_messages():
+    """A field nested 500 or 985 levels deep, or deeper than the decoder goes, fails its line without a
+    RecursionError; a 10 MB value is quoted in at most about 100 characters."""
+    lines = [
+        '{"id": "d500", "x": ' + "[" * 500 + "]" * 500 + "}",
+        '{"id": "d985", "x": ' + "[" * 985 + "]" * 985 + "}",
+        '{"id": "d1e5", "x": ' + "[" * 100_000 + "]" * 100_000 + "}",
+        '{"id": "big", "x": "' + "v" * 10_000_000 + '"}',
+        '{"id": "keys", "x": 1, ' + ", ".join(f'"k{k}": 1' for k in range(1000)) + "}",
+    ]
+    records = list(parse_records(enumerate(lines, start=1), numbers))
+    assert [r.ok for r in records] == [False, False, False, False, True]
+    assert records[0].error.startswith("line 1: x must be a number, got an array [[[[")
+    assert records[1].error.startswith("line 2: ")
+    assert records[2].error == "line 3: not usable JSON: nested too deeply"
+    assert records[3].error.startswith('line 4: x must be a number, got a string "vvvv')
+    assert records[3].error.endswith("(10000000 characters)")
+    assert all(len(r.error) < 300 for r in records if not r.ok)
+    with pytest.raises(ValueError, match="unknown key"):
+        check_keys(json.loads(lines[4]), ("x",), ("id",))
+    assert len(str(pytest.raises(ValueError, check_keys, json.loads(lines[4]), ("x",), ("id",)).value)) < 400
+
+
+def test_line_endings_bom_and_overlong_lines(tmp_path, monkeypatch):
+    """A line ends at \\n only (a stray \\r stays in its line), a UTF-8 byte-order mark is dropped, and a line over
+    MAX_LINE_BYTES is an error of its own line, read past without keeping it."""
+    from torchrod.io import jsonl
+
+    path = tmp_path / "in.jsonl"
+    path.write_bytes(b'\xef\xbb\xbf{"x": 1}\r\n{"x": 2}\r{"x": 3}\n{"x": "' + b"y" * 5000 + b'"}\n{"x": 4}')
+    monkeypatch.setattr(jsonl, "MAX_LINE_BYTES", 1000)
+    records = list(read_records(path, numbers))
+    assert [r.line for r in records] == [1, 2, 3, 4]
+    assert records[0].value == 1.0 and records[3].value == 4.0
+    assert records[1].error.startswith("line 2: not valid JSON")
+    assert records[2].error == "line 3: longer than 1000 bytes; not read"
+
+
+def test_writer_answers_with_an_error_line_when_json_cannot_hold_the_answer():
+    out = io.StringIO()
+    writer = LineWriter(out)
+    assert writer.answer({"id": "a", "v": 1.0}, 1) is True
+    assert writer.answer({"id": "b", "v": float("nan")}, 2) is False
+    writer.error(float("nan"), "line 3: " + "m" * 10_000)
+    lines = [json.loads(x) for x in out.getvalue().splitlines()]
+    assert lines[0] == {"id": "a", "v": 1.0}
+    assert lines[1]["id"] == "b" and lines[1]["error"].startswith("line 2: the answer cannot be written as JSON")
+    assert lines[2]["id"] is None and len(lines[2]["error"]) < 700
+    assert (writer.lines, writer.errors) == (3, 2)
+
+
+def test_output_and_input_paths_are_checked_with_clear_errors(tmp_path):
+    from torchrod.io.jsonl import check_input, open_output
+
+    with pytest.raises(ValueError, match="--out .*cannot write there"), open_output(str(tmp_path / "no" / "d.jsonl")):
+        pass
+    with pytest.raises(ValueError, match="--out .*cannot write there"), open_output(str(tmp_path)):
+        pass
+    source = tmp_path / "in.jsonl"
+    source.write_text('{"x": 1}\n')
+    with pytest.raises(ValueError, match="would erase the input"), open_output(str(source), [str(source)]):
+        pass
+    assert source.read_text() == '{"x": 1}\n'
+    with open_output(str(tmp_path / "out.jsonl")) as fh:
+        LineWriter(fh).write({"a": 1})
+    assert (tmp_path / "out.jsonl").read_text() == '{"a": 1}\n'
+    with open_output("-") as fh:
+        assert fh is None
+    with pytest.raises(ValueError, match="READINGS .*No such file"):
+        check_input(str(tmp_path / "missing"), "READINGS")
+    with pytest.raises(ValueError, match="READINGS .*Is a directory"):
+        check_input(str(tmp_path), "READINGS")
+
+
+def test_sigterm_raises_terminated_inside_the_block_only():
+    import os
+    import signal
+
+    from torchrod.io.jsonl import Terminated, interrupt_status, sigterm_as_interrupt
+
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Terminated) as info, sigterm_as_interrupt():
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(1000):  # the handler runs between bytecodes
+            pass
+    assert isinstance(info.value, KeyboardInterrupt) and interrupt_status(info.value) == 143
+    assert interrupt_status(KeyboardInterrupt()) == 130
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_a_halted_reader_yields_the_lines_it_holds_then_ends(tmp_path):
+    """After ReadControl.halt() the reader gives the complete lines already read from the file (one 64 KiB read)
+    and stops reading: the flush after an interrupt answers what was read, no more."""
+    from torchrod.io.jsonl import ReadControl
+
+    line = '{"x": 1, "pad": "' + "p" * 80 + '"}\n'
+    path = tmp_path / "big.jsonl"
+    path.write_text(line * 2000)
+    control = ReadControl()
+    lines = read_lines(path, control)
+    first = next(lines)
+    control.halt()
+    rest = list(lines)
+    assert first[0] == 1 and 1 + len(rest) == 2**16 // len(line) < 2000
+    assert [n for n, _ in rest] == list(range(2, 2 + len(rest)))

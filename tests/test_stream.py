@@ -252,6 +252,88 @@ def test_interrupt_at_a_yield_flushes_everything_taken(rod, estimator):
     assert got == [f"r{k}" for k in range(10)]
 
 
+def test_interrupt_answers_the_reading_the_reader_holds(rod, estimator):
+    """With a full read-ahead queue the reader thread holds one more reading; the flush after an interrupt takes it
+    too: every reading taken from the source is answered, and the source is not read further."""
+    lines = _one_force_lines(rod, 40)
+    taken = [0]
+
+    def source():
+        for line in lines:
+            taken[0] += 1
+            yield line
+
+    results = stream(estimator, source(), StreamOptions(batch_size=2, max_latency=0.0, read_ahead=2))
+    got = [next(results).id]
+    time.sleep(0.3)  # the queue is full and the reader waits with a reading in hand
+    got.append(results.throw(KeyboardInterrupt()).id)
+    with pytest.raises(KeyboardInterrupt):
+        got.extend(r.id for r in results)
+    assert got == [f"r{k}" for k in range(taken[0])] and taken[0] < len(lines)
+
+
+def test_interrupt_answers_every_line_a_file_source_already_read(rod, estimator, tmp_path):
+    """A ReadingSource (the CLI's) is ended at the lines it already read: all 40 lines of a small file, read at
+    once, are answered after an interrupt, although the queue held only a few of them."""
+    from torchrod.io.readings import ReadingSource
+
+    path = tmp_path / "in.jsonl"
+    path.write_text("".join(json.dumps(line) + "\n" for line in _one_force_lines(rod, 40)))
+    source = ReadingSource(str(path), rod.num_gratings, rod.gratings)
+    results = stream(estimator, source, StreamOptions(batch_size=2, max_latency=0.0, read_ahead=2))
+    got = [next(results).id]
+    got.append(results.throw(KeyboardInterrupt()).id)
+    with pytest.raises(KeyboardInterrupt):
+        got.extend(r.id for r in results)
+    assert got == [f"r{k}" for k in range(40)]
+
+
+def test_an_interrupt_is_raised_again_as_it_came(rod, estimator):
+    """A subclass of KeyboardInterrupt (the CLI's SIGTERM) comes out of the flush as itself."""
+    from torchrod.io.jsonl import Terminated
+
+    results = stream(estimator, _one_force_lines(rod, 4), StreamOptions(batch_size=2, max_latency=0.0))
+    got = [next(results).id, results.throw(Terminated()).id]
+    with pytest.raises(Terminated):
+        got.extend(r.id for r in results)
+    assert got == ["r0", "r1", "r2", "r3"]
+
+
+def test_api_readings_that_used_to_crash_the_stream_are_error_results(rod, estimator):
+    """Huge integers, values beyond the bound and ids JSON cannot echo, in dicts, lists and tensors: one error
+    result each, in order, and the stream goes on."""
+    (good,) = _one_force_lines(rod, 1)
+    u = good["curvature"]
+    items = [
+        dict(good, id="t400", t=10**400),
+        dict(good, id="u400", curvature=[[10**400, 0]] + u[1:]),
+        dict(good, id="e308", curvature=[[1e308, 0.0]] + u[1:]),
+        Reading("tensor-e308", torch.tensor([[1e308, 0.0]] + u[1:], dtype=torch.float64)),
+        dict(good, id=math.nan),
+        dict(good, id="str", curvature=[["1.5", 0.0]] + u[1:]),
+        good,
+    ]
+    out = list(stream(estimator, items, StreamOptions(batch_size=8, max_latency=0.0)))
+    assert [r.id for r in out] == ["t400", "u400", "e308", "tensor-e308", None, "str", "r0"]
+    assert [r.ok for r in out] == [False] * 6 + [True]
+    assert "t must be a finite number" in out[0].error and "overflows a float" in out[1].error
+    assert all("beyond the bound" in r.error for r in out[2:4]) and "id NaN" in out[4].error
+    assert 'curvature[0][0] must be a number, got a string "1.5"' in out[5].error
+
+
+def test_stats_say_when_latency_includes_queueing():
+    """A file read at once: latencies far above the solve time are queueing, and the summary says so."""
+    queued, live = StreamStats(), StreamStats()
+    for k in range(50):
+        rec = {"id": k, "forces": []}
+        queued.add(StreamResult(k, None, rec, latency=0.1 * k, batch=1, solve_time=0.01))
+        live.add(StreamResult(k, None, rec, latency=0.012, batch=1, solve_time=0.01))
+    assert queued.solve_time(0.5) == pytest.approx(0.01, rel=0.011)
+    text, plain = "\n".join(queued.summary(5.0)), "\n".join(live.summary(5.0))
+    assert "latency median" in text and "solve time median 10.0 ms per batch" in text
+    assert "latency includes queueing" in text and "queueing" not in plain
+
+
 def test_tracking_a_force_that_appears_and_vanishes(rod):
     """A steady force at 0.22 m and a second one at 0.11 m that ramps up, stays and fades away: the stream (previous
     solutions as starts) gets the count right on the frames where the second force is clearly present or absent,
@@ -344,7 +426,7 @@ def test_cli_jsonl_with_bad_lines(rod, tmp_path, capsys):
     assert out[1]["error"].startswith("line 2: not valid JSON") and "finite" in out[2]["error"]
     assert "3 gratings" in out[3]["error"] and "line 7: t must be a number" in out[5]["error"]
     assert out[4]["num_forces"] == 1 and out[4]["t"] == pytest.approx(0.01)
-    assert "7 readings, 4 errors" in cap.err and "latency median" in cap.err
+    assert "7 readings, 4 errors" in cap.err and "latency median" in cap.err and "solve time" in cap.err
 
 
 def test_cli_csv_with_header_and_missing_gratings(rod, tmp_path, capsys):
@@ -419,6 +501,57 @@ def test_cli_csv_with_header_and_missing_gratings(rod, tmp_path, capsys):
     )
     out = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     assert len(out) == len(rows) and all("not valid JSON" in o["error"] for o in out)
+
+
+def test_cli_hostile_lines_and_out(rod, tmp_path, capsys):
+    """JSON lines and CSV rows that used to crash the stream or give an all-null "estimate": one error line each,
+    in order, naming the line and field; --out takes the answers; an unwritable --out is status 2."""
+    (good,) = _one_force_lines(rod, 1)
+    u = good["curvature"]
+    rest = json.dumps(u[1:])[1:]
+    lines = [
+        json.dumps(good),
+        '{"id": "t400", "t": ' + "1" * 400 + ', "curvature": ' + json.dumps(u) + "}",
+        '{"id": "u400", "curvature": [[' + "2" * 400 + ", 0], " + rest + "}",
+        '{"id": "e308", "curvature": [[1e308, 0], ' + rest + "}",
+        '{"id": Infinity, "curvature": ' + json.dumps(u) + "}",
+        '{"id": "big", "curvature": [["' + "z" * 10_000_000 + '", 0], ' + rest + "}",
+        json.dumps(dict(good, id="last")),
+    ]
+    path = tmp_path / "in.jsonl"
+    path.write_text("\n".join(lines) + "\n")
+    target = tmp_path / "out.jsonl"
+    base = ["stream", "--rod", "nitinol290", "--checkpoint", "none", "--noise", str(NOISE), "--max-forces", "1"]
+    assert main([*base, "--input", str(path), "--out", str(target)]) == 1
+    assert capsys.readouterr().out == ""
+    out = [json.loads(x) for x in target.read_text().splitlines()]
+    assert [o["id"] for o in out] == ["r0", "t400", "u400", "e308", None, "big", "last"]
+    assert [("error" in o) for o in out] == [False, True, True, True, True, True, False]
+    for k, message in [(1, "t must be a finite number"), (2, "curvature[0][0] must be a finite number"),
+                       (3, "curvature[0][0] = 1e+308 1/m is beyond the bound"), (4, "id Infinity"),
+                       (5, "curvature[0][0] must be a number, got a string")]:
+        assert out[k]["error"].startswith(f"line {k + 1}: ") and message in out[k]["error"], out[k]["error"]
+        assert len(out[k]["error"]) < 400
+    assert main([*base, "--input", str(path), "--out", str(tmp_path / "no" / "x.jsonl")]) == 2
+    assert "cannot write there" in capsys.readouterr().err
+    # CSV: no underscores, no hexadecimal, no 400-digit timestamp that crashes the reader
+    cells = [repr(x) for pair in u for x in pair]
+    rows = [
+        ",".join(["a", "0.1", *cells]),
+        ",".join(["us", "0.2", "1_000", *cells[1:]]),
+        ",".join(["hex", "0x10", *cells]),
+        ",".join(["t400", "9" * 400, *cells]),
+        ",".join(["b", "0.3", *cells]),
+    ]
+    path = tmp_path / "in.csv"
+    path.write_text("\n".join(rows) + "\n")
+    assert main([*base, "--input", str(path)]) == 1
+    out = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert [o["id"] for o in out] == ["a", "us", "hex", "t400", "b"]
+    assert [("error" in o) for o in out] == [False, True, True, True, False]
+    assert 'line 2: curvature[0][0] must be a number, got "1_000"' in out[1]["error"]
+    assert "line 3: t must be a number" in out[2]["error"]
+    assert "line 4: t must be a finite number" in out[3]["error"] and "overflows a float" in out[3]["error"]
 
 
 def test_cli_truth_summary(tmp_path, capsys):
@@ -528,10 +661,10 @@ def test_cli_pipe_answers_before_the_input_ends(rod):
         proc.kill() if proc.poll() is None else None
 
 
-@pytest.mark.parametrize("how", ["end of input", "ctrl-c"])
+@pytest.mark.parametrize("how", ["end of input", "ctrl-c", "sigterm"])
 def test_cli_flushes_pending_readings(rod, how):
     """Readings pending in a batch that is far from full and a latency bound of a minute are answered at the end of
-    the input, or on Ctrl-C (exit status 130), at once."""
+    the input, on Ctrl-C (exit status 130) or on SIGTERM (143), at once."""
     lines = _one_force_lines(rod, 3)
     proc = _start("--max-latency-ms", "60000", "--batch-size", "100")
     try:
@@ -546,11 +679,11 @@ def test_cli_flushes_pending_readings(rod, how):
         if how == "end of input":
             proc.stdin.close()
         else:
-            proc.send_signal(signal.SIGINT)
+            proc.send_signal(signal.SIGINT if how == "ctrl-c" else signal.SIGTERM)
         status = proc.wait(timeout=30)
         assert time.monotonic() - t0 < 20
         out = proc.stdout.read().splitlines()
-        assert status == (0 if how == "end of input" else 130), proc.stderr.read()
+        assert status == {"end of input": 0, "ctrl-c": 130, "sigterm": 143}[how], proc.stderr.read()
         assert [json.loads(x)["id"] for x in out] == ["r0", "r1", "r2"]
         assert "Fatal" not in proc.stderr.read()
     finally:

@@ -27,11 +27,12 @@ it would come out about 25 % too small: the two are correlated through the force
 Input readings (JSON lines, :func:`read_readings`): ``{"id": ..., "curvature": [[u_x, u_y] or null, ...],
 "forces": [{"s": ..., "fx": ..., "fy": ...}, ...]}``, one curvature pair per grating [1/m] (null for a grating
 without a reading), the known forces with ``s`` [m] in the true coordinate and components [N] in the body frame.
+The reading follows the rules of every reading (:mod:`torchrod.io.readings`: finite numbers, curvature within
+1e6 1/m, optional ``t`` and ``gratings``, other keys ignored).
 """
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Callable, Sequence
@@ -134,54 +135,33 @@ class CalibrationResult:
 
 
 # ---------------------------------------------------------------------------------------------- reading files
-def _number(value: Any, what: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{what} must be a number, got {value!r}")  # noqa: TRY004 (bad file content)
-    x = float(value)
-    if not math.isfinite(x):
-        raise ValueError(f"{what} must be finite, got {value!r}")
-    return x
-
-
 def parse_reading(
-    obj: Any, num_gratings: int
+    obj: Any, num_gratings: int, gratings: Sequence[float] | None = None
 ) -> tuple[list[list[float] | None], list[tuple[float, float, float]]]:
-    """One calibration record: the curvature pairs (None where missing) and the known forces (s, f_x, f_y)."""
-    if not isinstance(obj, dict):
-        raise ValueError(f"a reading must be a JSON object, got {type(obj).__name__}")  # noqa: TRY004
-    unknown = sorted(set(obj) - {"id", "curvature", "forces"})
-    if unknown:
-        raise ValueError(f"unknown keys {unknown}; a reading holds 'id', 'curvature' and 'forces'")
-    for key in ("curvature", "forces"):
-        if key not in obj:
-            raise ValueError(f"missing {key!r}")
-    curv = obj["curvature"]
-    if not isinstance(curv, list) or len(curv) != num_gratings:
-        n = len(curv) if isinstance(curv, list) else type(curv).__name__
-        raise ValueError(
-            f"curvature must be a list of {num_gratings} [u_x, u_y] pairs (one per grating), got {n}"
-        )
-    pairs: list[list[float] | None] = []
-    for k, pair in enumerate(curv):
-        if pair is None:
-            pairs.append(None)
-            continue
-        if not isinstance(pair, list) or len(pair) != 2:
-            raise ValueError(f"curvature[{k}] must be [u_x, u_y] or null, got {pair!r}")
-        pairs.append([_number(pair[0], f"curvature[{k}][0]"), _number(pair[1], f"curvature[{k}][1]")])
-    if all(p is None for p in pairs):
-        raise ValueError("curvature has no grating with a reading")
+    """One calibration record: the curvature pairs (None where missing) and the known forces (s, f_x, f_y).
+
+    The reading itself (``curvature``, ``id``, ``t``, ``gratings``; other keys ignored) follows the rules of every
+    reading (:mod:`torchrod.io.readings`); ``forces`` is required, a list of ``{"s", "fx", "fy"}`` objects (finite,
+    nonzero). Raises ``ValueError`` naming the first bad field.
+    """
+    from ..io.readings import as_number, describe
+    from ..io.readings import parse_reading as parse_one
+
+    reading = parse_one(obj, num_gratings, gratings)
+    if "forces" not in obj:
+        raise ValueError('missing \'forces\' (the known forces, [{"s": ..., "fx": ..., "fy": ...}, ...])')
     forces = obj["forces"]
     if not isinstance(forces, list):
-        raise ValueError(f"forces must be a list of {{'s', 'fx', 'fy'}} objects, got {type(forces).__name__}")  # noqa: TRY004
+        raise ValueError(f"forces must be an array of {{'s', 'fx', 'fy'}} objects, got {describe(forces)}")  # noqa: TRY004
     known = []
     for j, force in enumerate(forces):
         if not isinstance(force, dict) or set(force) != {"s", "fx", "fy"}:
-            raise ValueError(f"forces[{j}] must be an object with keys 's', 'fx', 'fy', got {force!r}")
-        s, fx, fy = (_number(force[k], f"forces[{j}].{k}") for k in ("s", "fx", "fy"))
+            raise ValueError(f"forces[{j}] must be an object with keys 's', 'fx', 'fy', got {describe(force)}")
+        s, fx, fy = (as_number(force[k], f"forces[{j}].{k}") for k in ("s", "fx", "fy"))
         if fx == 0.0 and fy == 0.0:
             raise ValueError(f"forces[{j}] has zero magnitude: a known force must be nonzero")
         known.append((s, fx, fy))
+    pairs = [None if math.isnan(ux) else [ux, uy] for ux, uy in reading.curvature.tolist()]
     return pairs, known
 
 
@@ -192,27 +172,29 @@ def read_readings(
     dtype: torch.dtype = torch.float64,
     device: torch.device | str | None = None,
 ) -> CalibrationData:
-    """Read a JSON-lines file of readings with known forces (format in the module docstring).
+    """Read a JSON-lines file of readings with known forces (format in the module docstring); ``"-"`` reads
+    standard input.
 
-    Raises ``ValueError`` naming the line for a record that cannot be used, or when no reading is found.
+    Every line is checked; raises ``ValueError`` naming the bad lines (the first five, and how many there are)
+    when any line cannot be used, or when no reading is found.
     """
-    rows, forces, ids = [], [], []
-    with open(path, encoding="utf-8") as fh:
-        for number, text in enumerate(fh, start=1):
-            if not text.strip():
-                continue
-            try:
-                obj = json.loads(text)
-                pairs, known = parse_reading(obj, rod.num_gratings)
-            except json.JSONDecodeError as exc:
-                raise ValueError(f"{path}, line {number}: not valid JSON ({exc.msg})") from None
-            except ValueError as exc:
-                raise ValueError(f"{path}, line {number}: {exc}") from None
-            rows.append(pairs)
-            forces.append(known)
-            ids.append(obj.get("id"))
+    from ..io.jsonl import read_records
+
+    name = "standard input" if os.fspath(path) == "-" else os.fspath(path)
+    rows, forces, ids, bad = [], [], [], []
+    for record in read_records(path, lambda obj: parse_reading(obj, rod.num_gratings, rod.gratings)):
+        if not record.ok or record.value is None:
+            bad.append(record.error)
+            continue
+        pairs, known = record.value
+        rows.append(pairs)
+        forces.append(known)
+        ids.append(record.id)
+    if bad:
+        more = f" (and {len(bad) - 5} more)" if len(bad) > 5 else ""
+        raise ValueError(f"{name}: {len(bad)} unusable line(s): " + "; ".join(bad[:5]) + more)
     if not rows:
-        raise ValueError(f"{path}: no readings")
+        raise ValueError(f"{name}: no readings")
     present = torch.tensor([[p is not None for p in r] for r in rows], dtype=torch.bool, device=device)
     curvature = torch.tensor(
         [[p if p is not None else [0.0, 0.0] for p in r] for r in rows], dtype=dtype, device=device

@@ -76,7 +76,7 @@ from typing import Any
 
 import torch
 
-from ..io.sensors import check_readings
+from ..io.readings import check_readings
 from ..loads import PointForces
 from ..model.sensitivity import ESTIMATION_STEP_ANGLE, curvature_and_jacobian
 from ..rod import Rod

@@ -1,52 +1,84 @@
 """JSON lines in and out, shared by the line-oriented commands (``simulate``, ``estimate``, ``stream``).
 
-Every such command reads one JSON object per line and writes one JSON object per line, in the same order. A line
-that cannot be used never stops the run: it becomes an error line ``{"id": ..., "error": "line N: ..."}`` (the id
-when the line had a readable one, else null) and the command exits with status 1 at the end.
+Every such command reads one JSON object per line and writes one JSON object per line, in the same order, whatever
+a line holds. A line that cannot be used never stops the run: it becomes an error line ``{"id": ..., "error": "line
+N: ..."}`` (the id when the line had one JSON can echo, else null) and the command exits with status 1 at the end.
+Blank lines (only whitespace) are skipped; they still count in the line numbers.
 
 Reading::
 
     for record in read_records(path_or_dash, parse):   # lazy: fine for an endless stdin
         ...  # record.line, record.id, record.value (what parse returned) or record.error (a message)
 
+A line is what ends with ``\\n``; it is decoded as UTF-8 (undecodable bytes become U+FFFD and fail as bad JSON on
+their own line; a byte-order mark on the first line is dropped); a line longer than :data:`MAX_LINE_BYTES` is an
+error line and is skipped without being held in memory. JSON is decoded by :func:`decode`: Python's decoder, except
+that an integer of more than 4300 digits becomes a :class:`~torchrod.io.readings.HugeInteger` (refused by the number
+rules, naming its field) instead of aborting the decoding, and nesting too deep for the decoder is an error of its
+line. ``NaN``, ``Infinity`` and overflowing literals (``1e999``) decode as non-finite floats and are refused by the
+number rules of :mod:`torchrod.io.readings`, so the line's id is still reported. An id that JSON cannot echo
+(:func:`torchrod.io.readings.id_problem`) makes the line an error with id null.
+
 ``parse(obj)`` turns one decoded JSON object into what the command needs and raises ``ValueError`` (or
 ``TypeError``/``KeyError``) for a line it cannot use; the helpers :func:`get_number`, :func:`get_list`,
-:func:`check_keys` and :func:`as_number` raise ``ValueError`` with messages that name the field and the bad value.
-Non-finite numbers (``NaN``, ``Infinity`` and overflowing literals such as ``1e999``, which Python's json accepts)
-are refused by the number helpers, so the id of such a line is still reported.
+:func:`check_keys` and :func:`as_number` raise ``ValueError`` with messages that name the field and quote at most
+about 100 characters of the bad value.
 
 Batching: :func:`batched` groups any iterable into lists of at most ``size`` items, in order, so a command can run
 one batched tensor call per chunk and still answer line by line.
 
-Writing: :class:`LineWriter` writes compact-enough JSON, one object per line, flushed after each line so a pipe
-sees every answer as soon as it is made; ``NaN``/``inf`` are refused (``ValueError``), since they are not JSON.
+Writing: :class:`LineWriter` writes JSON, one object per line, flushed after each line so a pipe sees every answer
+as soon as it is made. :meth:`LineWriter.write` refuses ``NaN``/``inf`` (``ValueError``: not JSON);
+:meth:`LineWriter.answer` writes an error line in place of an answer JSON cannot hold, so one line always comes out.
+
+Ending: :func:`open_output` opens ``--out``; :func:`sigterm_as_interrupt` makes SIGTERM raise :class:`Terminated`
+(a ``KeyboardInterrupt``) so that a command flushes on it as on Ctrl-C; :func:`interrupt_status` gives 130 or 143;
+a :class:`ReadControl` ends :func:`read_lines` at the lines it already read, for that flush.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
-import math
 import os
+import signal
 import sys
+import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import IO, Any, Generic, TypeVar
 
+from .readings import HugeInteger, as_number, check_id, describe, id_problem, int_digit_limit, quote
+
 __all__ = [
+    "MAX_LINE_BYTES",
     "LineWriter",
+    "ReadControl",
     "Record",
+    "Terminated",
     "as_number",
     "batched",
+    "check_input",
     "check_keys",
+    "decode",
     "get_list",
     "get_number",
+    "interrupt_status",
+    "open_output",
     "parse_records",
     "quiet_closed_pipe",
     "read_lines",
     "read_records",
+    "sigterm_as_interrupt",
 ]
 
 T = TypeVar("T")
+
+MAX_LINE_BYTES = 256 * 2**20
+"""The longest input line read [bytes]; a longer one is an error line, skipped in chunks."""
+
+MAX_MESSAGE_CHARS = 600
+"""The longest error message written (messages quote at most ~100 characters of a value; this is a safety net)."""
 
 
 @dataclass(frozen=True)
@@ -55,7 +87,7 @@ class Record(Generic[T]):
 
     Attributes:
         line: 1-based line number in the source (blank lines count but yield no record).
-        id: the object's ``"id"`` (any JSON value) or None when absent or unreadable.
+        id: the object's ``"id"`` (any JSON value JSON can echo) or None when absent or unusable.
         value: what ``parse`` returned; None when the line could not be used.
         error: why the line could not be used (starts with ``"line N: "``); None when it could.
     """
@@ -70,28 +102,148 @@ class Record(Generic[T]):
         return self.error is None
 
 
-def read_lines(source: str | os.PathLike | IO[str]) -> Iterator[tuple[int, str]]:
+class Overlong(str):
+    """Stands for an input line longer than :data:`MAX_LINE_BYTES` (its text is not kept)."""
+
+
+# ---------------------------------------------------------------------------------------------------- reading
+class ReadControl:
+    """Lets another thread end a line reader at the lines it already holds (the flush after an interrupt).
+
+    After :meth:`halt`, :func:`read_lines` yields the complete lines already read from the file descriptor, then ends
+    as at the end of the input instead of reading more. ``waiting`` is set while the reader waits on the input (it
+    then holds no complete line).
+    """
+
+    def __init__(self) -> None:
+        self.halted = threading.Event()
+        self.waiting = threading.Event()
+
+    def halt(self) -> None:
+        self.halted.set()
+
+
+def read_lines(
+    source: str | os.PathLike | IO[str], control: ReadControl | None = None
+) -> Iterator[tuple[int, str]]:
     """Non-blank lines of ``source`` with their 1-based numbers, lazily.
 
     ``source`` is a path, ``"-"`` for standard input (looked up when reading starts, so tests may replace it), or an
-    open text stream (not closed here). A path is opened as UTF-8 (undecodable bytes become U+FFFD, so they fail as
-    bad JSON on their own line instead of ending the run) and closed when the iterator is exhausted or closed.
-    Raises FileNotFoundError for a missing path when iteration starts.
+    open text stream (not closed here). Paths and standard input are read as bytes from the file descriptor (no
+    buffer lock is held while waiting, so a reader thread blocked on a pipe never hangs the interpreter's exit) and
+    decoded line by line as UTF-8 (module docstring); a path is closed when the iterator is exhausted or closed.
+    Raises FileNotFoundError for a missing path when iteration starts. A line over :data:`MAX_LINE_BYTES` comes as
+    an :class:`Overlong`. ``control`` (:class:`ReadControl`) lets another thread end the reading early.
     """
+    control = control if control is not None else ReadControl()
     if isinstance(source, (str, os.PathLike)) and os.fspath(source) == "-":
-        yield from _numbered(sys.stdin)
+        stdin = sys.stdin
+        try:
+            fd = stdin.fileno()
+        except (AttributeError, OSError, ValueError):  # a replaced stdin (tests): a text stream
+            yield from _numbered(stdin, control)
+        else:
+            yield from _numbered_bytes(lambda n: os.read(fd, n), control)
     elif isinstance(source, (str, os.PathLike)):
-        with open(source, encoding="utf-8", errors="replace") as fh:
-            yield from _numbered(fh)
+        with open(source, "rb", buffering=0) as fh:
+            yield from _numbered_bytes(fh.read, control)
     else:
-        yield from _numbered(source)
+        yield from _numbered(source, control)
 
 
-def _numbered(stream: IO[str]) -> Iterator[tuple[int, str]]:
+def _numbered(stream: IO[str], control: ReadControl) -> Iterator[tuple[int, str]]:
     # readline() rather than iteration: a pipe's lines come through as soon as they arrive.
-    for number, text in enumerate(iter(stream.readline, ""), start=1):
+    number = 0
+    while not control.halted.is_set():
+        control.waiting.set()
+        try:
+            text = stream.readline()
+        finally:
+            control.waiting.clear()
+        if not text:
+            return
+        number += 1
         if text.strip():
             yield number, text
+
+
+def _raw_lines(
+    read: Callable[[int], bytes], control: ReadControl, chunk: int = 2**16
+) -> Iterator[bytes | None]:
+    """Lines (with their newline) from an unbuffered ``read``, as soon as each is complete; None for a line over
+    :data:`MAX_LINE_BYTES` (dropped as it is read, so memory stays bounded). Once ``control`` is halted, ends when
+    the complete lines in memory are out (a partial line is dropped)."""
+    buf = bytearray()
+    pos = 0  # start of the current line in buf
+    scanned = 0  # buf[pos:scanned] holds no newline
+    overlong = False
+    while True:
+        nl = buf.find(b"\n", scanned)
+        if nl >= 0:
+            yield None if overlong or nl + 1 - pos > MAX_LINE_BYTES else bytes(buf[pos : nl + 1])
+            overlong = False
+            pos = scanned = nl + 1
+            continue
+        del buf[:pos]
+        pos, scanned = 0, len(buf)
+        if len(buf) > MAX_LINE_BYTES:
+            overlong = True
+            buf.clear()
+            scanned = 0
+        if control.halted.is_set():
+            return
+        control.waiting.set()
+        try:
+            data = read(chunk)
+        finally:
+            control.waiting.clear()
+        if not data:
+            if overlong:
+                yield None
+            elif buf:
+                yield bytes(buf)
+            return
+        buf += data
+
+
+def _numbered_bytes(read: Callable[[int], bytes], control: ReadControl) -> Iterator[tuple[int, str]]:
+    for number, raw in enumerate(_raw_lines(read, control), start=1):
+        if raw is None:
+            yield number, Overlong("")
+            continue
+        text = raw.decode("utf-8", errors="replace")
+        if number == 1 and text.startswith("\ufeff"):
+            text = text[1:]
+        if text.strip():
+            yield number, text
+
+
+def _parse_int(text: str) -> int | HugeInteger:
+    limit = int_digit_limit()
+    if limit and len(text) - text.startswith("-") > limit:
+        return HugeInteger(text)
+    return int(text)
+
+
+def decode(text: str) -> Any:
+    """One JSON value from ``text`` (module docstring); ``ValueError`` with a short message when it is not JSON."""
+    try:
+        return json.loads(text, parse_int=_parse_int)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"not valid JSON ({exc.msg} at column {exc.colno})") from None
+    except RecursionError:
+        raise ValueError("not usable JSON: nested too deeply") from None
+    except ValueError as exc:  # pragma: no cover - the decoder's other refusals
+        raise ValueError(f"not valid JSON ({_clip(str(exc))})") from None
+
+
+def _key(key: Any) -> str:
+    """A key for a message: its repr when short, else its quote."""
+    return repr(key) if isinstance(key, str) and len(key) <= 40 else quote(key, 40)
+
+
+def _clip(message: str, limit: int = MAX_MESSAGE_CHARS) -> str:
+    return message if len(message) <= limit else message[:limit] + f"... ({len(message)} characters)"
 
 
 def parse_records(
@@ -99,33 +251,39 @@ def parse_records(
 ) -> Iterator[Record[T]]:
     """Decode each (number, text) line as a JSON object and apply ``parse``; failures become error records.
 
-    ``ValueError``, ``TypeError`` and ``KeyError`` raised by ``parse`` are caught and turned into the record's
-    error; any other exception is a bug and propagates.
+    One record per line, in order. ``ValueError``, ``TypeError``, ``KeyError``, ``OverflowError`` and
+    ``RecursionError`` raised by ``parse`` are caught and turned into the record's error; any other exception is a
+    bug and propagates.
     """
     for number, text in lines:
-        try:
-            obj = json.loads(text)
-        except json.JSONDecodeError as exc:
-            yield Record(
-                number, None, None, f"line {number}: not valid JSON ({exc.msg} at column {exc.colno})"
-            )
-            continue
-        except RecursionError:
-            yield Record(number, None, None, f"line {number}: JSON nested too deeply")
-            continue
-        if not isinstance(obj, dict):
-            yield Record(number, None, None, f"line {number}: expected a JSON object, got {_json_type(obj)}")
-            continue
-        ident = obj.get("id")
-        try:
-            value = parse(obj)
-        except KeyError as exc:
-            key = exc.args[0] if exc.args else "?"
-            yield Record(number, ident, None, f"line {number}: missing key {key!r}")
-        except (ValueError, TypeError) as exc:
-            yield Record(number, ident, None, f"line {number}: {exc}")
-        else:
-            yield Record(number, ident, value)
+        yield _record(number, text, parse)
+
+
+def _record(number: int, text: str, parse: Callable[[dict[str, Any]], T]) -> Record[T]:
+    at = f"line {number}: "
+    if isinstance(text, Overlong):
+        return Record(number, None, None, f"{at}longer than {MAX_LINE_BYTES} bytes; not read")
+    try:
+        obj = decode(text)
+    except ValueError as exc:
+        return Record(number, None, None, at + str(exc))
+    if not isinstance(obj, dict):
+        return Record(number, None, None, f"{at}expected a JSON object, got {describe(obj)}")
+    ident = obj.get("id")
+    try:
+        check_id(ident)
+    except ValueError as exc:
+        return Record(number, None, None, at + str(exc))
+    try:
+        value = parse(obj)
+    except KeyError as exc:
+        key = exc.args[0] if exc.args else "?"
+        return Record(number, ident, None, f"{at}missing key {_key(key)}")
+    except RecursionError:
+        return Record(number, ident, None, f"{at}a value is nested too deeply")
+    except (ValueError, TypeError, OverflowError) as exc:
+        return Record(number, ident, None, at + _clip(str(exc)))
+    return Record(number, ident, value)
 
 
 def read_records(
@@ -133,6 +291,18 @@ def read_records(
 ) -> Iterator[Record[T]]:
     """:func:`read_lines` then :func:`parse_records`: one :class:`Record` per non-blank line, in order, lazily."""
     return parse_records(read_lines(source), parse)
+
+
+def check_input(path: str, what: str) -> None:
+    """``ValueError`` naming ``what`` when ``path`` (not ``"-"``) cannot be opened for reading (missing, a folder,
+    no permission), before any output is made."""
+    if path == "-":
+        return
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as exc:
+        raise ValueError(f"{what} {path}: {exc.strerror or exc}") from None
 
 
 def batched(items: Iterable[T], size: int) -> Iterator[list[T]]:
@@ -149,6 +319,7 @@ def batched(items: Iterable[T], size: int) -> Iterator[list[T]]:
         yield chunk
 
 
+# ---------------------------------------------------------------------------------------------------- writing
 class LineWriter:
     """Writes one JSON object per line and flushes; counts the lines and the error lines.
 
@@ -172,7 +343,9 @@ class LineWriter:
         ``BrokenPipeError`` (the reader went away, as with ``| head``) propagates after :func:`quiet_closed_pipe`;
         a command stops on it (exit status 141, as for SIGPIPE).
         """
-        text = json.dumps(obj, allow_nan=False)
+        self._emit(json.dumps(obj, allow_nan=False))
+
+    def _emit(self, text: str) -> None:
         out = self.stream
         try:
             out.write(text + "\n")
@@ -182,9 +355,27 @@ class LineWriter:
             raise
         self.lines += 1
 
-    def error(self, ident: Any, message: str) -> None:
-        """The error line ``{"id": ident, "error": message}``."""
-        self.write({"id": ident, "error": message})
+    def answer(self, obj: Mapping[str, Any], line: int | None = None) -> bool:
+        """Write ``obj``; if JSON cannot hold it (NaN, an unwritable value), write an error line naming ``line`` in
+        its place and count it as an error. Returns whether ``obj`` itself was written."""
+        try:
+            text = json.dumps(obj, allow_nan=False)
+        except (ValueError, TypeError, OverflowError, RecursionError) as exc:
+            at = f"line {line}: " if line is not None else ""
+            self.error(obj.get("id"), f"{at}the answer cannot be written as JSON ({_clip(str(exc), 200)})")
+            return False
+        self._emit(text)
+        return True
+
+    def error(self, ident: Any, message: str, **extra: Any) -> None:
+        """The error line ``{"id": ident, "error": message, **extra}``; an id JSON cannot echo becomes null, and the
+        message is cut to :data:`MAX_MESSAGE_CHARS`. Never fails on its content."""
+        obj = {"id": ident if id_problem(ident) is None else None, "error": _clip(str(message))}
+        try:
+            text = json.dumps({**obj, **extra}, allow_nan=False)
+        except (ValueError, TypeError, OverflowError, RecursionError):
+            text = json.dumps(obj)
+        self._emit(text)
         self.errors += 1
 
     def record_error(self, record: Record[Any]) -> None:
@@ -206,38 +397,64 @@ def quiet_closed_pipe(stream: IO[str]) -> None:
         os.close(devnull)
 
 
+@contextlib.contextmanager
+def open_output(path: str | None, inputs: Sequence[str] = ()) -> Iterator[IO[str] | None]:
+    """``--out PATH`` opened for writing (UTF-8, closed at the end), or None for standard output (``None``/``"-"``).
+
+    Raises ``ValueError`` (exit status 2) naming the path when it cannot be written (a missing folder, a folder,
+    no permission) or when it is one of ``inputs`` (it would be emptied before being read).
+    """
+    if path is None or path == "-":
+        yield None
+        return
+    for source in inputs:
+        if (
+            source != "-"
+            and os.path.exists(source)
+            and os.path.exists(path)
+            and os.path.samefile(source, path)
+        ):
+            raise ValueError(f"--out {path} is the input {source}: writing it would erase the input")
+    try:
+        fh = open(path, "w", encoding="utf-8")  # noqa: SIM115 - closed below
+    except OSError as exc:
+        raise ValueError(f"--out {path}: cannot write there ({exc.strerror or exc})") from None
+    try:
+        yield fh
+    finally:
+        fh.close()
+
+
+# ---------------------------------------------------------------------------------------------------- signals
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread while :func:`sigterm_as_interrupt` is active. A ``KeyboardInterrupt``,
+    so everything that flushes on Ctrl-C flushes on it too; the command then exits with status 143."""
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Within the block, SIGTERM raises :class:`Terminated` in the main thread (as SIGINT raises
+    ``KeyboardInterrupt``); the previous handler is restored after. Does nothing outside the main thread."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "SIGTERM"):
+        yield
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        raise Terminated
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def interrupt_status(exc: BaseException) -> int:
+    """Exit status after an interrupt: 143 for SIGTERM (:class:`Terminated`), 130 for Ctrl-C."""
+    return 143 if isinstance(exc, Terminated) else 130
+
+
 # ---------------------------------------------------------------------------------------------- field helpers
-def _json_type(value: Any) -> str:
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "a boolean"
-    if isinstance(value, (int, float)):
-        return "a number"
-    if isinstance(value, str):
-        return "a string"
-    if isinstance(value, list):
-        return "an array"
-    if isinstance(value, dict):
-        return "an object"
-    return type(value).__name__
-
-
-def _brief(value: Any, limit: int = 60) -> str:
-    text = json.dumps(value) if not isinstance(value, float) else repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-def as_number(value: Any, what: str) -> float:
-    """``value`` as a finite float; ``what`` names it in the error (booleans and strings are refused)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{what} must be a number, got {_json_type(value)} {_brief(value)}")  # noqa: TRY004 (bad data, one kind of error)
-    x = float(value)
-    if not math.isfinite(x):
-        raise ValueError(f"{what} must be finite, got {x}")
-    return x
-
-
 def get_number(obj: Mapping[str, Any], key: str, where: str = "") -> float:
     """``obj[key]`` as a finite float. ``where`` prefixes the field name in errors, e.g. ``"forces[2]"``."""
     name = f"{where}.{key}" if where else key
@@ -253,7 +470,7 @@ def get_list(obj: Mapping[str, Any], key: str, where: str = "") -> list[Any]:
         raise ValueError(f"missing {name!r}")
     value = obj[key]
     if not isinstance(value, list):
-        raise ValueError(f"{name} must be an array, got {_json_type(value)} {_brief(value)}")  # noqa: TRY004 (bad data, one kind of error)
+        raise ValueError(f"{name} must be an array, got {describe(value)}")  # noqa: TRY004 (bad data, one kind of error)
     return value
 
 
@@ -265,15 +482,16 @@ def check_keys(
     Returns ``obj``; raises ``ValueError`` naming ``where`` and the missing or unknown keys.
     """
     if not isinstance(obj, dict):
-        raise ValueError(f"{where} must be an object, got {_json_type(obj)} {_brief(obj)}")  # noqa: TRY004 (bad data, one kind of error)
+        raise ValueError(f"{where} must be an object, got {describe(obj)}")  # noqa: TRY004 (bad data, one kind of error)
     missing = [k for k in required if k not in obj]
     if missing:
         raise ValueError(f"{where} is missing {', '.join(repr(k) for k in missing)}")
     allowed = set(required) | set(optional)
     unknown = sorted(k for k in obj if k not in allowed)
     if unknown:
+        shown = ", ".join(_key(k) for k in unknown[:10])
         raise ValueError(
-            f"{where} has unknown key(s) {', '.join(repr(k) for k in unknown)}; "
+            f"{where} has unknown key(s) {shown}{' ...' if len(unknown) > 10 else ''}; "
             f"expected {', '.join(repr(k) for k in (*required, *optional))}"
         )
     return obj

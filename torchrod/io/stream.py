@@ -12,15 +12,21 @@ iterable of readings and yields one result per reading, in input order, as soon 
   the last solved reading (loads change slowly between frames: the count it chose, and that count less its
   weakest force, for a contact that vanishes); the estimator keeps the best fit of each count and chooses the
   number of forces per reading;
-- a reading that cannot be used (an error upstream, NaN in a list, a wrong grating count, no grating present)
-  yields an error result in its place and the stream goes on; missing gratings are masked;
+- every reading is checked by the rules of :mod:`torchrod.io.readings` (the same as ``torchrod estimate``'s): a
+  reading that cannot be used (an error upstream, NaN in a list, a value beyond the curvature bound, a wrong
+  grating count, no grating present, an id JSON cannot echo) yields an error result in its place and the stream
+  goes on; missing gratings are masked; should the estimator fail on a reading, that reading alone gets an error
+  result;
 - memory stays bounded: at most ``batch_size`` pending readings plus ``read_ahead`` queued ones (and one held by the
   reader thread);
-- a ``KeyboardInterrupt`` (Ctrl-C) raised while the stream waits or solves, or thrown into the generator at a
-  ``yield``, first flushes: every reading already taken from the source is solved and yielded, then the
-  ``KeyboardInterrupt`` is raised again. The end of the input flushes the same way.
+- a ``KeyboardInterrupt`` (Ctrl-C, or SIGTERM as :class:`torchrod.io.jsonl.Terminated` in the CLI) raised while
+  the stream waits or solves, or thrown into the generator at a ``yield``, first flushes: the reader thread stops
+  taking from the source (a :class:`~torchrod.io.readings.ReadingSource`, the CLI's, first gives the readings of
+  the lines it has already read), every reading already taken from it (queued, or in the reader's hands) is
+  solved and yielded, then the same exception is raised again. The end of the input flushes the same way.
 
-Readings are :class:`Reading` objects or dicts with the same keys; results are :class:`StreamResult`.
+Readings are :class:`~torchrod.io.readings.Reading` objects or dicts with the same keys; results are
+:class:`StreamResult`.
 """
 
 from __future__ import annotations
@@ -37,26 +43,9 @@ from typing import Any
 import torch
 
 from ..loads import PointForces
+from .readings import Reading, stack_readings, to_reading
 
 __all__ = ["Reading", "StreamOptions", "StreamResult", "StreamStats", "stream", "warm_up"]
-
-
-@dataclass(frozen=True)
-class Reading:
-    """One FBG reading.
-
-    Attributes:
-        id: the reading's identifier (echoed in its result; any JSON value).
-        curvature: (G, 2) [1/m], either a tensor (a row of NaN marks a missing grating) or a list of G
-            ``[ux, uy]`` pairs with ``None`` for a missing grating (NaN in a list is an error, as in JSON input).
-        t: timestamp [s], optional, echoed.
-        error: set when the reading could not be parsed upstream; it then passes through as an error result.
-    """
-
-    id: Any = None
-    curvature: Any = None
-    t: float | None = None
-    error: str | None = None
 
 
 @dataclass(frozen=True)
@@ -71,6 +60,7 @@ class StreamResult:
             batch's solve.
         error: why the reading could not be used; None for a solved reading.
         batch: readings solved together with this one (itself included); solve_time: [s] that batch's estimate.
+        line: the reading's input line, when it came with one (:attr:`Reading.line`).
     """
 
     id: Any
@@ -82,6 +72,7 @@ class StreamResult:
     solve_time: float = 0.0
     _result: Any = field(default=None, repr=False, compare=False)
     _index: int = field(default=0, repr=False, compare=False)
+    line: int | None = None
 
     @property
     def ok(self) -> bool:
@@ -131,74 +122,17 @@ class StreamOptions:
             raise ValueError(f"max_latency must be a finite number of seconds >= 0, got {lat!r}")
 
 
-# ---------------------------------------------------------------------------------------------------- readings
-def _as_reading(item: Any) -> Reading:
-    if isinstance(item, Reading):
-        return item
-    if not isinstance(item, dict):
-        return Reading(error=f"a reading must be a Reading or a dict, got {type(item).__name__}")
-    ident, t = item.get("id"), item.get("t")
-    if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t)):
-        return Reading(id=ident, error=f"t must be a finite number of seconds, got {t!r}")
-    return Reading(id=ident, curvature=item.get("curvature"), t=t, error=item.get("error"))
-
-
-def _to_tensor(reading: Reading, num_gratings: int) -> tuple[torch.Tensor | None, str | None]:
-    """(G, 2) float64 CPU tensor with NaN rows for missing gratings, or an error message."""
-    if reading.error is not None:
-        return None, str(reading.error)
-    c = reading.curvature
-    if c is None:
-        return None, "reading has no curvature"
-    if isinstance(c, torch.Tensor):
-        if not (c.is_floating_point() or c.dtype in (torch.int32, torch.int64)):
-            return None, f"curvature must be a real tensor, got {c.dtype}"
-        t = c.detach().to("cpu", torch.float64)
-        if t.shape != (num_gratings, 2):
-            return None, f"curvature must have shape ({num_gratings}, 2), got {tuple(t.shape)}"
-        finite = torch.isfinite(t)
-        if bool((finite.any(-1) & ~finite.all(-1)).any()):
-            k = int((finite.any(-1) & ~finite.all(-1)).nonzero()[0])
-            return None, f"curvature[{k}] has one non-finite component (a missing grating is a row of NaN)"
-        if bool(torch.isinf(t).any()):
-            return None, "curvature holds an infinite value"
-    else:
-        try:
-            rows = list(c)
-        except TypeError:
-            return None, f"curvature must be a list of [ux, uy] pairs, got {type(c).__name__}"
-        if len(rows) != num_gratings:
-            return None, f"curvature holds {len(rows)} gratings, the rod has {num_gratings}"
-        values = []
-        for k, row in enumerate(rows):
-            if row is None:
-                values.append((math.nan, math.nan))
-                continue
-            pair = None
-            if isinstance(row, (list, tuple)) and len(row) == 2 and not any(isinstance(x, bool) for x in row):
-                try:
-                    pair = [float(x) for x in row]
-                except (TypeError, ValueError):
-                    pair = None
-            if pair is None:
-                return None, f"curvature[{k}] must be [ux, uy] or None, got {row!r}"
-            if not all(math.isfinite(x) for x in pair):
-                return None, f"curvature[{k}] must be finite, got {row!r} (None marks a missing grating)"
-            values.append((pair[0], pair[1]))
-        t = torch.tensor(values, dtype=torch.float64)
-    if not bool(torch.isfinite(t).all(-1).any()):
-        return None, "all gratings are missing"
-    return t, None
-
-
 # ---------------------------------------------------------------------------------------------------- the stream
 _END = object()
+_HALTED = object()  # the reader stopped taking from the source, as asked (a flush)
 _POLL = 0.1  # [s] longest uninterrupted wait (keeps the reader thread responsive to stop)
 
 
-def _reader(source: Iterable[Any], q: queue.Queue, stop: threading.Event, num_gratings: int) -> None:
-    """Pull ``source`` into ``q`` as checked :class:`_Pending` readings (checked here, in parallel with the solver);
-    then _END, or the exception the source raised."""
+def _reader(state: _Stream, source: Iterable[Any]) -> None:
+    """Pull ``source`` into ``state.q`` as checked :class:`_Pending` readings (checked here, in parallel with the
+    solver); then _END, or the exception the source raised. Once ``state.halt`` is set, put the reading in hand and
+    then _HALTED, and take nothing more; ``state.in_source`` is set while waiting on the source."""
+    q, stop, halt, in_source = state.q, state.stop, state.halt, state.in_source
 
     def put(entry: Any) -> bool:
         while not stop.is_set():
@@ -210,12 +144,22 @@ def _reader(source: Iterable[Any], q: queue.Queue, stop: threading.Event, num_gr
         return False
 
     try:
-        for item in source:
+        items = iter(source)
+        while not halt.is_set():
+            in_source.set()
+            try:
+                item = next(items)
+            except StopIteration:
+                break
+            finally:
+                in_source.clear()
             arrived = time.perf_counter()
-            reading = _as_reading(item)
-            tensor, error = _to_tensor(reading, num_gratings)
-            if not put(_Pending(reading, arrived, tensor, error)):
+            reading = to_reading(item, state.G)
+            if not put(_Pending(reading, arrived)):
                 return
+        else:
+            put(_HALTED)
+            return
     except BaseException as exc:  # noqa: BLE001 - handed to the consumer, raised there
         put(exc)
         return
@@ -224,10 +168,12 @@ def _reader(source: Iterable[Any], q: queue.Queue, stop: threading.Event, num_gr
 
 @dataclass
 class _Pending:
-    reading: Reading
+    reading: Reading  # checked: a curvature tensor, or an error
     arrived: float
-    tensor: torch.Tensor | None
-    error: str | None
+
+    @property
+    def ok(self) -> bool:
+        return self.reading.error is None
 
 
 class _Stream:
@@ -242,18 +188,19 @@ class _Stream:
         read_ahead = options.read_ahead if options.read_ahead is not None else 2 * options.batch_size
         self.q: queue.Queue = queue.Queue(maxsize=read_ahead)
         self.stop = threading.Event()
+        self.halt = threading.Event()
+        self.in_source = threading.Event()
         self.pending: list[_Pending] = []
         # The last solved reading's forces, in reported coordinates, (1, h).
         self.previous: PointForces | None = None
         self.finished = False
         self.error: BaseException | None = None
         # Started by the first ``next``: a stream that is never iterated takes nothing from its source.
-        self.thread = threading.Thread(
-            target=_reader, args=(readings, self.q, self.stop, self.G), daemon=True
-        )
+        self.thread = threading.Thread(target=_reader, args=(self, readings), daemon=True)
+        self.source = readings
 
     def _take(self, entry: Any) -> None:
-        if entry is _END:
+        if entry is _END or entry is _HALTED:
             self.finished = True
         elif isinstance(entry, BaseException):
             self.finished = True
@@ -282,52 +229,72 @@ class _Stream:
             self._take(entry)
 
     def drain(self) -> None:
-        """Take everything already queued (the flush after an interrupt)."""
+        """The flush after an interrupt: take everything the reader already took (the queue, and the reading in
+        its hands) and no more. A source with ``halt()`` and ``waiting`` (:class:`~torchrod.io.readings.
+        ReadingSource`) is asked to end after the lines it already read, and the reader runs until it ends or
+        waits on its input; any other source is left at once: the reader stops after the reading in its hands and
+        is left alone once it waits on the source (it then holds nothing)."""
+        halt = getattr(self.source, "halt", None)
+        cooperative = callable(halt) and hasattr(self.source, "waiting")
+        if cooperative:
+            halt()
+        else:
+            self.halt.set()
         while not self.finished:
             try:
-                entry = self.q.get_nowait()
+                entry = self.q.get(timeout=_POLL / 4)
             except queue.Empty:
-                return
+                if not self.thread.is_alive():
+                    return
+                if self.source.waiting if cooperative else self.in_source.is_set():
+                    return
+                continue
             self._take(entry)
 
     def solve(self, batch: Sequence[_Pending]) -> list[StreamResult]:
         """Estimate the usable readings of ``batch`` together; one result per reading, in order."""
-        good = [p for p in batch if p.tensor is not None]
+        good = [p for p in batch if p.ok]
         start = time.perf_counter()
         answers = self._estimate(good) if good else []
         elapsed = time.perf_counter() - start
         done = time.perf_counter()
         out, answers_it = [], iter(answers)
         for p in batch:
+            r = p.reading
             latency = done - p.arrived
-            result, index, rec, error = (None, 0, None, p.error) if p.tensor is None else next(answers_it)
+            result, index, rec, error = (None, 0, None, r.error) if not p.ok else next(answers_it)
             if error is not None:
-                rec = {"id": p.reading.id, "error": error}
-                if p.reading.t is not None:
-                    rec["t"] = p.reading.t
-                out.append(StreamResult(p.reading.id, p.reading.t, rec, latency, error, len(batch), elapsed))
+                if r.line is not None and not error.startswith("line "):
+                    error = f"line {r.line}: {error}"
+                rec = {"id": r.id, "error": error}
+                if r.t is not None:
+                    rec["t"] = r.t
+                out.append(
+                    StreamResult(r.id, r.t, rec, latency, error, len(batch), elapsed, line=r.line)
+                )
                 continue
-            if p.reading.t is not None:
-                rec["t"] = p.reading.t
+            if r.t is not None:
+                rec["t"] = r.t
             rec["latency_ms"] = round(1e3 * latency, 3)
             out.append(
-                StreamResult(p.reading.id, p.reading.t, rec, latency, None, len(good), elapsed, result, index)
+                StreamResult(
+                    r.id, r.t, rec, latency, None, len(good), elapsed, result, index, line=r.line
+                )
             )
         return out
 
     def _estimate(self, good: Sequence[_Pending]) -> list[tuple[Any, int, dict | None, str | None]]:
         """(batch result, index in it, record, None) per reading; should the batched call fail, each reading alone,
         and (None, 0, None, message) for one that fails alone too (the stream goes on)."""
-        curvature = torch.stack([p.tensor for p in good]).to(self.device)
-        mask = torch.isfinite(curvature).all(-1)
-        curvature = torch.where(mask.unsqueeze(-1), curvature, torch.zeros((), dtype=curvature.dtype))
+        curvature, mask = stack_readings([p.reading for p in good])
+        curvature, mask = curvature.to(self.device), mask.to(self.device)
         try:
             result = self.estimator.estimate(
                 curvature, mask, extra_starts=self._tracking_starts(len(good)), **self.overrides
             )
-        except (ValueError, RuntimeError) as exc:
+        except Exception as exc:  # noqa: BLE001 - a reading that breaks the solver must not stop the stream
             if len(good) == 1:
-                return [(None, 0, None, f"estimation failed: {exc}")]
+                return [(None, 0, None, f"estimation failed: {_exception_text(exc)}")]
             return [a for k in range(len(good)) for a in self._estimate(good[k : k + 1])]
         records = result.to_records([p.reading.id for p in good])
         if self.options.track:
@@ -358,6 +325,13 @@ class _Stream:
             pass
         if self.thread.is_alive():
             self.thread.join(timeout=2 * _POLL)
+
+
+def _exception_text(exc: BaseException) -> str:
+    """A short message for a failed estimate (the exception's type too when it is not a ValueError/RuntimeError)."""
+    text = str(exc)
+    text = text if len(text) <= 300 else text[:300] + "..."
+    return text if isinstance(exc, (ValueError, RuntimeError)) else f"{type(exc).__name__}: {text}"
 
 
 def _last_solution(result: Any) -> PointForces | None:
@@ -394,7 +368,7 @@ def stream(
         one :class:`StreamResult` per reading, in input order; an unusable reading gives an error result.
     Raises:
         whatever iterating ``readings`` raised (after the results of the readings before it);
-        ``KeyboardInterrupt`` after flushing, when interrupted (module docstring).
+        the ``KeyboardInterrupt`` (or subclass) after flushing, when interrupted (module docstring).
     """
     if not isinstance(options, StreamOptions):
         raise TypeError(f"options must be StreamOptions, got {type(options).__name__}")
@@ -407,7 +381,7 @@ def stream(
 def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
     state.thread.start()
     try:
-        interrupted = False
+        interrupted: KeyboardInterrupt | None = None
         while True:
             try:
                 if not state.finished:
@@ -416,21 +390,21 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
                     break
                 batch = state.pending[: options.batch_size]
                 results = state.solve(batch)
-            except KeyboardInterrupt:
-                interrupted = True
+            except KeyboardInterrupt as exc:
+                interrupted = exc
                 break
             del state.pending[: len(batch)]
             for k, r in enumerate(results):
                 try:
                     yield r
-                except KeyboardInterrupt:
+                except KeyboardInterrupt as exc:
                     # Thrown in at a yield: hand out this batch's other results, then flush.
-                    interrupted = True
+                    interrupted = exc
                     yield from results[k + 1 :]
                     break
-            if interrupted:
+            if interrupted is not None:
                 break
-        if interrupted:
+        if interrupted is not None:
             # Flush: everything already taken from the source (a second interrupt is not caught).
             state.drain()
             while state.pending:
@@ -438,7 +412,7 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
                 results = state.solve(batch)
                 del state.pending[: len(batch)]
                 yield from results
-            raise KeyboardInterrupt
+            raise interrupted
         if state.error is not None:
             raise state.error
     finally:
@@ -491,8 +465,15 @@ class StreamStats:
     """Running statistics of a stream, in bounded memory (a fixed histogram per quantity).
 
     :meth:`add` each result (with the reading's true forces when known); then ``readings``, ``errors``,
-    :meth:`latency` quantiles [s], and against the truth ``count_accuracy``, :meth:`force_error` [N] and
-    :meth:`location_error` [m] quantiles (forces paired in order of location, over readings whose count is right).
+    :meth:`latency` quantiles [s] (from the moment a reading was taken from the source to the end of its batch's
+    solve), :meth:`solve_time` quantiles [s] (its batch's estimation alone), and against the truth
+    ``count_accuracy``, :meth:`force_error` [N] and :meth:`location_error` [m] quantiles (forces paired in order of
+    location, over readings whose count is right).
+
+    Latency is what a live source sees: the batching wait, the queue in front of the reading, and the solve. When
+    the input comes faster than it is solved (a file read all at once, a backlog) the queue dominates: every
+    reading waits for all those before it, and the latency grows with the input's length; the solve time per
+    reading is then the measure of the estimation's cost. :meth:`summary` says so when it happens.
     """
 
     def __init__(self) -> None:
@@ -501,6 +482,7 @@ class StreamStats:
         self.batches = 0
         self.busy = 0.0  # [s] total estimation time
         self._latency = _Quantiles(1e-6, 1e4)
+        self._solve = _Quantiles(1e-7, 1e4)
         self.judged = 0  # readings with a truth
         self.right = 0  # ... whose count is right
         self._force = _Quantiles(1e-7, 1e3)
@@ -513,6 +495,7 @@ class StreamStats:
             self.errors += 1
             return
         self._latency.add(result.latency)
+        self._solve.add(max(result.solve_time, 1e-7))
         self.busy += result.solve_time / max(1, result.batch)
         self.batches += 1.0 / max(1, result.batch)
         if truth is None:
@@ -527,7 +510,12 @@ class StreamStats:
             self._location.add(abs(est["s"] - s))
 
     def latency(self, q: float) -> float:
+        """The q-quantile of the latency [s] (class docstring)."""
         return self._latency.quantile(q)
+
+    def solve_time(self, q: float) -> float:
+        """The q-quantile of the solve time of the readings' batches [s]."""
+        return self._solve.quantile(q)
 
     @property
     def count_accuracy(self) -> float:
@@ -545,11 +533,20 @@ class StreamStats:
         rate = f", {self.readings / elapsed:.0f} readings/s over {elapsed:.2f} s" if elapsed else ""
         lines = [f"{self.readings} readings, {self.errors} errors{rate}"]
         if solved:
+            latency, solve = self.latency(0.5), self.solve_time(0.5)
             lines.append(
-                f"latency median {1e3 * self.latency(0.5):.1f} ms, p99 {1e3 * self.latency(0.99):.1f} ms; "
-                f"{solved / max(self.batches, 1e-9):.1f} readings per batch, "
-                f"estimation {1e3 * self.busy / solved:.2f} ms per reading"
+                f"latency median {1e3 * latency:.1f} ms, p99 {1e3 * self.latency(0.99):.1f} ms "
+                "(reading taken to answer made); "
+                f"solve time median {1e3 * solve:.1f} ms per batch of "
+                f"{solved / max(self.batches, 1e-9):.1f} readings, {1e3 * self.busy / solved:.2f} ms per reading"
             )
+            if latency > 2.0 * solve + 0.05:
+                lines.append(
+                    "latency includes queueing: the input came faster than it was solved (as when a file is read "
+                    "at once), so readings waited behind earlier ones; the solve time per reading is the cost of "
+                    "estimation, and a source no faster than the solver sees about a small batch's solve time plus "
+                    "the batching wait"
+                )
         if self.judged:
             lines.append(
                 f"against the truth ({self.judged} readings): count accuracy {100 * self.count_accuracy:.1f}%"

@@ -30,7 +30,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import nn
 
-from ..io.sensors import check_readings
+from ..io.readings import check_readings
 from ..loads import PointForces
 from ..rod import Rod
 

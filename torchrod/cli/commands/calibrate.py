@@ -1,13 +1,23 @@
 """``torchrod calibrate``: fit the location bias and the bending stiffness from readings with known forces.
 
-``torchrod calibrate --rod ROD READINGS.jsonl [--out NEW_ROD.json] [--directions known|free]``
+Usage: ``torchrod calibrate --rod ROD READINGS.jsonl [--out NEW_ROD.json] [--directions known|free]`` ('-' reads
+the readings from standard input). ROD is a rod JSON file or a preset name such as ``nitinol290``.
 
-ROD is a rod JSON file or a preset name. READINGS.jsonl holds one reading per line,
-``{"id": ..., "curvature": [[u_x, u_y] or null, ...], "forces": [{"s": ..., "fx": ..., "fy": ...}, ...]}``, with the
-known forces located in the true (fibre's) coordinate [m] and their body-frame components [N]. The calibrated rod
-(``location_bias``, and the stiffness: a rod given by its geometry keeps it and gets a new ``youngs_modulus``; a rod
-given by ``bending_stiffness`` gets a new one) goes to ``--out`` (default: standard output); the fitted values with
-their standard errors go to standard error. See :mod:`torchrod.calibration` for the method.
+Input: READINGS.jsonl holds one reading with its known forces per line::
+
+    {"id": "c1", "curvature": [[ux, uy], null, ...], "forces": [{"s": 0.12, "fx": 0.3, "fy": -0.1}, ...]}
+
+``curvature``: one [ux, uy] pair [1/m] per grating in the rod file's order, ``null`` for a grating without a
+reading (the rules of ``torchrod estimate``: finite numbers, at most 1e6 1/m; optional ``id``, ``t`` [s] and
+``gratings``, which must be the rod's; other keys are ignored). ``forces``: the known forces, ``s`` [m] in the true
+(fibre's) coordinate, ``fx``, ``fy`` [N] in the body frame, nonzero; ``[]`` for a reading without load.
+``torchrod simulate`` output with a ``forces`` key added is such a line. Every line must be usable: the command
+stops with status 2 naming the bad lines (a calibration from a silently thinned set would mislead).
+
+Output: the calibrated rod (``location_bias``, and the stiffness: a rod given by its geometry keeps it and gets a
+new ``youngs_modulus``; a rod given by ``bending_stiffness`` gets a new one) goes to ``--out`` (default: standard
+output); the fitted values with their standard errors go to standard error. See torchrod.estimate.calibration for
+the method.
 """
 
 from __future__ import annotations
@@ -20,7 +30,13 @@ HELP = "fit the location bias and bending stiffness from readings with known for
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("readings", help="JSON-lines file of readings with known forces")
+    parser.epilog = "\n\n".join((__doc__ or "").split("\n\n")[1:]).replace("``", "").replace("::", ":")
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.add_argument(
+        "readings",
+        metavar="READINGS.jsonl",
+        help="readings with known forces, one JSON object a line (format below); '-' for stdin",
+    )
     parser.add_argument("--rod", required=True, help="rod JSON file or preset name (e.g. nitinol290)")
     parser.add_argument("--out", default="-", help="calibrated rod JSON file (default: standard output)")
     parser.add_argument(
@@ -34,12 +50,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
 
 
-
 def run(args: argparse.Namespace) -> int:
     from ...estimate.calibration import calibrate, read_readings, summary
+    from ...io.jsonl import check_input
     from ...presets import load as load_rod
 
     rod = load_rod(args.rod)
+    check_input(args.readings, "READINGS")
     data = read_readings(args.readings, rod)
     result = calibrate(rod, data, directions=args.directions, initial_bias=args.initial_bias)
     new_rod = result.apply(rod)
@@ -53,6 +70,9 @@ def run(args: argparse.Namespace) -> int:
         json.dump(new_rod.to_dict(), sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
-        new_rod.to_json(args.out)
+        try:
+            new_rod.to_json(args.out)
+        except OSError as exc:
+            raise ValueError(f"--out {args.out}: cannot write there ({exc.strerror or exc})") from None
         print(f"wrote {args.out}", file=sys.stderr)
     return 0

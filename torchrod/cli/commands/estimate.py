@@ -1,15 +1,18 @@
 """``torchrod estimate``: contact forces from FBG curvature readings (JSON lines in, JSON lines out).
 
-Usage: ``torchrod estimate --rod ROD READINGS.jsonl`` (``-`` reads standard input). ROD is a rod JSON file (see
-torchrod.Rod.from_json) or a preset name such as ``nitinol290``.
+Usage: ``torchrod estimate --rod ROD READINGS.jsonl [--out FILE]`` ('-' reads standard input). ROD is a rod
+JSON file (see torchrod.Rod.from_json) or a preset name such as ``nitinol290``.
 
 Each input line is one reading, as ``torchrod simulate`` writes them::
 
     {"id": "r1", "curvature": [[ux, uy], [ux, uy], null, ...]}
 
 with one [ux, uy] pair [1/m] per grating in the rod file's order and ``null`` for a grating that gave no reading
-(it is left out of the fit). ``id`` is optional (any JSON value, echoed back); a ``gratings`` list, if present, must
-match the rod's; other keys are ignored.
+(it is left out of the fit). ``id`` is optional (any JSON value, echoed back); ``t`` [s] is optional; a
+``gratings`` list, if present, must match the rod's; other keys are ignored. Numbers must be finite, and a
+curvature component at most 1e6 1/m in magnitude (a bend radius of 1 um: a larger value is a unit or scaling
+error); finite values within that bound reach the estimator, however implausible. ``--format csv`` reads the CSV
+rows of ``torchrod stream`` instead (``id, t, ux_1, uy_1, ...``; see ``torchrod stream --help``).
 
 Each output line answers the input line in the same position::
 
@@ -21,18 +24,26 @@ Each output line answers the input line in the same position::
 ``time_ms`` the estimation time of the line's batch divided by its readings. The count is chosen among 1 to
 ``--max-forces`` (or fixed by ``--num-forces``) by the rule of ``--selection``; with ``--noise`` (the sensor's sigma
 per component [1/m]) the tests know the noise, without it they estimate it from each reading (slower and weaker).
+``--checkpoint PATH`` adds the starts of a trained warm-start network (as ``Estimator.from_checkpoint``: its
+guesses then replace the grid scan unless ``--starts`` is given); by default there is none.
 
-A line that cannot be used (bad JSON, a wrong number of gratings, a non-numeric or NaN value, all gratings missing)
-gives ``{"id": ... or null, "error": "line N: ..."}`` and the other lines go on; the exit status is 1 if any line
-failed, else 0 (2 for a bad rod file or option, 141 when the reader of the output goes away).
+Every non-blank input line gets exactly one output line, in order, whatever it holds. A line that cannot be used
+(bad JSON, a wrong number of gratings, a non-numeric, non-finite or out-of-bound value, all gratings missing, an id
+JSON cannot echo such as NaN) gives ``{"id": ... or null, "error": "line N: ..."}`` naming the field and quoting
+at most about 100 characters of the value, and the other lines go on. The exit status is 1 if any line failed,
+else 0; 2 for a bad rod file, checkpoint or option (such as an ``--out`` that cannot be written); 141 when the
+reader of the output goes away; 130 after Ctrl-C and 143 after SIGTERM, both once every line already read is
+answered.
 
-Lines are estimated in batches of ``--batch-size`` (one batched call per batch), answers in input order; a progress
-bar on stderr counts readings when stderr is a terminal (not with ``--quiet``).
+Lines are estimated in batches of ``--batch-size`` (one batched call per batch; should it fail, each reading
+alone), answers in input order; a progress bar on stderr counts readings when stderr is a terminal (not with
+``--quiet``). ``--out FILE`` writes the answers to FILE instead of standard output.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from typing import Any
@@ -41,16 +52,15 @@ import torch
 
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.selection import RULES
-from ...io.jsonl import LineWriter, Record, as_number, batched, get_list, read_records
+from ...io.jsonl import LineWriter, check_input, interrupt_status, open_output, sigterm_as_interrupt
+from ...io.readings import FORMATS, Reading, ReadingSource, stack_readings
 from ...presets import load as load_rod
 from ...rod import Rod
 from . import check_estimation_options
 
 HELP = "forces from FBG curvature readings (JSON lines in, JSON lines out)"
 
-__all__ = ["HELP", "configure", "options_from_args", "parse_reading", "run"]
-
-Reading = list[tuple[float, float] | None]
+__all__ = ["HELP", "configure", "load_network", "options_from_args", "run"]
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -75,7 +85,22 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=3.0,
         help="loss threshold [1/m^2] of --selection threshold (default 3.0)",
     )
-    parser.add_argument("--starts", type=int, default=EstimatorOptions.starts, help="grid starts per count")
+    parser.add_argument(
+        "--starts",
+        type=int,
+        default=None,
+        help=f"grid starts per count (default {EstimatorOptions.starts}; 0 with --checkpoint)",
+    )
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        metavar="PATH",
+        help="warm-start network checkpoint whose guesses start the fit ('none' or default: no network)",
+    )
+    parser.add_argument(
+        "--format", choices=FORMATS, default="jsonl", help="input format: jsonl (default), csv or auto"
+    )
+    parser.add_argument("--out", metavar="FILE", help="write the answers to FILE (default: standard output)")
     parser.add_argument(
         "--batch-size", type=int, default=256, metavar="B", help="readings per batch (default 256)"
     )
@@ -84,89 +109,157 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def options_from_args(args: argparse.Namespace) -> EstimatorOptions:
-    """The :class:`EstimatorOptions` the command-line arguments ask for (``ValueError`` for bad values)."""
+def check_counts(args: argparse.Namespace) -> None:
+    """``--max-forces`` and ``--num-forces`` (where the command has them) must be >= 0 (``ValueError``, status 2);
+    the estimator judges the rest."""
+    for option in ("max_forces", "num_forces"):
+        value = getattr(args, option, None)
+        if value is not None and value < 0:
+            raise ValueError(f"--{option.replace('_', '-')} must be >= 0, got {value}")
+
+
+def options_from_args(args: argparse.Namespace, network: Any = None) -> EstimatorOptions:
+    """The :class:`EstimatorOptions` the command-line arguments ask for (``ValueError`` for bad values).
+
+    With a warm-start ``network`` that proposes every count asked for, the grid scan is skipped (``starts=0``)
+    unless ``--starts`` is given, as in ``Estimator.from_checkpoint``.
+    """
+    starts = args.starts
+    if starts is None:
+        largest = args.num_forces if args.num_forces is not None else args.max_forces
+        covered = network is not None and network.max_forces >= largest
+        starts = 0 if covered else EstimatorOptions.starts
     return EstimatorOptions(
-        max_forces=args.max_forces if args.num_forces is None else max(args.max_forces, args.num_forces),
+        max_forces=args.max_forces,
         num_forces=args.num_forces,
         noise=args.noise,
         selection=args.selection,
         threshold=args.threshold,
-        starts=args.starts,
+        starts=starts,
     )
 
 
-def parse_reading(obj: dict[str, Any], rod: Rod) -> Reading:
-    """One input object -> per grating (ux, uy) or None (missing); ``ValueError`` names the bad field."""
-    rows = get_list(obj, "curvature")
-    G = rod.num_gratings
-    if len(rows) != G:
-        raise ValueError(f"curvature holds {len(rows)} gratings, the rod has {G}")
-    if "gratings" in obj:
-        given = get_list(obj, "gratings")
-        positions = [as_number(x, f"gratings[{k}]") for k, x in enumerate(given)]
-        if len(positions) != G or any(abs(a - b) > 1e-9 for a, b in zip(positions, rod.gratings)):
-            raise ValueError(f"gratings {positions} do not match the rod's {list(rod.gratings)}")
-    out: Reading = []
-    for k, row in enumerate(rows):
-        if row is None:
-            out.append(None)
-            continue
-        if not isinstance(row, list) or len(row) != 2:
-            raise ValueError(f"curvature[{k}] must be [ux, uy] or null, got {row!r}")
-        out.append((as_number(row[0], f"curvature[{k}][0]"), as_number(row[1], f"curvature[{k}][1]")))
-    if all(x is None for x in out):
-        raise ValueError("all gratings are missing")
-    return out
+def load_network(checkpoint: str | None, rod: Rod) -> Any:
+    """The warm-start network of ``--checkpoint`` (None for None or ``none``); ``ValueError`` naming the file when
+    it cannot be used (missing, not a checkpoint, another grating layout)."""
+    if checkpoint is None or checkpoint.lower() == "none":
+        return None
+    from ...learn.warm_start import WarmStart
+
+    if not os.path.isfile(checkpoint):
+        raise ValueError(f"--checkpoint {checkpoint}: no such file (give a checkpoint file, or 'none')")
+    try:
+        return WarmStart.load(checkpoint, rod)
+    except ValueError as exc:
+        raise ValueError(f"--checkpoint {checkpoint}: {exc}") from None
+    except Exception as exc:  # noqa: BLE001 - an unreadable file is a bad option, not a crash
+        raise ValueError(
+            f"--checkpoint {checkpoint}: cannot load it as a warm-start checkpoint ({type(exc).__name__}: "
+            f"{str(exc)[:200]})"
+        ) from None
 
 
 def run(args: argparse.Namespace) -> int:
+    with sigterm_as_interrupt():
+        try:
+            return _run(args)
+        except KeyboardInterrupt as exc:
+            return interrupt_status(exc)
+
+
+def _run(args: argparse.Namespace) -> int:
     rod = load_rod(args.rod)
     check_estimation_options(args)
-    estimator = Estimator(rod, options_from_args(args))
+    check_counts(args)
+    if args.starts is not None and args.starts < 0:
+        raise ValueError(f"--starts must be >= 0, got {args.starts}")
+    check_input(args.readings, "READINGS")
+    network = load_network(args.checkpoint, rod)
+    estimator = Estimator(rod, options_from_args(args, network), warm_start=network)
     device = torch.device(args.device)
-    writer = LineWriter()
-    records = read_records(args.readings, lambda obj: parse_reading(obj, rod))
+    readings = ReadingSource(args.readings, rod.num_gratings, rod.gratings, args.format)
     from tqdm import tqdm
 
-    bar = tqdm(
-        disable=args.quiet or not sys.stderr.isatty(),
-        file=sys.stderr,
-        unit="reading",
-        dynamic_ncols=True,
-        leave=False,
-    )
-    try:
-        for chunk in batched(records, args.batch_size):
-            _answer(estimator, chunk, writer, device)
-            bar.update(len(chunk))
-    except BrokenPipeError:  # the reader went away (| head): stop quietly
-        return 141
-    finally:
-        bar.close()
+    with open_output(args.out, [args.readings]) as out:
+        writer = LineWriter(out)
+        bar = tqdm(
+            disable=args.quiet or not sys.stderr.isatty(),
+            file=sys.stderr,
+            unit="reading",
+            dynamic_ncols=True,
+            leave=False,
+        )
+        answers = _Answers(estimator, writer, device, bar)
+        try:
+            answers.run(readings, args.batch_size)
+        except BrokenPipeError:  # the reader went away (| head): stop quietly
+            return 141
+        finally:
+            bar.close()
     return 1 if writer.errors else 0
 
 
-def _answer(
-    estimator: Estimator, chunk: list[Record[Reading]], writer: LineWriter, device: torch.device
-) -> None:
-    good = [r for r in chunk if r.ok]
-    results: list[dict[str, Any]] = []
-    elapsed = 0.0
-    if good:
-        nan = float("nan")
-        values = [[(nan, nan) if x is None else x for x in (r.value or [])] for r in good]
-        curvature = torch.tensor(values, dtype=torch.float64, device=device)
+class _Answers:
+    """Reads, estimates in batches and writes answers in order; on an interrupt (Ctrl-C, SIGTERM) it answers every
+    reading already read before the interrupt propagates."""
+
+    def __init__(self, estimator: Estimator, writer: LineWriter, device: torch.device, bar: Any) -> None:
+        self.estimator, self.writer, self.device, self.bar = estimator, writer, device, bar
+        self.pending: list[Reading] = []  # read, not yet answered
+        self.ready: list[dict[str, Any]] = []  # the answers of pending[: len(ready)]
+
+    def run(self, readings: ReadingSource, batch_size: int) -> None:
+        try:
+            for reading in readings:
+                self.pending.append(reading)
+                if len(self.pending) >= batch_size:
+                    self.flush()
+            self.flush()
+        except KeyboardInterrupt:
+            # Everything read before the interrupt: the lines already in memory too (when the interrupt came
+            # while estimating; one that came inside the reader ended it), then the pending readings. A second
+            # interrupt is not caught.
+            readings.halt()
+            self.pending.extend(readings)
+            self.flush()
+            raise
+
+    def flush(self) -> None:
+        """Estimate and write every pending reading, in order."""
+        if len(self.ready) < len(self.pending):
+            self.ready = self.ready + self._estimate(self.pending[len(self.ready) :])
+        while self.pending:
+            reading, answer = self.pending[0], self.ready[0]
+            if "error" in answer:
+                self.writer.error(answer["id"], answer["error"])
+            else:
+                self.writer.answer(answer, reading.line)
+            del self.pending[0], self.ready[0]
+            self.bar.update(1)
+
+    def _estimate(self, readings: list[Reading]) -> list[dict[str, Any]]:
+        """One answer per reading: its record, or ``{"id", "error"}``."""
+        good = [r for r in readings if r.ok]
+        records: list[dict[str, Any]] = []
+        if good:
+            records = self._solve(good)
+        answers = iter(records)
+        return [next(answers) if r.ok else {"id": r.id, "error": r.error} for r in readings]
+
+    def _solve(self, good: list[Reading]) -> list[dict[str, Any]]:
+        curvature, mask = stack_readings(good)
         start = time.perf_counter()
-        result = estimator.estimate(curvature)
+        try:
+            result = self.estimator.estimate(curvature.to(self.device), mask.to(self.device))
+        except Exception as exc:  # noqa: BLE001 - one reading that breaks the solver must not stop the others
+            if len(good) == 1:
+                message = str(exc)[:300]
+                if not isinstance(exc, (ValueError, RuntimeError)):
+                    message = f"{type(exc).__name__}: {message}"
+                return [{"id": good[0].id, "error": f"line {good[0].line}: estimation failed: {message}"}]
+            return [a for r in good for a in self._solve([r])]
         elapsed = time.perf_counter() - start
-        results = result.to_records([r.id for r in good])
-    per_reading = 1e3 * elapsed / max(1, len(good))
-    answers = iter(results)
-    for record in chunk:
-        if not record.ok:
-            writer.record_error(record)
-            continue
-        out = next(answers)
-        out["time_ms"] = per_reading
-        writer.write(out)
+        records = result.to_records([r.id for r in good])
+        for record in records:
+            record["time_ms"] = 1e3 * elapsed / len(good)
+        return records

@@ -75,10 +75,11 @@ def _time(obj: dict[str, Any]) -> float | None:
 
 
 def _reading(rod: Rod):
-    from .estimate import parse_reading
+    from ...io.readings import parse_reading
 
     def parse(obj: dict[str, Any]):
-        return parse_reading(obj, rod), _time(obj)
+        reading = parse_reading(obj, rod.num_gratings, rod.gratings)
+        return reading.curvature.tolist(), reading.t
 
     return parse
 

@@ -27,7 +27,13 @@ A line that cannot be used (bad JSON, a missing or unknown key, a non-numeric, N
 the rod) gives ``{"id": ... or null, "error": "line N: ..."}`` and the other lines go on; the exit status is 1 if
 any line failed, else 0 (2 for a bad rod file or option, 141 when the reader of the output goes away).
 
+``--noise SIGMA`` adds Gaussian noise of standard deviation SIGMA [1/m] to every component of ``curvature`` (the
+readings an interrogator would give; ``profile`` and ``tip_angle`` stay exact), drawn line by line in input order
+from a generator seeded with ``--seed N`` (the same seed gives the same noise whatever ``--batch-size``; without
+``--seed`` every run draws afresh).
+
 Lines are simulated in batches of ``--batch-size`` (one batched, padded call per batch), answers in input order.
+``--out FILE`` writes the answers to FILE instead of standard output.
 """
 
 from __future__ import annotations
@@ -39,7 +45,17 @@ from typing import Any
 
 import torch
 
-from ...io.jsonl import LineWriter, Record, batched, check_keys, get_list, get_number, read_records
+from ...io.jsonl import (
+    LineWriter,
+    Record,
+    batched,
+    check_input,
+    check_keys,
+    get_list,
+    get_number,
+    open_output,
+    read_records,
+)
 from ...loads import PointForces
 from ...model.body_frame import simulate
 from ...presets import load as load_rod
@@ -84,7 +100,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="lines simulated per batched call (default 256)",
     )
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
-
+    parser.add_argument(
+        "--noise",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="Gaussian noise sigma [1/m] added to each curvature component (default 0: exact)",
+    )
+    parser.add_argument("--seed", type=int, metavar="N", help="seed of --noise (default: a fresh draw each run)")
+    parser.add_argument("--out", metavar="FILE", help="write the answers to FILE (default: standard output)")
 
 
 def parse_case(obj: dict[str, Any], rod: Rod) -> list[Force]:
@@ -165,6 +189,11 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
     if args.scheme == "nodes" and args.nodes < 2:
         raise ValueError(f"--nodes must be >= 2, got {args.nodes}")
+    if not (math.isfinite(args.noise) and args.noise >= 0.0):
+        raise ValueError(f"--noise must be a finite sigma >= 0 [1/m], got {args.noise}")
+    if args.seed is not None and args.noise == 0.0:
+        raise ValueError("--seed sets the noise of --noise SIGMA; give both")
+    check_input(args.forces, "FORCES")
     device = torch.device(args.device)
     options = {
         "samples": args.samples,
@@ -173,16 +202,42 @@ def run(args: argparse.Namespace) -> int:
         "nodes": args.nodes,
         "device": device,
     }
-    writer = LineWriter()
+    noise = _Noise(args.noise, args.seed) if args.noise > 0.0 else None
     records = read_records(args.forces, lambda obj: parse_case(obj, rod))
-    try:
-        _run(rod, records, writer, args.batch_size, options)
-    except BrokenPipeError:  # the reader went away (| head): stop quietly
-        return 141
+    with open_output(args.out, [args.forces]) as out:
+        writer = LineWriter(out)
+        try:
+            _run(rod, records, writer, args.batch_size, options, noise)
+        except BrokenPipeError:  # the reader went away (| head): stop quietly
+            return 141
     return 1 if writer.errors else 0
 
 
-def _run(rod: Rod, records, writer: LineWriter, batch_size: int, options: dict[str, Any]) -> None:
+class _Noise:
+    """Gaussian noise [1/m] on the written curvature, drawn reading by reading in input order from one seeded
+    generator (so the draws do not depend on the batch size)."""
+
+    def __init__(self, sigma: float, seed: int | None) -> None:
+        self.sigma = sigma
+        self.generator = torch.Generator()
+        if seed is None:
+            self.generator.seed()
+        else:
+            self.generator.manual_seed(seed)
+
+    def add(self, curvature: list[list[float]]) -> list[list[float]]:
+        u = torch.tensor(curvature, dtype=torch.float64)
+        return (u + self.sigma * torch.randn(u.shape, generator=self.generator, dtype=u.dtype)).tolist()
+
+
+def _run(
+    rod: Rod,
+    records,
+    writer: LineWriter,
+    batch_size: int,
+    options: dict[str, Any],
+    noise: _Noise | None = None,
+) -> None:
     for chunk in batched(records, batch_size):
         good = [r for r in chunk if r.ok]
         answers = iter(_answer(rod, good, options))
@@ -194,7 +249,9 @@ def _run(rod: Rod, records, writer: LineWriter, batch_size: int, options: dict[s
             if "error" in out:
                 writer.error(record.id, f"line {record.line}: {out['error']}")
             else:
-                writer.write({"id": record.id, **out})
+                if noise is not None:
+                    out["curvature"] = noise.add(out["curvature"])
+                writer.answer({"id": record.id, **out}, record.line)
 
 
 def _answer(rod: Rod, good: list[Record[list[Force]]], options: dict[str, Any]) -> list[dict[str, Any]]:

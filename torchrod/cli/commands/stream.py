@@ -11,8 +11,13 @@ Input, one reading a line, read as it arrives (a pipe from an interrogator is fi
 
 * or CSV, one reading a row: ``id, t, ux_1, uy_1, ..., ux_G, uy_G`` [1/m] with both cells of a missing grating
   empty (``t`` may be empty too); a first row whose cells after the id are not numbers is a header and skipped.
+  A CSV number is ``[+-]digits[.digits][e[+-]digits]`` in ASCII (``12``, ``-1.5``, ``.5``, ``2.5E-3``; spaces
+  around the cell are fine); ``1_000``, ``0x1f``, ``1 000`` are not numbers, and ``nan``/``inf`` are refused as not
+  finite (leave a missing value's cell empty).
 
-``--format auto`` (the default) reads JSON lines when the first non-blank line starts with ``{``, else CSV.
+``--format auto`` (the default) reads JSON lines when the first non-blank line starts with ``{``, else CSV. The
+rules for a reading are those of ``torchrod estimate`` (one parser for both): finite numbers, each curvature
+component at most 1e6 1/m in magnitude, ids that JSON can echo.
 
 Output: one JSON line per input line, in input order, each written and flushed as soon as its batch is solved::
 
@@ -26,48 +31,54 @@ previous reading's solution (with the network, the grid scan is skipped, as in `
 the number of forces is chosen among 1..``--max-forces`` (``--noise``: the sensor's
 sigma [1/m]; without it the noise is estimated per reading). ``--checkpoint`` defaults to the shipped
 ``checkpoints/nitinol290.pt`` when the rod's grating layout matches it, else the stream runs without a network (said
-once on stderr); ``--checkpoint none`` turns the network off.
+once on stderr); ``--checkpoint none`` turns the network off. ``--out FILE`` writes the answers to FILE.
 
-A line that cannot be used (bad JSON or CSV, a wrong number of gratings, NaN, all gratings missing) gives
-``{"id": ... or null, "error": "line N: ..."}`` and the stream goes on; missing gratings are left out of the fit.
-The end of the input and Ctrl-C answer every line read so far before stopping. Memory stays bounded (a batch and a
-bounded read-ahead). Exit status: 0, or 1 if any line failed, 130 after Ctrl-C, 141 when the reader of the output
-goes away, 2 for a bad rod, checkpoint or option.
+Every non-blank input line gets exactly one output line (a CSV header excepted). A line that cannot be used (bad
+JSON or CSV, a wrong number of gratings, NaN, a value out of bounds, all gratings missing) gives
+``{"id": ... or null, "error": "line N: ..."}`` naming the field and quoting at most about 100 characters of the
+value, and the stream goes on; missing gratings are left out of the fit. The end of the input, Ctrl-C and SIGTERM
+answer every line read so far before stopping. Memory stays bounded (a batch and a bounded read-ahead). Exit
+status: 0, or 1 if any line failed, 130 after Ctrl-C, 143 after SIGTERM, 141 when the reader of the output goes
+away, 2 for a bad rod, checkpoint or option.
 
-``--summary`` prints to stderr at the end: readings, errors, readings/s, latency median and 99th percentile, and with
-``--truth FILE`` (``{"id", "forces": [{"s", "fx", "fy"}, ...]}`` per line, as ``torchrod generate --trajectory``
-writes) the count accuracy and the median force and location errors of the readings whose count is right.
+``--summary`` prints to stderr at the end: readings, errors, readings/s, the latency (from reading a line to
+answering it) median and 99th percentile beside the solve time per batch and per reading, and with ``--truth FILE``
+(``{"id", "forces": [{"s", "fx", "fy"}, ...]}`` per line, as ``torchrod generate --trajectory`` writes) the count
+accuracy and the median force and location errors of the readings whose count is right. Latency is what a live
+source at its real rate sees; for input that comes faster than it is solved (a file read at once) it includes the
+time readings wait behind earlier ones, which grows with the file, and the summary says so: the solve time per
+reading is then the cost of estimation.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
-import itertools
 import json
 import os
 import sys
 import time
-from collections.abc import Iterable, Iterator
 from typing import Any
 
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...io.jsonl import (
     LineWriter,
-    Record,
-    as_number,
+    check_input,
     check_keys,
     get_list,
     get_number,
+    interrupt_status,
+    open_output,
     parse_records,
     read_lines,
+    sigterm_as_interrupt,
 )
-from ...io.stream import Reading, StreamOptions, StreamResult, StreamStats, stream, warm_up
+from ...io.readings import ReadingSource
+from ...io.stream import StreamOptions, StreamResult, StreamStats, stream, warm_up
 from ...presets import load as load_rod
 from ...rod import Rod
 from . import check_estimation_options
-from .estimate import parse_reading
+from .estimate import check_counts, load_network
 
 HELP = "amortised estimation on a stream of readings"
 
@@ -86,6 +97,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--input", default="-", metavar="FILE", help="readings file (default '-': stdin)")
     parser.add_argument("--format", choices=("auto", "jsonl", "csv"), default="auto", help="input format")
+    parser.add_argument("--out", metavar="FILE", help="write the answers to FILE (default: standard output)")
     parser.add_argument(
         "--batch-size", type=int, default=64, metavar="B", help="most readings per batch (64)"
     )
@@ -109,87 +121,17 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 # ---------------------------------------------------------------------------------------------------- input
-def _parse_json(obj: dict[str, Any], rod: Rod) -> tuple[Any, float | None]:
-    """One reading object -> (per grating (ux, uy) or None, t or None); ``ValueError`` names the bad field."""
-    t = obj.get("t")
-    return parse_reading(obj, rod), (None if t is None else as_number(t, "t"))
-
-
-def _cell(text: str) -> Any:
-    """A CSV cell as JSON would carry it: None when empty, a float when it reads as one, else the text."""
-    text = text.strip()
-    if not text:
-        return None
-    try:
-        return float(text)
-    except ValueError:
-        return text
-
-
-def _csv_lines(lines: Iterable[tuple[int, str]], rod: Rod) -> Iterator[Record[Any]]:
-    """CSV rows -> records, through the JSON path: each row becomes the object ``{"id", "t", "curvature"}`` and is
-    parsed like a JSON line (same checks, same messages); only a wrong cell count is reported here."""
-    G = rod.num_gratings
-    width = 2 + 2 * G
-    first = True
-    for number, text in lines:
-        try:
-            cells = next(csv.reader([text]))
-        except csv.Error as exc:
-            yield Record(number, None, None, f"line {number}: not valid CSV ({exc})")
-            continue
-        values = [_cell(c) for c in cells]
-        if first:
-            first = False
-            rest = values[1:]
-            if any(isinstance(v, str) for v in rest) and not any(isinstance(v, float) for v in rest):
-                continue  # a header
-        ident = (cells[0].strip() or None) if cells else None
-        if len(values) != width:
-            yield Record(
-                number,
-                ident,
-                None,
-                f"line {number}: expected {width} cells (id, t, then ux, uy for {G} gratings), got {len(values)}",
-            )
-            continue
-        pairs = [values[2 + 2 * k : 4 + 2 * k] for k in range(G)]
-        obj = {
-            "id": ident,
-            "t": values[1],
-            "curvature": [None if pair == [None, None] else pair for pair in pairs],
-        }
-        # NaN and infinity survive as JSON extensions, so the JSON path refuses them with its own message.
-        yield from parse_records([(number, json.dumps(obj))], lambda o: _parse_json(o, rod))
-
-
-def read_stream(source: str, rod: Rod, fmt: str = "auto") -> Iterator[Reading]:
+def read_stream(source: str, rod: Rod, fmt: str = "auto") -> ReadingSource:
     """Readings from ``source`` (a path or ``"-"``) in format ``"jsonl"``, ``"csv"`` or ``"auto"`` (JSON lines if
-    the first non-blank line starts with ``{``), lazily: unusable lines become readings with an ``error``."""
-    lines = read_lines(source)
-    if fmt == "auto":
-        head = next(lines, None)
-        if head is None:
-            return
-        fmt = "jsonl" if head[1].lstrip().startswith("{") else "csv"
-        lines = itertools.chain([head], lines)
-    if fmt == "jsonl":
-        records = parse_records(lines, lambda obj: _parse_json(obj, rod))
-    elif fmt == "csv":
-        records = _csv_lines(lines, rod)
-    else:
-        raise ValueError(f"format must be auto, jsonl or csv, got {fmt!r}")
-    for record in records:
-        if record.ok:
-            curvature, t = record.value
-            yield Reading(record.id, curvature, t)
-        else:
-            yield Reading(record.id, error=record.error)
+    the first non-blank line starts with ``{``), lazily, checked by :mod:`torchrod.io.readings`: unusable lines
+    become readings with an ``error``. The flush after an interrupt ends it at the lines already read."""
+    return ReadingSource(source, rod.num_gratings, rod.gratings, fmt)
 
 
 def load_truth(path: str) -> dict[str, list[tuple[float, float, float]]]:
     """True forces per reading id (key: the id as JSON text) from ``{"id", "forces": [{"s", "fx", "fy"}, ...]}``
     lines; ``ValueError`` for a line that cannot be used."""
+    check_input(path, "--truth")
 
     def parse(obj: dict[str, Any]) -> list[tuple[float, float, float]]:
         out = []
@@ -203,7 +145,7 @@ def load_truth(path: str) -> dict[str, list[tuple[float, float, float]]]:
     for record in parse_records(read_lines(path), parse):
         if not record.ok:
             raise ValueError(f"--truth {path}: {record.error}")
-        truth[json.dumps(record.id)] = record.value
+        truth[_key(record.id)] = record.value
     return truth
 
 
@@ -213,9 +155,7 @@ def _warm_start(args: argparse.Namespace, rod: Rod) -> Any:
     from ...learn.warm_start import SHIPPED_CHECKPOINT, WarmStart
 
     if args.checkpoint is not None:
-        if args.checkpoint.lower() == "none":
-            return None
-        return WarmStart.load(args.checkpoint, rod)
+        return load_network(args.checkpoint, rod)
     if not os.path.exists(SHIPPED_CHECKPOINT):
         print(f"torchrod stream: no warm-start network ({SHIPPED_CHECKPOINT} not found)", file=sys.stderr)
         return None
@@ -227,15 +167,23 @@ def _warm_start(args: argparse.Namespace, rod: Rod) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
+    with sigterm_as_interrupt():
+        try:
+            return _run(args)
+        except KeyboardInterrupt as exc:
+            return interrupt_status(exc)
+
+
+def _run(args: argparse.Namespace) -> int:
     rod = load_rod(args.rod)
     check_estimation_options(args)
+    check_counts(args)
     if not 0.0 <= args.max_latency_ms < float("inf"):
         raise ValueError(f"--max-latency-ms must be >= 0, got {args.max_latency_ms}")
     if args.truth is not None and not args.summary:
         raise ValueError("--truth is used by --summary; give both")
     truth = load_truth(args.truth) if args.truth is not None else None
-    if args.input != "-" and not os.path.exists(args.input):
-        raise FileNotFoundError(f"--input {args.input} not found")
+    check_input(args.input, "--input")
     network = _warm_start(args, rod)
     options = EstimatorOptions(max_forces=args.max_forces, noise=args.noise, polish=args.polish)
     if network is not None and network.max_forces >= args.max_forces:
@@ -245,37 +193,60 @@ def run(args: argparse.Namespace) -> int:
     options = StreamOptions(batch_size=args.batch_size, max_latency=args.max_latency_ms / 1e3)
     # Warm-up before the first reading: per-rod caches and first-call costs would otherwise land on its latency.
     warm_up(estimator)
-    writer = LineWriter()
+    with open_output(args.out, [args.input]) as out:
+        return _answer(args, estimator, options, LineWriter(out), truth)
+
+
+def _answer(
+    args: argparse.Namespace,
+    estimator: Estimator,
+    options: StreamOptions,
+    writer: LineWriter,
+    truth: dict[str, Any] | None,
+) -> int:
     stats = StreamStats()
     start = time.perf_counter()
 
     def emit(result: StreamResult) -> None:
-        writer.write(result.record)
         if result.error is not None:
-            writer.errors += 1
+            extra = {"t": result.t} if result.t is not None else {}
+            writer.error(result.id, result.error, **extra)
+        else:
+            writer.answer(result.record, result.line)
         if args.summary:
-            known = truth.get(json.dumps(result.id)) if truth is not None and result.ok else None
+            known = truth.get(_key(result.id)) if truth is not None and result.ok else None
             stats.add(result, known)
 
-    results = stream(estimator, read_stream(args.input, rod, args.format), options)
-    interrupted = False
+    results = stream(estimator, read_stream(args.input, estimator.rod, args.format), options)
+    interrupted: KeyboardInterrupt | None = None
+    current: StreamResult | None = None
+    written = writer.lines
     try:
-        for result in results:
-            emit(result)
-    except KeyboardInterrupt:
-        interrupted = True
-        if results.gi_frame is not None:  # interrupted here, not inside the stream: let it flush
-            try:
-                emit(results.throw(KeyboardInterrupt()))
+        for current in results:
+            emit(current)
+            current = None
+            written = writer.lines
+    except KeyboardInterrupt as exc:
+        interrupted = exc
+        try:
+            if current is not None and writer.lines == written:  # interrupted before it was written
+                emit(current)
+            if results.gi_frame is not None:  # interrupted here, not inside the stream: let it flush
+                emit(results.throw(exc))
                 for result in results:
                     emit(result)
-            except (KeyboardInterrupt, StopIteration):
-                pass
+        except (KeyboardInterrupt, StopIteration):
+            pass
     finally:
         results.close()
         if args.summary:
             for line in stats.summary(time.perf_counter() - start):
                 print(f"torchrod stream: {line}", file=sys.stderr)
-    if interrupted:
-        return 130
+    if interrupted is not None:
+        return interrupt_status(interrupted)
     return 1 if writer.errors else 0
+
+
+def _key(ident: Any) -> str:
+    """An id as a key of the truth table (its JSON text)."""
+    return json.dumps(ident)
