@@ -19,15 +19,13 @@ Two exact reductions make this cheap and parameter-free:
 The rod is integrated from s = L (U = U' = 0) to s = 0 as a sequence of events: the query positions (gratings, sample
 points) and the force locations, sorted per sample, so every sample in a batch keeps its own load locations and
 the jump happens exactly at s_i (no node count in the default scheme). Each segment between events is crossed with
-explicit Runge-Kutta-Nystrom steps (default: the 8th-order method of Dormand, El-Mikkawy & Prince). The number of
-steps in a segment comes from a rigorous bound on the local rate of the solution, max(|U|, sqrt|m|) [1/m], at the
-segment's proximal end: |m| is constant between forces (m . m' = 0) and jumps by at most |f_i| / EI at a force, so
-|m| <= M = sum over distal forces of |f_i| / EI; |m|^2 = |U'|^2 + |U|^4 / 4, so |U| <= sqrt(2 M); and linear
-growth from the tip gives |U| <= sum_i |f_i| (s_i - s)^+ / EI. The step count makes rate x step <= ``max_step_angle``.
+explicit Runge-Kutta-Nystrom steps (default: the 8th-order method of Dormand, El-Mikkawy & Prince). The events,
+their order at ties and the step counts are the schedule of :mod:`torchrod.model.schedule` (one definition for
+every march), here with its rigorous ``"bound"`` rule on the local rate: rate x step <= ``max_step_angle``.
 Every sample gets its own step counts; a batch runs max over samples of (total steps) steps, shorter schedules
 padded with steps of length zero.
 
-The march (:mod:`torchrod.nystrom`) runs inside one autograd node with a hand-written discrete adjoint (the exact
+The march (:mod:`torchrod.model.nystrom`) runs inside one autograd node with a hand-written discrete adjoint (the exact
 gradient of the discrete scheme, in O(steps) memory): on the CPU in NumPy (or plain Python numbers for a batch of a
 few), elsewhere in torch. ``adjoint=False`` instead records every torch operation for autograd: slower, but it
 supports ``torch.func`` transforms and higher derivatives.
@@ -40,13 +38,15 @@ erratum 3) and integrates the distributed load, interpolated linearly between no
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 
+from ..backend import torch_backend
 from ..loads import PointForces, spread_to_nodes
 from ..rod import Rod
-from .nystrom import METHODS, Tableau, march
+from . import schedule
+from .nystrom import METHODS, SCALAR_MAX_BATCH, Tableau, _forward_array, _forward_generic, _sq_complex, march
 
 __all__ = [
     "DEFAULT_STEP_ANGLE",
@@ -113,28 +113,6 @@ def _method(name: str | None, scheme: str) -> Tableau:
     return METHODS[name]
 
 
-def _step_counts(
-    s: torch.Tensor,
-    fmag: torch.Tensor,
-    pos: torch.Tensor,
-    seg: torch.Tensor,
-    max_step_angle: float,
-    max_steps: int,
-) -> torch.Tensor:
-    """(B, E) steps per segment so that rate x step <= max_step_angle (module docstring), 1 to ``max_steps``.
-
-    s (B, h) force locations [m], fmag (B, h) |f_i| / EI [1/m^2], pos (B, E) proximal ends of the segments [m],
-    seg (B, E) segment lengths [m].
-    """
-    lever = (s.unsqueeze(1) - pos.unsqueeze(2)).clamp(min=0.0)  # (B, E, h) [m]
-    distal = fmag.unsqueeze(1) * (lever > 0)
-    bound_m = distal.sum(-1)  # |m| <= M [1/m^2]
-    bound_u = torch.minimum((fmag.unsqueeze(1) * lever).sum(-1), (2.0 * bound_m).sqrt())  # |U| [1/m]
-    rate = torch.maximum(bound_u, bound_m.sqrt())
-    need = torch.nan_to_num(rate * seg / max_step_angle, nan=1.0, posinf=float(max_steps))
-    return need.ceil().clamp(1, max_steps).to(torch.int64)
-
-
 def _valid_loads(loads: PointForces) -> tuple[torch.Tensor, torch.Tensor]:
     """(s, f) with padded forces at s = 0 carrying no load, whatever (even NaN) they hold. Autograd-safe."""
     if loads.mask is None:
@@ -147,20 +125,25 @@ def _valid_loads(loads: PointForces) -> tuple[torch.Tensor, torch.Tensor]:
 def _events(
     query: torch.Tensor, s: torch.Tensor, f: torch.Tensor, ei: torch.Tensor, length: float
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Forces and queries sorted tip to base: positions (B, E) [m], the sort order (B, E) (indices < h are forces),
-    segment lengths (B, E) [m] (segment e ends at event e) and the jump of W at each event (B, E, 2) [1/m^2]."""
+    """The schedule's events (:func:`torchrod.model.schedule.events`): positions (B, E) [m], the sort order (B, E)
+    (indices < h are forces), segment lengths (B, E) [m], and the jump of W at each event (B, E, 2) [1/m^2]."""
     B, Q = s.shape[0], query.shape[0]
     # Jump of W = dU/dt (t = L - s) at a force: W(s_i-) = W(s_i+) - (f_y - i f_x)/EI, as real pairs (-f_y, f_x)/EI.
     jump_f = torch.stack((-f[..., 1], f[..., 0]), dim=-1) / ei.unsqueeze(-1)  # (B, h, 2)
-    # Forces first: among events at one place the (stable) sort keeps them first, so a query there sees the jump.
-    pos = torch.cat((s, query.expand(B, Q)), dim=1)  # (B, E)
-    pos_sorted, order = pos.sort(dim=1, descending=True, stable=True)
+    pos_sorted, order, seg = schedule.events(torch_backend(s.device), query, s, length)
     jump = torch.cat((jump_f, jump_f.new_zeros(B, Q, 2)), dim=1).gather(
         1, order.unsqueeze(-1).expand(-1, -1, 2)
     )
-    start = torch.cat((pos_sorted.new_full((B, 1), float(length)), pos_sorted[:, :-1]), dim=1)
-    seg = (start - pos_sorted).clamp(min=0.0)
     return pos_sorted, order, seg, jump
+
+
+def _step_counts(
+    s: torch.Tensor, f: torch.Tensor, ei: torch.Tensor, pos: torch.Tensor, seg: torch.Tensor, angle: float, cap: int
+) -> torch.Tensor:
+    """(B, E) steps per segment: the schedule's rigorous ``"bound"`` rule (:mod:`torchrod.model.schedule`)."""
+    fmag = torch.linalg.vector_norm(f, dim=-1) / ei  # (B, h) [1/m^2]
+    xp = torch_backend(s.device)
+    return schedule.step_counts(xp, s, fmag, pos, seg, step_angle=angle, max_steps=cap, rule="bound")
 
 
 def step_counts(
@@ -180,8 +163,7 @@ def step_counts(
     ei = _as_stiffness(rod.bending_stiffness if bending_stiffness is None else bending_stiffness, s)
     with torch.no_grad():
         pos_sorted, _, seg, _ = _events(rod.grating_positions(s.dtype, s.device), s, f, ei, rod.length)
-        fmag = torch.linalg.vector_norm(f, dim=-1) / ei
-        return _step_counts(s, fmag, pos_sorted, seg, max_step_angle, max_steps)
+        return _step_counts(s, f, ei, pos_sorted, seg, max_step_angle, max_steps)
 
 
 def integrate_curvature(
@@ -222,8 +204,7 @@ def integrate_curvature(
     E = seg.shape[1]
     with torch.no_grad():
         if steps is None:
-            fmag = torch.linalg.vector_norm(f, dim=-1) / ei  # (B, h) [1/m^2]
-            counts = _step_counts(s, fmag, pos_sorted, seg, max_step_angle, max_steps)
+            counts = _step_counts(s, f, ei, pos_sorted, seg, max_step_angle, max_steps)
         else:
             counts = torch.full((B, E), int(steps), dtype=torch.int64, device=s.device)
         last = counts.cumsum(1)  # (B, E): one past the step that ends each event's segment
@@ -241,6 +222,76 @@ def integrate_curvature(
     curvature = at_query[..., :2]
     force = _internal_force(at_query, ei) if return_force else None
     return curvature, force
+
+
+def march_curvature(
+    xp: Any,
+    query: Any,
+    s: Any,
+    f: Any,
+    length: float,
+    bending_stiffness: float,
+    *,
+    max_step_angle: float = DEFAULT_STEP_ANGLE,
+    method: str | None = None,
+) -> Any:
+    """:func:`integrate_curvature` without autograd on a backend's arrays (:mod:`torchrod.backend`): curvature
+    (B, Q, 2) [1/m] at ``query`` (Q,) for forces s (B, h) [m], f (B, h, 2) [N]. The same schedule and method; a few
+    rows on NumPy run one at a time on Python complex numbers (no per-operation overhead), the rest as arrays."""
+    tab = _method(method, "exact")
+    B, h = s.shape
+    Q = query.shape[0]
+    ei = float(bending_stiffness)
+    pos, order, seg = schedule.events(xp, query, s, length)
+    fmag = xp.lib.sqrt((f * f).sum(-1)) / ei
+    steps = schedule.step_counts(
+        xp, s, fmag, pos, seg, step_angle=max_step_angle, max_steps=64, rule="bound"
+    )
+    jump = xp.complex(-f[..., 1], f[..., 0]) / ei  # (B, h) slope jumps
+    if xp.name == "numpy" and B <= SCALAR_MAX_BATCH:
+        import numpy as np
+
+        out = np.empty((B, Q, 2))
+        orders, segs, counts, jumps = order.tolist(), seg.tolist(), steps.tolist(), jump.tolist()
+        for b in range(B):
+            hs, kicks, ends = [], [], []
+            for e, idx in enumerate(orders[b]):
+                n = counts[b][e]
+                hs += [segs[b][e] / n] * n
+                kicks += [None] * (n - 1) + [jumps[b][idx] if idx < h and jumps[b][idx] != 0 else None]
+                ends.append(len(hs) - 1)
+            Us, _, _ = _forward_generic(tab, 0j, hs, [x * x for x in hs], kicks, None, _sq_complex, False)
+            at = [0] * Q
+            for e, idx in enumerate(orders[b]):
+                if idx >= h:
+                    at[idx - h] = Us[ends[e]]
+            z = np.asarray(at)
+            out[b, :, 0], out[b, :, 1] = z.real, z.imag
+        return out
+    # Arrays: every row runs K steps, its own step lengths then zero-length steps (as integrate_curvature).
+    last = xp.lib.cumsum(steps, 1) if xp.name == "numpy" else steps.cumsum(1)
+    K = int(xp.amax(last[:, -1], 0)) if B else 0
+    grid = xp.expand(xp.arange(K)[None, :], (B, K))
+    if xp.name == "numpy":
+        import numpy as np
+
+        segment_of_step = np.stack([np.searchsorted(last[b], grid[b], side="right") for b in range(B)])
+    else:
+        segment_of_step = torch.searchsorted(last, grid.contiguous(), right=True)
+    ends = last - 1
+    hstep = xp.take(xp.concat([seg / steps, xp.zeros((B, 1))], 1), segment_of_step, 1)  # (B, K)
+    jump_e = xp.take(xp.concat([jump, xp.zeros((B, Q), "complex")], 1), order, 1)  # (B, E)
+    kick = xp.zeros((B, K), "complex")
+    rows = xp.expand(xp.arange(B)[:, None], ends.shape)
+    kick[rows, ends] = jump_e
+    kick2 = xp.stack([kick.real, kick.imag], 1)  # (B, 2, K)
+    hs = xp.mT(hstep)
+    kicks = kick2.transpose(2, 1, 0) if xp.name == "numpy" else kick2.permute(2, 1, 0)
+    Z, _ = _forward_array(tab, hs + 0.0, kicks + 0.0, None, False)  # (K, 4, B)
+    inverse = xp.argsort_desc(-xp.astype(order, "float"))[:, h:]  # events of the queries, in query order
+    step_of_query = xp.take(ends, inverse, 1)  # (B, Q)
+    Zb = Z.transpose(2, 0, 1) if xp.name == "numpy" else Z.permute(2, 0, 1)  # (B, K, 4)
+    return Zb[xp.expand(xp.arange(B)[:, None], (B, Q)), step_of_query][..., :2]
 
 
 def _internal_force(state: torch.Tensor, ei: torch.Tensor) -> torch.Tensor:

@@ -1,15 +1,14 @@
 """Curvature at the gratings and its Jacobian w.r.t. the forces, in one tip-to-base pass (forward sensitivities).
 
-Estimation evaluates the forward model hundreds of times per reading, and always wants the derivative with respect
-to every unknown (s_i, f_x,i, f_y,i). Reverse-mode autograd through the forward model adds a backward pass per
-evaluation and gives only the gradient of one scalar; with at most 3 forces there are at most 9 unknowns, so
-carrying their tangents along the march (forward mode) gives the whole residual Jacobian in one pass, which the
-estimator needs anyway for its Gauss-Newton steps, stopping test and covariance.
+Estimation evaluates the forward model many times per reading and always wants the derivative with respect to
+every unknown (s_i, f_x,i, f_y,i). With at most a few forces there are few unknowns, so carrying their tangents
+along the march (forward mode) gives the whole residual Jacobian in one pass, which the estimator needs anyway
+for its Gauss-Newton steps, stopping test, scans and covariance.
 
-The march is the body-frame model of :mod:`torchrod.body_frame` in complex form: with U = u_x + i u_y and
+The march is the body-frame model of :mod:`torchrod.model.body_frame` in complex form: with U = u_x + i u_y and
 t = L - s, U_tt = -|U|^2 U / 2 between forces, U = U_t = 0 at the free tip, and at a force (f_x, f_y) at s_i the
-slope jumps, W = U_t -> W + i (f_x + i f_y) / EI. A fourth-order Runge-Kutta-Nystrom scheme integrates it, with
-per-row step counts from an estimate of the solution's rate (see the comment in :func:`curvature_and_jacobian`).
+slope jumps, W = U_t -> W + i (f_x + i f_y) / EI. A fourth-order Runge-Kutta-Nystrom scheme integrates it, on the
+schedule of :mod:`torchrod.model.schedule` (events, tie-breaks and step counts; rule ``"estimate"``).
 
 Tangents. For a parameter p, (dU/dp, dW/dp) obey the linearised equation, with
 D(|U|^2 U)[dU] = 2 |U|^2 dU + U^2 conj(dU); the RKN stages are applied to the tangents with that linearisation
@@ -21,282 +20,278 @@ At a force event:
 * d/ds_i: moving the force distally by ds moves the jump earlier in t by ds; to first order the state just
   proximal to the force changes by (F(Y+) - F(Y-)) ds with F(U, W) = (W, -|U|^2 U / 2) the vector field, which is
   (jump, 0) since U is continuous. So dU/ds_i gains the jump i (f_x + i f_y) / EI and dW/ds_i is unchanged. This
-  is the exact derivative of the continuous problem; it matches the discrete scheme's to its O(h^4) accuracy.
+  is the exact derivative of the continuous problem; it matches the discrete scheme's to its O(h^4) accuracy. At a
+  grating exactly at s_i the schedule's tie-break (forces first) gives the distal one-sided derivative there.
+
+A force of zero magnitude changes nothing, but its f-columns are the linearised response to a new force at its
+location: the estimator's scan for where to add a force uses exactly that.
+
+Three implementations of the one scheme: :func:`march` on arrays (NumPy or torch, :mod:`torchrod.backend`,
+batched), and :func:`_march_rows` on Python complex numbers for a few rows on the CPU (no per-operation
+overhead). They give the same numbers to rounding (tests/test_sensitivity.py).
 """
 
 from __future__ import annotations
 
-import math
-from collections.abc import Sequence
+from typing import Any
 
 import torch
 
-__all__ = ["CHUNK", "ESTIMATION_STEP_ANGLE", "SCALAR_ROWS", "curvature_and_jacobian", "march_row"]
+from ..backend import NUMPY, Backend, TorchBackend
+from .schedule import events, step_counts
+
+__all__ = ["CHUNK", "ESTIMATION_STEP_ANGLE", "SCALAR_ROWS", "curvature_and_jacobian", "march", "march_propagator"]
 
 SCALAR_ROWS = 8
-"""Batches of at most this many rows on the CPU are marched one row at a time on Python complex numbers
-(:func:`march_row`): at B = 1 a pass for one force takes ~0.09 ms there against ~1.2 ms in torch, whose cost at
-small batch is per-operation dispatch (measured on this project's 2-core CPU). The two give the same numbers to
-rounding (the same scheme, steps and event order)."""
+"""Batches of at most this many rows on the NumPy backend are marched one row at a time on Python complex
+numbers: at one row a pass for one force takes ~0.1 ms there against ~1 ms with arrays, whose cost at small batch
+is per-operation overhead (measured on this project's 2-core CPU)."""
 
 CHUNK = 384
-"""Rows marched together by :func:`curvature_and_jacobian` (measured on 2 cores: 2700 rows of 3 forces take 92 ms in
-one march, 56 ms in chunks of 338; much smaller chunks pay the per-operation overhead)."""
+"""Rows marched together (larger batches are split: the working set stays in cache, and each part gets step
+counts for its own rows; measured on 2 cores: 2700 rows of 3 forces take 92 ms in one march, 56 ms in chunks)."""
 
 ESTIMATION_STEP_ANGLE = 0.3
 """Default bound on (local rate) x (step) for estimation. Over the synthetic envelope (1-3 forces, 0.05-2 N, bending
 up to 90 degrees; 400 cases) the curvature at the gratings is within 5.0e-4 1/m of the converged solution (99th
-percentile 2.9e-4; 0.2: 1.5e-4, 0.4: 9.6e-4; against torchrod.synthetic's readings), a twentieth of the
-estimator's noise floor and a few thousandths of the sensor noise."""
+percentile 2.9e-4; 0.2: 1.5e-4, 0.4: 9.6e-4), a twentieth of the estimator's noise floor."""
 
 
-def _g(y: torch.Tensor) -> torch.Tensor:
-    """Column 0: 3 |y0|^2 y0 (three times g); columns 1..P: the tangent 2 |y0|^2 y_p + y0^2 conj(y_p).
-
-    y: (B, 1 + P) complex. The factor 1/3 of column 0 is folded into the RKN coefficients by the caller.
-    """
-    cy = torch.conj_physical(y)
-    y0 = y[:, :1]
-    a = y0 * cy[:, :1]  # |y0|^2, complex-typed so that no operation below converts dtypes
-    return torch.addcmul((y0 * y0) * cy, a, y, value=2.0)
-
-
-def curvature_and_jacobian(
-    query: torch.Tensor,
-    s: torch.Tensor,
-    f: torch.Tensor,
+def march(
+    xp: Backend,
+    query: Any,
+    s: Any,
+    f: Any,
     length: float,
     bending_stiffness: float,
     *,
-    mask: torch.Tensor | None = None,
+    active: Any = None,
     jacobian: bool = True,
-    max_step_angle: float = ESTIMATION_STEP_ANGLE,
+    step_angle: float = ESTIMATION_STEP_ANGLE,
     max_steps: int = 64,
-    chunk: int = CHUNK,
-) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Curvature at ``query`` and, optionally, its derivative w.r.t. each force's (s, f_x, f_y). Unchecked, no autograd.
+) -> tuple[Any, Any]:
+    """Curvature at ``query`` and, optionally, its derivative w.r.t. each force's (s, f_x, f_y). Unchecked.
 
     Args:
-        query: (Q,) positions [m] in [0, L] (the gratings).
+        xp: the backend of the arrays.
+        query: (Q,) or per row (B, Q) positions [m] in [0, L] (the gratings).
         s: (B, h) force locations [m] in [0, L].
         f: (B, h, 2) body-frame components (f_x, f_y) [N].
         length: L [m]; bending_stiffness: EI [N m^2].
-        mask: (B, h) bool, False for padded forces (no load, zero Jacobian columns); None: all real.
+        active: (B, h) bool, False for padded forces (no load, zero Jacobian columns); None: all real.
         jacobian: also return the Jacobian.
-        max_step_angle: bound on (rate) x (step) per RKN step; max_steps: cap on the steps per segment.
-        chunk: rows marched together (larger batches are split: the march's working set then stays in cache,
-            and each part gets step counts for its own rows).
+        step_angle: bound on (rate) x (step) per RKN step; max_steps: cap on the steps per segment.
     Returns:
         curvature (B, Q, 2) [1/m], and the Jacobian (B, Q, 2, h, 3) of (u_x, u_y) w.r.t. (s [m], f_x [N], f_y [N])
         of each force ([1/m^2], [1/(m N)], [1/(m N)]), or None.
     """
-    B, h = s.shape
-    if B <= SCALAR_ROWS and s.device.type == "cpu":
-        return _scalar_rows(query, s, f, length, bending_stiffness, mask, jacobian, max_step_angle, max_steps)
-    if B > chunk:
-        parts = [
-            curvature_and_jacobian(
-                query,
-                s[i : i + chunk],
-                f[i : i + chunk],
-                length,
-                bending_stiffness,
-                mask=None if mask is None else mask[i : i + chunk],
-                jacobian=jacobian,
-                max_step_angle=max_step_angle,
-                max_steps=max_steps,
-                chunk=chunk,
-            )
-            for i in range(0, B, chunk)
-        ]
-        curv = torch.cat([c for c, _ in parts])
-        return curv, (torch.cat([j for _, j in parts]) if jacobian else None)
-    Q = query.shape[0]
-    E = Q + h
-    real, device = s.dtype, s.device
-    cplx = torch.complex128 if real == torch.float64 else torch.complex64
-    s = s.detach()
-    f = f.detach()
-    if mask is not None:
-        f = f * mask.unsqueeze(-1).to(real)
-    ei = float(bending_stiffness)
-    jump_f = torch.complex(-f[..., 1], f[..., 0]) / ei  # (B, h): i (f_x + i f_y) / EI
-    pos = torch.cat((query.to(real).expand(B, Q), s), dim=1)  # (B, E)
-    pos_sorted, order = pos.sort(dim=1, descending=True, stable=True)
-    start = torch.cat((pos_sorted.new_full((B, 1), float(length)), pos_sorted[:, :-1]), dim=1)
-    seg = (start - pos_sorted).clamp(min=0.0)  # (B, E), tip to base
-
-    # Step counts per row and segment. The local rate is estimated as max(|U|, sqrt|m|) of the small-deflection
-    # solution at the segment's proximal end, U = sum_i J_i (s_i - s)^+ and m = sum_{s_i > s} J_i (vector sums of
-    # the jumps J_i = i (f_x + i f_y) / EI): unlike the rigorous bound of body_frame (sums of magnitudes) it lets
-    # opposed forces cancel; measured over the synthetic envelope it costs no accuracy at the default step angle
-    # (ESTIMATION_STEP_ANGLE) and saves a quarter of the work. Every row takes its own count (the batch loops to the
-    # largest; a row past its count takes steps of length zero, which leave its state unchanged), so a row's
-    # result does not depend on the rows batched with it.
-    lever = (s.unsqueeze(1) - pos_sorted.unsqueeze(2)).clamp(min=0.0)  # (B, E, h)
-    jc = jump_f.unsqueeze(1)  # (B, 1, h)
-    rate = torch.maximum((jc * lever).sum(-1).abs(), (jc * (lever > 0)).sum(-1).abs().sqrt())
-    need = (rate * seg / max_step_angle).nan_to_num(nan=1.0, posinf=float(max_steps))
-    steps_be = need.ceil().clamp(min=1.0, max=float(max_steps))  # (B, E)
-    counts = steps_be.amax(dim=0).to(torch.long).tolist()
-    least = steps_be.amin(dim=0).to(torch.long).tolist()
-
-    # Jumps per event: column 0 the primal slope jump, columns 1.. the tangent jumps (dW for f, dU for s).
-    P = 3 * h if jacobian else 0
-    zeros_q = jump_f.new_zeros(B, Q)
-    jump_w0 = torch.cat((zeros_q, jump_f), dim=1).gather(1, order)  # (B, E)
-    if jacobian:
-        onehot = (order.unsqueeze(-1) - Q == torch.arange(h, device=device)).to(real)  # (B, E, h)
-        active = onehot if mask is None else onehot * mask.unsqueeze(1).to(real)
-        dw = torch.zeros(3, dtype=cplx, device=device)
-        dw[1], dw[2] = 1j / ei, -1.0 / ei
-        jump_w = torch.cat(
-            (jump_w0.unsqueeze(-1), (active.unsqueeze(-1) * dw).reshape(B, E, P)), dim=-1
-        )  # (B, E, 1 + P)
-        du = torch.zeros(B, E, h, 3, dtype=cplx, device=device)
-        du[..., 0] = onehot * jump_f.unsqueeze(1)
-        jump_u = torch.cat((du.new_zeros(B, E, 1), du.reshape(B, E, P)), dim=-1)
-    else:
-        jump_w = jump_w0.unsqueeze(-1)
-        jump_u = None
-    weight = torch.ones(1 + P, dtype=cplx, device=device)
-    weight[0] = 1.0 / 3.0  # _g returns 3 g in column 0
-
-    hstep = (seg / steps_be).unsqueeze(-1).to(cplx)  # (B, E, 1), complex-typed (no per-operation conversions)
-    # RKN coefficients per event (B, E, 1 + P), the g-weights folded in: see _march in body_frame.
-    c_half = 0.5 * hstep
-    c16 = (-1.0 / 16.0) * hstep * hstep * weight
-    c4 = -0.25 * hstep * hstep * weight
-    c12 = (-1.0 / 12.0) * hstep * hstep * weight
-    cw = (-1.0 / 12.0) * hstep * weight
-    Z = torch.zeros(B, 1 + P, dtype=cplx, device=device)  # U and its tangents
-    Zw = torch.zeros_like(Z)  # W = U_t and its tangents
-    recorded = []
-    for e in range(E):
-        coefficients = hstep[:, e], c_half[:, e], c16[:, e], c4[:, e], c12[:, e], cw[:, e]
-        hs, ch, k16, k4, k12, kw = coefficients
-        for k in range(counts[e]):
-            if k >= least[e]:  # rows past their own count step by zero
-                on = (steps_be[:, e : e + 1] > k).to(cplx)
-                hs, ch, k16, k4, k12, kw = (c * on for c in coefficients)
-            g1 = _g(Z)
-            g2 = _g(torch.addcmul(torch.addcmul(Z, ch, Zw), k16, g1))
-            p = torch.addcmul(Z, hs, Zw)
-            g3 = _g(torch.addcmul(p, k4, g2))
-            Z = torch.addcmul(p, k12, torch.add(g1, g2, alpha=2.0))
-            Zw = torch.addcmul(Zw, kw, torch.add(torch.add(g1, g2, alpha=4.0), g3))
-        Zw = Zw + jump_w[:, e]
-        if jump_u is not None:
-            Z = Z + jump_u[:, e]
-        recorded.append(Z)
-    states = torch.stack(recorded, dim=1)  # (B, E, 1 + P)
-    inverse = order.argsort(dim=1)[:, :Q]
-    at_query = states.gather(1, inverse.unsqueeze(-1).expand(-1, -1, 1 + P))  # (B, Q, 1 + P)
-    curvature = torch.view_as_real(at_query[..., 0].contiguous())
-    if not jacobian:
-        return curvature, None
-    jac = torch.view_as_real(at_query[..., 1:].contiguous())  # (B, Q, P, 2)
-    return curvature, jac.transpose(-1, -2).reshape(B, Q, 2, h, 3)
+    u, jac, _ = _march(xp, query, s, f, length, bending_stiffness, active, jacobian, False, step_angle, max_steps)
+    return u, jac
 
 
-def _scalar_rows(
-    query: torch.Tensor,
-    s: torch.Tensor,
-    f: torch.Tensor,
-    length: float,
-    bending_stiffness: float,
-    mask: torch.Tensor | None,
-    jacobian: bool,
-    max_step_angle: float,
-    max_steps: int,
-) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """:func:`curvature_and_jacobian` for a few rows on the CPU, one :func:`march_row` per row."""
-    B, h = s.shape
-    Q = query.shape[0]
-    q = query.tolist()
-    s_rows, f_rows = s.detach().tolist(), f.detach().tolist()
-    active = [[True] * h] * B if mask is None else mask.tolist()
-    curv, jac = [], []
-    for b in range(B):
-        u, du = march_row(
-            q,
-            s_rows[b],
-            f_rows[b],
-            length,
-            bending_stiffness,
-            active=active[b],
-            jacobian=jacobian,
-            max_step_angle=max_step_angle,
-            max_steps=max_steps,
-        )
-        curv.append([(z.real, z.imag) for z in u])
-        if jacobian:
-            jac.append([[[c.real for c in row], [c.imag for c in row]] for row in du])
-    curvature = torch.tensor(curv, dtype=s.dtype).view(B, Q, 2)
-    if not jacobian:
-        return curvature, None
-    return curvature, torch.tensor(jac, dtype=s.dtype).view(B, Q, 2, h, 3)
-
-
-def march_row(
-    query: Sequence[float],
-    s: Sequence[float],
-    f: Sequence[Sequence[float]],
+def march_propagator(
+    xp: Backend,
+    query: Any,
+    s: Any,
+    f: Any,
     length: float,
     bending_stiffness: float,
     *,
-    active: Sequence[bool] | None = None,
-    jacobian: bool = True,
-    max_step_angle: float = ESTIMATION_STEP_ANGLE,
+    step_angle: float = ESTIMATION_STEP_ANGLE,
     max_steps: int = 64,
-) -> tuple[list[complex], list[list[complex]]]:
-    """One row of :func:`curvature_and_jacobian` on Python floats: the same scheme, step counts and event order.
+) -> tuple[Any, Any, Any]:
+    """:func:`march` with the Jacobian, plus the propagator of the linearised equation at each query.
 
-    Args:
-        query: Q positions [m]; s: h locations [m]; f: h pairs (f_x, f_y) [N]; length: L [m];
-            bending_stiffness: EI [N m^2].
-        active: h flags, False for a padded force (no load, zero Jacobian columns); None: all real.
-        jacobian, max_step_angle, max_steps: as in :func:`curvature_and_jacobian`.
+    The propagator Phi(p) (4 x 4, real) maps a perturbation (dU, dW) of the state at the free tip, as the real
+    vector (Re dU, Im dU, Re dW, Im dW), to the perturbation it causes at p. The response at a query p of a slope
+    jump dW at a point c distal to it is then Phi(p) Phi(c)^-1 (0, 0, Re dW, Im dW): the effect of a new force at
+    c, for every pair (p, c), from one march (the linearised flow is volume-preserving, det Phi = 1).
+
     Returns:
-        U = u_x + i u_y at each query point (Q complex) [1/m] and, with ``jacobian``, for each query point the 3h
-        complex derivatives dU/d(s_i [m], f_x,i [N], f_y,i [N]) (an empty list per point otherwise).
+        curvature (B, Q, 2), Jacobian (B, Q, 2, h, 3) as :func:`march`, and Phi (B, Q, 4, 4).
     """
-    Q, h = len(query), len(s)
-    ei = float(bending_stiffness)
-    if active is None:
-        active = [True] * h
-    jumps = [complex(-fy, fx) / ei if on else 0j for (fx, fy), on in zip(f, active)]
-    # Events tip to base; at equal positions the grating first (it does not see a force sitting on it), as the
-    # stable descending sort of the batched march orders them.
-    events = sorted(
-        [(float(query[k]), 0, k) for k in range(Q)] + [(float(s[i]), 1, i) for i in range(h)],
-        key=lambda e: (-e[0], e[1]),
-    )
-    P = 3 * h if jacobian else 0
+    return _march(xp, query, s, f, length, bending_stiffness, None, True, True, step_angle, max_steps)
+
+
+def _march(xp, query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps):
+    B = s.shape[0]
+    if xp.name == "numpy" and B <= SCALAR_ROWS:
+        return _march_rows(query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps)
+    if B > CHUNK:
+        parts = [
+            _march_arrays(
+                xp,
+                query if query.ndim == 1 else query[i : i + CHUNK],
+                s[i : i + CHUNK],
+                f[i : i + CHUNK],
+                length,
+                ei,
+                None if active is None else active[i : i + CHUNK],
+                jacobian,
+                seeds,
+                step_angle,
+                max_steps,
+            )
+            for i in range(0, B, CHUNK)
+        ]
+        cat = lambda k: None if parts[0][k] is None else xp.concat([p[k] for p in parts])
+        return cat(0), cat(1), cat(2)
+    return _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps)
+
+
+def _jumps(xp: Backend, f: Any, active: Any, ei: float) -> Any:
+    """(B, h) complex slope jumps J_i = i (f_x + i f_y) / EI [1/m^2], zero for padding."""
+    jump = xp.complex(-f[..., 1], f[..., 0]) / ei
+    return jump if active is None else xp.where(active, jump, 0.0 * jump)
+
+
+def _schedule(xp, query, s, jump, length, step_angle, max_steps):
+    pos, order, seg = events(xp, query, s, length)
+    steps = step_counts(xp, s, jump, pos, seg, step_angle=step_angle, max_steps=max_steps, rule="estimate")
+    return pos, order, seg, steps
+
+
+def _g(xp: Backend, y: Any) -> Any:
+    """Column 0: 3 |y0|^2 y0 (three times g); columns 1..P: the tangent 2 |y0|^2 y_p + y0^2 conj(y_p).
+
+    y: (B, 1 + P) complex. The factor 1/3 of column 0 is folded into the RKN coefficients by the caller.
+    """
+    cy = xp.conj(y)
+    y0 = y[:, :1]
+    a = y0 * cy[:, :1]  # |y0|^2, complex-typed so that no operation below converts dtypes
+    return (y0 * y0) * cy + (2.0 * a) * y
+
+
+def _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps):
+    """:func:`march` on arrays: all rows at once, each on its own schedule. Iteration k takes every row's k-th
+    step (its events' steps one after the other; a row whose schedule is done steps by zero, which leaves its
+    state unchanged), so a batch costs the largest row's step count, not the sum over events of the largest
+    counts. With ``seeds``, four more tangent columns start at the tip from the unit perturbations of (U, W)
+    (:func:`march_propagator`)."""
+    B, h = s.shape
+    Q = query.shape[-1]
+    E = Q + h
+    ei = float(ei)
+    jump_f = _jumps(xp, f, active, ei)  # (B, h)
+    pos, order, seg, steps_be = _schedule(xp, query, s, jump_f, length, step_angle, max_steps)
+
+    # Jumps per event: column 0 the primal slope jump, then the force tangents' jumps (dW for f, dU for s), then
+    # the seeds' (none).
+    F = 3 * h if jacobian else 0
+    S = 4 if seeds else 0
+    P = F + S
+    jump_w0 = xp.take(xp.concat([jump_f, xp.zeros((B, Q), "complex")], 1), order, 1)  # (B, E)
+    cols_w, cols_u = [jump_w0[:, :, None]], [xp.zeros((B, E, 1), "complex")]
+    if jacobian:
+        is_force = xp.astype(order[:, :, None] == xp.arange(h)[None, None, :], "float")  # (B, E, h)
+        if active is not None:
+            is_force = is_force * xp.astype(active, "float")[:, None, :]
+        zero = xp.zeros((B, E, h), "complex")
+        cols_w.append(xp.stack([zero, is_force * (1j / ei), is_force * (-1.0 / ei)], 3).reshape(B, E, F))
+        cols_u.append(xp.stack([is_force * jump_f[:, None, :], zero, zero], 3).reshape(B, E, F))
+    if seeds:
+        cols_w.append(xp.zeros((B, E, S), "complex"))
+        cols_u.append(xp.zeros((B, E, S), "complex"))
+    jump_w = xp.concat(cols_w, 2)  # (B, E, 1 + P)
+    jump_u = xp.concat(cols_u, 2)
+
+    # Each row's steps in sequence: step k of row b belongs to event segment_of_step[b, k] (E: past the end).
+    last = xp.lib.cumsum(steps_be, 1) if xp.name == "numpy" else steps_be.cumsum(1)  # (B, E)
+    K = int(xp.amax(last[:, -1], 0)) if B else 0
+    ks = xp.arange(K)
+    segment_of_step = xp.astype(ks[None, :, None] >= last[:, None, :], "int").sum(2)  # (B, K)
+    ends = last - 1  # the step after which each event happens (its jump, or its record)
+    hstep = xp.concat([seg / steps_be, xp.zeros((B, 1))], 1)
+    hstep = xp.astype(xp.take(hstep, segment_of_step, 1), "complex")  # (B, K)
+    rows = xp.expand(xp.arange(B)[:, None], (B, E))
+    kick_w = xp.zeros((B, K, 1 + P), "complex")
+    kick_u = xp.zeros((B, K, 1 + P), "complex")
+    kick_w[rows, ends] = jump_w
+    kick_u[rows, ends] = jump_u
+    weight = xp.asarray([1.0 / 3.0] + [1.0] * P, "complex")  # _g returns 3 g in column 0
+
+    Z = xp.zeros((B, 1 + P), "complex")  # U and its tangents
+    Zw = xp.zeros((B, 1 + P), "complex")  # W = U_t and its tangents
+    if seeds:
+        Z = Z + xp.asarray([0.0] * (1 + F) + [1.0, 1j, 0.0, 0.0], "complex")
+        Zw = Zw + xp.asarray([0.0] * (1 + F) + [0.0, 0.0, 1.0, 1j], "complex")
+    recorded, recorded_w = [], []
+    for k in range(K):
+        # RKN4 (the classical three-stage method), the g-weights folded into the coefficients.
+        hs = hstep[:, k : k + 1]
+        h2w = (hs * hs) * weight
+        g1 = _g(xp, Z)
+        g2 = _g(xp, Z + (0.5 * hs) * Zw + (-1.0 / 16.0) * h2w * g1)
+        p = Z + hs * Zw
+        g3 = _g(xp, p - 0.25 * h2w * g2)
+        Z = p - (1.0 / 12.0) * h2w * (g1 + 2.0 * g2) + kick_u[:, k]
+        Zw = Zw - (1.0 / 12.0) * (hs * weight) * (g1 + 4.0 * g2 + g3) + kick_w[:, k]
+        recorded.append(Z)
+        if seeds:
+            recorded_w.append(Zw)
+    # Each query's record: the step that ends its event, in query order.
+    inverse = xp.argsort_desc(-xp.astype(order, "float"))[:, h:]  # argsort ascending of order
+    at_step = xp.take(ends, inverse, 1)  # (B, Q)
+    qrows = xp.expand(xp.arange(B)[:, None], (B, Q))
+    at_query = xp.stack(recorded, 1)[qrows, at_step]  # (B, Q, 1 + P)
+    curvature = xp.real_pairs(at_query[..., 0])
+    jac = phi = None
+    if jacobian:
+        jac = xp.mT(xp.real_pairs(at_query[..., 1 : 1 + F])).reshape(B, Q, 2, h, 3)  # (B, Q, F, 2) -> ...
+    if seeds:
+        w_query = xp.stack(recorded_w, 1)[qrows, at_step]
+        du, dw = xp.real_pairs(at_query[..., 1 + F :]), xp.real_pairs(w_query[..., 1 + F :])  # (B, Q, 4, 2)
+        phi = xp.mT(xp.concat([du, dw], 3))  # (B, Q, 4 rows, 4 seeds)
+    return curvature, jac, phi
+
+
+def _march_rows(query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps):
+    """:func:`march` on NumPy arrays for a few rows: the schedule from :mod:`.schedule` (NumPy), then each row on
+    Python complex numbers (:func:`_row`)."""
+    import numpy as np
+
+    B, h = s.shape
+    Q = query.shape[-1]
+    ei = float(ei)
+    jump_f = _jumps(NUMPY, f, active, ei)
+    pos, order, seg, steps = _schedule(NUMPY, query, s, jump_f, length, step_angle, max_steps)
+    F = 3 * h if jacobian else 0
+    curv = np.empty((B, Q, 2))
+    jac = np.empty((B, Q, 2, F)) if jacobian else None
+    phi = np.empty((B, Q, 4, 4)) if seeds else None
+    jumps = jump_f.tolist()
+    on = [[True] * h] * B if active is None else active.tolist()
+    for b in range(B):
+        u, du, dw = _row(order[b].tolist(), seg[b].tolist(), steps[b].tolist(), jumps[b], on[b], Q, h, F, seeds, ei)
+        z = np.asarray(u)
+        curv[b, :, 0], curv[b, :, 1] = z.real, z.imag
+        d = np.asarray(du).reshape(Q, F + 4 * seeds)
+        if jacobian:
+            jac[b, :, 0], jac[b, :, 1] = d[:, :F].real, d[:, :F].imag
+        if seeds:
+            w = np.asarray(dw).reshape(Q, 4)
+            phi[b] = np.stack((d[:, F:].real, d[:, F:].imag, w.real, w.imag), axis=1)
+    return curv, (jac.reshape(B, Q, 2, h, 3) if jacobian else None), phi
+
+
+def _row(order, seg, steps, jumps, active, Q, h, F, seeds, ei):
+    """One row of the march on Python complex numbers, on a precomputed schedule (same scheme as the arrays).
+
+    Returns U at each query (Q complex), for each query its F + 4 seeds tangents dU, and (with ``seeds``) the
+    seeds' dW (the force tangents' dW are not kept).
+    """
     u0, w0 = 0j, 0j  # U and W = U_t
-    du = [0j] * P  # tangents
-    dw = [0j] * P
+    du = [0j] * F + ([1.0 + 0j, 1j, 0j, 0j] if seeds else [])
+    dw = [0j] * F + ([0j, 0j, 1.0 + 0j, 1j] if seeds else [])
     out_u = [0j] * Q
-    out_j: list[list[complex]] = [[] for _ in range(Q)]
-    prev, started = float(length), False
+    out_j: list[list[complex]] = [[]] * Q
+    out_w: list[list[complex]] = [[]] * Q
     d_fx, d_fy = 1j / ei, -1.0 / ei
-    for pos, kind, idx in events:
-        seg = max(prev - pos, 0.0)
-        prev = pos
-        n = 0
-        if started:  # before the most distal force the state is zero and stays zero: nothing to step
-            lever, total = 0j, 0j
-            for i in range(h):
-                d = s[i] - pos
-                if d > 0.0:
-                    lever += jumps[i] * d
-                    total += jumps[i]
-            need = max(abs(lever), math.sqrt(abs(total))) * seg / max_step_angle
-            if math.isnan(need):
-                n = 1
-            else:  # as the batched march: nan -> 1 step, at most max_steps (inf included)
-                n = max_steps if need >= max_steps else max(math.ceil(need), 1)
-        hs = seg / n if n else 0.0
+    # Before the most distal force the state is zero and stays zero: nothing to step (unless seeds move there).
+    started = seeds
+    for e, idx in enumerate(order):
+        n = steps[e] if started else 0
+        hs = seg[e] / n if n else 0.0
         ch, k16, k4, k12, kw = 0.5 * hs, -hs * hs / 16.0, -hs * hs / 4.0, -hs * hs / 12.0, -hs / 12.0
         for _ in range(n):
             # g(U) = |U|^2 U and its tangent 2 |U|^2 dU + U^2 conj(dU), at the three stages
@@ -322,14 +317,55 @@ def march_row(
             w0 = w0 + kw * (g1 + 4.0 * g2 + g3)
             du = [p + k12 * (x1 + 2.0 * x2) for p, x1, x2 in zip(ps, t1, t2)]
             dw = [w + kw * (x1 + 4.0 * x2 + x3) for w, x1, x2, x3 in zip(dw, t1, t2, t3)]
-        if kind == 1:
+        if idx < h:
             started = True
             w0 += jumps[idx]
-            if P and active[idx]:
+            if F and active[idx]:
                 dw[3 * idx + 1] += d_fx
                 dw[3 * idx + 2] += d_fy
                 du[3 * idx] += jumps[idx]
         else:
-            out_u[idx] = u0
-            out_j[idx] = list(du)
-    return out_u, out_j
+            out_u[idx - h] = u0
+            out_j[idx - h] = list(du)
+            if seeds:
+                out_w[idx - h] = dw[F:]
+    return out_u, out_j, out_w
+
+
+def curvature_and_jacobian(
+    query: torch.Tensor,
+    s: torch.Tensor,
+    f: torch.Tensor,
+    length: float,
+    bending_stiffness: float,
+    *,
+    mask: torch.Tensor | None = None,
+    jacobian: bool = True,
+    max_step_angle: float = ESTIMATION_STEP_ANGLE,
+    max_steps: int = 64,
+    backend: str | None = None,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """:func:`march` for torch tensors: float64 results on the inputs' device, no autograd.
+
+    ``backend``: ``"numpy"`` (CPU only) or ``"torch"``; default NumPy on the CPU, torch elsewhere. ``mask`` is
+    :func:`march`'s ``active``. Shapes and units as :func:`march`.
+    """
+    device = s.device
+    name = backend or ("numpy" if device.type == "cpu" else "torch")
+    xp: Backend = NUMPY if name == "numpy" else TorchBackend(device)
+    conv = lambda t, kind="float": None if t is None else xp.asarray(t.detach(), kind)
+    u, jac = march(
+        xp,
+        conv(query),
+        conv(s),
+        conv(f),
+        length,
+        bending_stiffness,
+        active=conv(mask, "bool"),
+        jacobian=jacobian,
+        step_angle=max_step_angle,
+        max_steps=max_steps,
+    )
+    back = lambda x: None if x is None else xp.to_torch(x, device).to(torch.float64)
+    return back(u), back(jac)
+

@@ -1,0 +1,138 @@
+"""The forward-sensitivity march and the event schedule every march shares."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import torchrod as tr
+import torchrod.model.sensitivity as sens
+from torchrod.backend import NUMPY, torch_backend
+from torchrod.model import schedule
+from torchrod.model.body_frame import integrate_curvature, march_curvature, step_counts
+from torchrod.model.sensitivity import curvature_and_jacobian, march, march_propagator
+
+F64 = torch.float64
+
+
+def test_sensitivity_matches_forward_model_and_autograd(rod, gen):
+    s = 0.03 + 0.26 * torch.rand(4, 3, dtype=F64, generator=gen)
+    f = 0.6 * torch.randn(4, 3, 2, dtype=F64, generator=gen)
+    q = rod.grating_positions()
+    u, J = curvature_and_jacobian(q, s, f, rod.length, rod.bending_stiffness, max_step_angle=0.02, max_steps=400)
+    ref = tr.simulate(rod, tr.PointForces(s, f)).grating_curvature
+    assert (u - ref).abs().max() < 1e-7 * ref.abs().max()
+
+    def fwd(s_, f_):
+        return integrate_curvature(q, tr.PointForces(s_, f_), rod.length, rod.bending_stiffness)[0]
+
+    Js, Jf = torch.autograd.functional.jacobian(fwd, (s, f))
+    Js = torch.stack([Js[b, :, :, b] for b in range(4)])  # (B, G, 2, h)
+    Jf = torch.stack([Jf[b, :, :, b] for b in range(4)])  # (B, G, 2, h, 2)
+    assert (J[..., 0] - Js).abs().max() < 1e-6 * Js.abs().max()
+    assert (J[..., 1:] - Jf).abs().max() < 1e-6 * Jf.abs().max()
+
+
+def test_sensitivity_padding_and_batch_independence(rod, gen):
+    s = 0.03 + 0.26 * torch.rand(12, 3, dtype=F64, generator=gen)
+    f = 0.6 * torch.randn(12, 3, 2, dtype=F64, generator=gen)
+    q = rod.grating_positions()
+    mask = torch.tensor([[True, True, False]] * 12)
+    u, J = curvature_and_jacobian(q, s, f, rod.length, rod.bending_stiffness, mask=mask)
+    u2, _J2 = curvature_and_jacobian(q, s[:, :2], f[:, :2], rod.length, rod.bending_stiffness)
+    # a padded force carries no load: its event only splits a segment (a discretisation change far below 1e-4)
+    assert (u - u2).abs().max() < 1e-4 * u.abs().max()
+    assert J[..., 2, :].abs().max() == 0.0  # and zero Jacobian columns
+    for b in range(12):  # each row's steps are its own: batching does not change a result
+        ub, Jb = curvature_and_jacobian(
+            q, s[b : b + 1], f[b : b + 1], rod.length, rod.bending_stiffness, mask=mask[b : b + 1]
+        )
+        assert torch.allclose(ub, u[b : b + 1], rtol=0, atol=1e-12)
+        assert torch.allclose(Jb, J[b : b + 1], rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("h", [1, 2, 3])
+def test_three_implementations_of_the_march_agree(rod, gen, monkeypatch, h):
+    """Python rows (small NumPy batches), NumPy arrays and torch tensors: one scheme, the same numbers, also with
+    padded forces, a force exactly on a grating, one at the tip and the step cap binding."""
+    B = 6
+    q = rod.grating_positions()
+    s = 0.03 + 0.26 * torch.rand(B, h, dtype=F64, generator=gen)
+    s[0, 0] = q[4]
+    s[1, -1] = rod.length
+    f = 1.5 * torch.randn(B, h, 2, dtype=F64, generator=gen)
+    mask = torch.rand(B, h, generator=gen) > 0.3
+    mask[:, 0] = True
+    for kwargs in ({}, {"mask": mask}, {"max_steps": 2}, {"jacobian": False}):
+        u1, J1 = curvature_and_jacobian(q, s, f, rod.length, rod.bending_stiffness, **kwargs)  # Python rows
+        monkeypatch.setattr(sens, "SCALAR_ROWS", 0)
+        u2, J2 = curvature_and_jacobian(q, s, f, rod.length, rod.bending_stiffness, **kwargs)  # NumPy arrays
+        u3, J3 = curvature_and_jacobian(q, s, f, rod.length, rod.bending_stiffness, backend="torch", **kwargs)
+        monkeypatch.setattr(sens, "SCALAR_ROWS", 8)
+        for u, Jx in ((u2, J2), (u3, J3)):
+            assert u1.shape == u.shape and (u1 - u).abs().max() <= 1e-12 * u.abs().max()
+            if Jx is None:
+                assert J1 is None
+            else:
+                assert J1.shape == Jx.shape and (J1 - Jx).abs().max() <= 1e-12 * Jx.abs().max()
+
+
+def test_a_grating_at_a_force_gives_the_distal_one_sided_derivative(rod):
+    """The schedule's tie-break (forces first): a grating exactly at a force sees it with zero lever, so its
+    derivative in s is the slope jump i (f_x + i f_y) / EI; the curvature itself does not depend on the order."""
+    q = rod.grating_positions()
+    fx, fy = 0.4, -0.7
+    s = torch.tensor([[q[6].item()]], dtype=F64)
+    f = torch.tensor([[[fx, fy]]], dtype=F64)
+    u, J = curvature_and_jacobian(q, s, f, rod.length, rod.bending_stiffness)
+    jump = torch.tensor([-fy, fx], dtype=F64) / rod.bending_stiffness
+    assert torch.allclose(J[0, 6, :, 0, 0], jump, rtol=1e-12)
+    assert u[0, 6].abs().max() == 0.0  # zero lever
+    assert J[0, 7:].abs().max() == 0.0  # distal gratings see nothing
+
+
+def test_the_propagator_gives_the_response_to_a_new_force(rod, gen):
+    """Phi(k) Phi(c)^-1 applied to a unit slope jump at c is the f-column of a zero force added at c."""
+    B, h = 3, 2
+    q = rod.grating_positions().numpy()
+    s = np.sort(0.05 + 0.24 * torch.rand(B, h, dtype=F64, generator=gen).numpy(), 1)
+    f = 0.6 * torch.randn(B, h, 2, dtype=F64, generator=gen).numpy()
+    cand = np.sort(0.02 + 0.27 * torch.rand(B, 5, dtype=F64, generator=gen).numpy(), 1)
+    G = q.shape[0]
+    query = np.concatenate([np.broadcast_to(q, (B, G)), cand], 1)
+    fine = {"step_angle": 0.02, "max_steps": 400}  # both marches converged: only the method is compared
+    _u, _J, phi = march_propagator(NUMPY, query, s, f, rod.length, rod.bending_stiffness, **fine)
+    ei = rod.bending_stiffness
+    for b in range(B):
+        for c in range(5):
+            s2 = np.concatenate([s[b : b + 1], [[cand[b, c]]]], 1)
+            f2 = np.concatenate([f[b : b + 1], [[[0.0, 0.0]]]], 1)
+            _, J = march(NUMPY, q, s2, f2, rod.length, ei, **fine)
+            col = J[0, :, :, h, 1]  # d/df_x of the zero force
+            M = np.linalg.solve(phi[b, G + c], np.array([0.0, 0.0, 0.0, 1.0 / ei]))
+            resp = np.array([phi[b, k, :2] @ M if q[k] < cand[b, c] else [0.0, 0.0] for k in range(G)])
+            assert np.abs(col - resp).max() <= 1e-6 * np.abs(col).max()
+
+
+def test_one_schedule_for_every_march(rod, gen):
+    """The simulator's step counts are the schedule's ``"bound"`` rule, the estimator's the ``"estimate"`` rule
+    on the same events; the array and Python-row simulators agree."""
+    s = 0.03 + 0.26 * torch.rand(8, 3, dtype=F64, generator=gen)
+    f = 1.2 * torch.randn(8, 3, 2, dtype=F64, generator=gen)
+    loads = tr.PointForces(s, f)
+    q = rod.grating_positions()
+    xp = torch_backend()
+    pos, order, seg = schedule.events(xp, q, s, rod.length)
+    fmag = torch.linalg.vector_norm(f, dim=-1) / rod.bending_stiffness
+    bound = schedule.step_counts(xp, s, fmag, pos, seg, step_angle=0.8, max_steps=64, rule="bound")
+    assert torch.equal(bound, step_counts(rod, loads))
+    jump = torch.complex(-f[..., 1], f[..., 0]) / rod.bending_stiffness
+    est = schedule.step_counts(xp, s, jump, pos, seg, step_angle=0.8, max_steps=64, rule="estimate")
+    assert not torch.equal(est, bound)  # two rules on one set of events
+    with pytest.raises(ValueError, match="rule"):
+        schedule.rates(xp, s, jump, pos, "guess")
+    ref = tr.simulate(rod, loads).grating_curvature.numpy()
+    rows = march_curvature(NUMPY, q.numpy(), s.numpy(), f.numpy(), rod.length, rod.bending_stiffness)
+    arrays = march_curvature(xp, q, s, f, rod.length, rod.bending_stiffness).numpy()
+    assert np.abs(rows - ref).max() < 1e-12 and np.abs(arrays - ref).max() < 1e-12

@@ -1,0 +1,99 @@
+"""The event schedule of a march: which events, in which order, and how many steps between them. ONE definition.
+
+Every march of the rod (the primal march and its discrete adjoint in :mod:`torchrod.model.body_frame`, the
+forward-sensitivity march of :mod:`torchrod.model.sensitivity` on arrays and on Python numbers) integrates from
+the free tip s = L towards the base through a sequence of events per sample: the query positions (gratings, sample
+points) and the force locations. This module fixes, for all of them:
+
+* the events and their order: sorted by position from the tip to the base; at equal positions a FORCE comes before
+  a QUERY (the query reads the state after the jump: it sees the force with zero lever). The curvature is
+  continuous at a force, so the order changes no value, only which one-sided derivative in s a tie yields: the
+  distal one (a grating at a force sees it move: dU_k/ds_i = the slope jump). The estimator turns it into the
+  proximal one where it needs that side (:mod:`torchrod.estimate.problem`);
+* the segments: segment e runs from the previous event (or the tip) to event e;
+* the step counts: ``ceil(rate x segment / step_angle)``, at least 1, at most ``max_steps``, where the rate is a
+  bound on the solution's local rate max(|U|, sqrt|m|) [1/m] at the segment's proximal end (the RKN error per
+  step is a function of rate x step). Two rules:
+
+  - ``"bound"`` (rigorous, the simulator's): |m| is constant between forces and jumps by at most |f_i| / EI at a
+    force, so |m| <= M = sum of the distal |f_i| / EI; |m|^2 = |U'|^2 + |U|^4 / 4 gives |U| <= sqrt(2 M), and
+    linear growth from the tip gives |U| <= sum_i |f_i| (s_i - s)^+ / EI;
+  - ``"estimate"`` (the estimator's): the same two terms with vector sums of the complex jumps
+    J_i = i (f_x + i f_y) / EI instead of sums of magnitudes, |sum_i J_i (s_i - s)^+| and sqrt|sum_i J_i|: opposed
+    forces cancel. It is the small-deflection solution's own rate, a quarter fewer steps for the same accuracy
+    over the synthetic envelope.
+
+A non-finite rate gives 1 step (NaN) or ``max_steps`` (inf). Every sample gets its own counts: a sample's result
+does not depend on the samples batched with it.
+
+The functions run on NumPy arrays and torch tensors alike (:mod:`torchrod.backend`); on tensors, the sorted
+positions and segments keep their autograd history (the step lengths are differentiable in s).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ..backend import Backend
+
+__all__ = ["RULES", "events", "rates", "step_counts"]
+
+RULES = ("bound", "estimate")
+
+
+def events(xp: Backend, query: Any, s: Any, length: float) -> tuple[Any, Any, Any]:
+    """Events sorted from the tip to the base.
+
+    Args:
+        query: (Q,) positions [m], or per row (B, Q); s: (B, h) force locations [m]; length: L [m].
+    Returns:
+        pos (B, E) sorted positions [m], order (B, E) with order < h a force's index and order >= h the query
+        ``order - h``, seg (B, E) segment lengths [m] (segment e ends at event e), E = h + Q.
+    """
+    B = s.shape[0]
+    Q = query.shape[-1]
+    pos = xp.concat([s, xp.expand(query, (B, Q)) if query.ndim == 1 else query], 1)
+    order = xp.argsort_desc(pos)
+    pos = xp.take(pos, order, 1)
+    start = xp.concat([pos[:, :1] * 0.0 + float(length), pos[:, :-1]], 1)  # in pos's dtype
+    seg = xp.clip(start - pos, lo=0.0)
+    return pos, order, seg
+
+
+def rates(xp: Backend, s: Any, jump: Any, pos: Any, rule: str) -> Any:
+    """(B, E) bound on the local rate [1/m] at each event's position (the module docstring).
+
+    Args:
+        s: (B, h) force locations [m]; pos: (B, E) event positions [m].
+        jump: ``"estimate"``: (B, h) complex slope jumps J_i = i (f_x + i f_y) / EI [1/m^2]; ``"bound"``: (B, h)
+            their magnitudes |f_i| / EI.
+    """
+    lib = xp.lib
+    lever = xp.clip(s[:, None, :] - pos[:, :, None], lo=0.0)  # (B, E, h) [m]
+    distal = lever > 0
+    if rule == "bound":
+        m = (jump[:, None, :] * distal).sum(-1)  # |m| <= M [1/m^2]
+        u = lib.minimum((jump[:, None, :] * lever).sum(-1), lib.sqrt(2.0 * m))
+        return lib.maximum(u, lib.sqrt(m))
+    if rule == "estimate":
+        j = jump[:, None, :]
+        return lib.maximum(abs((j * lever).sum(-1)), lib.sqrt(abs((j * distal).sum(-1))))
+    raise ValueError(f"rule must be one of {RULES}, got {rule!r}")
+
+
+def step_counts(
+    xp: Backend,
+    s: Any,
+    jump: Any,
+    pos: Any,
+    seg: Any,
+    *,
+    step_angle: float,
+    max_steps: int,
+    rule: str,
+) -> Any:
+    """(B, E) integer steps per segment: ``rate x seg / step_angle`` rounded up, in [1, max_steps]."""
+    lib = xp.lib
+    need = rates(xp, s, jump, pos, rule) * seg / step_angle
+    need = xp.where(need != need, 1.0, xp.clip(need, hi=float(max_steps)))  # NaN -> 1, inf -> max_steps
+    return xp.astype(xp.clip(lib.ceil(need), lo=1.0), "int")
