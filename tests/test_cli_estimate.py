@@ -246,7 +246,7 @@ def test_checkpoint_option(rod, tmp_path, capsys):
     capsys.readouterr()
     junk = tmp_path / "junk.pt"
     junk.write_text("not a checkpoint")
-    for bad, message in [(tmp_path / "missing.pt", "no such file"), (junk, "cannot load it")]:
+    for bad, message in [(tmp_path / "missing.pt", "no such file"), (junk, "not a readable checkpoint")]:
         assert main([*base, "--checkpoint", str(bad)]) == 2
         cap = capsys.readouterr()
         assert message in cap.err and cap.out == ""

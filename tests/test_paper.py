@@ -12,7 +12,7 @@ import torch
 import torchrod as tr
 from torchrod.cli import main
 from torchrod.estimate.estimator import Estimator, EstimatorOptions
-from torchrod.estimate.starts import GridStarts
+from torchrod.eval.grid_starts import GridStarts
 from torchrod.eval import paper as P
 
 

@@ -146,7 +146,7 @@ def test_bad_overrides_raise_at_once_and_an_unused_stream_reads_nothing(estimato
         yield {}
 
     with pytest.raises(ValueError, match="max_forces"):
-        stream(estimator, source(), max_forces=0)
+        stream(estimator, source(), max_forces=-1)
     with pytest.raises(TypeError):
         stream(estimator, source(), no_such_option=1)
     results = stream(estimator, source())

@@ -1,10 +1,11 @@
-"""Choosing the number of forces from the best loss of each count.
+"""Choosing the number of forces (0 included) from the best loss of each count, and when that choice is settled.
 
 The loss of a fit with h forces is ``loss_h = sum over present gratings of |u_model - u_measured|^2`` [1/m^2], with
-``n = 2 G_present`` residuals and ``3 h`` unknowns. Two rules:
+``n = 2 G_present`` residuals and ``3 h`` unknowns; ``loss_0`` is the reading's own energy (no force). Two rules:
 
 ``"threshold"`` (the paper's): the first h with ``loss_h < threshold``, else the largest h fitted. The threshold has
-    units of 1/m^2 and ignores the number of gratings and the noise (NOTES.md, erratum 4); kept to reproduce it.
+    units of 1/m^2 and ignores the number of gratings and the noise (docs/physics.md, erratum 4); kept to
+    reproduce it.
 
 ``"noise"`` (the default): nested likelihood-ratio tests, smallest h first. With Gaussian noise of known sigma,
     adding k forces to a model that already holds the true ones lowers the loss by ``sigma^2`` times a chi-square
@@ -16,114 +17,119 @@ The loss of a fit with h forces is ``loss_h = sum over present gratings of |u_mo
         loss_h - loss_h' <= sigma^2 chi2_{1 - alpha / G}(3 (h' - h)),
 
     and (a guard against gross misfit, when every fit is poor) ``loss_h <= sigma^2 chi2_{1 - alpha_fit}(n - 3h)``
-    with ``alpha_fit = alpha / 50``. The smallest accepted h wins; if none is, the largest fitted count.
-    With sigma unknown it is estimated from the largest fit, ``sigma^2 = loss_H / (n - 3 H)``, and the drop is
-    tested with the F law: ``((loss_h - loss_h') / (3 (h' - h))) / sigma^2 <= F_{1 - alpha / G}(3 (h' - h), n - 3H)``
-    (no misfit guard: the misfit is what estimates sigma).
+    with ``alpha_fit = alpha / MISFIT_FACTOR``. The smallest accepted h wins; if none is, the largest fitted count.
+    h = 0 is tested like any other count: a reading of pure noise is "no contact". With sigma unknown it is
+    estimated from the largest fit, ``sigma^2 = loss_H / (n - 3 H)``, and the drop is tested with the F law:
+    ``((loss_h - loss_h') / (3 (h' - h))) / sigma^2 <= F_{1 - alpha / G}(3 (h' - h), n - 3H)`` (no misfit guard:
+    the misfit is what estimates sigma).
 
 A one-force reading is therefore not split in two (a second force lowers the loss only by fitting noise), and two
-forces are kept apart whenever merging them raises the loss beyond what noise explains (the data decide: two
-forces closer than a grating interval, or a weak one, may be indistinguishable from one). sigma^2 is floored by
+forces are kept apart whenever merging them raises the loss beyond what noise explains. sigma^2 is floored by
 ``floor^2`` (added in quadrature): the forward model is exact only to the integrator's accuracy, so a noise-free
 reading must not demand a loss of exactly zero. Counts without degrees of freedom left (``3 h >= n``) are never
 accepted by a test and only chosen as the last resort.
 
-:func:`count_limits` exposes the same critical values, which the estimator also uses to stop fits early once a
-reading's count is decided.
+:func:`settled` tells, with the noise known, whether a count is decided before the next count is fitted, from the
+scan's promise of what one more force could gain (:mod:`.search`).
+
+Runs on either backend (:mod:`torchrod.backend`); the quantiles come from ``scipy.special`` (imported on first use)
+and are cached.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-
-import torch
-from scipy import stats
+from typing import Any
 
 __all__ = [
     "MISFIT_FACTOR",
     "RULES",
-    "choose_count",
-    "count_limits",
+    "chi2_quantile",
+    "chi2_survival",
+    "f_quantile",
     "misfit_limit",
-    "noise_quantile",
     "select_count",
+    "settled",
 ]
 
 RULES = ("noise", "threshold")
 
 MISFIT_FACTOR = 50.0
-"""The misfit guard runs at ``alpha / MISFIT_FACTOR``: it only rejects fits far worse than noise."""
+"""The count tests' misfit guard runs at ``alpha / MISFIT_FACTOR``: it only rejects fits far worse than noise."""
 
 
-def count_limits(
-    counts: list[int],
-    residuals: torch.Tensor,
-    *,
-    significance: float,
-    num_gratings: int,
-    dof_reference: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Critical values of the ``"noise"`` rule, in units of sigma^2.
+@functools.lru_cache(maxsize=8192)
+def chi2_quantile(p: float, dof: int) -> float:
+    """The p-quantile of the chi-square law with ``dof`` degrees of freedom (inf for dof <= 0)."""
+    if dof <= 0:
+        return math.inf
+    from scipy import special
 
-    Args:
-        counts: the C fitted counts, increasing.
-        residuals: (B,) residual count n of each reading.
-        significance: alpha.
-        num_gratings: G, the Bonferroni factor.
-        dof_reference: (B,) denominator degrees of freedom for the F law (sigma estimated); None: chi-square.
-    Returns:
-        drop (B, C, C): the largest allowed ``(loss_h - loss_h') / sigma^2`` for h = counts[i] against
-        h' = counts[j] > h (inf elsewhere); misfit (B, C): the largest allowed ``loss_h / sigma^2`` (inf when sigma
-        is estimated; -1 where 3h >= n).
-    """
-    B, C = residuals.shape[0], len(counts)
-    dtype, device = torch.float64, residuals.device
-    a = significance / max(1, num_gratings)
-    drop = torch.full((B, C, C), float("inf"), dtype=dtype)
-    for i, h in enumerate(counts):
-        for j, h2 in enumerate(counts):
-            if h2 <= h:
-                continue
-            d1 = 3 * (h2 - h)
-            if dof_reference is None:
-                drop[:, i, j] = _chi2_quantile(1.0 - a, d1)
-            else:
-                d2 = dof_reference.clamp(min=1).cpu().double().numpy()
-                drop[:, i, j] = torch.as_tensor(d1 * stats.f.ppf(1.0 - a, d1, d2), dtype=dtype)
-    n = residuals.cpu().to(dtype).unsqueeze(1) - 3.0 * torch.tensor(counts, dtype=dtype)
-    if dof_reference is None:
-        values = {int(r): [misfit_limit(int(r), h, significance) for h in counts] for r in residuals.tolist()}
-        misfit = torch.tensor([values[int(r)] for r in residuals.tolist()], dtype=dtype).view(B, C)
-    else:
-        misfit = torch.where(n > 0, torch.full_like(n, float("inf")), torch.full_like(n, -1.0))
-    return drop.to(device), misfit.to(device)
+    return float(special.chdtri(dof, 1.0 - p))
 
 
-@functools.lru_cache(maxsize=4096)
-def _chi2_quantile(p: float, dof: int) -> float:
-    return float(stats.chi2.ppf(p, dof))
+@functools.lru_cache(maxsize=8192)
+def f_quantile(p: float, d1: int, d2: int) -> float:
+    """The p-quantile of Fisher's F law with (d1, d2) degrees of freedom."""
+    from scipy import special
+
+    return float(special.fdtri(d1, max(d2, 1), p))
+
+
+def chi2_survival(x: Any, dof: Any) -> Any:
+    """P(chi2_dof > x), elementwise on NumPy arrays or floats (NaN where dof <= 0)."""
+    import numpy as np
+    from scipy import special
+
+    x, dof = np.asarray(x, dtype=np.float64), np.asarray(dof, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        return np.where(dof > 0, special.chdtrc(np.maximum(dof, 1.0), np.maximum(x, 0.0)), np.nan)
 
 
 def misfit_limit(residuals: int, h: int, significance: float) -> float:
-    """The misfit guard of the ``"noise"`` rule with known sigma: the largest allowed ``loss_h / sigma^2`` for h
-    forces fitted to ``residuals`` residuals (-1 where 3h >= residuals). Cached: the quantile is the same for
-    every reading with the same gratings present."""
-    q = noise_quantile(residuals, h, 1.0 - significance / MISFIT_FACTOR)
+    """The largest ``loss_h / sigma^2`` the count tests accept for h forces and ``residuals`` residuals (-1 where
+    3h >= residuals: never accepted)."""
+    q = chi2_quantile(1.0 - significance / MISFIT_FACTOR, residuals - 3 * h)
     return q if math.isfinite(q) else -1.0
 
 
-def noise_quantile(residuals: int, h: int, p: float) -> float:
-    """The p-quantile of ``loss_h / sigma^2`` for a correct fit of h forces to ``residuals`` residuals: chi-square
-    with residuals - 3h degrees of freedom (inf where there are none). Cached."""
-    dof = residuals - 3 * h
-    return _chi2_quantile(p, dof) if dof > 0 else math.inf
+def _limits(xp: Any, counts: list[int], residuals: Any, significance: float, num_gratings: int, dof_ref: Any):
+    """drop (B, C, C) in units of sigma^2 (inf where h' <= h) and misfit (B, C) limits (module docstring)."""
+    B, C = residuals.shape[0], len(counts)
+    a = significance / max(1, num_gratings)
+    n_list = xp.tolist(residuals)
+    drop = [[math.inf] * C for _ in range(C)]
+    for i, h in enumerate(counts):
+        for j, h2 in enumerate(counts):
+            if h2 > h and dof_ref is None:
+                drop[i][j] = chi2_quantile(1.0 - a, 3 * (h2 - h))
+    drop_arr = xp.expand(xp.asarray(drop)[None], (B, C, C))
+    if dof_ref is not None:
+        ref = xp.tolist(dof_ref)
+        rows = []
+        for b in range(B):
+            rows.append(
+                [
+                    [
+                        3 * (h2 - h) * f_quantile(1.0 - a, 3 * (h2 - h), int(ref[b])) if h2 > h else math.inf
+                        for h2 in counts
+                    ]
+                    for h in counts
+                ]
+            )
+        drop_arr = xp.asarray(rows)
+        misfit = xp.asarray([[math.inf if n - 3 * h > 0 else -1.0 for h in counts] for n in n_list])
+    else:
+        misfit = xp.asarray([[misfit_limit(int(n), h, significance) for h in counts] for n in n_list])
+    return drop_arr, misfit
 
 
 def select_count(
-    losses: torch.Tensor,
+    xp: Any,
+    losses: Any,
     counts: list[int],
-    residuals: torch.Tensor,
+    residuals: Any,
     *,
     rule: str = "noise",
     noise: float | None = None,
@@ -131,12 +137,13 @@ def select_count(
     significance: float = 0.05,
     floor: float = 0.0,
     num_gratings: int = 1,
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[Any, Any]:
     """The chosen count per reading, and the noise level used.
 
     Args:
-        losses: (B, C) best loss [1/m^2] for each of ``counts`` (increasing); NaN where a count was not fitted.
-        counts: the C counts, increasing (e.g. [1, 2, 3]).
+        xp: the backend of the arrays (:mod:`torchrod.backend`).
+        losses: (B, C) best loss [1/m^2] for each of ``counts`` (increasing, 0 allowed); NaN where not fitted.
+        counts: the C counts, increasing (e.g. [0, 1, 2, 3]).
         residuals: (B,) number of residuals n = 2 x (present gratings) of each reading.
         rule: ``"noise"`` or ``"threshold"``.
         noise: sensor sigma [1/m] per component; None: estimated per reading from the largest fit.
@@ -145,7 +152,7 @@ def select_count(
         floor: [1/m] added in quadrature to sigma (model accuracy).
         num_gratings: G, the Bonferroni factor of the tests.
     Returns:
-        chosen (B,) long (a value of ``counts``), and sigma (B,) [1/m]: the noise used (given or estimated from
+        chosen (B,) int (a value of ``counts``), and sigma (B,) [1/m]: the noise used (given or estimated from
         the largest fit, with the floor); for ``"threshold"`` without a given noise, the residual estimate of the
         chosen fit, ``sqrt(loss_h / (n - 3 h))``, floored.
     """
@@ -154,84 +161,78 @@ def select_count(
     if not 0.0 < significance < 1.0:
         raise ValueError(f"significance must lie in (0, 1), got {significance!r}")
     B, C = losses.shape
-    if C != len(counts) or list(counts) != sorted(set(counts)):
-        raise ValueError(f"counts must be increasing and match losses' {C} columns, got {counts}")
-    dtype, device = losses.dtype, losses.device
-    h = torch.tensor(counts, dtype=dtype, device=device)  # (C,)
-    n = residuals.to(dtype).unsqueeze(1)  # (B, 1)
+    if C != len(counts) or list(counts) != sorted(set(counts)) or min(counts) < 0:
+        raise ValueError(f"counts must be increasing, >= 0 and match losses' {C} columns, got {counts}")
+    lib = xp.lib
+    h = xp.asarray([float(c) for c in counts])  # (C,)
+    n = xp.astype(residuals, "float")[:, None]  # (B, 1)
     dof = n - 3.0 * h  # (B, C)
-    fitted = torch.isfinite(losses)
+    fitted = losses == losses
     floor2 = float(floor) ** 2
-    col = torch.arange(C, device=device)
-    last = (fitted.to(torch.long) * (col + 1)).argmax(dim=1)  # (B,) the largest fitted count's column
-
+    col = xp.arange(C)
+    last = xp.argmin(-(xp.astype(fitted, "int") * (col + 1)), 1)  # (B,) the largest fitted count's column
     if rule == "threshold":
         ok = fitted & (losses < threshold)
-        sigma2 = (
-            None
-            if noise is None
-            else torch.full((B,), float(noise) ** 2 + floor2, dtype=dtype, device=device)
-        )
+        sigma2 = None if noise is None else xp.full((B,), float(noise) ** 2 + floor2)
     else:
         if noise is not None:
-            sigma2 = torch.full((B,), float(noise) ** 2 + floor2, dtype=dtype, device=device)
-            drop, misfit = count_limits(
-                counts, residuals, significance=significance, num_gratings=num_gratings
-            )
+            sigma2 = xp.full((B,), float(noise) ** 2 + floor2)
+            drop, misfit = _limits(xp, counts, residuals, significance, num_gratings, None)
         else:
-            loss_H = losses.gather(1, last.unsqueeze(1)).squeeze(1)
-            dof_H = dof.gather(1, last.unsqueeze(1)).squeeze(1)
-            sigma2 = torch.where(dof_H > 0, loss_H / dof_H.clamp(min=1.0), torch.zeros_like(loss_H)) + floor2
-            drop, misfit = count_limits(
-                counts, residuals, significance=significance, num_gratings=num_gratings, dof_reference=dof_H
-            )
-        s2 = sigma2.view(B, 1, 1)
-        diff = losses.unsqueeze(2) - losses.unsqueeze(1)  # (B, C, C): loss_h - loss_h'
-        pair_ok = ~(diff > drop.to(dtype) * s2)  # NaN (unfitted h') passes
-        ok = fitted & pair_ok.all(dim=2) & (losses <= misfit.to(dtype) * sigma2.unsqueeze(1)) & (dof > 0)
-    first_ok = torch.where(ok.any(dim=1), ok.to(torch.long).argmax(dim=1), last)
-    chosen = h[first_ok].to(torch.long)
+            loss_H = xp.take(losses, last[:, None], 1)[:, 0]
+            dof_H = xp.take(dof, last[:, None], 1)[:, 0]
+            sigma2 = xp.where(dof_H > 0, loss_H / xp.clip(dof_H, lo=1.0), 0.0) + floor2
+            drop, misfit = _limits(xp, counts, residuals, significance, num_gratings, xp.clip(dof_H, lo=1.0))
+        s2 = sigma2[:, None, None]
+        diff = losses[:, :, None] - losses[:, None, :]  # (B, C, C): loss_h - loss_h'
+        pair_ok = ~(diff > drop * s2)  # NaN (unfitted h') passes
+        ok = fitted & xp.all(pair_ok, 2) & (losses <= misfit * sigma2[:, None]) & (dof > 0)
+    first = xp.where(xp.any(ok, 1), xp.argmin(-xp.astype(ok, "int"), 1), last)
+    chosen = xp.astype(h[first], "int")
     if sigma2 is None:
-        lc = losses.gather(1, first_ok.unsqueeze(1)).squeeze(1)
-        dc = dof.gather(1, first_ok.unsqueeze(1)).squeeze(1)
-        sigma2 = torch.where(dc > 0, lc / dc.clamp(min=1.0), torch.zeros_like(lc)) + floor2
-    return chosen, sigma2.sqrt()
+        lc = xp.take(losses, first[:, None], 1)[:, 0]
+        dc = xp.take(dof, first[:, None], 1)[:, 0]
+        sigma2 = xp.where(dc > 0, lc / xp.clip(dc, lo=1.0), 0.0) + floor2
+    return chosen, lib.sqrt(sigma2)
 
 
-def choose_count(
-    losses: list[float],
+def settled(
+    xp: Any,
+    losses: Any,
     counts: list[int],
-    residuals: int,
+    residuals: Any,
+    gain: Any,
     *,
     rule: str,
-    sigma2: float | None,
+    noise: float | None,
     threshold: float,
     significance: float,
+    floor: float,
     num_gratings: int,
-) -> int:
-    """:func:`select_count` for ONE reading on Python floats, where its critical values are known (a given sigma, or
-    the threshold rule): the index into ``counts`` of the chosen count. For the estimator's one-reading path, which
-    asks many times per reading whether its count is already decided.
-
-    Args:
-        losses: C best losses [1/m^2] for ``counts`` (NaN: not fitted); residuals: n = 2 x present gratings.
-        sigma2: the given sigma^2 with the floor [1/m^2] (required by the ``"noise"`` rule).
-        rule, threshold, significance, num_gratings: as in :func:`select_count`.
-    """
-    fitted = [not math.isnan(x) for x in losses]
-    last = max((i for i, ok in enumerate(fitted) if ok), default=0)
+    safety: float = 2.0,
+) -> Any:
+    """(B,) bool: readings whose count is decided among ``counts`` (all fitted, the last one the largest so far)
+    whatever the next count would reach, given ``gain`` (B,) [1/m^2], the loss decrease the scan promises for one
+    more force. The next count's loss is taken as ``loss_last - safety x gain`` (the Gauss-Newton promise is a
+    local estimate; ``safety`` covers its error). Only with a known noise or the threshold rule (with sigma
+    estimated from the largest fit, every count must be fitted): otherwise nothing is settled."""
+    B = losses.shape[0]
+    if rule == "noise" and noise is None:
+        return xp.zeros((B,), "bool")
     if rule == "threshold":
-        ok = [fit and x < threshold for fit, x in zip(fitted, losses)]
-    else:
-        if sigma2 is None:
-            raise ValueError("choose_count needs the noise (sigma2) with the 'noise' rule")
-        a = significance / max(1, num_gratings)
-        ok = []
-        for i, h in enumerate(counts):
-            good = fitted[i] and residuals - 3 * h > 0
-            good = good and losses[i] <= misfit_limit(residuals, h, significance) * sigma2
-            for j in range(i + 1, len(counts)):
-                if good and losses[i] - losses[j] > _chi2_quantile(1.0 - a, 3 * (counts[j] - h)) * sigma2:
-                    good = False  # a NaN (unfitted) larger count never rejects
-            ok.append(good)
-    return next((i for i, good in enumerate(ok) if good), last)
+        return xp.any((losses == losses) & (losses < threshold), 1)
+    nxt = xp.clip(losses[:, -1] - safety * gain, lo=0.0)
+    extended = xp.concat([losses, nxt[:, None]], 1)
+    chosen, _ = select_count(
+        xp,
+        extended,
+        counts + [counts[-1] + 1],
+        residuals,
+        rule=rule,
+        noise=noise,
+        threshold=threshold,
+        significance=significance,
+        floor=floor,
+        num_gratings=num_gratings,
+    )
+    return chosen <= counts[-1]

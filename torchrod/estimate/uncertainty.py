@@ -1,29 +1,35 @@
-"""Uncertainty of estimated forces: the Gauss-Newton covariance at the optimum.
+"""Uncertainty of estimated forces: the Gauss-Newton covariance at the optimum, and when the data cannot decide.
 
 Near the least-squares optimum the residuals are r(theta) ~ r* + J (theta - theta*), with J (n, 3h) the Jacobian of
 the present gratings' residuals w.r.t. every force's (s, f_x, f_y). With independent sensor noise of standard
 deviation sigma per component, the estimate's covariance is ``sigma^2 (J^T J)^-1``; its diagonal gives the
-per-force standard deviations of (s [m], f_x [N], f_y [N]). J comes from :func:`torchrod.sensitivity.
-curvature_and_jacobian` (forward sensitivities, batched).
+per-force standard deviations of (s [m], f_x [N], f_y [N]). J is the fit's own (:mod:`.problem`, one-sided at a
+grating the force sits on).
 
 The inverse is taken in scaled form: with D = diag(J^T J)^(-1/2), ``(J^T J)^-1 = D (D J^T J D)^-1 D``, and the
-eigenvalues of the unit-diagonal matrix D J^T J D measure identifiability independently of units. A reading is
-flagged ``poorly_determined`` when that matrix's condition number exceeds ``condition_limit`` (two forces that
-the gratings cannot tell apart, a force of near-zero magnitude whose location is free, fewer residuals than
-unknowns), or when a force lies distal to the last present grating (its location is then inferred only from the
-slope of the curvature proximal to it, and a force at the tip trades location against magnitude).
+eigenvalues of the unit-diagonal matrix D J^T J D measure identifiability independently of units. A fit is
+*poorly determined* (the data cannot tell its answer from others) when:
+
+* that matrix's condition number exceeds ``condition_limit`` (two forces the gratings cannot tell apart, a force
+  of near-zero magnitude whose location is free);
+* it has fewer residuals than unknowns, or the gratings that see its forces (those proximal to the most distal
+  force) leave fewer than three residuals beyond its unknowns: one more force there would fit as well, so the
+  count itself cannot be tested;
+* a force lies in the reading's first interval, between its first two present gratings: one grating sees it,
+  and its two components cannot separate the force's magnitude from its lever;
+* a force's location is uncertain by more than the interval it lies in (standard deviation above the interval's
+  length: the data cannot say between which gratings it acts);
+* a standard deviation is not finite (the linear algebra failed: guarded, never raised).
 """
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
+from typing import Any
 
-import torch
-
-from ..model.sensitivity import ESTIMATION_STEP_ANGLE, curvature_and_jacobian
-from ..rod import Rod
-
-__all__ = ["CONDITION_LIMIT", "Uncertainty", "force_uncertainty", "gauss_newton_covariance"]
+__all__ = ["CONDITION_LIMIT", "Uncertainty", "gauss_newton_covariance", "uncertainty"]
 
 CONDITION_LIMIT = 1e8
 """Default limit on the condition number of the unit-diagonal Gauss-Newton matrix."""
@@ -31,7 +37,7 @@ CONDITION_LIMIT = 1e8
 
 @dataclass(frozen=True)
 class Uncertainty:
-    """Gauss-Newton uncertainty of B estimates with up to h forces each.
+    """Gauss-Newton uncertainty of B fits with up to h forces each (backend arrays).
 
     Attributes:
         std: (B, h, 3) standard deviations of (s [m], f_x [N], f_y [N]); NaN for padded forces.
@@ -40,87 +46,102 @@ class Uncertainty:
         poorly_determined: (B,) bool (see the module docstring).
     """
 
-    std: torch.Tensor
-    covariance: torch.Tensor
-    condition: torch.Tensor
-    poorly_determined: torch.Tensor
+    std: Any
+    covariance: Any
+    condition: Any
+    poorly_determined: Any
 
 
-def gauss_newton_covariance(
-    jacobian: torch.Tensor, sigma: torch.Tensor, active: torch.Tensor | None = None
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``sigma^2 (J^T J)^-1`` per sample, over the active parameters.
+def gauss_newton_covariance(xp: Any, J: Any, sigma: Any, active: Any) -> tuple[Any, Any]:
+    """``sigma^2 (J^T J)^-1`` per sample over the active unknowns, guarded: a sample whose matrix is not finite or
+    whose eigensolver fails gets NaN and an infinite condition number (never an exception).
 
     Args:
-        jacobian: (B, n, P) residual Jacobian (rows of missing residuals zero).
+        J: (B, n, P) residual Jacobian (rows of missing residuals zero), any units per column.
         sigma: (B,) noise standard deviation per residual.
-        active: (B, P) bool, parameters to include (others get NaN); None: all.
+        active: (B, P) bool, unknowns to include (others get NaN).
     Returns:
-        covariance (B, P, P) and the condition number (B,) of the unit-diagonal normal matrix.
+        covariance (B, P, P) in the columns' units and the condition number (B,).
     """
-    B, _, P = jacobian.shape
-    dtype = jacobian.dtype
-    if active is None:
-        active = torch.ones(B, P, dtype=torch.bool, device=jacobian.device)
-    J = jacobian * active.unsqueeze(1).to(dtype)
-    A = J.transpose(1, 2) @ J  # (B, P, P)
-    diag = A.diagonal(dim1=1, dim2=2)
-    scale_ok = active & (diag > torch.finfo(dtype).tiny)
-    d = torch.where(scale_ok, diag.clamp(min=torch.finfo(dtype).tiny).rsqrt(), torch.zeros_like(diag))
-    C = A * d.unsqueeze(1) * d.unsqueeze(2)
-    # Inactive parameters: identity rows so the matrix stays invertible; they are NaN-ed below.
-    eye = torch.eye(P, dtype=dtype, device=jacobian.device)
-    C = torch.where((~active).unsqueeze(1) | (~active).unsqueeze(2), eye, C)
-    evals, evecs = torch.linalg.eigh(C)
+    lib = xp.lib
+    B, _, P = J.shape
+    if P == 0:  # no unknowns: nothing to be uncertain about
+        return xp.zeros((B, 0, 0)), xp.ones((B,))
+    act = xp.astype(active, "float")
+    # A row whose Jacobian is not finite (a diverged fit, an absurd reading) gets NaN: sanitised here, flagged below.
+    finite_rows = xp.all(xp.isfinite(J.reshape(B, -1)), 1)
+    J = xp.where(xp.isfinite(J), J, 0.0)
+    Jm = J * act[:, None, :]
+    A = xp.mT(Jm) @ Jm  # (B, P, P)
+    diag = xp.diagonal(A)
+    scale_ok = active & (diag > 1e-300) & xp.isfinite(diag)
+    d = xp.where(scale_ok, 1.0 / lib.sqrt(xp.clip(diag, lo=1e-300)), 0.0)
+    Cm = A * d[:, :, None] * d[:, None, :]
+    # Inactive unknowns: identity rows, so the matrix stays invertible; they are NaN-ed below.
+    inactive = ~scale_ok
+    eye = xp.eye(P)
+    Cm = xp.where(inactive[:, :, None] | inactive[:, None, :], xp.expand(eye, (B, P, P)), Cm)
+    evals, evecs, ok = xp.eigh(Cm)
     lo, hi = evals[:, 0], evals[:, -1]
-    eps = torch.finfo(dtype).eps
-    condition = torch.where(lo > eps * hi.abs(), hi / lo, torch.full_like(lo, float("inf")))
-    condition = torch.where((active & ~scale_ok).any(1), torch.full_like(condition, float("inf")), condition)
-    inv_evals = torch.where(evals > eps * hi.abs().unsqueeze(1), 1.0 / evals, torch.zeros_like(evals))
-    C_inv = (evecs * inv_evals.unsqueeze(1)) @ evecs.transpose(1, 2)
-    cov = C_inv * d.unsqueeze(1) * d.unsqueeze(2) * (sigma**2).view(-1, 1, 1)
-    bad = ~(active & scale_ok)
-    cov = cov.masked_fill(bad.unsqueeze(1) | bad.unsqueeze(2), float("nan"))
+    eps = 2.220446049250313e-16
+    condition = xp.where(ok & (lo > eps * abs(hi)), hi / xp.where(lo > 0, lo, 1.0), math.inf)
+    condition = xp.where(xp.any(active & ~scale_ok, 1), math.inf, condition)
+    inv = xp.where(evals > eps * abs(hi)[:, None], 1.0 / xp.where(evals != 0, evals, 1.0), 0.0)
+    C_inv = (evecs * inv[:, None, :]) @ xp.mT(evecs)
+    cov = C_inv * d[:, :, None] * d[:, None, :] * (sigma * sigma)[:, None, None]
+    ok = ok & finite_rows
+    condition = xp.where(finite_rows, condition, math.inf)
+    bad = ~(active & scale_ok) | ~ok[:, None]
+    cov = xp.where(bad[:, :, None] | bad[:, None, :], math.nan, cov)
     return cov, condition
 
 
-def force_uncertainty(
-    rod: Rod,
-    s: torch.Tensor,
-    f: torch.Tensor,
-    force_mask: torch.Tensor,
-    grating_mask: torch.Tensor,
-    sigma: torch.Tensor,
+def uncertainty(
+    xp: Any,
+    J: Any,
+    sigma: Any,
+    active: Any,
+    s: Any,
+    interval: Any,
+    interval_length: Any,
+    residuals: Any,
+    informative: Any,
     *,
+    length: float,
+    force_unit: float,
     condition_limit: float = CONDITION_LIMIT,
-    max_step_angle: float = ESTIMATION_STEP_ANGLE,
 ) -> Uncertainty:
-    """Gauss-Newton uncertainty of the forces (s, f) given as model locations (no location bias).
+    """Uncertainty and the poorly-determined verdict of B fits (module docstring).
 
     Args:
-        rod: the rod.
-        s: (B, h) [m], f: (B, h, 2) [N], force_mask: (B, h) bool (False: padding).
-        grating_mask: (B, G) bool, True where the grating was read.
-        sigma: (B,) noise standard deviation per curvature component [1/m].
-        condition_limit: flag readings whose unit-diagonal normal matrix is worse conditioned than this.
-        max_step_angle: accuracy of the forward model (:mod:`torchrod.sensitivity`).
-    Returns:
-        :class:`Uncertainty`.
+        J: (B, n, 3h) Jacobian in the scaled unknowns (s / L, f / F) of :mod:`.problem`; padded forces' columns
+            anything (they are inactive).
+        sigma: (B,) noise per curvature component [1/m].
+        active: (B, h) bool, real forces.
+        s: (B, h) locations [m]; interval: (B, h) their interval index; interval_length: (B, h) [m].
+        residuals: (B,) present residuals n; informative: (B,) those of the gratings proximal to the most
+            distal force.
+        length: L [m]; force_unit: F = EI / L^2 [N] (the scales of J's columns).
     """
-    B, h = s.shape
-    q = rod.grating_positions(s.dtype, s.device)
-    _, jac = curvature_and_jacobian(
-        q, s, f, rod.length, rod.bending_stiffness, mask=force_mask, max_step_angle=max_step_angle
+    B, h = active.shape
+    lib = xp.lib
+    act = xp.expand(active[:, :, None], (B, h, 3)).reshape(B, 3 * h)
+    cov, condition = gauss_newton_covariance(xp, J, sigma, act)
+    unit = xp.asarray([length, force_unit, force_unit] * h)
+    cov = cov * unit[None, :, None] * unit[None, None, :]
+    var = xp.diagonal(cov).reshape(B, h, 3)
+    std = lib.sqrt(xp.clip(var, lo=0.0))
+    std = xp.where(var == var, std, var)  # NaN stays NaN
+    count = xp.astype(active, "int").sum(1)
+    underdetermined = (residuals < 3 * count) | ((count > 0) & (informative - 3 * count < 3))
+    nonfinite = xp.any(active & ~xp.all(xp.isfinite(std), 2), 1)
+    one_grating = xp.any(active & (interval == 0), 1)
+    unplaced = xp.any(active & (std[..., 0] > interval_length), 1)
+    poorly = (
+        ~(condition <= condition_limit)
+        | underdetermined
+        | nonfinite
+        | one_grating
+        | unplaced
     )
-    jac = jac * grating_mask.to(s.dtype).view(B, -1, 1, 1, 1)
-    J = jac.reshape(B, -1, 3 * h)
-    active = force_mask.repeat_interleave(3, dim=1)
-    cov, condition = gauss_newton_covariance(J, sigma, active)
-    std = cov.diagonal(dim1=1, dim2=2).clamp(min=0.0).sqrt().reshape(B, h, 3)
-    last = torch.where(grating_mask, q, torch.full_like(q, -float("inf"))).amax(dim=1)  # (B,)
-    distal = (force_mask & (s > last.unsqueeze(1) + 1e-12)).any(dim=1)
-    residuals = 2 * grating_mask.sum(dim=1)
-    underdetermined = residuals < 3 * force_mask.sum(dim=1)
-    nonfinite = (~torch.isfinite(std) & force_mask.unsqueeze(-1)).any(dim=(1, 2))
-    poorly = ~(condition <= condition_limit) | distal | underdetermined | nonfinite
     return Uncertainty(std=std, covariance=cov, condition=condition, poorly_determined=poorly)

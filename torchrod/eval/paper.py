@@ -23,7 +23,7 @@ Baseline estimators (:func:`fit_forces`, :func:`paper_estimate`)
 
     The count: :func:`paper_estimate` fits h = 1, 2, ... until the loss drops below the paper's threshold 3.0
     (its rule, erratum 4 of NOTES.md), or fits a given count. Starts: the best candidate of torchrod's grid scan
-    (:class:`torchrod.starts.GridStarts`, small-deflection linear least squares), the same for every inner model.
+    (:class:`torchrod.eval.grid_starts.GridStarts`, small-deflection linear least squares), the same for every inner model.
 
 Readings and accuracy (:func:`paper_readings`, :func:`accuracy`)
     Shaped like the paper's experiments: for k = 1, 2, 3 forces, 13 cases whose (mean) locations are spread along
@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..estimate.starts import GridStarts
+from .grid_starts import GridStarts
 from ..loads import PointForces
 from ..model.body_frame import grating_curvature, simulate
 from ..model.global_bvp import BVPSolution, ShootingSolver

@@ -286,11 +286,13 @@ def save_checkpoint(
     train_config: Mapping[str, Any] | None = None,
     optimizer: Mapping[str, Any] | None = None,
     metrics: Mapping[str, float] | None = None,
+    quality: Mapping[str, float] | None = None,
 ) -> None:
     """Write a checkpoint that :func:`load_checkpoint` reads with ``weights_only=True``.
 
     It holds the network's config (layout and normalisation), its float32 weights, the torchrod version, the
-    training step and epoch, and optionally the training config, the optimiser state (to resume) and metrics.
+    training step and epoch, and optionally the training config, the optimiser state (to resume), metrics and the
+    held-back quality measured at the end of training (:data:`QUALITY_KEYS`, read by :func:`quality_verdict`).
     Written to a temporary file first and renamed, so an interrupted save never leaves a broken checkpoint.
     """
     from .. import __version__
@@ -310,6 +312,8 @@ def save_checkpoint(
         payload["optimizer"] = optimizer
     if metrics is not None:
         payload["metrics"] = {k: float(v) for k, v in metrics.items()}
+    if quality is not None:
+        payload["quality"] = {k: float(v) for k, v in quality.items()}
     path = os.fspath(path)
     folder = os.path.dirname(path)
     if folder:
@@ -584,3 +588,34 @@ class WarmStart:
             for h, (s, f) in enumerate(zip(out.s, out.f), start=1)
         }
         return WarmStartGuess(probs, forces)
+
+
+# ---------------------------------------------------------------------------------------------------- quality
+QUALITY_KEYS = ("count_accuracy", "force_error_median", "location_error_median", "readings", "noise")
+"""What a checkpoint records of its held-back quality (:func:`torchrod.learn.training.held_back_quality`): the
+network alone on readings it never saw, at noise ``noise`` [1/m]: the share of readings whose count it gets right,
+and over those, the median relative force error and the median location error [m]."""
+
+TRUSTED = {"count_accuracy": 0.90, "force_error_median": 0.05, "location_error_median": 0.002}
+"""A network whose recorded quality is at least this good (count accuracy at least, median errors at most) is
+called trusted: the estimator starts each count from its guesses alone and scans only for fits it finds suspicious.
+Below it :meth:`torchrod.Estimator.from_checkpoint` says once that the network is weak and uses its guesses beside
+its own scan, so a weak network cannot make results worse. The bar is set where trusting a network measured no loss
+of accuracy (docs/results.md, "The warm-start network")."""
+
+
+def quality_verdict(meta: Mapping[str, Any]) -> str:
+    """Why a checkpoint's network is weak ('' when its recorded quality meets :data:`TRUSTED`)."""
+    quality = meta.get("quality")
+    if not isinstance(quality, Mapping):
+        return "it records no held-back quality; record one with `torchrod train --evaluate CHECKPOINT --rod ROD`"
+    why = []
+    for key, limit in TRUSTED.items():
+        value = quality.get(key)
+        if not isinstance(value, (int, float)) or not math.isfinite(value):
+            why.append(f"no {key}")
+        elif key == "count_accuracy" and value < limit:
+            why.append(f"held-back count accuracy {value:.1%} < {limit:.0%}")
+        elif key != "count_accuracy" and value > limit:
+            why.append(f"held-back {key.replace('_', ' ')} {value:.3g} > {limit:g}")
+    return "; ".join(why)

@@ -16,16 +16,19 @@ rows of ``torchrod stream`` instead (``id, t, ux_1, uy_1, ...``; see ``torchrod 
 
 Each output line answers the input line in the same position::
 
-    {"id": "r1", "num_forces": 2, "forces": [{"s", "fx", "fy", "magnitude", "std_s", "std_fx", "std_fy"}, ...],
-     "loss", "converged", "iterations", "poorly_determined", "time_ms"}
+    {"id": "r1", "status": "ok", "num_forces": 2, "forces": [{"s", "fx", "fy", "magnitude", "std_s", "std_fx",
+     "std_fy"}, ...], "p_value", "loss", "converged", "iterations", "poorly_determined", "time_ms"}
 
-``forces`` sorted by s [m] (reported location: model location + the rod's location_bias), body-frame components
-[N], their Gauss-Newton standard deviations; ``loss`` the sum of squared curvature residuals [1/m^2];
-``time_ms`` the estimation time of the line's batch divided by its readings. The count is chosen among 1 to
-``--max-forces`` (or fixed by ``--num-forces``) by the rule of ``--selection``; with ``--noise`` (the sensor's sigma
+``status`` is the verdict on the answer: ``ok``; ``misfit`` (no set of forces of the counts considered explains the
+reading at the noise: check the sensor and the rod file, do not act on the forces); ``unconverged``; or
+``poorly_determined`` (the data cannot tell this answer from others; use the standard deviations). ``p_value`` is
+the chi-square p-value of the fit. ``num_forces`` 0 with ``forces`` [] means no contact. ``forces`` sorted by s [m]
+(reported location: model location + the rod's location_bias), body-frame components [N], their Gauss-Newton
+standard deviations; ``loss`` the sum of squared curvature residuals [1/m^2]; ``time_ms`` the estimation time of the
+line's batch divided by its readings. The count is chosen among 0 to ``--max-forces`` (or fixed by ``--num-forces``) by the rule of ``--selection``; with ``--noise`` (the sensor's sigma
 per component [1/m]) the tests know the noise, without it they estimate it from each reading (slower and weaker).
 ``--checkpoint PATH`` adds the starts of a trained warm-start network (as ``Estimator.from_checkpoint``: its
-guesses then replace the grid scan unless ``--starts`` is given); by default there is none.
+guesses are starts beside the scan's, so a weak network cannot make results worse); by default there is none.
 
 Every non-blank input line gets exactly one output line, in order, whatever it holds. A line that cannot be used
 (bad JSON, a wrong number of gratings, a non-numeric, non-finite or out-of-bound value, all gratings missing, an id
@@ -72,7 +75,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rod", required=True, help="rod JSON file or preset name (e.g. nitinol290)")
     count = parser.add_mutually_exclusive_group()
     count.add_argument(
-        "--max-forces", type=int, default=3, metavar="H", help="choose the count in 1..H (default 3)"
+        "--max-forces", type=int, default=3, metavar="H", help="choose the count in 0..H (default 3)"
     )
     count.add_argument("--num-forces", type=int, metavar="N", help="fit exactly N forces")
     parser.add_argument(
@@ -89,7 +92,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--starts",
         type=int,
         default=None,
-        help=f"grid starts per count (default {EstimatorOptions.starts}; 0 with --checkpoint)",
+        help=f"scan starts per count (default {EstimatorOptions.starts}; 0: only the network's, with --checkpoint)",
     )
     parser.add_argument(
         "--checkpoint",
@@ -118,24 +121,16 @@ def check_counts(args: argparse.Namespace) -> None:
             raise ValueError(f"--{option.replace('_', '-')} must be >= 0, got {value}")
 
 
-def options_from_args(args: argparse.Namespace, network: Any = None) -> EstimatorOptions:
-    """The :class:`EstimatorOptions` the command-line arguments ask for (``ValueError`` for bad values).
-
-    With a warm-start ``network`` that proposes every count asked for, the grid scan is skipped (``starts=0``)
-    unless ``--starts`` is given, as in ``Estimator.from_checkpoint``.
-    """
-    starts = args.starts
-    if starts is None:
-        largest = args.num_forces if args.num_forces is not None else args.max_forces
-        covered = network is not None and network.max_forces >= largest
-        starts = 0 if covered else EstimatorOptions.starts
+def options_from_args(args: argparse.Namespace) -> EstimatorOptions:
+    """The :class:`EstimatorOptions` the command-line arguments ask for (``ValueError`` for bad values). A network
+    (``--checkpoint``) adds its guesses beside the scan's starts, as in ``Estimator.from_checkpoint``."""
     return EstimatorOptions(
         max_forces=args.max_forces,
         num_forces=args.num_forces,
         noise=args.noise,
         selection=args.selection,
         threshold=args.threshold,
-        starts=starts,
+        starts=EstimatorOptions.starts if args.starts is None else args.starts,
     )
 
 
@@ -144,19 +139,23 @@ def load_network(checkpoint: str | None, rod: Rod) -> Any:
     it cannot be used (missing, not a checkpoint, another grating layout)."""
     if checkpoint is None or checkpoint.lower() == "none":
         return None
-    from ...learn.warm_start import WarmStart
+    from ...learn.warm_start import WarmStart, quality_verdict
 
-    if not os.path.isfile(checkpoint):
+    if not os.path.exists(checkpoint):
         raise ValueError(f"--checkpoint {checkpoint}: no such file (give a checkpoint file, or 'none')")
     try:
-        return WarmStart.load(checkpoint, rod)
-    except ValueError as exc:
-        raise ValueError(f"--checkpoint {checkpoint}: {exc}") from None
+        network = WarmStart.load(checkpoint, rod)  # its errors name the file and what is wrong
     except Exception as exc:  # noqa: BLE001 - an unreadable file is a bad option, not a crash
+        if isinstance(exc, ValueError):
+            raise
         raise ValueError(
-            f"--checkpoint {checkpoint}: cannot load it as a warm-start checkpoint ({type(exc).__name__}: "
-            f"{str(exc)[:200]})"
+            f"{checkpoint}: cannot load it as a warm-start checkpoint ({type(exc).__name__}: {str(exc)[:200]})"
         ) from None
+    weak = quality_verdict(network.meta)
+    if weak:
+        print(f"torchrod: the warm-start network {checkpoint} is weak ({weak}); its guesses are used beside the "
+              "scan's starts", file=sys.stderr)
+    return network
 
 
 def run(args: argparse.Namespace) -> int:
@@ -175,7 +174,7 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError(f"--starts must be >= 0, got {args.starts}")
     check_input(args.readings, "READINGS")
     network = load_network(args.checkpoint, rod)
-    estimator = Estimator(rod, options_from_args(args, network), warm_start=network)
+    estimator = Estimator(rod, options_from_args(args), warm_start=network)
     device = torch.device(args.device)
     readings = ReadingSource(args.readings, rod.num_gratings, rod.gratings, args.format)
     from tqdm import tqdm

@@ -21,14 +21,14 @@ component at most 1e6 1/m in magnitude, ids that JSON can echo.
 
 Output: one JSON line per input line, in input order, each written and flushed as soon as its batch is solved::
 
-    {"id", "num_forces", "forces": [{"s", "fx", "fy", "magnitude", "std_s", "std_fx", "std_fy"}, ...], "loss",
-     "converged", "iterations", "poorly_determined", "t", "latency_ms"}
+    {"id", "status", "num_forces", "forces": [{"s", "fx", "fy", "magnitude", "std_s", "std_fx", "std_fy"}, ...],
+     "p_value", "loss", "converged", "iterations", "poorly_determined", "t", "latency_ms"}
 
 (the fields of ``torchrod estimate``; ``t`` echoed when given; ``latency_ms`` from the moment the line was read to
 its answer). Readings are solved in batches of up to ``--batch-size``, a batch closing when the oldest reading in it
-has waited ``--max-latency-ms``. Each reading starts from the warm-start network's guess, the grid scan, and the
-previous reading's solution (with the network, the grid scan is skipped, as in ``Estimator.from_checkpoint``);
-the number of forces is chosen among 1..``--max-forces`` (``--noise``: the sensor's
+has waited ``--max-latency-ms``. Each reading starts from the scan of the estimator, the warm-start network's guess
+and the previous reading's solution (as in ``Estimator.from_checkpoint``, a network adds starts, never replaces the
+scan); the number of forces is chosen among 0..``--max-forces`` (``--noise``: the sensor's
 sigma [1/m]; without it the noise is estimated per reading). ``--checkpoint`` defaults to the shipped
 ``checkpoints/nitinol290.pt`` when the rod's grating layout matches it, else the stream runs without a network (said
 once on stderr); ``--checkpoint none`` turns the network off. ``--out FILE`` writes the answers to FILE.
@@ -53,7 +53,6 @@ reading is then the cost of estimation.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import sys
@@ -61,6 +60,7 @@ import time
 from typing import Any
 
 from ...estimate.estimator import Estimator, EstimatorOptions
+from ...estimate.lm import LMPolicy
 from ...io.jsonl import (
     LineWriter,
     check_input,
@@ -104,16 +104,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--max-latency-ms", type=float, default=20.0, metavar="MS", help="longest wait for a batch (20 ms)"
     )
-    parser.add_argument("--max-forces", type=int, default=3, metavar="H", help="choose the count in 1..H (3)")
+    parser.add_argument("--max-forces", type=int, default=3, metavar="H", help="choose the count in 0..H (3)")
     parser.add_argument(
         "--noise", type=float, metavar="SIGMA", help="sensor noise sigma [1/m]; default: estimated"
     )
     parser.add_argument(
-        "--polish",
+        "--iterations",
         type=int,
-        default=EstimatorOptions.polish,
+        default=LMPolicy.iterations,
         metavar="STEPS",
-        help="Levenberg-Marquardt steps before L-BFGS (default %(default)s; 12 about halves the time per reading)",
+        help="most Levenberg-Marquardt steps per fit before L-BFGS takes over (default %(default)s)",
     )
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     parser.add_argument("--summary", action="store_true", help="a short summary on stderr at the end")
@@ -185,10 +185,10 @@ def _run(args: argparse.Namespace) -> int:
     truth = load_truth(args.truth) if args.truth is not None else None
     check_input(args.input, "--input")
     network = _warm_start(args, rod)
-    options = EstimatorOptions(max_forces=args.max_forces, noise=args.noise, polish=args.polish)
-    if network is not None and network.max_forces >= args.max_forces:
-        # As Estimator.from_checkpoint: the network's guesses replace the grid scan.
-        options = dataclasses.replace(options, starts=0)
+    if args.iterations < 0:
+        raise ValueError(f"--iterations must be >= 0, got {args.iterations}")
+    # As Estimator.from_checkpoint: the network's guesses are starts beside the scan's.
+    options = EstimatorOptions(max_forces=args.max_forces, noise=args.noise, lm=LMPolicy(iterations=args.iterations))
     estimator = Estimator(rod, options, warm_start=network)
     options = StreamOptions(batch_size=args.batch_size, max_latency=args.max_latency_ms / 1e3)
     # Warm-up before the first reading: per-rod caches and first-call costs would otherwise land on its latency.

@@ -1,6 +1,12 @@
-"""Starting points for the refinement without a network: a grid scan of locations with linear least squares.
+"""The paper tools' common start: a grid scan of location sets with linear least squares.
 
-With the locations fixed, the small-deflection curvature is linear in the forces (NOTES.md, the sanity check):
+The baselines of :mod:`torchrod.eval.paper` (the paper's node method, BVP + Levenberg-Marquardt, BVP + derivative
+propagation) all start from these guesses, so that their timings compare the inner models and not the starts. (The
+estimator itself starts from the sequential scan of :mod:`torchrod.estimate.search`, whose cost grows linearly
+with the number of gratings; this one enumerates location sets, which is affordable for the paper's 14 gratings and
+at most three forces.)
+
+With the locations fixed, the small-deflection curvature is linear in the forces (docs/physics.md, the sign check):
 
     U(s_k) = u_x + i u_y = sum_i (s_i - s_k)^+ c_i / EI,    c_i = i (f_x,i + i f_y,i) = -f_y,i + i f_x,i,
 

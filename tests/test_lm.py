@@ -1,0 +1,174 @@
+"""The least-squares problem and its solvers: intervals, one-sided derivatives at gratings, the Levenberg-Marquardt
+policy on two backends, the exact-model finish, L-BFGS for what the LM leaves open, the scan."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+import torchrod as tr
+from torchrod.backend import NUMPY, torch_backend
+from torchrod.estimate import lm, search
+from torchrod.estimate.finish import refine_open
+from torchrod.estimate.problem import Fits, evaluate, exact_residual, interval_of, make_problem, sided
+from torchrod.estimate.refine import LBFGSOptions
+
+F64 = torch.float64
+BACKENDS = [NUMPY, torch_backend()]
+
+
+def problem_for(xp, rod, curvature, present=None, noise=0.0):
+    B, G = curvature.shape[:2]
+    present = torch.ones(B, G, dtype=torch.bool) if present is None else present
+    u = torch.where(present.unsqueeze(-1), curvature, 0.0)
+    return make_problem(
+        xp,
+        rod.length,
+        rod.bending_stiffness,
+        rod.gratings,
+        xp.asarray(u),
+        xp.asarray(present, "bool"),
+        noise2=xp.full((B,), noise**2 + 1e-6),
+        floor2=1e-6,
+        step_angle=0.3,
+        max_steps=12,
+    )
+
+
+def fits_at(xp, problem, s, f):
+    reading = xp.arange(len(s))
+    j, s = interval_of(problem, reading, xp.asarray(s))
+    return Fits(reading, s, xp.asarray(f), j)
+
+
+def clean(rod, s, f):
+    return tr.simulate(rod, tr.PointForces(torch.tensor(s, dtype=F64), torch.tensor(f, dtype=F64))).grating_curvature
+
+
+@pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)
+def test_intervals_of_a_reading_with_missing_gratings(rod, xp):
+    present = torch.ones(1, rod.num_gratings, dtype=torch.bool)
+    present[0, [0, 5]] = False  # 10 mm and 110 mm missing
+    problem = problem_for(xp, rod, torch.zeros(1, rod.num_gratings, 2, dtype=F64), present)
+    m = int(xp.tolist(problem.intervals)[0])
+    assert m == 12
+    lo, hi = np.asarray(xp.tolist(problem.lo))[0, :m], np.asarray(xp.tolist(problem.hi))[0, :m]
+    assert lo[0] == pytest.approx(0.03) and hi[-1] == pytest.approx(rod.length)
+    assert hi[3] == pytest.approx(0.13) and lo[3] == pytest.approx(0.09)  # [90, 130] mm across the missing 110
+    # a location proximal to the first present grating moves onto it; one on a grating takes the interval above
+    j, s = interval_of(problem, xp.asarray([0], "int"), xp.asarray([[0.02, 0.13]]))
+    assert xp.tolist(j) == [[0, 4]] and np.allclose(xp.tolist(s), [[0.03, 0.13]])
+
+
+def test_sided_jacobian_at_a_grating(rod):
+    """A force on its interval's upper bound (proximal to that grating) does not bend the grating; on its lower
+    bound it does, with the slope jump as derivative."""
+    xp = NUMPY
+    q = rod.gratings[6]
+    u = clean(rod, [[q]], [[[0.5, 0.2]]])
+    problem = problem_for(xp, rod, u)
+    upper = Fits(xp.asarray([0], "int"), xp.asarray([[q]]), xp.asarray([[[0.5, 0.2]]]), xp.asarray([[5]], "int"))
+    lower = dataclasses.replace(upper, interval=xp.asarray([[6]], "int"))
+    _, J = evaluate(problem, upper)
+    Ju, Jl = sided(problem, upper, J), sided(problem, lower, J)
+    row = 2 * 6  # grating 6's two residuals
+    assert np.all(Ju[0, row : row + 2, 0] == 0.0)
+    jump = np.array([-0.2, 0.5]) / rod.bending_stiffness * rod.length  # scaled unknown s / L
+    assert np.allclose(Jl[0, row : row + 2, 0], jump, rtol=1e-12)
+
+
+@pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)
+def test_lm_crosses_gratings_to_the_optimum(rod, xp):
+    """From starts two intervals off, the policy's crossings carry each force across the gratings to the truth,
+    and the exact-model finish lands on it to 1e-9."""
+    s_true, f_true = [[0.123, 0.217]], [[[0.8, -0.3], [-0.5, 0.9]]]
+    problem = problem_for(xp, rod, clean(rod, s_true, f_true))
+    start = fits_at(xp, problem, [[0.085, 0.255]], [[[0.2, 0.1], [0.1, 0.3]]])
+    state = lm.finish(problem, lm.LMPolicy(), lm.solve(problem, lm.LMPolicy(), start))
+    assert bool(xp.all(state.converged))
+    assert np.allclose(xp.tolist(state.fits.s), s_true, atol=1e-9)
+    assert np.allclose(xp.tolist(state.fits.f), f_true, atol=1e-8)
+    assert xp.tolist(state.fits.interval) == [[5, 10]]
+
+
+def test_the_two_backends_take_the_same_steps(rod, gen):
+    s = 0.05 + 0.24 * torch.rand(6, 2, dtype=F64, generator=gen)
+    f = 0.8 * torch.randn(6, 2, 2, dtype=F64, generator=gen)
+    u = tr.simulate(rod, tr.PointForces(s, f)).grating_curvature + 0.1 * torch.randn(
+        6, rod.num_gratings, 2, dtype=F64, generator=gen
+    )
+    start_s = (s + 0.02).clamp(max=rod.length).tolist()
+    start_f = (0.5 * f).tolist()
+    out = []
+    for xp in BACKENDS:
+        problem = problem_for(xp, rod, u, noise=0.1)
+        st = lm.solve(problem, lm.LMPolicy(), fits_at(xp, problem, start_s, start_f))
+        out.append([np.asarray(xp.tolist(x)) for x in (st.fits.s, st.fits.f, st.loss, st.steps, st.converged)])
+    for a, b in zip(*out):
+        assert np.allclose(a, b, rtol=1e-9, atol=1e-12)
+
+
+def test_a_kink_minimum_holds_the_force_on_the_grating(rod):
+    """A clean reading of a force exactly on a grating: the optimum is on the loss's kink, where no gradient
+    vanishes; the fit converges onto it (within the kink radius, 1 um) and is known to sit there."""
+    xp = NUMPY
+    q = rod.gratings[8]
+    problem = problem_for(xp, rod, clean(rod, [[q]], [[[0.4, -0.6]]]))
+    st = lm.solve(problem, lm.LMPolicy(), fits_at(xp, problem, [[q + 0.006]], [[[0.3, -0.5]]]))
+    assert bool(st.converged[0]) and abs(st.fits.s[0, 0] - q) < 1e-6
+    assert bool(search.on_kink(problem, st.fits)[0])
+
+
+def test_failed_linear_algebra_is_data_not_an_exception(rod):
+    """A reading holding 1e300: the fit's residuals overflow; the solver reports a non-finite loss, stops, and
+    raises nothing."""
+    xp = NUMPY
+    u = clean(rod, [[0.2]], [[[0.5, 0.2]]])
+    u[0, 3, 0] = 1e300
+    problem = problem_for(xp, rod, u)
+    with np.errstate(all="ignore"):
+        st = lm.solve(problem, lm.LMPolicy(), fits_at(xp, problem, [[0.2]], [[[0.5, 0.2]]]))
+    assert bool(st.done[0]) and not bool(st.converged[0])
+
+
+def test_lbfgs_finishes_what_the_lm_budget_leaves_open(rod):
+    """Three Levenberg-Marquardt steps are not enough from a far start; the L-BFGS refinement of the open rows
+    lowers their loss and the policy's stopping test then judges them again."""
+    xp = NUMPY
+    s_true, f_true = [[0.14, 0.24]], [[[0.9, 0.2], [-0.4, 0.6]]]
+    problem = problem_for(xp, rod, clean(rod, s_true, f_true))
+    policy = lm.LMPolicy(iterations=3)
+    st = lm.solve(problem, policy, fits_at(xp, problem, [[0.13, 0.25]], [[[0.1, 0.1], [0.1, 0.1]]]))
+    assert not bool(st.converged[0])
+    done = refine_open(problem, policy, LBFGSOptions(max_iter=60, tolerance_grad=1e-12), st)
+    assert float(done.loss[0]) < 1e-3 * float(st.loss[0])
+    assert int(done.steps[0]) > int(st.steps[0])
+
+
+def test_exact_residual_is_the_simulator(rod, gen):
+    xp = NUMPY
+    s = 0.05 + 0.24 * torch.rand(3, 2, dtype=F64, generator=gen)
+    f = torch.randn(3, 2, 2, dtype=F64, generator=gen)
+    u = tr.simulate(rod, tr.PointForces(s, f)).grating_curvature
+    problem = problem_for(xp, rod, u)
+    r = exact_residual(problem, fits_at(xp, problem, s.tolist(), f.tolist()))
+    assert np.abs(r).max() < 1e-12
+    r_fast, _ = evaluate(problem, fits_at(xp, problem, s.tolist(), f.tolist()))
+    assert 1e-9 < np.abs(r_fast).max() < 1e-3 * np.abs(u.numpy()).max()  # the fitting model: 4th order
+
+
+@pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)
+def test_the_scan_finds_where_a_force_is_missing(rod, xp):
+    """From the right one-force fit of a two-force reading, the scan's best interval for the second force is the
+    true one, and its promised gain is most of the one-force fit's loss."""
+    s_true, f_true = [[0.115, 0.237]], [[[0.6, 0.0], [0.0, 0.7]]]
+    problem = problem_for(xp, rod, clean(rod, s_true, f_true))
+    # the best one-force fit
+    one = lm.finish(problem, lm.LMPolicy(), lm.solve(problem, lm.LMPolicy(), fits_at(xp, problem, [[0.2]], [[[0.3, 0.3]]])))
+    sc = search.scan(problem, one.fits, per_interval=2, top=3, trust=10.0)
+    new_s = float(xp.tolist(sc.starts.s[0, -1]))
+    assert 0.23 <= new_s <= 0.25 or 0.11 <= new_s <= 0.13
+    assert float(xp.tolist(sc.gain)[0]) > 0.5 * float(xp.tolist(one.loss)[0])

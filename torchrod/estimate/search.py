@@ -1,0 +1,553 @@
+"""Where to start the fits of h forces, and how to leave a wrong local minimum: the scan, the starts, the exchange.
+
+The loss of a fit is smooth inside each force's grating interval and has kinks between them (:mod:`.problem`), and
+for h >= 2 it has local minima that differ in which intervals the forces occupy. The search finds the global
+minimum of each count from the one below it, with work linear in the number of gratings:
+
+* **Scan** (:func:`scan`). Given a fit of h - 1 forces (for h = 1, no force), the Gauss-Newton model of adding one
+  more force at a candidate location c, with every unknown of the fit free to adjust, promises a loss decrease
+  (its decrement: the score statistic for a force at c). Candidates sit at ``per_interval`` points inside each
+  interval of the reading; their responses come from ONE march of the fit with the propagator of the linearised
+  rod equation (:func:`torchrod.model.sensitivity.march_propagator`), so the scan costs one march and a small
+  linear solve per candidate: O(G) candidates, each O(G). The best candidate of each interval is ranked by its
+  decrement, and the ``top`` best intervals become starts: the fit moved by the Gauss-Newton step with the new
+  force at c.
+* **Exchange** (:func:`exchange`). A fit whose loss is worse than a correct fit's typically is (noise known:
+  above the ``suspect`` quantile of the chi-square law; noise unknown: always), or that holds a force on a grating
+  (a kink of the loss, where the loss rises on both sides: true forces seldom sit exactly on a grating, wrong local
+  minima often do), may hold one force in a wrong interval. For each of its forces in turn, the force is removed and the scan re-places it among all intervals; the
+  best re-placement that lowers the loss replaces the fit. Repeated while it helps (at most ``rounds``).
+
+Rows are laid out in blocks of B (one row per reading), so the best row of each reading is a minimum over the
+block axis (:func:`best_of`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from . import lm
+from .finish import refine_open
+from .problem import KINK, Fits, Problem, evaluate, sided
+from .refine import LBFGSOptions
+
+__all__ = ["SearchOptions", "best_of", "exchange", "scan"]
+
+
+@dataclass(frozen=True)
+class Solver:
+    """How a set of starts is fitted: the Levenberg-Marquardt policy (:mod:`.lm`), then L-BFGS (:mod:`.finish`)
+    for the fits it leaves open (None: not)."""
+
+    policy: lm.LMPolicy
+    lbfgs: LBFGSOptions | None = None
+
+    def solve(self, problem: Problem, fits: Fits | lm.LMState) -> lm.LMState:
+        state = lm.solve(problem, self.policy, fits)
+        return state if self.lbfgs is None else refine_open(problem, self.policy, self.lbfgs, state)
+
+
+@dataclass(frozen=True)
+class SearchOptions:
+    """How starts are found (module docstring).
+
+    Attributes:
+        per_interval: scan candidates per grating interval.
+        top: intervals tried per count (starts from the scan).
+        exchange_top: re-placements tried per exchange round: those the scan promises the lowest loss from, over
+            every removed force.
+        rounds: at most this many exchange rounds per count.
+        explore: steps a start of the wider search takes before it is dropped, unless its loss has fallen below
+            the fit it tries to beat (then it is fitted to the end).
+        suspect: a fit with known noise is searched further (its other starts, the exchange) when its loss
+            exceeds this quantile of the chi-square law of a correct fit's loss; kink_suspect: the same for a fit
+            with a force on a grating.
+        hopeless: a count below the chosen one is not searched further when its loss exceeds this many times the
+            count tests' misfit limit (no local minimum of it would be accepted).
+    """
+
+    per_interval: int = 2
+    top: int = 3
+    exchange_top: int = 2
+    rounds: int = 2
+    explore: int = 8
+    suspect: float = 0.95
+    kink_suspect: float = 0.5
+    hopeless: float = 10.0
+
+    def __post_init__(self) -> None:
+        for name in ("per_interval", "top", "exchange_top", "explore"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+        if isinstance(self.rounds, bool) or not isinstance(self.rounds, int) or self.rounds < 0:
+            raise ValueError(f"rounds must be an integer >= 0, got {self.rounds!r}")
+        for name in ("suspect", "kink_suspect"):
+            if not 0.0 < float(getattr(self, name)) < 1.0:
+                raise ValueError(f"{name} must lie in (0, 1), got {getattr(self, name)!r}")
+        if not float(self.hopeless) >= 1.0:
+            raise ValueError(f"hopeless must be >= 1, got {self.hopeless!r}")
+
+
+@dataclass(frozen=True)
+class Scan:
+    """The result of :func:`scan` for R0 base fits.
+
+    Attributes:
+        starts: Fits of h forces, ``top`` blocks of R0 rows (block t holds each base row's t-th best interval).
+        gain: (R0,) the largest decrement over all candidates [1/m^2]: the loss decrease the best added force
+            promises (0 where no candidate could be scored).
+        predicted: (top, R0) the loss each start's Gauss-Newton model promises [1/m^2] (inf: no such start).
+    """
+
+    starts: Fits
+    gain: Any
+    predicted: Any = None
+
+
+def _candidates(problem: Problem, reading: Any, per_interval: int) -> tuple[Any, Any, Any]:
+    """Candidate locations (R0, C) [m], their intervals (R0, C) and validity (R0, C), C = per_interval x G."""
+    xp = problem.xp
+    lo, hi = problem.lo[reading], problem.hi[reading]  # (R0, G)
+    R0, G = lo.shape
+    frac = xp.asarray([(k + 0.5) / per_interval for k in range(per_interval)])  # (K,)
+    s = (lo[:, :, None] + (hi - lo)[:, :, None] * frac).reshape(R0, G * per_interval)
+    j = xp.expand(xp.arange(G)[:, None], (G, per_interval)).reshape(G * per_interval)
+    j = xp.expand(j[None, :], (R0, G * per_interval))
+    valid = j < problem.intervals[reading][:, None]
+    return s, j, valid
+
+
+def _responses(problem: Problem, base: Fits, cand: Any) -> tuple[Any, Any, Any]:
+    """For R0 base fits: residuals r (R0, 2G), the sided Jacobian J (R0, 2G, 3h0), and the responses of the
+    gratings to a unit force (f_x, f_y) added at each candidate, Jc (R0, C, 2G, 2), in scaled units."""
+    xp = problem.xp
+    R0, h0 = base.s.shape
+    G = problem.query.shape[0]
+    C = cand.shape[1]
+    q = problem.query
+    inv_ei = 1.0 / problem.stiffness
+    if h0 == 0:
+        # No force yet: the rod is straight and the response is the small-deflection lever, (c - q_k)^+ / EI.
+        r, J = evaluate(problem, base)
+        lever = xp.clip(cand[:, :, None] - q[None, None, :], lo=0.0) * inv_ei  # (R0, C, G)
+        zero = 0.0 * lever
+        resp = xp.stack([xp.stack([zero, lever], 3), xp.stack([-lever, zero], 3)], 4)  # (R0, C, G, 2 uxy, 2 f)
+    else:
+        from ..model.sensitivity import march_propagator
+
+        query = xp.concat([xp.expand(q[None, :], (R0, G)), cand], 1)
+        u, jac, phi = march_propagator(
+            xp,
+            query,
+            base.s,
+            base.f,
+            problem.length,
+            problem.stiffness,
+            step_angle=problem.step_angle,
+            max_steps=problem.max_steps,
+        )
+        w = problem.weight[base.reading]
+        r = (u[:, :G].reshape(R0, 2 * G) - problem.u[base.reading]) * w
+        scale = xp.asarray([problem.length, problem.force_unit, problem.force_unit])
+        J = (jac[:, :G] * scale).reshape(R0, 2 * G, 3 * h0) * w[:, :, None]
+        # Phi(k) Phi(c)^-1 applied to the slope jumps of a unit f_x (dW = i / EI) and f_y (dW = -1 / EI).
+        jumps = xp.asarray([[0.0, -inv_ei], [inv_ei, 0.0]])  # (Re dW, Im dW) x (f_x, f_y)
+        phi_c = phi[:, G:]  # (R0, C, 4, 4)
+        rhs = xp.concat([xp.zeros((2, 2)), jumps], 0)  # (4, 2)
+        M, _ = xp.solve(phi_c, xp.expand(rhs, (R0, C, 4, 2)))  # (R0, C, 4, 2); a failed solve: no response
+        resp = phi[:, None, :G, :2, :] @ M[:, :, None, :, :]  # (R0, C, G, 2, 2)
+        prox = xp.astype(q[None, None, :] < cand[:, :, None], "float")  # gratings proximal to c
+        resp = resp * prox[:, :, :, None, None]
+    w = problem.weight[base.reading].reshape(R0, 1, G, 2, 1)
+    Jc = (resp * w * problem.force_unit).reshape(R0, C, 2 * G, 2)
+    return r, sided(problem, base, J), Jc
+
+
+def scan(problem: Problem, base: Fits, *, per_interval: int, top: int, trust: float) -> Scan:
+    """Starts for h = base.h + 1 forces from R0 base fits (module docstring).
+
+    Args:
+        base: R0 fits of h0 >= 0 forces.
+        per_interval: candidates per interval; top: starts per base fit.
+        trust: the largest force component of a start's Gauss-Newton step [EI / L^2] (the step is shortened).
+    """
+    xp = problem.xp
+    R0, h0 = base.s.shape
+    G = problem.query.shape[0]
+    cand, cint, valid = _candidates(problem, base.reading, per_interval)
+    C = cand.shape[1]
+    r, J, Jc = _responses(problem, base, cand)
+    # Normal equations of [J, Jc] for every candidate, blockwise (J is shared by a base row's candidates).
+    Pb = 3 * h0
+    Abb = xp.mT(J) @ J  # (R0, Pb, Pb)
+    Abc = xp.mT(J)[:, None] @ Jc  # (R0, C, Pb, 2)
+    Acc = xp.mT(Jc) @ Jc  # (R0, C, 2, 2)
+    gb = xp.einsum("rkp,rk->rp", J, r)
+    gc = (r[:, None, None, :] @ Jc)[:, :, 0, :]  # (R0, C, 2)
+    top_rows = xp.concat([xp.expand(Abb[:, None], (R0, C, Pb, Pb)), Abc], 3)
+    low_rows = xp.concat([xp.mT(Abc), Acc], 3)
+    A = xp.concat([top_rows, low_rows], 2).reshape(R0 * C, Pb + 2, Pb + 2)
+    g = xp.concat([xp.expand(gb[:, None], (R0, C, Pb)), gc], 2).reshape(R0 * C, Pb + 2)
+    step, dec = _solve(xp, A, g)
+    dec = xp.where(valid.reshape(-1) & xp.isfinite(dec), dec, -math.inf).reshape(R0, C)
+    step = step.reshape(R0, C, Pb + 2)
+    # The best candidate of each interval, then the `top` best intervals.
+    K = per_interval
+    dec_i = dec.reshape(R0, G, K)
+    best_k = xp.argmin(-dec_i, 2)  # (R0, G)
+    dec_g = xp.take(dec_i, best_k[:, :, None], 2)[:, :, 0]  # (R0, G)
+    order = xp.argsort_desc(dec_g)[:, :top]  # (R0, top) intervals
+    gain = xp.amax(dec_g, 1)
+    gain = xp.where(xp.isfinite(gain), xp.clip(gain, lo=0.0), 0.0)
+    base_loss = (r * r).sum(1)
+    blocks, predicted = [], []
+    for t in range(top):
+        j = order[:, t]  # (R0,) interval
+        c = j * K + xp.take(best_k, j[:, None], 1)[:, 0]  # (R0,) candidate index
+        ok = xp.isfinite(xp.take(dec, c[:, None], 1)[:, 0])
+        # A base row with fewer intervals than `top` repeats its best start.
+        c0 = order[:, 0] * K + xp.take(best_k, order[:, :1], 1)[:, 0]
+        c = xp.where(ok, c, c0)
+        predicted.append(xp.where(ok, base_loss - xp.take(dec, c[:, None], 1)[:, 0], math.inf))
+        st = xp.take(step, xp.expand(c[:, None, None], (R0, 1, Pb + 2)), 1)[:, 0]  # (R0, Pb + 2)
+        big = xp.clip(xp.amax(abs(st), 1) / trust, lo=1.0)[:, None]
+        st = st / big
+        s_new = xp.take(cand, c[:, None], 1)  # (R0, 1)
+        int_new = xp.take(cint, c[:, None], 1)
+        f_new = st[:, None, Pb:] * problem.force_unit  # (R0, 1, 2)
+        d = st[:, :Pb].reshape(R0, h0, 3)
+        s_old = base.s + d[..., 0] * problem.length
+        f_old = base.f + d[..., 1:] * problem.force_unit
+        # Base forces stay in their intervals (the loss is smooth there; the LM decides about crossings).
+        lo = problem.lo[base.reading[:, None], base.interval]
+        hi = problem.hi[base.reading[:, None], base.interval]
+        s_old = xp.clip(s_old, lo, hi)
+        blocks.append(
+            Fits(
+                base.reading,
+                xp.concat([s_old, s_new], 1),
+                xp.concat([f_old, f_new], 1),
+                xp.concat([base.interval, int_new], 1),
+            )
+        )
+    starts = Fits(*(xp.concat([getattr(b, k) for b in blocks]) for k in ("reading", "s", "f", "interval")))
+    return Scan(starts=starts, gain=gain, predicted=xp.stack(predicted, 0))
+
+
+def _solve(xp: Any, A: Any, g: Any) -> tuple[Any, Any]:
+    """Gauss-Newton step and decrement for normal matrices A (n, P, P) and gradients g (n, P), lightly damped."""
+    d = xp.diagonal(A)
+    scale = xp.clip(xp.amax(d, 1), lo=1e-300)[:, None]
+    x, ok = xp.spd_solve(A + xp.eye(A.shape[-1]) * (1e-9 * d + 1e-12 * scale)[:, :, None], g)
+    step = -x
+    return step, xp.where(ok, -(g * step).sum(1), -math.inf)
+
+
+def best_of(xp: Any, state: lm.LMState, B: int, slack: Any = None) -> Any:
+    """(B,) the row index of each reading's best fit in ``state`` (rows in blocks of B): the lowest loss, where
+    fits within ``slack`` (B,) [1/m^2] of it count as equal and a converged one is preferred."""
+    loss = state.loss.reshape(-1, B)
+    key = loss
+    if slack is not None:
+        key = loss - slack[None, :] * xp.astype(state.converged.reshape(-1, B), "float")
+    key = xp.where(key == key, key, math.inf)  # NaN last
+    block = xp.argmin(key, 0)
+    return block * B + xp.arange(B)
+
+
+def on_kink(problem: Problem, fits: Fits) -> Any:
+    """(R,) bool: a force of the fit lies within :data:`.problem.KINK` of a present grating."""
+    xp = problem.xp
+    R = fits.rows
+    G = problem.query.shape[0]
+    present = problem.weight[fits.reading].reshape(R, G, 2)[..., 0] > 0
+    near = abs(fits.s[:, None, :] - problem.query[None, :, None]) <= KINK
+    return xp.any((near & present[:, :, None]).reshape(R, -1), 1)
+
+
+def exchange(
+    problem: Problem,
+    solver: Solver,
+    best: lm.LMState,
+    suspect: Any,
+    options: SearchOptions,
+) -> lm.LMState:
+    """Re-place the forces of suspicious fits one at a time (module docstring).
+
+    Args:
+        best: one fit of h >= 1 forces per row (rows of distinct readings, any order).
+        suspect: the limits of :func:`suspicious` ((R,), (R,)) [1/m^2].
+    Returns:
+        ``best`` with every improved row replaced, and (R,) the forward evaluations spent on each row.
+    """
+    xp = problem.xp
+    R, h = best.fits.s.shape
+    spent = xp.zeros((R,), "int")
+    for _ in range(options.rounds):
+        rows = xp.nonzero(suspicious(problem, best, suspect))
+        n = rows.shape[0]
+        if n == 0:
+            break
+        cur = best.take(xp, rows)
+        # Base fits: each row without force i, i = 0..h-1 (blocks of n).
+        keep = [[k for k in range(h) if k != i] for i in range(h)]
+        base = Fits(
+            *(
+                xp.concat([getattr(cur.fits, name)[:, k] if name != "reading" else cur.fits.reading for k in keep])
+                for name in ("reading", "s", "f", "interval")
+            )
+        )
+        T = options.exchange_top + 1
+        sc = scan(problem, base, per_interval=options.per_interval, top=T, trust=solver.policy.max_force_step)
+        # The re-placements the scan promises most from, over every removed force, not into its own interval.
+        pred = sc.predicted.reshape(T, h, n)
+        own = xp.mT(cur.fits.interval)[None]  # (1, h, n)
+        pred = xp.where(sc.starts.interval[:, -1].reshape(T, h, n) == own, math.inf, pred)
+        E = min(options.exchange_top, T * h)
+        pick_rows = xp.argsort_desc(-pred.reshape(T * h, n).T)[:, :E].T * n + xp.arange(n)[None, :]  # (E, n)
+        starts = [sc.starts.take(pick_rows[e]) for e in range(E)]
+        found, work = _explore(problem, solver, options, starts, cur.loss)
+        spent = xp.add_at(spent, rows, work + h)
+        margin = 10.0 * solver.policy.tolerance * cur.noise2
+        better = found.loss < cur.loss - margin
+        if not bool(xp.any(better)):
+            break
+        at = xp.nonzero(better)
+        best = best.put(xp, rows[at], found.take(xp, at))
+    return best, spent
+
+
+@dataclass(frozen=True)
+class CountFits:
+    """The best fit of each count h = 0..H for B readings (:func:`fit_counts`).
+
+    Attributes:
+        states: index h: an :class:`.lm.LMState` of B rows (row b: reading b); rows not fitted hold zeros and a
+            NaN loss.
+        fitted: index h: (B,) bool, the readings whose count h was fitted.
+        evaluations: (B,) forward-model evaluations spent on each reading (one row marched once each).
+    """
+
+    states: list[lm.LMState]
+    fitted: list[Any]
+    evaluations: Any
+
+
+def _blank(xp: Any, B: int, h: int, G: int) -> lm.LMState:
+    """B rows of h forces holding nothing (a NaN loss): the rows of readings a count was not fitted for."""
+    zeros = xp.zeros((B,))
+    return lm.LMState(
+        fits=Fits(xp.arange(B), xp.zeros((B, h)), xp.zeros((B, h, 2)), xp.zeros((B, h), "int")),
+        r=xp.zeros((B, 2 * G)),
+        J=xp.zeros((B, 2 * G, 3 * h)),
+        loss=zeros + math.nan,
+        damping=zeros,
+        steps=xp.zeros((B,), "int"),
+        held=xp.zeros((B, h), "bool"),
+        decrement=zeros,
+        noise2=zeros,
+        converged=xp.zeros((B,), "bool"),
+        done=xp.ones((B,), "bool"),
+    )
+
+
+def no_force(problem: Problem) -> lm.LMState:
+    """The fit of no force to every reading: residual -u, loss = the reading's energy (converged by definition)."""
+    xp = problem.xp
+    B = problem.batch_size
+    G = problem.query.shape[0]
+    state = _blank(xp, B, 0, G)
+    r = -problem.u
+    return dataclasses.replace(state, r=r, loss=(r * r).sum(1), converged=xp.ones((B,), "bool"))
+
+
+def _rows(blocks: list[Fits]) -> Fits:
+    return Fits(*(_cat(blocks, k) for k in ("reading", "s", "f", "interval")))
+
+
+def _cat(blocks: list[Fits], name: str) -> Any:
+    parts = [getattr(b, name) for b in blocks]
+    if len(parts) == 1:
+        return parts[0]
+    lib = type(parts[0]).__module__
+    if lib.startswith("numpy"):
+        import numpy as np
+
+        return np.concatenate(parts)
+    import torch
+
+    return torch.cat(parts)
+
+
+def suspicious(problem: Problem, state: lm.LMState, limits: tuple[Any, Any]) -> Any:
+    """(R,) bool: fits worth a wider search: unconverged, a loss above ``limits[0]`` (R,), or a force on a grating
+    with a loss above ``limits[1]`` (R,)."""
+    loss_limit, kink_limit = limits
+    on = on_kink(problem, state.fits) & (state.loss > kink_limit)
+    return ~state.converged | (state.loss > loss_limit) | on
+
+
+@dataclass(frozen=True)
+class Rules:
+    """The statistical decisions the search takes, as functions (:class:`torchrod.Estimator` makes them from its
+    options with :mod:`.selection`). Arrays are the backend's; ``readings`` (n,) are reading indices.
+
+    Attributes:
+        choose: ``choose(losses) -> (B,)`` the count chosen from the losses (B, top + 1) of counts 0..top (NaN:
+            not fitted).
+        settled: ``settled(losses, readings, gain) -> (n,) bool``: with the losses (n, h + 1) of counts 0..h and
+            the scan's promised gain (n,) of one more force, whether the count is decided already; None: never.
+        suspect: ``suspect(h, readings) -> ((n,), (n,))``: the losses above which a fit of h forces is searched
+            further, in general and with a force on a grating (:func:`suspicious`); None: never searched further.
+        plausible: ``plausible(h, readings) -> (n,)``: the loss above which a count below the chosen one is hopeless
+            (no better local minimum would make it acceptable), so not searched further.
+    """
+
+    choose: Any
+    settled: Any = None
+    suspect: Any = None
+    plausible: Any = None
+
+
+def fit_counts(
+    problem: Problem,
+    solver: Solver,
+    options: SearchOptions,
+    rules: Rules,
+    *,
+    top_count: int,
+    starts: int,
+    guesses: dict[int, list[Fits]],
+    needed: set[int] | None = None,
+    trusted: bool = False,
+) -> CountFits:
+    """The best fit of each count 0..``top_count``, each count's starts from the one below (module docstring).
+
+    First every count is fitted from its first starts (the guesses and the scan's best interval), counts in turn,
+    readings whose count is settled dropping out. Then the fits that matter are searched further where they look
+    :func:`suspicious`: the chosen count's, and those of smaller counts that could still be accepted (their other
+    scan starts, then the exchange).
+
+    Args:
+        rules: the decisions (:class:`Rules`).
+        starts: scan starts per count (0: only ``guesses``).
+        guesses: {h: [Fits of B rows]} further starts (a network's guess, a previous solution), one row per
+            reading in reading order, each force already in its interval.
+        needed: the counts that must be fitted (None: all); with ``starts=0`` a count without guesses is left
+            unfitted unless needed (then it is an error).
+        trusted: the guesses are good enough to start alone (a network whose recorded quality says so): the first
+            fits of a count with guesses skip the scan's start, which then serves only a fit found suspicious.
+    """
+    xp = problem.xp
+    B = problem.batch_size
+    G = problem.query.shape[0]
+    states = [lm.finish(problem, solver.policy, no_force(problem))]
+    fitted = [xp.ones((B,), "bool")]
+    scans: list[Any] = [None]
+    evaluations = xp.zeros((B,), "int")
+    open_ = xp.arange(B)
+    for h in range(1, top_count + 1):
+        n = open_.shape[0]
+        sc = None
+        if n and (starts > 0 or rules.settled is not None):
+            base = states[h - 1].take(xp, open_)
+            sc = scan(problem, base.fits, per_interval=options.per_interval, top=max(starts, 1), trust=solver.policy.max_force_step)
+            evaluations = xp.add_at(evaluations, open_, xp.ones((n,), "int"))
+            if rules.settled is not None:
+                done = rules.settled(xp.stack([states[k].loss[open_] for k in range(h)], 1), open_, sc.gain)
+                if bool(xp.any(done)):
+                    keep = xp.nonzero(~done)
+                    rows = (keep[None, :] + n * xp.arange(max(starts, 1))[:, None]).reshape(-1)
+                    open_ = open_[keep]
+                    sc = Scan(starts=sc.starts.take(rows), gain=sc.gain[keep], predicted=sc.predicted[:, keep])
+                    n = open_.shape[0]
+        state = _blank(xp, B, h, G)
+        first: list[Fits] = [g.take(open_) for g in guesses.get(h, [])] if n else []
+        if n and starts > 0 and not (first and trusted):
+            first.append(sc.starts.take(xp.arange(n)))
+        if n and not first and (needed is None or h in needed):
+            raise ValueError(f"no start for h = {h}: starts=0 needs a warm start or extra_starts for every count")
+        done_here = xp.zeros((B,), "bool")
+        if first:
+            best, spent = _first_fits(problem, solver, first)
+            evaluations = xp.add_at(evaluations, open_, spent)
+            state = state.put(xp, open_, best)
+            done_here = xp.put(done_here, open_, xp.ones((n,), "bool"))
+        states.append(state)
+        fitted.append(done_here)
+        scans.append((open_, sc))
+    if rules.suspect is None:
+        return CountFits(states=states, fitted=fitted, evaluations=evaluations)
+    # Search further where it matters.
+    chosen = rules.choose(xp.stack([s.loss for s in states], 1))
+    for h in range(1, top_count + 1):
+        every = xp.arange(B)
+        cand = fitted[h] & suspicious(problem, states[h], rules.suspect(h, every))
+        if rules.plausible is not None:
+            cand = cand & ((chosen == h) | ((chosen > h) & (states[h].loss <= rules.plausible(h, every))))
+        else:
+            cand = cand & (chosen >= h)
+        readings = xp.nonzero(cand)
+        if readings.shape[0] == 0:
+            continue
+        scanned, sc = scans[h]
+        cur = states[h].take(xp, readings)
+        limit = rules.suspect(h, readings)
+        # The scan's other intervals for the count's last force.
+        if sc is not None and starts > 1:
+            pos = xp.put(xp.zeros((B,), "int") - 1, scanned, xp.arange(scanned.shape[0]))[readings]
+            more = [sc.starts.take(t * scanned.shape[0] + pos) for t in range(1, starts)]
+            found, spent = _explore(problem, solver, options, more, cur.loss)
+            evaluations = xp.add_at(evaluations, readings, spent)
+            better = found.loss < cur.loss - 10.0 * solver.policy.tolerance * cur.noise2
+            if bool(xp.any(better)):
+                at = xp.nonzero(better)
+                cur = cur.put(xp, at, found.take(xp, at))
+        # The chosen count, if still suspicious: the exchange re-places every force.
+        mine = xp.nonzero((chosen[readings] == h) & suspicious(problem, cur, limit))
+        if h >= 2 and mine.shape[0]:
+            best, spent = exchange(problem, solver, cur.take(xp, mine), (limit[0][mine], limit[1][mine]), options)
+            evaluations = xp.add_at(evaluations, readings[mine], spent)
+            cur = cur.put(xp, mine, best)
+        states[h] = states[h].put(xp, readings, cur)
+    return CountFits(states=states, fitted=fitted, evaluations=evaluations)
+
+
+def _explore(
+    problem: Problem, solver: Solver, options: SearchOptions, starts: list[Fits], current: Any
+) -> tuple[lm.LMState, Any]:
+    """The best of ``starts`` (blocks of n rows) per reading, fitted only while promising: each row takes at most
+    ``options.explore`` steps, and only the rows whose loss, or the loss a Gauss-Newton step promises from it,
+    has fallen below ``current`` (n,), the reading's loss to beat, are fitted to the end. Returns the best rows (n), finished on the exact model, and the evaluations
+    spent per reading."""
+    xp = problem.xp
+    n = starts[0].rows
+    rows = _rows(starts)
+    short = dataclasses.replace(solver, policy=dataclasses.replace(solver.policy, iterations=min(options.explore, solver.policy.iterations)), lbfgs=None)
+    st = short.solve(problem, rows)
+    goal = xp.concat([current] * len(starts))
+    # Promising: the loss, or what a Gauss-Newton step promises from it, is below the loss to beat.
+    finite = xp.isfinite(st.decrement)
+    promise = xp.where(finite, st.loss - xp.where(finite, st.decrement, 0.0), st.loss)
+    going = xp.nonzero(~st.converged & (promise < goal) & (st.damping < solver.policy.max_damping))
+    if going.shape[0]:
+        part = st.take(xp, going)
+        part = dataclasses.replace(part, done=part.steps >= solver.policy.iterations)
+        st = st.put(xp, going, solver.solve(problem, part))
+    spent = (1 + st.steps).reshape(-1, n).sum(0) + 1 + solver.policy.exact_steps
+    slack = 10.0 * solver.policy.tolerance * st.noise2[:n]
+    return lm.finish(problem, solver.policy, st.take(xp, best_of(xp, st, n, slack))), spent
+
+
+def _first_fits(problem: Problem, solver: Solver, first: list[Fits]) -> tuple[lm.LMState, Any]:
+    """The best of the ``first`` starts (blocks of n rows) per reading, finished on the exact model."""
+    xp = problem.xp
+    n = first[0].rows
+    st = solver.solve(problem, _rows(first))
+    spent = (1 + st.steps).reshape(-1, n).sum(0) + 1 + solver.policy.exact_steps
+    slack = 10.0 * solver.policy.tolerance * st.noise2[:n]
+    return lm.finish(problem, solver.policy, st.take(xp, best_of(xp, st, n, slack))), spent

@@ -1,0 +1,46 @@
+"""The verdict on every estimate: whether a user can act on it, and what to do when not.
+
+Each reading's result carries one status; when several apply, the first in this order wins:
+
+``"misfit"``
+    The chosen fit is worse than the noise explains: its loss exceeds the ``1 - misfit_level`` quantile of the
+    chi-square law of a correct fit's loss, ``loss / sigma^2 ~ chi2(n - 3h)``, at the given noise (with the floor)
+    or, noise unknown, at the largest noise the estimator believes (``max_noise``: a reading that needs more noise
+    than any FBG interrogator makes is not explained). With the default level 0.001, one correct reading in a
+    thousand is flagged by chance. The p-value is reported. No set of forces of the counts considered produces
+    this reading: a sensor fault (a broken or mis-registered grating, a wrong calibration), a load the model does
+    not hold (a distributed load, a moment, a contact force with friction), more contacts than ``max_forces``, or a
+    wrong ``noise``. Do not act on the forces; check the sensor and the rod file.
+``"unconverged"``
+    The fit was still improving when its budget ran out (or its linear algebra failed): the forces may be off.
+    Retry with more iterations (``EstimatorOptions(lm=LMPolicy(iterations=...))``) or report the reading.
+``"poorly_determined"``
+    The data cannot tell this answer from others (:mod:`.uncertainty`: forces the gratings cannot separate, a
+    force seen by one grating only, a location uncertain beyond its grating interval). The fit explains the
+    reading, but some of its numbers are not pinned down: use the standard deviations, or a denser grating layout.
+``"ok"``
+    The fit explains the reading and its parameters are determined; the standard deviations hold.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["MISFIT_LEVEL", "STATUSES", "verdict"]
+
+STATUSES = ("ok", "misfit", "unconverged", "poorly_determined")
+"""The status names, by code: ``STATUSES[code]``."""
+
+MISFIT_LEVEL = 1e-3
+"""Default significance of the misfit test: the chance that a correct fit is called a misfit."""
+
+OK, MISFIT, UNCONVERGED, POORLY_DETERMINED = range(4)
+
+
+def verdict(xp: Any, p_value: Any, converged: Any, poorly_determined: Any, level: float) -> Any:
+    """(B,) int status codes (indices into :data:`STATUSES`): misfit where ``p_value < level`` (or not finite with
+    a fit that could be tested), then unconverged, then poorly determined, else ok."""
+    misfit = p_value < level
+    code = xp.where(poorly_determined, POORLY_DETERMINED, OK)
+    code = xp.where(~converged, UNCONVERGED, code)
+    return xp.astype(xp.where(misfit, MISFIT, code), "int")
