@@ -69,6 +69,9 @@ __all__ = [
     "config_from_args",
     "evaluate_guess",
     "format_metrics",
+    "format_quality",
+    "held_back_quality",
+    "record_quality",
     "main",
     "run",
     "train",
@@ -375,6 +378,42 @@ def evaluate_guess(guess: WarmStartGuess, truth: PointForces) -> dict[str, float
     return metrics
 
 
+def held_back_quality(guess: WarmStartGuess, truth: PointForces, noise: float) -> dict[str, float]:
+    """The quality a checkpoint records (:data:`torchrod.learn.warm_start.QUALITY_KEYS`), of the network alone on
+    held-back readings: ``count_accuracy``, and over the readings whose count it gets right, the median relative
+    force error ``|f_guess - f_true| / |f_true|`` and the median location error [m], with the number of readings
+    and their noise [1/m]."""
+    truth = truth.sorted()
+    count = truth.count.to(guess.count.device)
+    right = guess.count == count
+    rel, loc = [], []
+    for h in range(1, guess.max_forces + 1):
+        sel = right & (count == h)
+        if not bool(sel.any()):
+            continue
+        g = guess.forces[h]
+        tf = truth.f[sel, :h].to(g.f)
+        rel.append((torch.linalg.vector_norm(g.f[sel] - tf, dim=-1) / torch.linalg.vector_norm(tf, dim=-1)).flatten())
+        loc.append((g.s[sel] - truth.s[sel, :h].to(g.s)).abs().flatten())
+    median = lambda xs: float(torch.cat(xs).quantile(0.5)) if xs else math.nan
+    return {
+        "count_accuracy": float(right.double().mean()),
+        "force_error_median": median(rel),
+        "location_error_median": median(loc),
+        "readings": float(count.numel()),
+        "noise": float(noise),
+    }
+
+
+def format_quality(quality: Mapping[str, float]) -> str:
+    """A checkpoint's recorded quality as one readable line."""
+    return (
+        f"held-back quality ({int(quality['readings'])} readings, noise {quality['noise']:g} 1/m): count accuracy "
+        f"{100 * quality['count_accuracy']:.1f} %, median force error {100 * quality['force_error_median']:.1f} %, "
+        f"median location error {1e3 * quality['location_error_median']:.2f} mm"
+    )
+
+
 def fit_figure(rod: Rod, curvature: torch.Tensor, mask: torch.Tensor, guess: WarmStartGuess, truth: PointForces):
     """A matplotlib figure of a few readings (dots), the curvature of the guessed forces (lines, the most probable
     count) and the true (dashed) and guessed (solid) force locations."""
@@ -425,6 +464,7 @@ class TrainResult:
         epoch: last completed epoch (1-based).
         metrics: held-back metrics after the last epoch (rank 0; empty on the other ranks).
         history: per epoch, the mean training loss terms (this process's batches).
+        quality: the held-back quality recorded in the checkpoint (:func:`held_back_quality`; rank 0, else empty).
     """
 
     net: WarmStartNet
@@ -432,6 +472,7 @@ class TrainResult:
     epoch: int
     metrics: dict[str, float]
     history: list[dict[str, float]]
+    quality: dict[str, float] = dataclasses.field(default_factory=dict)
 
 
 def _lr_at(step: int, total: int, config: TrainConfig) -> float:
@@ -633,7 +674,19 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
         if writer is not None:
             writer.close()
     net.eval()
-    return TrainResult(net=net, step=step, epoch=epoch, metrics=metrics, history=history)
+    quality: dict[str, float] = {}
+    if main_rank:
+        # The quality measured at the end of training, on the held-back set, goes into the checkpoint: an
+        # estimator told to use this network can tell whether to trust it (torchrod.learn.warm_start.TRUSTED).
+        with torch.no_grad():
+            device_ = next(net.parameters()).device
+            guess = WarmStart(net, rod).guess(held.curvature.to(device_), held.mask.to(device_))
+        quality = held_back_quality(guess, held.loads.to(device=device_), config.noise)
+        save_checkpoint(config.checkpoint, net, step=step, epoch=epoch, train_config=config.to_dict(),
+                        optimizer=optimiser.state_dict() if config.optimizer_state else None,
+                        metrics=metrics, quality=quality)
+        say(format_quality(quality))
+    return TrainResult(net=net, step=step, epoch=epoch, metrics=metrics, history=history, quality=quality)
 
 
 def _validate(net: WarmStartNet, rod: Rod, held: Any, writer: Any, step: int, config: TrainConfig) -> dict[str, float]:
@@ -697,6 +750,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--device", default=d.device, choices=("auto", "cpu", "cuda"), help="%(default)s")
     a("--threads", type=int, default=None, help="CPU threads per process")
     a("--quiet", action="store_true", help="no progress lines")
+    a("--evaluate", metavar="CHECKPOINT", default=None,
+      help="no training: measure CHECKPOINT's held-back quality (--validation readings at --noise) and record it")
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
@@ -720,11 +775,44 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Train as the parsed options say (see :func:`add_arguments`); rank 0 prints the held-back metrics."""
+    """Train as the parsed options say (see :func:`add_arguments`); rank 0 prints the held-back metrics and the
+    quality recorded in the checkpoint. ``--evaluate CHECKPOINT`` instead measures and records an existing
+    checkpoint's quality (no training)."""
+    if args.evaluate is not None:
+        quality = record_quality(args.evaluate, rod=args.rod, count=args.validation, noise=args.noise, seed=args.seed)
+        print(format_quality(quality))
+        return 0
     result = train(config_from_args(args))
     if _distributed_env()[1] == 0 and result.metrics:
         print(format_metrics(result.metrics))
+        print(format_quality(result.quality))
     return 0
+
+
+def record_quality(
+    path: str | os.PathLike, *, rod: str | Rod | None = None, count: int = 4096, noise: float = 0.1, seed: int = 0
+) -> dict[str, float]:
+    """Measure a checkpoint's held-back quality (:func:`held_back_quality`) on ``count`` readings simulated for
+    ``rod`` (default: the rod its training config names, else the preset whose layout it fits) at ``noise``
+    [1/m], with a seed training never uses, and write it into the checkpoint (weights unchanged). Returns it."""
+    net, meta = load_checkpoint(path)
+    if rod is None:
+        rod = (meta.get("train_config") or {}).get("rod") or DEFAULT_ROD
+    rod = load_rod(rod) if not isinstance(rod, Rod) else rod
+    ws = WarmStart(net, rod)
+    held = _simulated(rod, count, net.config.max_forces, _mix(seed, 2), noise, 0.0)
+    quality = held_back_quality(ws.guess(held.curvature, held.mask), held.loads, noise)
+    save_checkpoint(
+        path,
+        net,
+        step=int(meta.get("step", 0)),
+        epoch=int(meta.get("epoch", 0)),
+        train_config=meta.get("train_config"),
+        optimizer=meta.get("optimizer"),
+        metrics=meta.get("metrics"),
+        quality=quality,
+    )
+    return quality
 
 
 def format_metrics(metrics: Mapping[str, float]) -> str:
