@@ -537,19 +537,27 @@ def parse_reading(
     return Reading(ident, curvature, t, None, line)
 
 
+def _given_error(error: Any) -> str:
+    """An error passed in with a reading, as a message of bounded length (a string kept as it is up to 1000
+    characters; anything else quoted)."""
+    if isinstance(error, str):
+        return error if len(error) <= 1000 else error[:997] + "..."
+    return quote(error)
+
+
 def to_reading(item: Any, num_gratings: int, gratings: Sequence[float] | None = None) -> Reading:
     """Anything given as a reading (a :class:`Reading` or a mapping with its keys) -> a checked :class:`Reading`
     (float64 CPU curvature), or one with ``error`` set. Never raises (the Python stream API's entry point)."""
     if isinstance(item, Reading):
         if item.error is not None:
             ident = item.id if id_problem(item.id) is None else None
-            return replace(item, id=ident, curvature=None, error=str(item.error))
+            return replace(item, id=ident, curvature=None, error=_given_error(item.error))
         fields: Mapping[str, Any] = {"id": item.id, "curvature": item.curvature, "t": item.t}
         line = item.line
     elif isinstance(item, Mapping):
         if item.get("error") is not None:
             ident = item.get("id") if id_problem(item.get("id")) is None else None
-            return Reading(ident, error=str(item["error"]), line=item.get("line"))
+            return Reading(ident, error=_given_error(item["error"]), line=item.get("line"))
         fields, line = item, None
     else:
         return Reading(error=f"a reading must be a Reading or a dict, got {_kind(item)} {quote(item)}")
