@@ -270,19 +270,25 @@ class NumpyBackend(Backend):
         n, P = A.shape[0], A.shape[-1]
         vector = b.ndim == 2
         rhs = b[..., None] if vector else b
-        ok = np.isfinite(A).all(axis=(1, 2)) & np.isfinite(rhs).all(axis=(1, 2))
-        safe = np.where(ok[:, None, None], A, np.eye(P))
+        ok = np.isfinite(A.reshape(n, -1)).all(1) & np.isfinite(rhs.reshape(n, -1)).all(1)
+        good = bool(ok.all())
+        if not good:  # solve the others; the broken rows get the identity and a zero right-hand side
+            A = np.where(ok[:, None, None], A, np.eye(P))
+            rhs = np.where(ok[:, None, None], rhs, 0.0)
         try:
-            x = np.linalg.solve(safe, np.where(ok[:, None, None], rhs, 0.0))
+            x = np.linalg.solve(A, rhs)
         except np.linalg.LinAlgError:  # singular somewhere: row by row
             x = np.zeros_like(rhs)
             for i in range(n):
                 try:
-                    x[i] = np.linalg.solve(safe[i], rhs[i])
+                    x[i] = np.linalg.solve(A[i], rhs[i])
                 except np.linalg.LinAlgError:
                     ok[i] = False
-        ok = ok & np.isfinite(x).all(axis=(1, 2))
-        x = np.where(ok[:, None, None], x, 0.0)
+            good = False
+        finite = np.isfinite(x.reshape(n, -1)).all(1)
+        if not (good and bool(finite.all())):
+            ok = ok & finite
+            x = np.where(ok[:, None, None], x, 0.0)
         return (x[..., 0] if vector else x), ok
 
     def eigh(self, A: Any) -> tuple[Any, Any, Any]:

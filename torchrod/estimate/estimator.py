@@ -47,7 +47,7 @@ from .uncertainty import CONDITION_LIMIT, uncertainty
 
 __all__ = ["DEFAULT_LBFGS", "EstimateResult", "Estimator", "EstimatorOptions"]
 
-DEFAULT_LBFGS = LBFGSOptions(max_iter=30, history_size=10, lr=1.0, tolerance_grad=1e-9, tolerance_change=1e-12)
+DEFAULT_LBFGS = LBFGSOptions(max_iter=10, history_size=10, lr=1.0, tolerance_grad=1e-9, tolerance_change=1e-12)
 """Settings of the L-BFGS refinement of fits the Levenberg-Marquardt budget leaves unconverged."""
 
 _MAX_STEPS = 12  # cap on integrator steps per segment while fitting (far-off trial points need no accuracy)
@@ -593,6 +593,7 @@ class Estimator:
         distal = xp.amax(xp.where(active, s, -1.0), 1) if W else xp.zeros((B,)) - 1.0
         present = problem.weight.reshape(B, G, 2)[..., 0] > 0
         informative = 2 * xp.astype(present & (problem.query[None, :] < distal[:, None]), "int").sum(1)
+        sides = kink_sides(problem, fits, J) if bool(xp.any(search.on_kink(problem, fits))) else (J,)
         both = [
             uncertainty(
                 xp,
@@ -608,12 +609,14 @@ class Estimator:
                 force_unit=problem.force_unit,
                 condition_limit=opts.condition_limit,
             )
-            for Jk in kink_sides(problem, fits, J)
+            for Jk in sides
         ]
-        worse_std = xp.where(both[0].std != both[0].std, both[0].std, xp.lib.maximum(both[0].std, both[1].std))
-        unc = dataclasses.replace(
-            both[0], std=worse_std, poorly_determined=both[0].poorly_determined | both[1].poorly_determined
-        )
+        unc = both[0]
+        if len(both) == 2:
+            worse_std = xp.where(unc.std != unc.std, unc.std, xp.lib.maximum(unc.std, both[1].std))
+            unc = dataclasses.replace(
+                unc, std=worse_std, poorly_determined=unc.poorly_determined | both[1].poorly_determined
+            )
         # The verdict: the chi-square p-value at the given noise, or (noise unknown) at the largest believed.
         test_sigma2 = (float(opts.noise) if opts.noise is not None else float(opts.max_noise)) ** 2 + problem.floor2
         dof = xp.tolist(residuals - 3 * chosen)

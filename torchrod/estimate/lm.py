@@ -50,10 +50,12 @@ class LMPolicy:
         max_force_step: the largest change of a force component per step [EI / L^2].
         tolerance: converged when the Gauss-Newton decrement is at most ``tolerance`` x sigma^2.
         iterations: at most this many steps (evaluations after the first) per fit.
-        exact_steps: Gauss-Newton steps on the exact model's residual after convergence (:func:`finish`).
-        acceleration: add the geodesic acceleration to the steps of fits that took at least this many steps
-            already (None: never; module docstring); probe: its finite-difference step, a fraction of the step;
-            acceleration_limit: the largest ratio 2 |a| / |v| at which it is taken.
+        exact_steps: Gauss-Newton steps on the exact model's residual after convergence (:func:`finish`), each
+            taken only where it promises more than ``exact_tolerance`` x sigma^2.
+        acceleration: add the geodesic acceleration to a step when the previous one lowered the loss by less than
+            this fraction of what its Gauss-Newton model promised (the residual curves: the linear model misled;
+            None: never); probe: its finite-difference step, a fraction of the step; acceleration_limit: the
+            largest ratio 2 |a| / |v| at which it is taken.
     """
 
     damping: float = 1e-3
@@ -62,10 +64,11 @@ class LMPolicy:
     min_damping: float = 1e-9
     max_damping: float = 1e9
     max_force_step: float = 10.0
-    tolerance: float = 1e-4
+    tolerance: float = 1e-3
     iterations: int = 30
     exact_steps: int = 1
-    acceleration: int | None = 2
+    exact_tolerance: float = 1e-2
+    acceleration: float | None = 0.5
     probe: float = 0.1
     acceleration_limit: float = 0.75
 
@@ -99,6 +102,7 @@ class LMState:
             stalled or out of steps).
         A: (R, 3h, 3h) J^T J over the unknowns that move (held locations' rows and columns zero); g: (R, 3h) the
             gradient J^T r over them; proposal: (R, 3h) the damped Gauss-Newton step at the current damping.
+        ratio: (R,) the last step's loss decrease over the one its Gauss-Newton model promised (1 before any).
     """
 
     fits: Fits
@@ -115,6 +119,7 @@ class LMState:
     A: Any = None
     g: Any = None
     proposal: Any = None
+    ratio: Any = None
 
     def take(self, xp: Any, idx: Any) -> LMState:
         def pick(name: str) -> Any:
@@ -134,20 +139,35 @@ class LMState:
         return LMState(**{f.name: (fits if f.name == "fits" else merge(f.name)) for f in dataclasses.fields(self)})
 
 
-def _system(xp: Any, J: Any, r: Any, free: Any, damping: Any) -> tuple[Any, Any, Any]:
-    """The damped normal matrix ``A + damping diag A + 1e-12 max diag A`` (R, P, P) over the ``free`` (R, P)
-    unknowns (A = J^T J; a held unknown gets an identity-like row), the gradient g = J^T r (R, P) and the masked
-    Jacobian (R, n, P)."""
-    Jf = J * xp.astype(free, "float")[:, None, :]
-    g = xp.einsum("rkp,rk->rp", Jf, r)
-    A = xp.mT(Jf) @ Jf
+def _damped(xp: Any, A: Any, free: Any, damping: Any, repeat: int = 1) -> Any:
+    """``A + damping diag A + 1e-12 max diag A`` (R, P, P) with an identity-like row (the largest diagonal) for each
+    unknown that does not move (``free`` (R, P) 0.0); A (R, P, P) is J^T J over the free unknowns, damping (R,)
+    or, with ``repeat`` k, (k R,): the k systems of each damping, stacked (k R, P, P)."""
+    R, P = free.shape
+    if P == 0:
+        return xp.concat([A] * repeat) if repeat > 1 else A
     d = xp.diagonal(A)
     scale = xp.clip(xp.amax(d, 1), lo=1e-300)[:, None]
-    held = 1.0 - xp.astype(free, "float")
-    if not isinstance(damping, float):
-        damping = damping[:, None]
-    diag = damping * d + 1e-12 * scale + held * scale
-    return A + xp.eye(A.shape[-1]) * diag[:, :, None], g, Jf
+    base = 1e-12 * scale + (1.0 - free) * scale
+    if repeat > 1:
+        A, d, base = xp.concat([A] * repeat), xp.concat([d] * repeat), xp.concat([base] * repeat)
+    out = xp.copy(A)
+    diag = xp.diagonal(out)
+    idx = xp.arange(P)
+    out[:, idx, idx] = diag + damping[:, None] * d + base
+    return out
+
+
+def _system(xp: Any, J: Any, r: Any, free: Any, damping: Any) -> tuple[Any, Any, Any]:
+    """The damped normal matrix (:func:`_damped`) over the ``free`` (R, P) unknowns, the gradient g = J^T r (R, P)
+    and the masked Jacobian (R, n, P); damping a number or (R,)."""
+    free = xp.astype(free, "float")
+    Jf = J * free[:, None, :]
+    g = xp.einsum("rkp,rk->rp", Jf, r)
+    A = xp.mT(Jf) @ Jf
+    if isinstance(damping, float):
+        damping = xp.full((J.shape[0],), damping)
+    return _damped(xp, A, free, damping), g, Jf
 
 
 def gauss_newton(xp: Any, J: Any, r: Any, free: Any, damping: Any) -> tuple[Any, Any]:
@@ -162,9 +182,10 @@ def gauss_newton(xp: Any, J: Any, r: Any, free: Any, damping: Any) -> tuple[Any,
 
 
 def _free(held: Any, xp: Any) -> Any:
-    """(R, 3h) bool: every unknown except the held locations."""
+    """(R, 3h) float: 1.0 for every unknown except the held locations (0.0)."""
     R, h = held.shape
-    keep = xp.stack([~held, held | ~held, held | ~held], 2)
+    keep = xp.ones((R, h, 3))
+    keep[:, :, 0] = xp.astype(~held, "float")
     return keep.reshape(R, 3 * h)
 
 
@@ -205,15 +226,11 @@ def analyse(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
             g = xp.einsum("rkp,rk->rp", J, r)
         g_s = g[:, 0::3]
         held = (at_lo & (g_s >= 0.0)) | (at_hi & (g_s <= 0.0))
-    free = xp.astype(_free(held, xp), "float")
+    free = _free(held, xp)
     Jf = J * free[:, None, :]
     A = xp.mT(Jf) @ Jf
     g = g * free
-    d = xp.diagonal(A)
-    scale = xp.clip(xp.amax(d, 1), lo=1e-300)[:, None] if h else d
-    base = 1e-12 * scale + (1.0 - free) * scale
-    eye = xp.eye(3 * h)
-    both = xp.concat([A + eye * (1e-9 * d + base)[:, :, None], A + eye * (state.damping[:, None] * d + base)[:, :, None]])
+    both = _damped(xp, A, free, xp.concat([1e-9 + 0.0 * state.damping, state.damping]), repeat=2)
     x, ok = xp.spd_solve(both, xp.concat([g, g]))
     dec = xp.where(ok[:R], (g * x[:R]).sum(1), math.inf)
     proposal = -x[R:]
@@ -254,6 +271,7 @@ def start(problem: Problem, policy: LMPolicy, fits: Fits) -> LMState:
         noise2=zeros,
         converged=xp.zeros((R,), "bool"),
         done=xp.zeros((R,), "bool"),
+        ratio=zeros + 1.0,
     )
     return analyse(problem, policy, state)
 
@@ -274,9 +292,21 @@ def _step(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
         f_part = dx.reshape(R, h, 3)[..., 1:].reshape(R, 2 * h)
         return dx / xp.clip(xp.amax(abs(f_part), 1) / policy.max_force_step, lo=1.0)[:, None]
 
-    v = shortened(state.proposal)
+    held, A, g, proposal = state.held, state.A, state.g, state.proposal
+    # Active set: a force on a bound whose proposed step points out of its interval is held there too (the clipped
+    # step would not be the Gauss-Newton step of the other unknowns), and the step recomputed without it.
+    ds = proposal.reshape(R, h, 3)[..., 0]
+    out = ((fits.s == lo) & (ds < 0.0)) | ((fits.s == hi) & (ds > 0.0))
+    if bool(xp.any(out)):
+        held = held | out
+        keep = _free(held, xp)
+        A = A * keep[:, :, None] * keep[:, None, :]
+        g = g * keep
+        proposal = -xp.spd_solve(_damped(xp, A, keep, state.damping), g)[0]
+    v = shortened(proposal)
     dx = v
-    if policy.acceleration is not None and h and bool(xp.any(state.steps >= policy.acceleration)):
+    curved = state.ratio < policy.acceleration if policy.acceleration is not None else None
+    if curved is not None and h and bool(xp.any(curved)):
         # Geodesic acceleration: the residual's second derivative along v by a finite difference, and the
         # correction it asks for, taken when small against v.
         probe = moved(policy.probe * v)
@@ -284,22 +314,25 @@ def _step(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
         actual = xp.concat(
             [((probe.s - fits.s) / problem.length)[..., None], (probe.f - fits.f) / problem.force_unit], 2
         ).reshape(R, 3 * h) / policy.probe
-        free = xp.astype(_free(state.held, xp), "float")
+        free = _free(held, xp)
         Jf = sided(problem, fits, state.J) * free[:, None, :]
         r_vv = (2.0 / policy.probe) * ((r_p - state.r) / policy.probe - xp.einsum("rkp,rp->rk", Jf, actual))
-        d = xp.diagonal(state.A)
-        scale = xp.clip(xp.amax(d, 1), lo=1e-300)[:, None]
-        damped = state.A + xp.eye(3 * h) * (state.damping[:, None] * d + 1e-12 * scale + (1.0 - free) * scale)[:, :, None]
-        x_a, ok_a = xp.spd_solve(damped, xp.einsum("rkp,rk->rp", Jf, r_vv))
+        x_a, ok_a = xp.spd_solve(_damped(xp, A, free, state.damping), xp.einsum("rkp,rk->rp", Jf, r_vv))
         a = -x_a
         norm = lambda x: xp.lib.sqrt((x * x).sum(1))
         use = ok_a & xp.all(xp.isfinite(r_vv), 1) & (2.0 * norm(a) <= policy.acceleration_limit * norm(v))
-        use = use & (state.steps >= policy.acceleration)
+        use = use & curved
         dx = shortened(v + xp.where(use[:, None], 0.5 * a, 0.0))
     trial = moved(dx)
     r_t, J_t = evaluate(problem, trial)
     loss_t = (r_t * r_t).sum(1)
     better = xp.isfinite(loss_t) & (loss_t < state.loss)
+    # The decrease the Gauss-Newton model promised for the step taken: -(2 g.dx + dx^T A dx).
+    taken = xp.concat(
+        [((trial.s - fits.s) / problem.length)[..., None], (trial.f - fits.f) / problem.force_unit], 2
+    ).reshape(R, 3 * h)
+    promised = -(2.0 * (g * taken).sum(1) + (taken * (A @ taken[:, :, None])[..., 0]).sum(1))
+    ratio = xp.where(better & (promised > 0), (state.loss - loss_t) / xp.where(promised > 0, promised, 1.0), 0.0)
     b1, b2 = better[:, None], better[:, None, None]
     new = dataclasses.replace(
         state,
@@ -313,6 +346,7 @@ def _step(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
             xp.clip(state.damping * policy.increase, hi=policy.max_damping),
         ),
         steps=state.steps + 1,
+        ratio=ratio,
     )
     return analyse(problem, policy, new)
 
@@ -341,8 +375,12 @@ def finish(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
     J = sided(problem, fits, state.J)
     free = _free(state.held, xp)
     for _ in range(policy.exact_steps):
-        dx, _ = gauss_newton(xp, J, r, free, 1e-9)
-        dx = dx.reshape(R, h, 3)
+        dx, dec = gauss_newton(xp, J, r, free, 1e-9)
+        # A step whose promise is far below the noise moves the fit by a sliver of its standard deviation: skip.
+        worth = ~(dec <= policy.exact_tolerance * sigma2(problem, fits, loss))
+        if not bool(xp.any(worth)):
+            break
+        dx = xp.where(worth[:, None], dx, 0.0).reshape(R, h, 3)
         lo, hi = bounds(problem, fits)
         trial = Fits(
             fits.reading,
@@ -352,7 +390,7 @@ def finish(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
         )
         r_t = exact_residual(problem, trial)
         loss_t = (r_t * r_t).sum(1)
-        better = xp.isfinite(loss_t) & (loss_t < loss)
+        better = worth & xp.isfinite(loss_t) & (loss_t < loss)
         if not bool(xp.any(better)):
             break
         fits = Fits(

@@ -215,8 +215,10 @@ def evaluate(problem: Problem, fits: Fits, jacobian: bool = True) -> tuple[Any, 
     r = (u.reshape(R, 2 * G) - problem.u[fits.reading]) * w
     if not jacobian:
         return r, None
-    scale = xp.asarray([problem.length, problem.force_unit, problem.force_unit])
-    J = (jac * scale).reshape(R, 2 * G, 3 * h) * w[:, :, None]
+    L, F = problem.length, problem.force_unit
+    jac[..., 0] *= L
+    jac[..., 1:] *= F
+    J = jac.reshape(R, 2 * G, 3 * h) * w[:, :, None]
     return r, J
 
 

@@ -39,15 +39,34 @@ __all__ = ["SearchOptions", "best_of", "exchange", "scan"]
 
 @dataclass(frozen=True)
 class Solver:
-    """How a set of starts is fitted: the Levenberg-Marquardt policy (:mod:`.lm`), then L-BFGS (:mod:`.finish`)
-    for the fits it leaves open (None: not)."""
+    """How a set of starts is fitted: the Levenberg-Marquardt policy (:mod:`.lm`) on every start, then, for the
+    best fit of each reading, L-BFGS (:mod:`.finish`) where the LM left it open (None: not) and the exact-model
+    steps."""
 
     policy: lm.LMPolicy
     lbfgs: LBFGSOptions | None = None
 
     def solve(self, problem: Problem, fits: Fits | lm.LMState) -> lm.LMState:
-        state = lm.solve(problem, self.policy, fits)
-        return state if self.lbfgs is None else refine_open(problem, self.policy, self.lbfgs, state)
+        """Levenberg-Marquardt on every row."""
+        return lm.solve(problem, self.policy, fits)
+
+    def finish(self, problem: Problem, best: lm.LMState) -> lm.LMState:
+        """The fits kept (the best of each reading): the exact-model steps (:func:`.lm.finish`)."""
+        return lm.finish(problem, self.policy, best)
+
+    def refine(self, problem: Problem, chosen: lm.LMState) -> lm.LMState:
+        """The fits the answer is made of: L-BFGS where the LM budget left them open (:mod:`.finish`), then the
+        exact-model steps again; the others unchanged."""
+        if self.lbfgs is None:
+            return chosen
+        xp = problem.xp
+        open_ = xp.nonzero(
+            ~chosen.converged & (chosen.steps >= self.policy.iterations) & (chosen.damping < self.policy.max_damping)
+        )
+        if open_.shape[0] == 0:
+            return chosen
+        part = refine_open(problem, self.policy, self.lbfgs, chosen.take(xp, open_))
+        return chosen.put(xp, open_, lm.finish(problem, self.policy, part))
 
 
 @dataclass(frozen=True)
@@ -76,7 +95,7 @@ class SearchOptions:
     explore: int = 8
     suspect: float = 0.95
     kink_suspect: float = 0.5
-    hopeless: float = 10.0
+    hopeless: float = 3.0
 
     def __post_init__(self) -> None:
         for name in ("per_interval", "top", "exchange_top", "explore"):
@@ -121,18 +140,19 @@ def _candidates(problem: Problem, reading: Any, per_interval: int) -> tuple[Any,
     return s, j, valid
 
 
-def _responses(problem: Problem, base: Fits, cand: Any) -> tuple[Any, Any, Any]:
-    """For R0 base fits: residuals r (R0, 2G), the sided Jacobian J (R0, 2G, 3h0), and the responses of the
-    gratings to a unit force (f_x, f_y) added at each candidate, Jc (R0, C, 2G, 2), in scaled units."""
+def _responses(problem: Problem, base: Fits, cand: Any, known: tuple[Any, Any] | None) -> tuple[Any, Any, Any]:
+    """For R0 base fits: residuals r (R0, 2G), the sided Jacobian J (R0, 2G, 3h0) (``known``: given, else from the
+    march), and the responses of the gratings to a unit force (f_x, f_y) added at each candidate, Jc (R0, C, 2G,
+    2), in scaled units."""
     xp = problem.xp
     R0, h0 = base.s.shape
     G = problem.query.shape[0]
-    C = cand.shape[1]
     q = problem.query
     inv_ei = 1.0 / problem.stiffness
+    w = problem.weight[base.reading]
     if h0 == 0:
         # No force yet: the rod is straight and the response is the small-deflection lever, (c - q_k)^+ / EI.
-        r, J = evaluate(problem, base)
+        r, J = -problem.u[base.reading] * w, xp.zeros((R0, 2 * G, 0))
         lever = xp.clip(cand[:, :, None] - q[None, None, :], lo=0.0) * inv_ei  # (R0, C, G)
         zero = 0.0 * lever
         resp = xp.stack([xp.stack([zero, lever], 3), xp.stack([-lever, zero], 3)], 4)  # (R0, C, G, 2 uxy, 2 f)
@@ -147,40 +167,49 @@ def _responses(problem: Problem, base: Fits, cand: Any) -> tuple[Any, Any, Any]:
             base.f,
             problem.length,
             problem.stiffness,
+            jacobian=known is None,
             step_angle=problem.step_angle,
             max_steps=problem.max_steps,
         )
-        w = problem.weight[base.reading]
-        r = (u[:, :G].reshape(R0, 2 * G) - problem.u[base.reading]) * w
-        scale = xp.asarray([problem.length, problem.force_unit, problem.force_unit])
-        J = (jac[:, :G] * scale).reshape(R0, 2 * G, 3 * h0) * w[:, :, None]
+        if known is None:
+            r = (u[:, :G].reshape(R0, 2 * G) - problem.u[base.reading]) * w
+            scale = xp.asarray([problem.length, problem.force_unit, problem.force_unit])
+            J = sided(problem, base, (jac[:, :G] * scale).reshape(R0, 2 * G, 3 * h0) * w[:, :, None])
+        else:
+            r, J = known
         # Phi(k) Phi(c)^-1 applied to the slope jumps of a unit f_x (dW = i / EI) and f_y (dW = -1 / EI).
+        C = cand.shape[1]
         jumps = xp.asarray([[0.0, -inv_ei], [inv_ei, 0.0]])  # (Re dW, Im dW) x (f_x, f_y)
-        phi_c = phi[:, G:]  # (R0, C, 4, 4)
         rhs = xp.concat([xp.zeros((2, 2)), jumps], 0)  # (4, 2)
-        M, _ = xp.solve(phi_c, xp.expand(rhs, (R0, C, 4, 2)))  # (R0, C, 4, 2); a failed solve: no response
+        M, _ = xp.solve(phi[:, G:], xp.expand(rhs, (R0, C, 4, 2)))  # (R0, C, 4, 2); a failed solve: no response
         resp = phi[:, None, :G, :2, :] @ M[:, :, None, :, :]  # (R0, C, G, 2, 2)
         prox = xp.astype(q[None, None, :] < cand[:, :, None], "float")  # gratings proximal to c
         resp = resp * prox[:, :, :, None, None]
-    w = problem.weight[base.reading].reshape(R0, 1, G, 2, 1)
-    Jc = (resp * w * problem.force_unit).reshape(R0, C, 2 * G, 2)
-    return r, sided(problem, base, J), Jc
+    Jc = (resp * w.reshape(R0, 1, G, 2, 1) * problem.force_unit).reshape(R0, cand.shape[1], 2 * G, 2)
+    return r, J, Jc
 
 
-def scan(problem: Problem, base: Fits, *, per_interval: int, top: int, trust: float) -> Scan:
+def scan(
+    problem: Problem, base: Fits | lm.LMState, *, per_interval: int, top: int, trust: float
+) -> Scan:
     """Starts for h = base.h + 1 forces from R0 base fits (module docstring).
 
     Args:
-        base: R0 fits of h0 >= 0 forces.
+        base: R0 fits of h0 >= 0 forces, or the solver's state of them (whose residuals and Jacobian are then
+            reused: the scan's march computes only the propagator).
         per_interval: candidates per interval; top: starts per base fit.
         trust: the largest force component of a start's Gauss-Newton step [EI / L^2] (the step is shortened).
     """
     xp = problem.xp
+    known = None
+    if isinstance(base, lm.LMState):
+        known = (base.r, sided(problem, base.fits, base.J))
+        base = base.fits
     R0, h0 = base.s.shape
     G = problem.query.shape[0]
     cand, cint, valid = _candidates(problem, base.reading, per_interval)
     C = cand.shape[1]
-    r, J, Jc = _responses(problem, base, cand)
+    r, J, Jc = _responses(problem, base, cand, known)
     # Normal equations of [J, Jc] for every candidate, blockwise (J is shared by a base row's candidates).
     Pb = 3 * h0
     Abb = xp.mT(J) @ J  # (R0, Pb, Pb)
@@ -455,7 +484,7 @@ def fit_counts(
         sc = None
         if n and (starts > 0 or rules.settled is not None):
             base = states[h - 1].take(xp, open_)
-            sc = scan(problem, base.fits, per_interval=options.per_interval, top=max(starts, 1), trust=solver.policy.max_force_step)
+            sc = scan(problem, base, per_interval=options.per_interval, top=max(starts, 1), trust=solver.policy.max_force_step)
             evaluations = xp.add_at(evaluations, open_, xp.ones((n,), "int"))
             if rules.settled is not None:
                 done = rules.settled(xp.stack([states[k].loss[open_] for k in range(h)], 1), open_, sc.gain)
@@ -480,40 +509,48 @@ def fit_counts(
         states.append(state)
         fitted.append(done_here)
         scans.append((open_, sc))
-    if rules.suspect is None:
-        return CountFits(states=states, fitted=fitted, evaluations=evaluations)
-    # Search further where it matters.
+    if rules.suspect is not None:
+        # Search further where it matters.
+        chosen = rules.choose(xp.stack([s.loss for s in states], 1))
+        for h in range(1, top_count + 1):
+            every = xp.arange(B)
+            cand = fitted[h] & suspicious(problem, states[h], rules.suspect(h, every))
+            if rules.plausible is not None:
+                cand = cand & ((chosen == h) | ((chosen > h) & (states[h].loss <= rules.plausible(h, every))))
+            else:
+                cand = cand & (chosen >= h)
+            readings = xp.nonzero(cand)
+            if readings.shape[0] == 0:
+                continue
+            scanned, sc = scans[h]
+            cur = states[h].take(xp, readings)
+            limit = rules.suspect(h, readings)
+            # The scan's other intervals for the count's last force.
+            if sc is not None and starts > 1:
+                pos = xp.put(xp.zeros((B,), "int") - 1, scanned, xp.arange(scanned.shape[0]))[readings]
+                more = [sc.starts.take(t * scanned.shape[0] + pos) for t in range(1, starts)]
+                found, spent = _explore(problem, solver, options, more, cur.loss)
+                evaluations = xp.add_at(evaluations, readings, spent)
+                better = found.loss < cur.loss - 10.0 * solver.policy.tolerance * cur.noise2
+                if bool(xp.any(better)):
+                    at = xp.nonzero(better)
+                    cur = cur.put(xp, at, found.take(xp, at))
+            # The chosen count, if still suspicious: the exchange re-places every force.
+            mine = xp.nonzero((chosen[readings] == h) & suspicious(problem, cur, limit))
+            if h >= 2 and mine.shape[0]:
+                best, spent = exchange(problem, solver, cur.take(xp, mine), (limit[0][mine], limit[1][mine]), options)
+                evaluations = xp.add_at(evaluations, readings[mine], spent)
+                cur = cur.put(xp, mine, best)
+            states[h] = states[h].put(xp, readings, cur)
+    # L-BFGS for the chosen fits the Levenberg-Marquardt budget left open.
     chosen = rules.choose(xp.stack([s.loss for s in states], 1))
     for h in range(1, top_count + 1):
-        every = xp.arange(B)
-        cand = fitted[h] & suspicious(problem, states[h], rules.suspect(h, every))
-        if rules.plausible is not None:
-            cand = cand & ((chosen == h) | ((chosen > h) & (states[h].loss <= rules.plausible(h, every))))
-        else:
-            cand = cand & (chosen >= h)
-        readings = xp.nonzero(cand)
-        if readings.shape[0] == 0:
-            continue
-        scanned, sc = scans[h]
-        cur = states[h].take(xp, readings)
-        limit = rules.suspect(h, readings)
-        # The scan's other intervals for the count's last force.
-        if sc is not None and starts > 1:
-            pos = xp.put(xp.zeros((B,), "int") - 1, scanned, xp.arange(scanned.shape[0]))[readings]
-            more = [sc.starts.take(t * scanned.shape[0] + pos) for t in range(1, starts)]
-            found, spent = _explore(problem, solver, options, more, cur.loss)
-            evaluations = xp.add_at(evaluations, readings, spent)
-            better = found.loss < cur.loss - 10.0 * solver.policy.tolerance * cur.noise2
-            if bool(xp.any(better)):
-                at = xp.nonzero(better)
-                cur = cur.put(xp, at, found.take(xp, at))
-        # The chosen count, if still suspicious: the exchange re-places every force.
-        mine = xp.nonzero((chosen[readings] == h) & suspicious(problem, cur, limit))
-        if h >= 2 and mine.shape[0]:
-            best, spent = exchange(problem, solver, cur.take(xp, mine), (limit[0][mine], limit[1][mine]), options)
-            evaluations = xp.add_at(evaluations, readings[mine], spent)
-            cur = cur.put(xp, mine, best)
-        states[h] = states[h].put(xp, readings, cur)
+        mine = xp.nonzero(fitted[h] & (chosen == h))
+        if mine.shape[0]:
+            before = states[h].take(xp, mine)
+            after = solver.refine(problem, before)
+            evaluations = xp.add_at(evaluations, mine, after.steps - before.steps)
+            states[h] = states[h].put(xp, mine, after)
     return CountFits(states=states, fitted=fitted, evaluations=evaluations)
 
 
@@ -540,7 +577,7 @@ def _explore(
         st = st.put(xp, going, solver.solve(problem, part))
     spent = (1 + st.steps).reshape(-1, n).sum(0) + 1 + solver.policy.exact_steps
     slack = 10.0 * solver.policy.tolerance * st.noise2[:n]
-    return lm.finish(problem, solver.policy, st.take(xp, best_of(xp, st, n, slack))), spent
+    return solver.finish(problem, st.take(xp, best_of(xp, st, n, slack))), spent
 
 
 def _first_fits(problem: Problem, solver: Solver, first: list[Fits]) -> tuple[lm.LMState, Any]:
@@ -550,4 +587,4 @@ def _first_fits(problem: Problem, solver: Solver, first: list[Fits]) -> tuple[lm
     st = solver.solve(problem, _rows(first))
     spent = (1 + st.steps).reshape(-1, n).sum(0) + 1 + solver.policy.exact_steps
     slack = 10.0 * solver.policy.tolerance * st.noise2[:n]
-    return lm.finish(problem, solver.policy, st.take(xp, best_of(xp, st, n, slack))), spent
+    return solver.finish(problem, st.take(xp, best_of(xp, st, n, slack))), spent

@@ -97,10 +97,12 @@ def march_propagator(
     length: float,
     bending_stiffness: float,
     *,
+    jacobian: bool = True,
     step_angle: float = ESTIMATION_STEP_ANGLE,
     max_steps: int = 64,
 ) -> tuple[Any, Any, Any]:
-    """:func:`march` with the Jacobian, plus the propagator of the linearised equation at each query.
+    """:func:`march` (with the Jacobian unless ``jacobian=False``), plus the propagator of the linearised equation
+    at each query.
 
     The propagator Phi(p) (4 x 4, real) maps a perturbation (dU, dW) of the state at the free tip, as the real
     vector (Re dU, Im dU, Re dW, Im dW), to the perturbation it causes at p. The response at a query p of a slope
@@ -108,9 +110,9 @@ def march_propagator(
     c, for every pair (p, c), from one march (the linearised flow is volume-preserving, det Phi = 1).
 
     Returns:
-        curvature (B, Q, 2), Jacobian (B, Q, 2, h, 3) as :func:`march`, and Phi (B, Q, 4, 4).
+        curvature (B, Q, 2), Jacobian (B, Q, 2, h, 3) as :func:`march` (or None), and Phi (B, Q, 4, 4).
     """
-    return _march(xp, query, s, f, length, bending_stiffness, None, True, True, step_angle, max_steps)
+    return _march(xp, query, s, f, length, bending_stiffness, None, jacobian, True, step_angle, max_steps)
 
 
 def _march(xp, query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps):
