@@ -13,7 +13,7 @@ import torchrod as tr
 from torchrod.backend import NUMPY, torch_backend
 from torchrod.estimate import lm, search
 from torchrod.estimate.finish import refine_open
-from torchrod.estimate.problem import Fits, evaluate, exact_residual, interval_of, make_problem, sided
+from torchrod.estimate.problem import Fits, evaluate, exact_residual, interval_of, make_problem, near_kink, sided
 from torchrod.estimate.refine import LBFGSOptions
 
 F64 = torch.float64
@@ -119,7 +119,7 @@ def test_a_kink_minimum_holds_the_force_on_the_grating(rod):
     problem = problem_for(xp, rod, clean(rod, [[q]], [[[0.4, -0.6]]]))
     st = lm.solve(problem, lm.LMPolicy(), fits_at(xp, problem, [[q + 0.006]], [[[0.3, -0.5]]]))
     assert bool(st.converged[0]) and abs(st.fits.s[0, 0] - q) < 1e-6
-    assert bool(search.on_kink(problem, st.fits)[0])
+    assert bool(near_kink(problem, st.fits)[0])
 
 
 def test_failed_linear_algebra_is_data_not_an_exception(rod):

@@ -39,11 +39,11 @@ from ..loads import PointForces
 from ..model.sensitivity import ESTIMATION_STEP_ANGLE
 from ..rod import Rod
 from . import lm, search
-from .problem import Fits, interval_of, kink_sides, make_problem
+from .problem import Fits, interval_of, make_problem, sided
 from .refine import LBFGSOptions
 from .selection import MISFIT_FACTOR, RULES, chi2_quantile, chi2_survival, select_count, settled
 from .status import MISFIT_LEVEL, STATUSES, verdict
-from .uncertainty import CONDITION_LIMIT, uncertainty
+from .uncertainty import CONDITION_LIMIT, fit_uncertainty
 
 __all__ = ["DEFAULT_LBFGS", "EstimateResult", "Estimator", "EstimatorOptions"]
 
@@ -520,8 +520,26 @@ class Estimator:
         def plausible(h: int, readings: Any) -> Any:
             return opts.search.hopeless * quantile(1.0 - opts.significance / MISFIT_FACTOR, h, readings)
 
+        def doubtful(state: Any) -> Any:
+            n, h = state.fits.s.shape
+            if known:
+                sigma = xp.lib.sqrt(problem.noise2[state.fits.reading])
+            else:
+                dof = xp.clip(xp.astype(problem.residuals[state.fits.reading] - 3 * h, "float"), lo=1.0)
+                sigma = xp.lib.sqrt(state.loss / dof + problem.floor2)
+            unc = fit_uncertainty(
+                problem,
+                state.fits,
+                xp.ones((n, h), "bool"),
+                sided(problem, state.fits, state.J),
+                sigma,
+                condition_limit=opts.condition_limit,
+            )
+            return unc.poorly_determined
+
         return search.Rules(
             choose=choose,
+            doubtful=doubtful,
             settled=settle if (opts.settle and not fixed and opts.starts > 0) else None,
             suspect=suspect,
             plausible=plausible,
@@ -580,43 +598,15 @@ class Estimator:
                 s[at, :h] = st.fits.s
                 f[at, :h] = st.fits.f
                 interval[at, :h] = st.fits.interval
-                J[at, :, : 3 * h] = problem_sided(problem, st)
+                J[at, :, : 3 * h] = sided(problem, st.fits, st.J)
             loss[at] = st.loss
             converged[at] = st.converged
             steps[at] = st.steps
         active = xp.arange(W)[None, :] < chosen[:, None]
+        unc = fit_uncertainty(
+            problem, Fits(xp.arange(B), s, f, interval), active, J, sigma, condition_limit=opts.condition_limit
+        )
         residuals = problem.residuals
-        lo = problem.lo[xp.arange(B)[:, None], interval]
-        hi = problem.hi[xp.arange(B)[:, None], interval]
-        # A force on a grating (a kink of the loss) is judged from both sides; the worse one counts.
-        fits = Fits(xp.arange(B), s, f, interval)
-        distal = xp.amax(xp.where(active, s, -1.0), 1) if W else xp.zeros((B,)) - 1.0
-        present = problem.weight.reshape(B, G, 2)[..., 0] > 0
-        informative = 2 * xp.astype(present & (problem.query[None, :] < distal[:, None]), "int").sum(1)
-        sides = kink_sides(problem, fits, J) if bool(xp.any(search.on_kink(problem, fits))) else (J,)
-        both = [
-            uncertainty(
-                xp,
-                Jk,
-                sigma,
-                active,
-                s,
-                interval,
-                hi - lo,
-                residuals,
-                informative,
-                length=rod.length,
-                force_unit=problem.force_unit,
-                condition_limit=opts.condition_limit,
-            )
-            for Jk in sides
-        ]
-        unc = both[0]
-        if len(both) == 2:
-            worse_std = xp.where(unc.std != unc.std, unc.std, xp.lib.maximum(unc.std, both[1].std))
-            unc = dataclasses.replace(
-                unc, std=worse_std, poorly_determined=unc.poorly_determined | both[1].poorly_determined
-            )
         # The verdict: the chi-square p-value at the given noise, or (noise unknown) at the largest believed.
         test_sigma2 = (float(opts.noise) if opts.noise is not None else float(opts.max_noise)) ** 2 + problem.floor2
         dof = xp.tolist(residuals - 3 * chosen)
@@ -664,10 +654,3 @@ class Estimator:
             raise ValueError(f"the starts for h = {h} must have shape (B, h) = {(B, h)}, got {tuple(pf.s.shape)}")
         s = (pf.s.detach() + shift).clamp(0.0, self.rod.length)
         return PointForces(s, pf.f.detach(), pf.mask)
-
-
-def problem_sided(problem: Any, state: lm.LMState) -> Any:
-    """The fit's Jacobian with its own one-sided derivatives (:func:`.problem.sided`)."""
-    from .problem import sided
-
-    return sided(problem, state.fits, state.J)

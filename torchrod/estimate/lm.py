@@ -66,8 +66,8 @@ class LMPolicy:
     max_force_step: float = 10.0
     tolerance: float = 1e-3
     iterations: int = 30
-    exact_steps: int = 1
-    exact_tolerance: float = 1e-2
+    exact_steps: int = 3
+    exact_tolerance: float = 1e-4
     acceleration: float | None = 0.5
     probe: float = 0.1
     acceleration_limit: float = 0.75

@@ -39,6 +39,7 @@ __all__ = [
     "kink_sides",
     "kink_slopes",
     "near_bounds",
+    "near_kink",
     "make_problem",
     "sided",
     "sigma2",
@@ -266,6 +267,16 @@ def sided(problem: Problem, fits: Fits, J: Any) -> Any:
 
 KINK = 1e-6
 """[m] a force this close to a present grating sits on the loss's kink there (:func:`kink_sides`)."""
+
+
+def near_kink(problem: Problem, fits: Fits) -> Any:
+    """(R,) bool: a force of the fit lies within :data:`KINK` of a present grating (on the loss's kink there)."""
+    xp = problem.xp
+    R = fits.rows
+    G = problem.query.shape[0]
+    present = problem.weight[fits.reading].reshape(R, G, 2)[..., 0] > 0
+    near = abs(fits.s[:, None, :] - problem.query[None, :, None]) <= KINK
+    return xp.any((near & present[:, :, None]).reshape(R, -1), 1)
 
 
 def kink_sides(problem: Problem, fits: Fits, J: Any) -> tuple[Any, Any]:

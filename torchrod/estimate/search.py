@@ -31,7 +31,7 @@ from typing import Any
 
 from . import lm
 from .finish import refine_open
-from .problem import KINK, Fits, Problem, evaluate, sided
+from .problem import Fits, Problem, interval_of, near_kink, sided
 from .refine import LBFGSOptions
 
 __all__ = ["SearchOptions", "best_of", "exchange", "scan"]
@@ -84,8 +84,10 @@ class SearchOptions:
         suspect: a fit with known noise is searched further (its other starts, the exchange) when its loss
             exceeds this quantile of the chi-square law of a correct fit's loss; kink_suspect: the same for a fit
             with a force on a grating.
-        hopeless: a count below the chosen one is not searched further when its loss exceeds this many times the
-            count tests' misfit limit (no local minimum of it would be accepted).
+        hopeless, explained: a count below the chosen one is searched further only when its loss is within
+            ``hopeless`` times the count tests' misfit limit, or below ``explained`` times the loss of the count
+            under it (it explains nearly all of that one's misfit: on a clean reading a wrong local minimum of the
+            true count does).
     """
 
     per_interval: int = 2
@@ -96,6 +98,7 @@ class SearchOptions:
     suspect: float = 0.95
     kink_suspect: float = 0.5
     hopeless: float = 3.0
+    explained: float = 0.05
 
     def __post_init__(self) -> None:
         for name in ("per_interval", "top", "exchange_top", "explore"):
@@ -251,16 +254,14 @@ def scan(
         d = st[:, :Pb].reshape(R0, h0, 3)
         s_old = base.s + d[..., 0] * problem.length
         f_old = base.f + d[..., 1:] * problem.force_unit
-        # Base forces stay in their intervals (the loss is smooth there; the LM decides about crossings).
-        lo = problem.lo[base.reading[:, None], base.interval]
-        hi = problem.hi[base.reading[:, None], base.interval]
-        s_old = xp.clip(s_old, lo, hi)
+        # A base force the step moves past a grating starts in the interval it moves into.
+        int_old, s_old = interval_of(problem, base.reading, s_old)
         blocks.append(
             Fits(
                 base.reading,
                 xp.concat([s_old, s_new], 1),
                 xp.concat([f_old, f_new], 1),
-                xp.concat([base.interval, int_new], 1),
+                xp.concat([int_old, int_new], 1),
             )
         )
     starts = Fits(*(xp.concat([getattr(b, k) for b in blocks]) for k in ("reading", "s", "f", "interval")))
@@ -286,16 +287,6 @@ def best_of(xp: Any, state: lm.LMState, B: int, slack: Any = None) -> Any:
     key = xp.where(key == key, key, math.inf)  # NaN last
     block = xp.argmin(key, 0)
     return block * B + xp.arange(B)
-
-
-def on_kink(problem: Problem, fits: Fits) -> Any:
-    """(R,) bool: a force of the fit lies within :data:`.problem.KINK` of a present grating."""
-    xp = problem.xp
-    R = fits.rows
-    G = problem.query.shape[0]
-    present = problem.weight[fits.reading].reshape(R, G, 2)[..., 0] > 0
-    near = abs(fits.s[:, None, :] - problem.query[None, :, None]) <= KINK
-    return xp.any((near & present[:, :, None]).reshape(R, -1), 1)
 
 
 def exchange(
@@ -416,7 +407,7 @@ def suspicious(problem: Problem, state: lm.LMState, limits: tuple[Any, Any]) -> 
     """(R,) bool: fits worth a wider search: unconverged, a loss above ``limits[0]`` (R,), or a force on a grating
     with a loss above ``limits[1]`` (R,)."""
     loss_limit, kink_limit = limits
-    on = on_kink(problem, state.fits) & (state.loss > kink_limit)
+    on = near_kink(problem, state.fits) & (state.loss > kink_limit)
     return ~state.converged | (state.loss > loss_limit) | on
 
 
@@ -434,12 +425,17 @@ class Rules:
             further, in general and with a force on a grating (:func:`suspicious`); None: never searched further.
         plausible: ``plausible(h, readings) -> (n,)``: the loss above which a count below the chosen one is hopeless
             (no better local minimum would make it acceptable), so not searched further.
+        doubtful: ``doubtful(state) -> (n,) bool``: the fits of ``state`` (n rows of one count, row i reading i of
+            ``state.fits.reading``) are poorly determined (:mod:`.uncertainty`); the count below such a chosen fit
+            is searched further (a poorly determined fit often holds one force too many for a local minimum of
+            the count below).
     """
 
     choose: Any
     settled: Any = None
     suspect: Any = None
     plausible: Any = None
+    doubtful: Any = None
 
 
 def fit_counts(
@@ -512,11 +508,23 @@ def fit_counts(
     if rules.suspect is not None:
         # Search further where it matters.
         chosen = rules.choose(xp.stack([s.loss for s in states], 1))
+        doubt = xp.zeros((B,), "bool")
+        if rules.doubtful is not None:
+            for h in range(2, top_count + 1):
+                mine = xp.nonzero(fitted[h] & (chosen == h))
+                if mine.shape[0]:
+                    doubt = xp.put(doubt, mine, rules.doubtful(states[h].take(xp, mine)))
         for h in range(1, top_count + 1):
             every = xp.arange(B)
             cand = fitted[h] & suspicious(problem, states[h], rules.suspect(h, every))
             if rules.plausible is not None:
-                cand = cand & ((chosen == h) | ((chosen > h) & (states[h].loss <= rules.plausible(h, every))))
+                # A smaller count is worth more search where a better local minimum could make it acceptable: its
+                # loss within a few misfit limits, or far below the count under it (it explains most of what that
+                # one leaves: a wrong local minimum of the true count looks like this on a clean reading).
+                near = states[h].loss <= rules.plausible(h, every)
+                most = states[h].loss <= options.explained * states[h - 1].loss
+                below = (chosen == h + 1) & doubt  # the chosen fit above is poorly determined
+                cand = cand & ((chosen == h) | ((chosen > h) & (near | most | below)))
             else:
                 cand = cand & (chosen >= h)
             readings = xp.nonzero(cand)
@@ -535,8 +543,8 @@ def fit_counts(
                 if bool(xp.any(better)):
                     at = xp.nonzero(better)
                     cur = cur.put(xp, at, found.take(xp, at))
-            # The chosen count, if still suspicious: the exchange re-places every force.
-            mine = xp.nonzero((chosen[readings] == h) & suspicious(problem, cur, limit))
+            # If still suspicious: the exchange re-places every force.
+            mine = xp.nonzero(suspicious(problem, cur, limit))
             if h >= 2 and mine.shape[0]:
                 best, spent = exchange(problem, solver, cur.take(xp, mine), (limit[0][mine], limit[1][mine]), options)
                 evaluations = xp.add_at(evaluations, readings[mine], spent)

@@ -29,7 +29,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["CONDITION_LIMIT", "Uncertainty", "gauss_newton_covariance", "uncertainty"]
+__all__ = ["CONDITION_LIMIT", "Uncertainty", "fit_uncertainty", "gauss_newton_covariance", "uncertainty"]
 
 CONDITION_LIMIT = 1e8
 """Default limit on the condition number of the unit-diagonal Gauss-Newton matrix."""
@@ -145,3 +145,51 @@ def uncertainty(
         | unplaced
     )
     return Uncertainty(std=std, covariance=cov, condition=condition, poorly_determined=poorly)
+
+
+def fit_uncertainty(
+    problem: Any,
+    fits: Any,
+    active: Any,
+    J: Any,
+    sigma: Any,
+    *,
+    condition_limit: float = CONDITION_LIMIT,
+) -> Uncertainty:
+    """:func:`uncertainty` of B fits of a :class:`.problem.Problem` (row b: reading b): ``fits`` (B, W) with
+    ``active`` (B, W) their real forces, J (B, 2G, 3W) their sided Jacobians, sigma (B,) [1/m]. A force on a
+    grating (a kink of the loss) is judged from both one-sided Jacobians; the worse one counts."""
+    import dataclasses
+
+    from .problem import bounds, kink_sides, near_kink
+
+    xp = problem.xp
+    B, W = active.shape
+    G = problem.query.shape[0]
+    lo, hi = bounds(problem, fits)
+    distal = xp.amax(xp.where(active, fits.s, -1.0), 1) if W else xp.zeros((B,)) - 1.0
+    present = problem.weight[fits.reading].reshape(B, G, 2)[..., 0] > 0
+    informative = 2 * xp.astype(present & (problem.query[None, :] < distal[:, None]), "int").sum(1)
+    sides = kink_sides(problem, fits, J) if bool(xp.any(near_kink(problem, fits))) else (J,)
+    both = [
+        uncertainty(
+            xp,
+            Jk,
+            sigma,
+            active,
+            fits.s,
+            fits.interval,
+            hi - lo,
+            problem.residuals[fits.reading],
+            informative,
+            length=problem.length,
+            force_unit=problem.force_unit,
+            condition_limit=condition_limit,
+        )
+        for Jk in sides
+    ]
+    unc = both[0]
+    if len(both) == 2:
+        worse = xp.where(unc.std != unc.std, unc.std, xp.lib.maximum(unc.std, both[1].std))
+        unc = dataclasses.replace(unc, std=worse, poorly_determined=unc.poorly_determined | both[1].poorly_determined)
+    return unc
