@@ -15,12 +15,23 @@ trace in the readings), and a force between the first two gratings is seen by on
 components cannot separate the force's magnitude from its lever: location and magnitude are not identifiable there.
 ``--s-min 0.0058`` evaluates the synthetic default range (0.02 L) instead, unobservable forces included.
 
-Printed, per (k, sigma) cell: readings, count accuracy (chosen count = k), the same over the readings whose weakest
-force is at least 0.2 N (a 0.05 N force near the base bends the rod less than the noise), then over the forces of
-the readings whose count is right (estimated and true forces paired in order of location): median and 90th
-percentile force error |f_est - f_true| / |f_true| [%], median and 90th percentile location error [mm]; the share
-of readings flagged poorly determined; estimation wall time per reading (all readings of a cell estimated in
-batches of ``--batch-size``). ``--json`` prints the same numbers as JSON lines instead.
+Rows, for every sigma:
+
+* ``0``: no force, the reading pure noise: "count ok" is how often the count is 0;
+* ``k`` = 1..H: as above;
+* ``k nb`` (near base): k forces, the most proximal within 20 mm of the second grating (between the first grating
+  and 20 mm distal to the second), where a force is seen by few gratings;
+* ``unexpl.``: readings no few point forces produce (:func:`unexplainable`: alternating signs at successive
+  gratings, a sine wave of three grating spacings, random values; 1 to 10 1/m), plus the noise: the "misfit"
+  column is how often the verdict says so.
+
+Printed, per row: readings, count accuracy (chosen count = k), the same over the readings whose weakest force is
+at least 0.2 N (a 0.05 N force near the base bends the rod less than the noise), then over the forces of the
+readings whose count is right (estimated and true forces paired in order of location): median, 90th percentile
+and root mean square of the force error |f_est - f_true| / |f_true| [%] and of the location error [mm] (outliers
+are what the root mean square shows); the share of readings whose status is not ``ok`` and the share ``misfit``;
+estimation wall time per reading (all readings of a row estimated in batches of ``--batch-size``). ``--json``
+prints the same numbers as JSON lines instead.
 """
 
 from __future__ import annotations
@@ -43,7 +54,7 @@ HELP = "accuracy of the estimator on simulated readings over a realistic envelop
 STRONG = 0.2
 """[N] the column ``ok >=0.2N`` counts only readings whose weakest force is at least this strong."""
 
-__all__ = ["HELP", "cell_metrics", "configure", "evaluate_cell", "run"]
+__all__ = ["HELP", "cell_metrics", "configure", "evaluate_cell", "misfit_cell", "run", "unexplainable", "zero_cell"]
 
 
 def _floats(text: str) -> list[float]:
@@ -107,12 +118,17 @@ def evaluate_cell(
     max_bending: float = math.pi / 2,
     noise_known: bool = True,
     batch_size: int = 500,
+    near_base: bool = False,
 ) -> dict[str, Any]:
     """Simulate ``count`` readings with ``k`` forces and noise ``sigma``, estimate them, return the cell's metrics
-    (:func:`cell_metrics` plus ``time_ms`` per reading, wall clock of the estimation alone)."""
+    (:func:`cell_metrics` plus ``time_ms`` per reading, wall clock of the estimation alone). ``near_base``: only
+    cases whose most proximal force lies between the first grating and 20 mm distal to the second (drawn over
+    [first grating, L] and kept when they do)."""
     from ...learn.synthetic import LoadSampler, SensorModel, generate
 
     lo = s_min if s_min is not None else (rod.gratings[1] if rod.num_gratings > 1 else 0.02 * rod.length)
+    if near_base:
+        lo = rod.gratings[0]
     sampler = LoadSampler(
         min_forces=k,
         max_forces=k,
@@ -122,66 +138,149 @@ def evaluate_cell(
         max_bending=max_bending,
     )
     sensor = SensorModel(noise=sigma, location_bias=rod.location_bias)
-    data = generate(
-        rod, count, sampler=sampler, sensor=sensor, seed=seed * 1000 + 10 * k + round(100 * sigma)
-    )
+    cell_seed = seed * 1000 + 10 * k + round(100 * sigma) + (500 if near_base else 0)
+    if near_base:
+        edge = (rod.gratings[1] if rod.num_gratings > 1 else rod.gratings[0]) + 0.02 + rod.location_bias
+        curvature, mask, s_true, f_true = [], [], [], []
+        kept, draw = 0, 0
+        while kept < count:
+            data = generate(rod, 4 * count, sampler=sampler, sensor=sensor, seed=cell_seed + 7919 * draw)
+            near = data.loads.s[:, 0] < edge
+            curvature.append(data.curvature[near])
+            mask.append(data.mask[near])
+            s_true.append(data.loads.s[near])
+            f_true.append(data.loads.f[near])
+            kept += int(near.sum())
+            draw += 1
+        curvature, mask = torch.cat(curvature)[:count], torch.cat(mask)[:count]
+        s_true, f_true = torch.cat(s_true)[:count], torch.cat(f_true)[:count]
+    else:
+        data = generate(rod, count, sampler=sampler, sensor=sensor, seed=cell_seed)
+        curvature, mask, s_true, f_true = data.curvature, data.mask, data.loads.s, data.loads.f
+    results, elapsed = _estimate(rod, curvature, mask, sigma, max_forces, noise_known, batch_size)
+    out = cell_metrics(results, s_true, f_true, k)
+    out.update(forces=k, noise=sigma, time_ms=1e3 * elapsed / max(1, count), row=f"{k} nb" if near_base else str(k))
+    return out
+
+
+def _estimate(rod, curvature, mask, sigma, max_forces, noise_known, batch_size):
+    """Estimate the readings in batches; the results and the wall time of the estimation alone [s]."""
     estimator = Estimator(rod, EstimatorOptions(max_forces=max_forces, noise=sigma if noise_known else None))
-    estimator.estimate(data.curvature[:1], data.mask[:1])  # warm-up: per-rod caches, first-call costs
+    estimator.estimate(curvature[:1], mask[:1])  # warm-up: first-call costs
     results = []
     start = time.perf_counter()
-    for b0 in range(0, count, batch_size):
-        results.append(
-            estimator.estimate(data.curvature[b0 : b0 + batch_size], data.mask[b0 : b0 + batch_size])
-        )
-    elapsed = time.perf_counter() - start
-    out = cell_metrics(results, data.loads.s, data.loads.f, k)
-    out.update(forces=k, noise=sigma, time_ms=1e3 * elapsed / max(1, count))
+    for b0 in range(0, curvature.shape[0], batch_size):
+        results.append(estimator.estimate(curvature[b0 : b0 + batch_size], mask[b0 : b0 + batch_size]))
+    return results, time.perf_counter() - start
+
+
+def zero_cell(
+    rod: Rod, sigma: float, count: int, *, seed: int = 0, max_forces: int = 3, noise_known: bool = True,
+    batch_size: int = 500,
+) -> dict[str, Any]:
+    """``count`` readings of an untouched rod (Gaussian noise ``sigma`` alone): how often the count is 0."""
+    g = torch.Generator().manual_seed(seed * 1000 + round(100 * sigma) + 1)
+    G = rod.num_gratings
+    curvature = sigma * torch.randn(count, G, 2, generator=g, dtype=torch.float64)
+    mask = torch.ones(count, G, dtype=torch.bool)
+    results, elapsed = _estimate(rod, curvature, mask, sigma, max_forces, noise_known, batch_size)
+    empty = torch.zeros(count, 0, dtype=torch.float64)
+    out = cell_metrics(results, empty, empty.unsqueeze(-1).expand(count, 0, 2), 0)
+    out.update(forces=0, noise=sigma, time_ms=1e3 * elapsed / count, row="0")
+    return out
+
+
+def unexplainable(rod: Rod, count: int, sigma: float, seed: int = 0) -> torch.Tensor:
+    """(count, G, 2) readings [1/m] no few point forces produce, plus noise ``sigma``.
+
+    Between point forces the bending moment is linear in s (small deflection), so h forces give a curvature along
+    the gratings made of h + 1 straight pieces; these readings change slope at nearly every grating: in turn
+    alternating signs at successive gratings, a sine wave of period three grating spacings, and independent random
+    values per grating; amplitude 1 to 10 1/m in a random direction. (A constant curvature or one growing toward
+    the tip is not among them: a force couple beyond the last grating, or two opposed forces, makes those.)"""
+    g = torch.Generator().manual_seed(seed * 1000 + round(100 * sigma) + 2)
+    G = rod.num_gratings
+    k = torch.arange(G, dtype=torch.float64)
+    kind = torch.arange(count) % 3
+    phase = 2.0 * math.pi * torch.rand(count, 1, generator=g, dtype=torch.float64)
+    shapes = torch.where(
+        (kind == 0)[:, None],
+        (-1.0) ** k,
+        torch.where(
+            (kind == 1)[:, None],
+            torch.sin(2.0 * math.pi * k / 3.0 + phase),
+            2.0 * torch.rand(count, G, generator=g, dtype=torch.float64) - 1.0,
+        ),
+    )
+    amp = 1.0 + 9.0 * torch.rand(count, generator=g, dtype=torch.float64)
+    ang = 2.0 * math.pi * torch.rand(count, generator=g, dtype=torch.float64)
+    direction = torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # (count, 2)
+    clean = (amp[:, None] * shapes)[:, :, None] * direction[:, None, :]
+    return clean + sigma * torch.randn(count, G, 2, generator=g, dtype=torch.float64)
+
+
+def misfit_cell(
+    rod: Rod, sigma: float, count: int, *, seed: int = 0, max_forces: int = 3, noise_known: bool = True,
+    batch_size: int = 500,
+) -> dict[str, Any]:
+    """``count`` :func:`unexplainable` readings: how often the verdict is ``misfit``."""
+    curvature = unexplainable(rod, count, sigma, seed)
+    mask = torch.ones(count, rod.num_gratings, dtype=torch.bool)
+    results, elapsed = _estimate(rod, curvature, mask, sigma, max_forces, noise_known, batch_size)
+    empty = torch.zeros(count, 0, dtype=torch.float64)
+    out = cell_metrics(results, empty, empty.unsqueeze(-1).expand(count, 0, 2), -1)
+    out.update(forces=None, noise=sigma, time_ms=1e3 * elapsed / count, row="unexpl.")
     return out
 
 
 def cell_metrics(
     results: list[EstimateResult], s_true: torch.Tensor, f_true: torch.Tensor, k: int
 ) -> dict[str, Any]:
-    """Count accuracy and force / location errors of estimates against the truth.
+    """Count accuracy, statuses, and force / location errors of estimates against the truth.
 
     Args:
         results: estimates of the readings, in order (concatenated).
         s_true: (N, >= k) true locations [m] (reported coordinates), sorted; f_true: (N, >= k, 2) [N].
-        k: the true count.
+        k: the true count (0: none; -1: no count is right, the readings are not made of forces).
     """
     num = torch.cat([r.num_forces for r in results])
     s_est = torch.cat([r.forces.s for r in results])
     f_est = torch.cat([r.forces.f for r in results])
-    poorly = torch.cat([r.poorly_determined for r in results])
+    statuses = [s for r in results for s in r.statuses]
     ok = num == k
     n = num.shape[0]
-    strong = torch.linalg.vector_norm(f_true[:, :k], dim=-1).amin(dim=1) >= STRONG
+    frac = lambda x: float(x.double().mean()) if x.numel() else math.nan
+    strong = (
+        torch.linalg.vector_norm(f_true[:, :k], dim=-1).amin(dim=1) >= STRONG
+        if k > 0
+        else torch.ones(n, dtype=torch.bool)
+    )
     out: dict[str, Any] = {
         "readings": n,
-        "count_accuracy": float(ok.double().mean()) if n else math.nan,
-        "count_accuracy_strong": float(ok[strong].double().mean()) if bool(strong.any()) else math.nan,
-        "poorly_determined": float(poorly.double().mean()) if n else math.nan,
+        "count_accuracy": frac(ok) if k >= 0 else math.nan,
+        "count_accuracy_strong": frac(ok[strong]) if k >= 0 and bool(strong.any()) else math.nan,
+        "not_ok": sum(s != "ok" for s in statuses) / n if n else math.nan,
+        "misfit": sum(s == "misfit" for s in statuses) / n if n else math.nan,
+        "poorly_determined": sum(s == "poorly_determined" for s in statuses) / n if n else math.nan,
     }
-    if bool(ok.any()):
+    names = ("median", "p90", "rms")
+    if k > 0 and bool(ok.any()):
         ts, tf = s_true[ok][:, :k], f_true[ok][:, :k]
         es, ef = s_est[ok][:, :k], f_est[ok][:, :k]
         f_err = (
             torch.linalg.vector_norm(ef - tf, dim=-1) / torch.linalg.vector_norm(tf, dim=-1)
         ).flatten() * 100
         s_err = (es - ts).abs().flatten() * 1e3
-        out.update(
-            force_error_median=float(f_err.median()),
-            force_error_p90=float(f_err.quantile(0.9)),
-            location_error_median=float(s_err.median()),
-            location_error_p90=float(s_err.quantile(0.9)),
-        )
+        for label, err in (("force_error", f_err), ("location_error", s_err)):
+            out.update(
+                {
+                    f"{label}_median": float(err.median()),
+                    f"{label}_p90": float(err.quantile(0.9)),
+                    f"{label}_rms": float(err.pow(2).mean().sqrt()),
+                }
+            )
     else:
-        out.update(
-            force_error_median=math.nan,
-            force_error_p90=math.nan,
-            location_error_median=math.nan,
-            location_error_p90=math.nan,
-        )
+        out.update({f"{label}_{m}": math.nan for label in ("force_error", "location_error") for m in names})
     return out
 
 
@@ -203,33 +302,40 @@ def run(args: argparse.Namespace) -> int:
     if not args.json:
         where = f"s in [{lo * 1e3:.1f}, {rod.length * 1e3:.1f}] mm" if lo is not None else "s default range"
         print(
-            f"# {args.count_per_cell} readings per cell; forces {args.force_range[0]:g}-{args.force_range[1]:g} N, "
-            f">= {args.min_separation * 1e3:g} mm apart, {where}, bending <= {args.max_bending_deg:g} deg; "
+            f"# {args.count_per_cell} readings per row; forces {args.force_range[0]:g}-{args.force_range[1]:g} N, "
+            f">= {args.min_separation * 1e3:g} mm apart, {where} (nb: the most proximal within 20 mm of the 2nd "
+            f"grating), bending <= {args.max_bending_deg:g} deg; "
             f"sigma {'given to' if args.estimator_noise == 'known' else 'estimated by'} the estimator; seed {args.seed}"
         )
-        print(
-            f"{'forces':>6} {'noise':>6} {'n':>5} {'count ok':>9} {'ok >=0.2N':>10} {'F err med':>10} {'F err p90':>10} "
-            f"{'s err med':>10} {'s err p90':>10} {'poorly':>7} {'ms/read':>8}"
-        )
-        print(
-            f"{'':>6} {'[1/m]':>6} {'':>5} {'[%]':>9} {'[%]':>10} {'[%]':>10} {'[%]':>10} {'[mm]':>10} {'[mm]':>10} {'[%]':>7} {'':>8}"
-        )
-    for k in range(1, args.max_forces + 1):
+        head = ("forces", "noise", "n", "count ok", "ok >=0.2N", "F med", "F p90", "F rms", "s med", "s p90",
+                "s rms", "not ok", "misfit", "ms/read")
+        units = ("", "[1/m]", "", "[%]", "[%]", "[%]", "[%]", "[%]", "[mm]", "[mm]", "[mm]", "[%]", "[%]", "")
+        widths = (7, 6, 5, 9, 10, 7, 7, 7, 7, 7, 7, 7, 7, 8)
+        print(" ".join(f"{h:>{w}}" for h, w in zip(head, widths)))
+        print(" ".join(f"{u:>{w}}" for u, w in zip(units, widths)))
+    common = dict(seed=args.seed, max_forces=args.max_forces, noise_known=args.estimator_noise == "known",
+                  batch_size=args.batch_size)
+    cells = [("zero", 0)] + [("k", k) for k in range(1, args.max_forces + 1)]
+    cells += [("near base", k) for k in range(1, args.max_forces + 1)] + [("unexplainable", None)]
+    for kind, k in cells:
         for sigma in args.noise:
-            m = evaluate_cell(
-                rod,
-                k,
-                sigma,
-                args.count_per_cell,
-                seed=args.seed,
-                max_forces=args.max_forces,
-                force_range=(args.force_range[0], args.force_range[1]),
-                min_separation=args.min_separation,
-                s_min=lo,
-                max_bending=bending,
-                noise_known=args.estimator_noise == "known",
-                batch_size=args.batch_size,
-            )
+            if kind == "zero":
+                m = zero_cell(rod, sigma, args.count_per_cell, **common)
+            elif kind == "unexplainable":
+                m = misfit_cell(rod, sigma, args.count_per_cell, **common)
+            else:
+                m = evaluate_cell(
+                    rod,
+                    k,
+                    sigma,
+                    args.count_per_cell,
+                    force_range=(args.force_range[0], args.force_range[1]),
+                    min_separation=args.min_separation,
+                    s_min=lo,
+                    max_bending=bending,
+                    near_base=kind == "near base",
+                    **common,
+                )
             if args.json:
                 print(
                     json.dumps(
@@ -240,12 +346,14 @@ def run(args: argparse.Namespace) -> int:
                     )
                 )
             else:
-                print(
-                    f"{k:>6} {sigma:>6g} {m['readings']:>5} {100 * m['count_accuracy']:>9.1f} "
-                    f"{100 * m['count_accuracy_strong']:>10.1f} "
-                    f"{m['force_error_median']:>10.2f} {m['force_error_p90']:>10.2f} "
-                    f"{m['location_error_median']:>10.2f} {m['location_error_p90']:>10.2f} "
-                    f"{100 * m['poorly_determined']:>7.1f} {m['time_ms']:>8.2f}"
+                pct = lambda v: "-" if not math.isfinite(v) else f"{100 * v:.1f}"
+                num = lambda v: "-" if not math.isfinite(v) else f"{v:.2f}"
+                cols = (
+                    m["row"], f"{sigma:g}", str(m["readings"]), pct(m["count_accuracy"]),
+                    pct(m["count_accuracy_strong"]), num(m["force_error_median"]), num(m["force_error_p90"]),
+                    num(m["force_error_rms"]), num(m["location_error_median"]), num(m["location_error_p90"]),
+                    num(m["location_error_rms"]), pct(m["not_ok"]), pct(m["misfit"]), num(m["time_ms"]),
                 )
+                print(" ".join(f"{c:>{w}}" for c, w in zip(cols, widths)))
             sys.stdout.flush()
     return 0
