@@ -14,6 +14,7 @@ import sys
 import termios
 import time
 
+import pytest
 import torch
 
 import torchrod as tr
@@ -101,26 +102,42 @@ def test_evaluate_prints_a_table(capsys):
         torch.set_num_threads(threads)
     out = capsys.readouterr().out.splitlines()
     assert status == 0
-    rows = [line.split() for line in out if line.strip() and line.split()[0].isdigit()]
-    assert [(r[0], r[1]) for r in rows] == [("1", "0"), ("1", "0.1"), ("2", "0"), ("2", "0.1")]
-    clean = rows[0]
-    # one clean force: count right (all readings, and those with forces >= 0.2 N), force error ~0 %
-    assert float(clean[3]) == 100.0 and float(clean[5]) < 0.1
+    rows = [line.split() for line in out if line.strip() and not line.lstrip().startswith(("#", "forces", "["))]
+    labels = [(" ".join(r[:-13]), r[-13]) for r in rows]
+    assert labels == [
+        (k, s) for k in ("0", "1", "2", "1 nb", "2 nb", "unexpl.") for s in ("0", "0.1")
+    ], labels
+    by = {(" ".join(r[:-13]), r[-13]): r[-13:] for r in rows}
+    # one clean force: count right (all readings, and those with forces >= 0.2 N), force error ~0 %, rms too
+    clean = by[("1", "0")]
+    assert float(clean[2]) == 100.0 and float(clean[4]) < 0.1 and float(clean[6]) < 0.1
+    # no force: the count is 0; readings no forces make: flagged misfit
+    assert float(by[("0", "0.1")][2]) >= 80.0
+    assert float(by[("unexpl.", "0.1")][-2]) >= 80.0
+    assert by[("unexpl.", "0.1")][2] == "-"
 
 
 def test_evaluate_json_and_bench_quick(capsys):
     threads = torch.get_num_threads()
     try:
         assert (
-            main(["evaluate", "--count-per-cell", "4", "--noise", "0.1", "--max-forces", "1", "--json"]) == 0
+            main(
+                ["evaluate", "--count-per-cell", "4", "--noise", "0.1", "--max-forces", "1", "--json",
+                 "--rows", "forces,zero"]
+            )
+            == 0
         )
-        (cell,) = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+        zero, cell = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+        assert zero["forces"] == 0 and zero["row"] == "0" and 0.0 <= zero["count_accuracy"] <= 1.0
         assert cell["forces"] == 1 and cell["readings"] == 4 and 0.0 <= cell["count_accuracy"] <= 1.0
+        assert "force_error_rms" in cell and "location_error_rms" in cell and "misfit" in cell
         assert main(["bench", "estimate", "--quick"]) == 0
     finally:
         torch.set_num_threads(threads)
     out = capsys.readouterr().out
     assert "B=1" in out and out.count("|") >= 12
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--rows", "nonsense"])
 
 
 # ---------------------------------------------------------------------------------------------- hostile input

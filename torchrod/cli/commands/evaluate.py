@@ -101,7 +101,24 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--threads", type=int, default=1, help="torch threads (default 1, as the timings assume)"
     )
+    parser.add_argument(
+        "--rows",
+        type=_rows,
+        default=ROWS,
+        help="comma-separated rows to run, of " + ",".join(ROWS) + " (default: all)",
+    )
     parser.add_argument("--json", action="store_true", help="JSON lines instead of a table")
+
+
+ROWS = ("zero", "forces", "near-base", "unexplainable")
+
+
+def _rows(text: str) -> tuple[str, ...]:
+    rows = tuple(x.strip() for x in text.split(",") if x.strip())
+    bad = [r for r in rows if r not in ROWS]
+    if bad or not rows:
+        raise argparse.ArgumentTypeError(f"rows must be among {','.join(ROWS)}, got {text!r}")
+    return rows
 
 
 def evaluate_cell(
@@ -315,8 +332,13 @@ def run(args: argparse.Namespace) -> int:
         print(" ".join(f"{u:>{w}}" for u, w in zip(units, widths)))
     common = dict(seed=args.seed, max_forces=args.max_forces, noise_known=args.estimator_noise == "known",
                   batch_size=args.batch_size)
-    cells = [("zero", 0)] + [("k", k) for k in range(1, args.max_forces + 1)]
-    cells += [("near base", k) for k in range(1, args.max_forces + 1)] + [("unexplainable", None)]
+    cells = [("zero", 0)] if "zero" in args.rows else []
+    if "forces" in args.rows:
+        cells += [("k", k) for k in range(1, args.max_forces + 1)]
+    if "near-base" in args.rows:
+        cells += [("near base", k) for k in range(1, args.max_forces + 1)]
+    if "unexplainable" in args.rows:
+        cells += [("unexplainable", None)]
     for kind, k in cells:
         for sigma in args.noise:
             if kind == "zero":
