@@ -98,7 +98,7 @@ class SearchOptions:
     suspect: float = 0.95
     kink_suspect: float = 0.5
     hopeless: float = 3.0
-    explained: float = 0.05
+    explained: float = 0.01
 
     def __post_init__(self) -> None:
         for name in ("per_interval", "top", "exchange_top", "explore"):
@@ -525,8 +525,11 @@ def fit_counts(
                 most = states[h].loss <= options.explained * states[h - 1].loss
                 below = (chosen == h + 1) & doubt  # the chosen fit above is poorly determined
                 cand = cand & ((chosen == h) | ((chosen > h) & (near | most | below)))
+                # The exchange (costlier) only for the chosen count and below a chosen fit that is poorly determined.
+                wide = (chosen == h) | below
             else:
                 cand = cand & (chosen >= h)
+                wide = chosen >= h
             readings = xp.nonzero(cand)
             if readings.shape[0] == 0:
                 continue
@@ -544,7 +547,7 @@ def fit_counts(
                     at = xp.nonzero(better)
                     cur = cur.put(xp, at, found.take(xp, at))
             # If still suspicious: the exchange re-places every force.
-            mine = xp.nonzero(suspicious(problem, cur, limit))
+            mine = xp.nonzero(wide[readings] & suspicious(problem, cur, limit))
             if h >= 2 and mine.shape[0]:
                 best, spent = exchange(problem, solver, cur.take(xp, mine), (limit[0][mine], limit[1][mine]), options)
                 evaluations = xp.add_at(evaluations, readings[mine], spent)

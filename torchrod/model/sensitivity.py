@@ -40,12 +40,14 @@ import torch
 from ..backend import NUMPY, Backend, TorchBackend
 from .schedule import events, step_counts
 
-__all__ = ["CHUNK", "ESTIMATION_STEP_ANGLE", "SCALAR_ROWS", "curvature_and_jacobian", "march", "march_propagator"]
+__all__ = ["CHUNK", "ESTIMATION_STEP_ANGLE", "SCALAR_WORK", "curvature_and_jacobian", "march", "march_propagator"]
 
-SCALAR_ROWS = 8
-"""Batches of at most this many rows on the NumPy backend are marched one row at a time on Python complex
-numbers: at one row a pass for one force takes ~0.1 ms there against ~1 ms with arrays, whose cost at small batch
-is per-operation overhead (measured on this project's 2-core CPU)."""
+SCALAR_WORK = 48
+"""Batches on the NumPy backend with rows x (4 + tangent columns) at most this are marched one row at a time on
+Python complex numbers (no per-operation overhead), larger ones on arrays. The cost of the first grows with the
+rows times the columns carried, the second's is mostly fixed per operation at small batch: this puts the switch
+near the measured crossover (about 12 rows with one force's Jacobian, 4 with three forces', 3 with the Jacobian
+and the propagator; ``python -m torchrod bench forward`` measures the paths)."""
 
 CHUNK = 384
 """Rows marched together (larger batches are split: the working set stays in cache, and each part gets step
@@ -117,7 +119,8 @@ def march_propagator(
 
 def _march(xp, query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps):
     B = s.shape[0]
-    if xp.name == "numpy" and B <= SCALAR_ROWS:
+    columns = (3 * s.shape[1] if jacobian else 0) + (4 if seeds else 0)
+    if xp.name == "numpy" and B * (4 + columns) <= SCALAR_WORK:
         return _march_rows(query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps)
     if B > CHUNK:
         parts = [
@@ -280,11 +283,15 @@ def _row(order, seg, steps, jumps, active, Q, h, F, seeds, ei):
     """One row of the march on Python complex numbers, on a precomputed schedule (same scheme as the arrays).
 
     Returns U at each query (Q complex), for each query its F + 4 seeds tangents dU, and (with ``seeds``) the
-    seeds' dW (the force tangents' dW are not kept).
+    seeds' dW (the force tangents' dW are not kept). A force's three tangent columns are zero until the march
+    reaches the force, so they are carried only from there on (``cols``: the columns carried, in ``du``/``dw``
+    order).
     """
     u0, w0 = 0j, 0j  # U and W = U_t
-    du = [0j] * F + ([1.0 + 0j, 1j, 0j, 0j] if seeds else [])
-    dw = [0j] * F + ([0j, 0j, 1.0 + 0j, 1j] if seeds else [])
+    cols = list(range(F, F + 4)) if seeds else []
+    du = [1.0 + 0j, 1j, 0j, 0j] if seeds else []
+    dw = [0j, 0j, 1.0 + 0j, 1j] if seeds else []
+    zeros = [0j] * (F + (4 if seeds else 0))
     out_u = [0j] * Q
     out_j: list[list[complex]] = [[]] * Q
     out_w: list[list[complex]] = [[]] * Q
@@ -323,14 +330,18 @@ def _row(order, seg, steps, jumps, active, Q, h, F, seeds, ei):
             started = True
             w0 += jumps[idx]
             if F and active[idx]:
-                dw[3 * idx + 1] += d_fx
-                dw[3 * idx + 2] += d_fy
-                du[3 * idx] += jumps[idx]
+                # From here on the force's columns: d/ds (dU gains the jump), d/df_x, d/df_y (dW gains i/EI, -1/EI).
+                cols += [3 * idx, 3 * idx + 1, 3 * idx + 2]
+                du += [jumps[idx], 0j, 0j]
+                dw += [0j, d_fx, d_fy]
         else:
+            full = list(zeros)
+            for c, v in zip(cols, du):
+                full[c] = v
             out_u[idx - h] = u0
-            out_j[idx - h] = list(du)
+            out_j[idx - h] = full
             if seeds:
-                out_w[idx - h] = dw[F:]
+                out_w[idx - h] = dw[:4]
     return out_u, out_j, out_w
 
 
