@@ -1,6 +1,6 @@
 """An independent reference for the body-frame rod model: scipy's DOP853 on the FULL body-frame system.
 
-NOTES.md, "The body-frame equations": for a straight, isotropic, inextensible, unshearable rod with no external
+docs/physics.md, "The body-frame equations": for a straight, isotropic, inextensible, unshearable rod with no external
 moment (u_z = 0),
 
     u_x' = n_y / EI,    u_y' = -n_x / EI,    n' = -f - u x n,    u = (u_x, u_y, 0),

@@ -1,6 +1,6 @@
 """The body-frame forward model: physics, accuracy, convergence, gradients, batching, dtypes and input checks.
 
-Sign convention (NOTES.md): the standard Cosserat rod, u_x' = n_y/EI, u_y' = -n_x/EI, n' = -f - u x n, integrated
+Sign convention (docs/physics.md): the standard Cosserat rod, u_x' = n_y/EI, u_y' = -n_x/EI, n' = -f - u x n, integrated
 from the free tip (u = n = 0) to the clamped base, with n(s_i^-) = n(s_i^+) + f_i at a point force. For a small force
 the u x n term is second order, so proximal to s_i, n = (f_x, f_y, 0) and, integrating from u(s_i) = 0 down to s:
 
@@ -226,7 +226,7 @@ def test_exact_scheme_converges_at_the_order_of_its_method(method, order):
 
 
 def test_node_scheme_error_falls_like_the_spacing_squared_away_from_loads(rod):
-    # The hat spreading (NOTES.md erratum 3) keeps each force's total and first moment, so proximal to its support
+    # The hat spreading (docs/physics.md, erratum 3) keeps each force's total and first moment, so proximal to its support
     # linear theory is exact and only the nonlinear term sees the O(d) smearing over a length O(d): O(d^2). At a
     # grating inside the support the smearing itself shows: a force on a node spreads as a symmetric triangle of
     # half-width d, and (linear theory) U there is off by |f| int_0^d x (1 - x/d) dx / (d EI) = |f| d / (6 EI): O(d).

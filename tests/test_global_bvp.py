@@ -78,7 +78,7 @@ def test_reference_satisfies_the_boundary_and_balance_laws():
 
 
 def test_torsional_stiffness_does_not_matter():
-    # NOTES.md erratum 2: u_z stays 0, so GJ (here through Poisson's ratio) does not change the solution.
+    # docs/physics.md, erratum 2: u_z stays 0, so GJ (here through Poisson's ratio) does not change the solution.
     forces = [(0.12, 0.9, 0.4), (0.24, -0.3, 0.8)]
     a = reference_grating_curvature(ROD.with_(poisson_ratio=0.0), forces)
     b = reference_grating_curvature(ROD.with_(poisson_ratio=0.45), forces)

@@ -151,7 +151,7 @@ class PointForces:
 
 
 def spread_to_nodes(loads: PointForces, nodes: torch.Tensor) -> torch.Tensor:
-    """The paper's point-to-node spreading, with its erratum fixed (NOTES.md, erratum 3).
+    """The paper's point-to-node spreading, with its erratum fixed (docs/physics.md, erratum 3).
 
     A force f at s between nodes loc_{j-1} and loc_j (spacing d) becomes distributed loads f (loc_j - s) / d^2 at
     node j-1 and f (s - loc_{j-1}) / d^2 at node j: a hat function, the nearer node gets more. Interpolated

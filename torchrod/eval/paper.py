@@ -22,7 +22,7 @@ Baseline estimators (:func:`fit_forces`, :func:`paper_estimate`)
     them to the node scheme's discretisation error, which falls as q^-2.
 
     The count: :func:`paper_estimate` fits h = 1, 2, ... until the loss drops below the paper's threshold 3.0
-    (its rule, erratum 4 of NOTES.md), or fits a given count. Starts: the best candidate of torchrod's grid scan
+    (its rule, erratum 4 in docs/physics.md), or fits a given count. Starts: the best candidate of torchrod's grid scan
     (:class:`torchrod.eval.grid_starts.GridStarts`, small-deflection linear least squares), the same for every inner model.
 
 Readings and accuracy (:func:`paper_readings`, :func:`accuracy`)

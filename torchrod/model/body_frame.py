@@ -1,6 +1,6 @@
 """The body-frame rod model: curvature as an initial-value problem integrated from the free tip to the base.
 
-Equations (NOTES.md, "The body-frame equations"): for a straight, isotropic, inextensible, unshearable rod with no
+Equations (docs/physics.md, "The body-frame equations"): for a straight, isotropic, inextensible, unshearable rod with no
 external moment, u_z = 0 and
 
     u_x' = n_y / EI,    u_y' = -n_x / EI,    n' = -f - u x n.
@@ -30,7 +30,7 @@ gradient of the discrete scheme, in O(steps) memory): on the CPU in NumPy (or pl
 few), elsewhere in torch. ``adjoint=False`` instead records every torch operation for autograd: slower, but it
 supports ``torch.func`` transforms and higher derivatives.
 
-The paper's scheme (``scheme="nodes"``) spreads each force onto the two nearest of q uniform nodes (NOTES.md,
+The paper's scheme (``scheme="nodes"``) spreads each force onto the two nearest of q uniform nodes (docs/physics.md,
 erratum 3) and integrates the distributed load, interpolated linearly between nodes, one step per node interval
 (classical 4th-order Runge-Kutta-Nystrom by default).
 """

@@ -3,7 +3,7 @@
 This module is the independent check of :mod:`torchrod.body_frame` and the home of the paper's two baselines. It
 works in numpy/scipy, one load case at a time, with rotation matrices in the global frame (no body-frame reduction).
 
-Equations (the paper's eqs. 1-4, standard Cosserat sign, NOTES.md) for a straight, inextensible, unshearable rod
+Equations (the paper's eqs. 1-4, standard Cosserat sign, docs/physics.md) for a straight, inextensible, unshearable rod
 (v = e3) with no external moment::
 
     P' = R e3,    R' = R u^,    N' = -F_e,    M' = -P' x N,    M = R K u,   K = diag(EI, EI, GJ)
@@ -20,7 +20,7 @@ The small-deflection solution (R = I along the rod) is the initial guess:
     N(0) = sum_i F_i,    M(0) = sum_i s_i e3 x F_i
 
 (from M(0) = M(L) + int_0^L P' x N ds with P' = e3): one f_y > 0 at s_i gives M_x(0) = -s_i f_y, so
-u_x(0) = -f_y s_i / EI, the standard sign of NOTES.md.
+u_x(0) = -f_y s_i / EI, the standard sign of docs/physics.md.
 
 Two solvers:
 
@@ -439,7 +439,7 @@ class ShootingSolver:
             residual from one pass.
         scheme: ``"exact"`` (default): a point force acts exactly at its location (the RK4 interval holding it is
             split there, the internal force jumps); ``"nodes"``: the paper's spreading of each force onto the two
-            nearest nodes (hat weights, NOTES.md erratum 3), a distributed load linear between nodes, as
+            nearest nodes (hat weights, docs/physics.md erratum 3), a distributed load linear between nodes, as
             ``simulate(..., scheme="nodes")``. The exact scheme converges as q^-4, the node scheme as q^-2.
         tol: bound on the scaled tip residual max |(N(L+), M(L)/L)| / F_s.
         max_iter: Levenberg-Marquardt iterations per attempt.

@@ -1,6 +1,6 @@
 """The rod's shape: centreline and frames from a sampled curvature profile (torch, batched, differentiable).
 
-The kinematics of an inextensible, unshearable rod (NOTES.md): R' = R u^, P' = R e3, clamped base P(0) = 0,
+The kinematics of an inextensible, unshearable rod (docs/physics.md): R' = R u^, P' = R e3, clamped base P(0) = 0,
 R(0) = I (tangent +z). Given the body-frame curvature u at samples s_0 = 0 < s_1 < ... < s_{S-1}, each interval
 [s_k, s_{k+1}] (length h_k) is crossed with the exponential midpoint rule (second-order Magnus): the curvature is
 taken constant at its mean a_k = (u_k + u_{k+1}) / 2 over the interval, and the arc it describes is followed

@@ -5,11 +5,12 @@ body-frame direction, locations from the second grating to the tip, bending <= 9
 ``--noise``, drawn from a seed the shipped checkpoint was not trained on. Three rows per k:
 
 * ``network``: the network alone (its most probable count and that count's forces);
-* ``estimator``: the estimator without a network (grid-scan starts, L-BFGS);
-* ``estimator+network``: :meth:`torchrod.estimator.Estimator.from_checkpoint` (network starts, no scan, L-BFGS).
+* ``estimator``: the estimator without a network (the scan's starts);
+* ``estimator+network``: :meth:`torchrod.Estimator.from_checkpoint`: the network's guesses beside the scan's
+  starts, or alone where the checkpoint's recorded quality says it can be trusted.
 
 Columns: count accuracy, median force error (|f_est - f_true| / |f_true|, %) and location error (mm) over readings
-whose count is right, median L-BFGS iterations of the chosen fit, time per reading batched (``--batch-size``) and
+whose count is right, median solver steps of the chosen fit, time per reading batched (``--batch-size``) and
 one reading at a time (``--single`` readings, median). All rows run side by side in one process.
 """
 
@@ -59,7 +60,7 @@ def _network_alone(warm_start, data, k: int) -> dict:
     fake = SimpleNamespace(
         num_forces=count,
         forces=SimpleNamespace(s=s, f=f),
-        poorly_determined=torch.zeros_like(count, dtype=torch.bool),
+        statuses=["ok"] * count.shape[0],  # the network gives no verdict
     )
     return cell_metrics([fake], data.loads.s, data.loads.f, k)
 
@@ -87,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     count, single = (12, 2) if args.quick else (args.count, args.single)
     warm_start = WarmStart.load(args.checkpoint, rod)
     plain = Estimator(rod, EstimatorOptions(noise=args.noise))
-    with_net = Estimator.from_checkpoint(args.checkpoint, rod, EstimatorOptions(noise=args.noise, starts=0))
+    with_net = Estimator.from_checkpoint(args.checkpoint, rod, EstimatorOptions(noise=args.noise))
     print(
         f"torchrod bench network: {rod.num_gratings} gratings, noise {args.noise} 1/m, {count} held-back readings "
         f"per k (seed {args.seed}), torch threads {torch.get_num_threads()}, checkpoint {args.checkpoint}"

@@ -3,7 +3,8 @@
 Readings: a synthetic trajectory (:func:`torchrod.synthetic.generate_trajectory`) of ``--count`` readings at
 ``--rate`` Hz: 1 to 3 contacts that appear, move, grow and vanish, Gaussian noise ``--noise`` per component. The
 estimator (default options, count chosen among 1..3, told the noise; the warm-start network of ``--checkpoint``
-when it fits the rod, whose guesses then replace the grid scan: ``starts=0``; ``--set`` changes any option) runs
+when it fits the rod, loaded as :meth:`Estimator.from_checkpoint` does: its guesses are starts beside the scan's
+unless its recorded quality says it can be trusted; ``--set`` changes any option) runs
 the same readings five ways, in one run:
 
 * ``static, batched``: :meth:`Estimator.estimate` on consecutive batches of ``--batch-size`` (no tracking);
@@ -21,9 +22,9 @@ Per way: readings per second (wall), process CPU time per reading, latency media
 per batch, and the accuracy against the truth: count accuracy, and over the readings whose count is right the median
 force error |f_est - f_true| [N] and location error [mm] (forces paired in order of location).
 ``--profile`` adds where the time goes in a backlog stream of (at most) the first 2000 readings, a separate pass
-under cProfile (cumulative times): starts (grid scan and network), the Levenberg-Marquardt polish, L-BFGS, count
-selection, uncertainty, the rest of ``estimate``, and the stream's own work (batching, checking readings,
-result records). Every timing follows a warm-up; torch runs on ``--threads`` threads.
+under cProfile (cumulative times): the network's guesses, the scans, the Levenberg-Marquardt fits, the exchange,
+L-BFGS, the exact-model steps, count selection, uncertainty, the rest of ``estimate``, and the stream's own work
+(batching, checking readings, result records). Every timing follows a warm-up; torch runs on ``--threads`` threads.
 """
 
 from __future__ import annotations
@@ -81,7 +82,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="FIELD=VALUE",
-        help="an EstimatorOptions field for every way (repeatable; e.g. polish=12, starts=1, lbfgs.max_iter=10)",
+        help="an EstimatorOptions field for every way (repeatable; e.g. starts=1, lbfgs.max_iter=10)",
     )
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument(
@@ -185,13 +186,16 @@ class _LockStep:
 
 
 _PHASES: list[tuple[str, Callable[[str, str], bool]]] = [
-    ("starts (grid scan)", lambda f, n: f.endswith("starts.py") and n == "__call__"),
-    ("starts (network)", lambda f, n: f.endswith("warm_start.py") and n == "guess"),
-    ("polish (LM)", lambda f, n: f.endswith("estimator.py") and n == "polish"),
-    ("L-BFGS", lambda f, n: f.endswith("estimator.py") and n == "refine"),
+    ("network guesses", lambda f, n: f.endswith("warm_start.py") and n == "guess"),
+    ("scans", lambda f, n: f.endswith("search.py") and n == "scan"),
+    ("first fits (LM)", lambda f, n: f.endswith("search.py") and n == "_first_fits"),
+    ("wider search (LM)", lambda f, n: f.endswith("search.py") and n == "_explore"),
+    ("L-BFGS", lambda f, n: f.endswith("finish.py") and n == "refine_open"),
     ("count selection", lambda f, n: f.endswith("selection.py") and n == "select_count"),
-    ("uncertainty", lambda f, n: f.endswith("uncertainty.py") and n == "force_uncertainty"),
+    ("uncertainty", lambda f, n: f.endswith("uncertainty.py") and n == "fit_uncertainty"),
 ]
+"""Phases of an estimate, each a function's cumulative time (the exchange's fits are in "wider search"; the
+exact-model steps inside the fits that call them)."""
 
 
 def _profile_lines(profile: cProfile.Profile, wall: float, readings: int) -> list[str]:
@@ -214,20 +218,21 @@ def _profile_lines(profile: cProfile.Profile, wall: float, readings: int) -> lis
     lines.append(f"#   {'rest of estimate':<20} {rest:>7.2f} s  {100 * rest / wall:>5.1f}%")
     # The reader thread's work shows up wherever the main thread waits for the GIL, mostly outside estimate.
     lines.append(f"#   {'stream, records':<20} {other:>7.2f} s  {100 * other / wall:>5.1f}%")
-    calls = sum(
-        cc for (f, _, n), (cc, *_rest) in stats.items() if f.endswith("estimator.py") and n == "residual"
-    )
-    lines.append(f"#   forward-sensitivity evaluations (batched residual calls): {calls}")
+    calls = sum(cc for (f, _, n), (cc, *_rest) in stats.items() if f.endswith("sensitivity.py") and n == "_march")
+    lines.append(f"#   forward-sensitivity marches (batched calls): {calls}")
     return lines
 
 
 def _options(noise: float, settings: list[str], network: Any) -> EstimatorOptions:
-    """EstimatorOptions(noise=noise), ``starts=0`` with a network (its guesses replace the grid scan, as in
-    ``Estimator.from_checkpoint``), then the ``FIELD=VALUE`` settings (values as Python literals; ``lbfgs.FIELD``
-    sets a field of the L-BFGS options)."""
+    """EstimatorOptions(noise=noise) (with a trusted network, ``trust_guesses``, as ``Estimator.from_checkpoint``
+    sets it), then the ``FIELD=VALUE`` settings (values as Python literals; ``lbfgs.FIELD`` sets a field of the
+    L-BFGS options)."""
     options = EstimatorOptions(noise=noise)
-    if network is not None and network.max_forces >= options.max_forces:
-        options = dataclasses.replace(options, starts=0)
+    if network is not None:
+        from ...learn.warm_start import quality_verdict
+
+        if not quality_verdict(getattr(network, "meta", {}) or {}):
+            options = dataclasses.replace(options, trust_guesses=True)
     for setting in settings:
         name, sep, text = setting.partition("=")
         if not sep:
