@@ -523,8 +523,11 @@ def fit_counts(
                 # one leaves: a wrong local minimum of the true count looks like this on a clean reading).
                 near = states[h].loss <= rules.plausible(h, every)
                 most = states[h].loss <= options.explained * states[h - 1].loss
-                below = (chosen == h + 1) & doubt  # the chosen fit above is poorly determined
-                cand = cand & ((chosen == h) | ((chosen > h) & (near | most | below)))
+                # Under a poorly determined chosen fit, the count below is searched further even if its fit looks
+                # acceptable: a wrong local minimum of it can pass the noise test yet lose the count test to a fit
+                # with one force too many.
+                below = (chosen == h + 1) & doubt
+                cand = (cand & ((chosen == h) | ((chosen > h) & (near | most)))) | (fitted[h] & below)
                 # The exchange (costlier) only for the chosen count and below a chosen fit that is poorly determined.
                 wide = (chosen == h) | below
             else:
@@ -536,6 +539,9 @@ def fit_counts(
             scanned, sc = scans[h]
             cur = states[h].take(xp, readings)
             limit = rules.suspect(h, readings)
+            if rules.plausible is not None:  # rows below a doubtful answer: every fit counts as suspicious
+                forced = below[readings]
+                limit = (xp.where(forced, 0.0, limit[0]), xp.where(forced, 0.0, limit[1]))
             # The scan's other intervals for the count's last force.
             if sc is not None and starts > 1:
                 pos = xp.put(xp.zeros((B,), "int") - 1, scanned, xp.arange(scanned.shape[0]))[readings]
