@@ -5,7 +5,8 @@ The public surface (SI units everywhere: m, N, Pa, 1/m):
 - the rod and its loads: :class:`Rod`, :mod:`presets`, :class:`PointForces`;
 - the differentiable, batched body-frame forward model: :func:`simulate`, :func:`grating_curvature`;
 - the shape: :func:`rod_shape`, :class:`Shape`, :func:`bending_angle`;
-- estimation: :class:`Estimator`, :class:`EstimatorOptions`, :class:`EstimateResult`, the batched :func:`lbfgs`;
+- estimation: :class:`Estimator`, :class:`EstimatorOptions` (with :class:`LMPolicy` and :class:`SearchOptions`),
+  :class:`EstimateResult`, the batched :func:`lbfgs`;
 - subpackages for the rest: :mod:`torchrod.model` (forward model, the global-frame reference and the paper's
   baselines), :mod:`torchrod.estimate` (fit, count selection, uncertainty, calibration), :mod:`torchrod.learn`
   (synthetic data, the warm-start network, training), :mod:`torchrod.io` (readings, streams).
@@ -28,9 +29,11 @@ _LAZY: dict[str, tuple[str, str | None]] = {
     "Estimator": (".estimate.estimator", "Estimator"),
     "EstimatorOptions": (".estimate.estimator", "EstimatorOptions"),
     "LBFGSOptions": (".estimate.refine", "LBFGSOptions"),
+    "LMPolicy": (".estimate.lm", "LMPolicy"),
     "PointForces": (".loads", "PointForces"),
     "RefineResult": (".estimate.refine", "RefineResult"),
     "Rod": (".rod", "Rod"),
+    "SearchOptions": (".estimate.search", "SearchOptions"),
     "Shape": (".model.shape", "Shape"),
     "Simulation": (".model.body_frame", "Simulation"),
     "bending_angle": (".model.shape", "bending_angle"),
@@ -48,9 +51,11 @@ __all__ = [  # the names of _LAZY and __version__ (a test holds them equal)
     "Estimator",
     "EstimatorOptions",
     "LBFGSOptions",
+    "LMPolicy",
     "PointForces",
     "RefineResult",
     "Rod",
+    "SearchOptions",
     "Shape",
     "Simulation",
     "__version__",
@@ -70,7 +75,9 @@ _SUBMODULES = frozenset({"cli", "estimate", "eval", "io", "learn", "loads", "mod
 if TYPE_CHECKING:  # what static tools see; at run time __getattr__ imports on first use
     from . import presets
     from .estimate.estimator import EstimateResult, Estimator, EstimatorOptions
+    from .estimate.lm import LMPolicy
     from .estimate.refine import LBFGSOptions, RefineResult, lbfgs
+    from .estimate.search import SearchOptions
     from .loads import PointForces, spread_to_nodes
     from .model.body_frame import Simulation, grating_curvature, simulate
     from .model.shape import Shape, bending_angle, rod_shape
