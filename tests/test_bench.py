@@ -26,8 +26,7 @@ def test_bench_forward_quick_prints_both_tables(capsys):
     # The accuracy table: the exact scheme meets its 1e-6 requirement on these large deflections, and the node
     # scheme's error falls from q = 90 to q = 250.
     acc = {
-        m.group(1): float(m.group(2))
-        for m in re.finditer(r"^(exact|nodes q=\d+)\s+(\S+)\s+\S+$", out, re.MULTILINE)
+        m.group(1): float(m.group(2)) for m in re.finditer(r"^(exact|nodes q=\d+)\s+(\S+)\s+\S+$", out, re.MULTILINE)
     }
     assert set(acc) == {"exact", "nodes q=90", "nodes q=250"}, out
     assert acc["exact"] < 1e-6

@@ -73,15 +73,16 @@ def test_small_deflection_cantilever_sign_and_shape(rod, fx, fy):
     base = got[0]
     assert np.sign(base[0]) == -np.sign(fy) and np.sign(base[1]) == np.sign(fx)
     g = sim.grating_curvature[0].numpy()
-    np.testing.assert_allclose(
-        g, linear_curvature(rod, [(si, fx, fy)], np.array(rod.gratings)), rtol=1e-6, atol=0
-    )
+    np.testing.assert_allclose(g, linear_curvature(rod, [(si, fx, fy)], np.array(rod.gratings)), rtol=1e-6, atol=0)
 
 
 def test_linearity_and_superposition_at_small_loads(rod):
     one = [(0.12, 3e-4, -1e-4)]
     two = [(0.21, -2e-4, 2.5e-4)]
-    u = lambda forces: tr.simulate(rod, loads_of(forces)).grating_curvature[0].numpy()
+
+    def u(forces):
+        return tr.simulate(rod, loads_of(forces)).grating_curvature[0].numpy()
+
     u1, u2, u12 = u(one), u(two), u(one + two)
     np.testing.assert_allclose(u12, u1 + u2, rtol=0, atol=1e-6 * np.abs(u12).max())
     scaled = u([(0.12, 3 * 3e-4, 3 * -1e-4)])
@@ -226,8 +227,8 @@ def test_exact_scheme_converges_at_the_order_of_its_method(method, order):
 
 
 def test_node_scheme_error_falls_like_the_spacing_squared_away_from_loads(rod):
-    # The hat spreading (docs/physics.md, erratum 3) keeps each force's total and first moment, so proximal to its support
-    # linear theory is exact and only the nonlinear term sees the O(d) smearing over a length O(d): O(d^2). At a
+    # The hat spreading (docs/physics.md, erratum 3) keeps each force's total and first moment, so proximal to its
+    # support linear theory is exact and only the nonlinear term sees the O(d) smearing over a length O(d): O(d^2). At a
     # grating inside the support the smearing itself shows: a force on a node spreads as a symmetric triangle of
     # half-width d, and (linear theory) U there is off by |f| int_0^d x (1 - x/d) dx / (d EI) = |f| d / (6 EI): O(d).
     # Forces and gratings sit on nodes for every q = 29 2^k + 1, so the error is self-similar and the slopes clean.
@@ -307,9 +308,7 @@ def test_batched_equals_looped_with_padding_garbage(rod, gen):
         alone = tr.simulate(rod, loads_of(forces), samples=30)
         scale = max(alone.curvature.abs().max().item(), 1.0)
         # Equal up to the discretisation (each run picks its own segments and steps; both are within 1e-6).
-        torch.testing.assert_close(
-            batched.grating_curvature[b], alone.grating_curvature[0], rtol=0, atol=1e-7 * scale
-        )
+        torch.testing.assert_close(batched.grating_curvature[b], alone.grating_curvature[0], rtol=0, atol=1e-7 * scale)
         torch.testing.assert_close(batched.curvature[b], alone.curvature[0], rtol=0, atol=1e-7 * scale)
         torch.testing.assert_close(batched.internal_force[b], alone.internal_force[0], rtol=0, atol=1e-6)
     # The mask matters: counting the garbage as forces changes the answer (so the comparison above can fail).
@@ -420,9 +419,7 @@ def test_profile_and_gratings_agree(rod):
             r"\(2, 2\)",
         ),
         (
-            lambda rod: tr.simulate(
-                rod, loads_of([(0.1, 0.1, 0.1)]), bending_stiffness=torch.ones(3, dtype=F64)
-            ),
+            lambda rod: tr.simulate(rod, loads_of([(0.1, 0.1, 0.1)]), bending_stiffness=torch.ones(3, dtype=F64)),
             r"\(3,\)",
         ),
         (

@@ -105,7 +105,7 @@ def test_apply_keeps_geometry_and_scales_youngs_modulus(tmp_path):
 # ---------------------------------------------------------------------------------------------- files and CLI
 def write_readings(path, curvature: torch.Tensor, missing=()) -> None:
     with open(path, "w", encoding="utf-8") as fh:
-        for i, (case, curv) in enumerate(zip(CASES, curvature.tolist())):
+        for i, (case, curv) in enumerate(zip(CASES, curvature.tolist(), strict=False)):
             pairs = [None if (i, k) in missing else pair for k, pair in enumerate(curv)]
             forces = [{"s": s, "fx": fx, "fy": fy} for s, fx, fy in case]
             fh.write(json.dumps({"id": f"r{i}", "curvature": pairs, "forces": forces}) + "\n")
@@ -192,25 +192,15 @@ def test_cli_reads_standard_input_and_its_help_gives_the_format(tmp_path, monkey
     with pytest.raises(SystemExit):
         main(["calibrate", "--help"])
     text = capsys.readouterr().out
-    assert (
-        '"curvature": [[ux, uy], null, ...]' in text and '"forces": [{"s"' in text and "'-' for stdin" in text
-    )
+    assert '"curvature": [[ux, uy], null, ...]' in text and '"forces": [{"s"' in text and "'-' for stdin" in text
 
 
 def test_read_readings_lists_the_bad_lines_by_the_shared_rules(tmp_path):
     """Every line is checked by the rules of every reading; the error names the bad lines (five at most)."""
     ok = {"id": 0, "curvature": [[0, 0]] * 14, "forces": []}
-    lines = [json.dumps(ok)] + [
-        json.dumps(dict(ok, id=k, curvature=[[1e7, 0]] + [[0, 0]] * 13)) for k in range(1, 8)
-    ]
+    lines = [json.dumps(ok)] + [json.dumps(dict(ok, id=k, curvature=[[1e7, 0]] + [[0, 0]] * 13)) for k in range(1, 8)]
     path = tmp_path / "bad.jsonl"
     path.write_text("\n".join(lines) + "\n")
-    with pytest.raises(
-        ValueError, match=r"7 unusable line\(s\): line 2: curvature\[0\]\[0\] = 10000000.0 1/m"
-    ) as info:
+    with pytest.raises(ValueError, match=r"7 unusable line\(s\): line 2: curvature\[0\]\[0\] = 10000000.0 1/m") as info:
         read_readings(path, ROD)
-    assert (
-        "line 6:" in str(info.value)
-        and "line 7:" not in str(info.value)
-        and "(and 2 more)" in str(info.value)
-    )
+    assert "line 6:" in str(info.value) and "line 7:" not in str(info.value) and "(and 2 more)" in str(info.value)

@@ -42,9 +42,7 @@ def test_estimate_lines_and_errors(rod, tmp_path, capsys):
         json.dumps(holed),
         '{"id": "nan", "curvature": ' + json.dumps(good[0]["curvature"][:13])[:-1] + ", [NaN, 0.0]]}",
         json.dumps({"id": "empty", "curvature": [None] * rod.num_gratings}),
-        json.dumps(
-            {"id": "other-rod", "curvature": good[0]["curvature"], "gratings": [0.0] * rod.num_gratings}
-        ),
+        json.dumps({"id": "other-rod", "curvature": good[0]["curvature"], "gratings": [0.0] * rod.num_gratings}),
         "",
         json.dumps(good[1]),
     ]
@@ -95,18 +93,14 @@ def test_estimate_bad_option(capsys, tmp_path):
 def test_evaluate_prints_a_table(capsys):
     threads = torch.get_num_threads()
     try:
-        status = main(
-            ["evaluate", "--count-per-cell", "6", "--noise", "0,0.1", "--max-forces", "2", "--seed", "3"]
-        )
+        status = main(["evaluate", "--count-per-cell", "6", "--noise", "0,0.1", "--max-forces", "2", "--seed", "3"])
     finally:
         torch.set_num_threads(threads)
     out = capsys.readouterr().out.splitlines()
     assert status == 0
     rows = [line.split() for line in out if line.strip() and not line.lstrip().startswith(("#", "forces", "["))]
     labels = [(" ".join(r[:-13]), r[-13]) for r in rows]
-    assert labels == [
-        (k, s) for k in ("0", "1", "2", "1 nb", "2 nb", "unexpl.") for s in ("0", "0.1")
-    ], labels
+    assert labels == [(k, s) for k in ("0", "1", "2", "1 nb", "2 nb", "unexpl.") for s in ("0", "0.1")], labels
     by = {(" ".join(r[:-13]), r[-13]): r[-13:] for r in rows}
     # one clean force: count right (all readings, and those with forces >= 0.2 N), force error ~0 %, rms too
     clean = by[("1", "0")]
@@ -122,8 +116,18 @@ def test_evaluate_json_and_bench_quick(capsys):
     try:
         assert (
             main(
-                ["evaluate", "--count-per-cell", "4", "--noise", "0.1", "--max-forces", "1", "--json",
-                 "--rows", "forces,zero"]
+                [
+                    "evaluate",
+                    "--count-per-cell",
+                    "4",
+                    "--noise",
+                    "0.1",
+                    "--max-forces",
+                    "1",
+                    "--json",
+                    "--rows",
+                    "forces,zero",
+                ]
             )
             == 0
         )

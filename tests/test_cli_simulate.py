@@ -55,19 +55,13 @@ def test_example_file_matches_the_library(capsys, rod):
 def test_small_force_through_the_cli_has_the_cantilever_sign(capsys, tmp_path, rod):
     # A small f_y > 0 at s_i: u_x = -f_y (s_i - s)/EI proximal to it, 0 beyond; f_x > 0: u_y = +f_x (s_i - s)/EI.
     si, f = 0.16, 2e-4
-    path = write_lines(
-        tmp_path / "in.jsonl", [case_line("y", [(si, 0.0, f)]), case_line("x", [(si, f, 0.0)])]
-    )
+    path = write_lines(tmp_path / "in.jsonl", [case_line("y", [(si, 0.0, f)]), case_line("x", [(si, f, 0.0)])])
     status, out, _ = run_cli(capsys, "--rod", "nitinol290", str(path))
     assert status == 0
     g = np.array(rod.gratings)
     lin = np.clip(si - g, 0.0, None) * f / rod.bending_stiffness
-    np.testing.assert_allclose(
-        np.array(out[0]["curvature"]), np.stack((-lin, 0 * lin), 1), atol=1e-6 * lin.max()
-    )
-    np.testing.assert_allclose(
-        np.array(out[1]["curvature"]), np.stack((0 * lin, lin), 1), atol=1e-6 * lin.max()
-    )
+    np.testing.assert_allclose(np.array(out[0]["curvature"]), np.stack((-lin, 0 * lin), 1), atol=1e-6 * lin.max())
+    np.testing.assert_allclose(np.array(out[1]["curvature"]), np.stack((0 * lin, lin), 1), atol=1e-6 * lin.max())
 
 
 BAD_LINES = [
@@ -149,9 +143,7 @@ def test_batch_size_does_not_change_answers_or_order(capsys, tmp_path):
             # Batches share step counts, so answers agree to the discretisation (1e-6 relative at most).
             scale = max(np.abs(np.array(c["curvature"])).max(), 1e-300)
             for other in (a, b):
-                np.testing.assert_allclose(
-                    np.array(other["curvature"]), np.array(c["curvature"]), atol=1e-6 * scale
-                )
+                np.testing.assert_allclose(np.array(other["curvature"]), np.array(c["curvature"]), atol=1e-6 * scale)
 
 
 def test_preset_name_and_rod_file_agree(capsys):
@@ -165,9 +157,7 @@ def test_location_bias_shifts_the_model_location(capsys, tmp_path):
     bias = -3.12e-3
     rod_path = tmp_path / "calibrated.json"
     tr.presets.nitinol290(calibrated=True).to_json(rod_path)
-    biased = write_lines(
-        tmp_path / "b.jsonl", [case_line("a", [(0.15, 0.4, 0.2)]), case_line("lo", [(bias, 1, 0)])]
-    )
+    biased = write_lines(tmp_path / "b.jsonl", [case_line("a", [(0.15, 0.4, 0.2)]), case_line("lo", [(bias, 1, 0)])])
     plain = write_lines(tmp_path / "p.jsonl", [case_line("a", [(0.15 - bias, 0.4, 0.2)])])
     status, out_b, _ = run_cli(capsys, "--rod", str(rod_path), str(biased))
     _, out_p, _ = run_cli(capsys, "--rod", "nitinol290", str(plain))
@@ -198,9 +188,7 @@ def test_tip_angle_matches_the_reference_frames(capsys, tmp_path, rod):
     # Linear theory for a small force: theta = int_0^si f (si - s)/EI ds = f si^2 / (2 EI).
     small = [(0.2, 0.0, 1e-4)]
     large = [(0.05, 1.9, 0.3), (0.13, -0.5, -1.0), (0.21, 0.8, 0.7)]  # non-planar, bends 110 degrees
-    path = write_lines(
-        tmp_path / "in.jsonl", [case_line("s", small), case_line("l", large), case_line("0", [])]
-    )
+    path = write_lines(tmp_path / "in.jsonl", [case_line("s", small), case_line("l", large), case_line("0", [])])
     status, out, _ = run_cli(capsys, "--rod", "nitinol290", "--tip-angle", str(path))
     assert status == 0
     assert out[0]["tip_angle"] == pytest.approx(1e-4 * 0.2**2 / (2 * rod.bending_stiffness), rel=1e-5)
@@ -218,14 +206,10 @@ def test_node_scheme_option(capsys, tmp_path):
     path = write_lines(tmp_path / "in.jsonl", [case_line("a", [(0.13, -0.9, 1.1), (0.24, 0.6, -0.4)])])
     exact = np.array(run_cli(capsys, "--rod", "nitinol290", str(path))[1][0]["curvature"])
     coarse = np.array(
-        run_cli(capsys, "--rod", "nitinol290", "--scheme", "nodes", "--nodes", "30", str(path))[1][0][
-            "curvature"
-        ]
+        run_cli(capsys, "--rod", "nitinol290", "--scheme", "nodes", "--nodes", "30", str(path))[1][0]["curvature"]
     )
     fine = np.array(
-        run_cli(capsys, "--rod", "nitinol290", "--scheme", "nodes", "--nodes", "465", str(path))[1][0][
-            "curvature"
-        ]
+        run_cli(capsys, "--rod", "nitinol290", "--scheme", "nodes", "--nodes", "465", str(path))[1][0]["curvature"]
     )
     assert np.abs(fine - exact).max() < np.abs(coarse - exact).max() / 8  # O(d) at the load at worst
 
@@ -286,9 +270,7 @@ def test_pipe_on_stdin_through_a_subprocess(rod):
     out = [json.loads(line) for line in proc.stdout.splitlines()]
     assert [o["id"] for o in out] == ["a", None, "b"]
     assert out[1]["error"].startswith("line 2: not valid JSON")
-    want = tr.simulate(
-        rod, tr.PointForces.from_lists([[(0.22, 1.0, 0.5), (0.12, -0.4, 0.1)]])
-    ).grating_curvature
+    want = tr.simulate(rod, tr.PointForces.from_lists([[(0.22, 1.0, 0.5), (0.12, -0.4, 0.1)]])).grating_curvature
     np.testing.assert_allclose(out[2]["curvature"], want[0].numpy(), rtol=1e-9, atol=1e-12)
 
 
@@ -333,16 +315,12 @@ def test_noise_is_gaussian_reproducible_and_independent_of_the_batch_size(capsys
     cases = [case_line(k, [(0.05 + 0.0008 * k, 0.3, -0.2)]) for k in range(200)]
     path = write_lines(tmp_path / "in.jsonl", cases[:100] + ["oops"] + cases[100:])
     exact = run_cli(capsys, "--rod", "nitinol290", "--samples", "3", str(path))[1]
-    noisy = run_cli(
-        capsys, "--rod", "nitinol290", "--samples", "3", "--noise", "0.05", "--seed", "7", str(path)
-    )
-    again = run_cli(
-        capsys, "--rod", "nitinol290", "--noise", "0.05", "--seed", "7", "--batch-size", "7", str(path)
-    )
+    noisy = run_cli(capsys, "--rod", "nitinol290", "--samples", "3", "--noise", "0.05", "--seed", "7", str(path))
+    again = run_cli(capsys, "--rod", "nitinol290", "--noise", "0.05", "--seed", "7", "--batch-size", "7", str(path))
     other = run_cli(capsys, "--rod", "nitinol290", "--noise", "0.05", "--seed", "8", str(path))
     assert noisy[0] == again[0] == 1 and noisy[1][100]["id"] is None
     diff = np.array(
-        [np.subtract(n["curvature"], e["curvature"]) for n, e in zip(noisy[1], exact) if "error" not in e]
+        [np.subtract(n["curvature"], e["curvature"]) for n, e in zip(noisy[1], exact, strict=False) if "error" not in e]
     )
     assert diff.shape == (200, rod.num_gratings, 2)
     assert abs(diff.std() - 0.05) < 0.003 and abs(diff.mean()) < 0.003
@@ -353,7 +331,7 @@ def test_noise_is_gaussian_reproducible_and_independent_of_the_batch_size(capsys
         atol=1e-5,
     )
     assert np.abs(np.subtract(noisy[1][0]["curvature"], other[1][0]["curvature"])).max() > 1e-3
-    assert all(n["profile"] == e["profile"] for n, e in zip(noisy[1], exact) if "error" not in e)
+    assert all(n["profile"] == e["profile"] for n, e in zip(noisy[1], exact, strict=False) if "error" not in e)
 
 
 @pytest.mark.parametrize(

@@ -26,7 +26,13 @@ def test_the_shipped_checkpoint_records_its_quality_and_is_used_beside_the_scan(
     weak and uses its guesses beside the scan's starts; clean readings are recovered."""
     _, meta = load_checkpoint(CHECKPOINT)
     quality = meta["quality"]
-    assert set(quality) >= {"count_accuracy", "force_error_median", "location_error_median", "readings", "noise"}
+    assert set(quality) >= {
+        "count_accuracy",
+        "force_error_median",
+        "location_error_median",
+        "readings",
+        "noise",
+    }
     assert 0.5 < quality["count_accuracy"] < 1.0 and quality["readings"] >= 1000
     rod = tr.presets.nitinol290()
     messages = []
@@ -69,7 +75,7 @@ def test_recording_the_quality_of_a_checkpoint(tmp_path):
     assert main(["train", "--evaluate", str(path), "--rod", "nitinol290", "--validation", "200"]) == 0
     after, meta = load_checkpoint(path)
     assert meta["quality"]["readings"] == 200.0
-    for a, b in zip(before.state_dict().values(), after.state_dict().values()):
+    for a, b in zip(before.state_dict().values(), after.state_dict().values(), strict=False):
         assert torch.equal(a, b)
 
 
@@ -105,14 +111,22 @@ def test_an_under_trained_network_changes_the_count_accuracy_by_less_than_a_poin
     """A network trained for a handful of steps guesses badly; beside the scan's starts it cannot make the
     estimator worse: the count accuracy on 400 noisy readings moves by less than one point (4 readings). Its extra
     starts can only lower each count's best loss, so where it moves the count at all it is towards the truth."""
-    from torchrod.learn.training import TrainConfig, train
     from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
+    from torchrod.learn.training import TrainConfig, train
 
     rod = tr.presets.nitinol290()
     path = tmp_path / "weak.pt"
     config = TrainConfig(
-        generate=512, validation=128, epochs=1, batch_size=256, hidden=16, depth=1, checkpoint=str(path),
-        logdir=None, progress=False, physics_batch=0,
+        generate=512,
+        validation=128,
+        epochs=1,
+        batch_size=256,
+        hidden=16,
+        depth=1,
+        checkpoint=str(path),
+        logdir=None,
+        progress=False,
+        physics_batch=0,
     )
     result = train(config)
     assert result.quality["count_accuracy"] < TRUSTED["count_accuracy"]  # it is weak, and it knows it
@@ -125,7 +139,10 @@ def test_an_under_trained_network_changes_the_count_accuracy_by_less_than_a_poin
     plain = Estimator(rod, EstimatorOptions(noise=0.1)).estimate(data.curvature)
     helped = with_net.estimate(data.curvature)
     truth = data.loads.count
-    acc = lambda r: float((r.num_forces == truth).double().mean())
+
+    def acc(r):
+        return float((r.num_forces == truth).double().mean())
+
     assert abs(acc(helped) - acc(plain)) < 0.01, (acc(helped), acc(plain))
 
 

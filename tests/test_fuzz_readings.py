@@ -47,23 +47,17 @@ number_texts = st.one_of(
     st.floats(-1e6, 1e6).map(repr),
     st.integers(-(10**7), 10**7).map(str),
     st.integers(300, 4400).map(lambda n: "8" * n),  # overflows a double; over 4300 digits Python refuses it
-    st.sampled_from(
-        ["NaN", "Infinity", "-Infinity", "1e999", "-1e999", "1e308", "1e6", "1000001", "-0", "1E-400"]
-    ),
+    st.sampled_from(["NaN", "Infinity", "-Infinity", "1e999", "-1e999", "1e308", "1e6", "1000001", "-0", "1E-400"]),
 )
 numbers = number_texts.map(Raw)
 scalars = st.one_of(st.none(), st.booleans(), numbers, st.text(max_size=12))
 values = st.recursive(
     scalars,
-    lambda inner: st.one_of(
-        st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=6), inner, max_size=3)
-    ),
+    lambda inner: st.one_of(st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=6), inner, max_size=3)),
     max_leaves=12,
 )
 plausible = st.floats(-50.0, 50.0).map(lambda x: Raw(repr(x)))
-pairs = st.one_of(
-    st.none(), st.lists(numbers, min_size=2, max_size=2), st.lists(plausible, min_size=2, max_size=2)
-)
+pairs = st.one_of(st.none(), st.lists(numbers, min_size=2, max_size=2), st.lists(plausible, min_size=2, max_size=2))
 curvatures = st.one_of(
     st.lists(st.one_of(st.none(), st.lists(plausible, min_size=2, max_size=2)), min_size=G, max_size=G),
     st.lists(pairs, min_size=G, max_size=G),
@@ -97,9 +91,7 @@ def json_lines(draw: Any, max_lines: int = 6) -> list[tuple[str, Any]]:
             out.append(
                 (
                     render(obj),
-                    obj["id"]
-                    if isinstance(obj.get("id"), str) and not isinstance(obj["id"], Raw)
-                    else UNKNOWN,
+                    obj["id"] if isinstance(obj.get("id"), str) and not isinstance(obj["id"], Raw) else UNKNOWN,
                 )
             )
         elif kind == "text":
@@ -155,7 +147,7 @@ def strict_json(text: str) -> dict:
 
 def check_answers(answers: list[dict], expected: list[tuple[int, Any]]) -> None:
     assert len(answers) == len(expected)
-    for answer, (number, ident) in zip(answers, expected):
+    for answer, (number, ident) in zip(answers, expected, strict=False):
         assert id_problem(answer.get("id")) is None
         if "error" in answer:
             assert answer["error"].startswith(f"line {number}: "), (number, answer["error"])
@@ -192,7 +184,7 @@ def test_parser_reads_every_json_line_into_one_reading(lines):
     got = list(iter_readings(io.StringIO(text), G, ROD.gratings, "jsonl"))
     expected = expected_lines(lines)
     assert len(got) == len(expected)
-    for reading, (number, ident) in zip(got, expected):
+    for reading, (number, ident) in zip(got, expected, strict=False):
         check_reading(reading, number, ident)
 
 
@@ -204,7 +196,7 @@ def test_parser_reads_every_csv_row_into_one_reading(lines):
     got = list(iter_readings(io.StringIO(text), G, ROD.gratings, "csv"))
     expected = [(number + 1, ident) for number, ident in expected_lines(lines)]
     assert len(got) == len(expected)
-    for reading, (number, ident) in zip(got, expected):
+    for reading, (number, ident) in zip(got, expected, strict=False):
         check_reading(reading, number, ident)
 
 
@@ -304,8 +296,6 @@ def test_cli_answers_every_line_once_in_order(command, fmt, data):
 def test_cli_with_the_real_estimator_answers_every_line(lines):
     """The real estimator on whatever passes the edge (absurd but finite values included): one valid JSON line
     per input line still."""
-    status, answers = run_cli(
-        "estimate", "jsonl", "".join(line + "\n" for line, _ in lines), "--num-forces", "1"
-    )
+    status, answers = run_cli("estimate", "jsonl", "".join(line + "\n" for line, _ in lines), "--num-forces", "1")
     check_answers(answers, expected_lines(lines))
     assert status in (0, 1)

@@ -69,7 +69,7 @@ def test_reference_satisfies_the_boundary_and_balance_laws():
     assert np.abs(sol.u[:, 2]).max() <= 1e-9 * np.abs(sol.u).max()  # no twist
     # Global equilibrium of the whole rod: N(0) = sum F_i, M(0) = sum P(s_i) x F_i, F_i = R(s_i) (f_x, f_y, 0).
     idx = np.searchsorted(sol.s, [f[0] for f in forces])
-    F = np.stack([sol.R[k] @ np.array([fx, fy, 0.0]) for k, (_, fx, fy) in zip(idx, forces)])
+    F = np.stack([sol.R[k] @ np.array([fx, fy, 0.0]) for k, (_, fx, fy) in zip(idx, forces, strict=False)])
     fscale = np.abs(F).sum()
     assert np.abs(sol.N[0] - F.sum(0)).max() <= 1e-10 * fscale
     assert np.abs(sol.M[0] - np.cross(sol.P[idx], F).sum(0)).max() <= 1e-10 * fscale * L

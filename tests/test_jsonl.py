@@ -265,7 +265,10 @@ def test_writer_answers_with_an_error_line_when_json_cannot_hold_the_answer():
 def test_output_and_input_paths_are_checked_with_clear_errors(tmp_path):
     from torchrod.io.jsonl import check_input, open_output
 
-    with pytest.raises(ValueError, match="--out .*cannot write there"), open_output(str(tmp_path / "no" / "d.jsonl")):
+    with (
+        pytest.raises(ValueError, match="--out .*cannot write there"),
+        open_output(str(tmp_path / "no" / "d.jsonl")),
+    ):
         pass
     with pytest.raises(ValueError, match="--out .*cannot write there"), open_output(str(tmp_path)):
         pass

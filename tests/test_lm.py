@@ -13,7 +13,15 @@ import torchrod as tr
 from torchrod.backend import NUMPY, torch_backend
 from torchrod.estimate import lm, search
 from torchrod.estimate.finish import refine_open
-from torchrod.estimate.problem import Fits, evaluate, exact_residual, interval_of, make_problem, near_kink, sided
+from torchrod.estimate.problem import (
+    Fits,
+    evaluate,
+    exact_residual,
+    interval_of,
+    make_problem,
+    near_kink,
+    sided,
+)
 from torchrod.estimate.refine import LBFGSOptions
 
 F64 = torch.float64
@@ -107,7 +115,7 @@ def test_the_two_backends_take_the_same_steps(rod, gen):
         problem = problem_for(xp, rod, u, noise=0.1)
         st = lm.solve(problem, lm.LMPolicy(), fits_at(xp, problem, start_s, start_f))
         out.append([np.asarray(xp.tolist(x)) for x in (st.fits.s, st.fits.f, st.loss, st.steps, st.converged)])
-    for a, b in zip(*out):
+    for a, b in zip(*out, strict=False):
         assert np.allclose(a, b, rtol=1e-9, atol=1e-12)
 
 
@@ -167,7 +175,11 @@ def test_the_scan_finds_where_a_force_is_missing(rod, xp):
     s_true, f_true = [[0.115, 0.237]], [[[0.6, 0.0], [0.0, 0.7]]]
     problem = problem_for(xp, rod, clean(rod, s_true, f_true))
     # the best one-force fit
-    one = lm.finish(problem, lm.LMPolicy(), lm.solve(problem, lm.LMPolicy(), fits_at(xp, problem, [[0.2]], [[[0.3, 0.3]]])))
+    one = lm.finish(
+        problem,
+        lm.LMPolicy(),
+        lm.solve(problem, lm.LMPolicy(), fits_at(xp, problem, [[0.2]], [[[0.3, 0.3]]])),
+    )
     sc = search.scan(problem, one.fits, per_interval=2, top=3, trust=10.0)
     new_s = float(xp.tolist(sc.starts.s[0, -1]))
     assert 0.23 <= new_s <= 0.25 or 0.11 <= new_s <= 0.13

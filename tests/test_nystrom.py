@@ -90,18 +90,14 @@ def test_backends_and_plain_autograd_agree_in_values_and_gradients():
     for backend in ("scalar", "numpy", "torch"):
         z, g = results[backend]
         torch.testing.assert_close(z, z0, rtol=1e-12, atol=1e-12)
-        for a, b in zip(g, g0):
+        for a, b in zip(g, g0, strict=False):
             torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10)
 
 
 def test_plain_autograd_path_supports_torch_func():
     h, kick, _ = _random_inputs(2, 4)
-    jac = torch.func.jacrev(lambda k: nystrom.march(h.detach(), nystrom.RKN8, kick=k, adjoint=False))(
-        kick.detach()
-    )
-    ref = torch.autograd.functional.jacobian(
-        lambda k: nystrom.march(h.detach(), nystrom.RKN8, kick=k), kick.detach()
-    )
+    jac = torch.func.jacrev(lambda k: nystrom.march(h.detach(), nystrom.RKN8, kick=k, adjoint=False))(kick.detach())
+    ref = torch.autograd.functional.jacobian(lambda k: nystrom.march(h.detach(), nystrom.RKN8, kick=k), kick.detach())
     torch.testing.assert_close(jac, ref, rtol=1e-12, atol=1e-12)
 
 

@@ -12,8 +12,8 @@ import torch
 import torchrod as tr
 from torchrod.cli import main
 from torchrod.estimate.estimator import Estimator, EstimatorOptions
-from torchrod.eval.grid_starts import GridStarts
 from torchrod.eval import paper as P
+from torchrod.eval.grid_starts import GridStarts
 
 
 @pytest.fixture
@@ -161,15 +161,11 @@ def test_loss_maps_minimum_at_the_truth_and_batched_equals_alone(rod):
     j, i = 15, 8  # s = 0.25 m, |f| = 0.4 N along x
     alone = tr.simulate(
         rod,
-        tr.PointForces(
-            torch.tensor([[0.25]], dtype=torch.float64), torch.tensor([[[0.4, 0.0]]], dtype=torch.float64)
-        ),
+        tr.PointForces(torch.tensor([[0.25]], dtype=torch.float64), torch.tensor([[[0.4, 0.0]]], dtype=torch.float64)),
     )
     truth = tr.simulate(
         rod,
-        tr.PointForces(
-            torch.tensor([[0.2]], dtype=torch.float64), torch.tensor([[[0.3, 0.0]]], dtype=torch.float64)
-        ),
+        tr.PointForces(torch.tensor([[0.2]], dtype=torch.float64), torch.tensor([[[0.3, 0.0]]], dtype=torch.float64)),
     )
     direct = float((alone.grating_curvature - truth.grating_curvature).square().sum())
     assert maps.curvature_loss[i, j] == pytest.approx(direct, rel=1e-8)

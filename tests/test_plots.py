@@ -63,9 +63,7 @@ def test_plot_command_one_figure_per_reading_and_by_id(tmp_path, capsys):
     rod = tr.presets.nitinol290()
     forces = [[(0.15, 0.4, 0.1)], [(0.1, -0.3, 0.2), (0.24, 0.2, 0.2)], [(0.2, 0.0, -0.6)]]
     u = tr.grating_curvature(rod, tr.PointForces.from_lists(forces))
-    readings = _write(
-        tmp_path / "r.jsonl", [{"id": f"case/{k}", "curvature": u[k].tolist()} for k in range(3)]
-    )
+    readings = _write(tmp_path / "r.jsonl", [{"id": f"case/{k}", "curvature": u[k].tolist()} for k in range(3)])
     truth = _write(
         tmp_path / "t.jsonl",
         [
@@ -149,8 +147,7 @@ def test_plot_needs_the_rod_unless_the_inputs_name_it(tmp_path, capsys):
     assert main(["plot", str(readings), str(estimates), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("torchrod plot: error: which rod? pass --rod ROD") and "14" not in err, err
-    assert main(["plot", str(readings), str(estimates), "--rod", str(tmp_path / "rod16.json"),
-                 "--out", str(out)]) == 0
+    assert main(["plot", str(readings), str(estimates), "--rod", str(tmp_path / "rod16.json"), "--out", str(out)]) == 0
     assert capsys.readouterr().out.strip() == str(out) and _is_png(out)
     # The inputs may name it: a rod file beside them, a preset, or a rod object; all lines must agree.
     for named in ("rod16.json", rod.to_dict()):

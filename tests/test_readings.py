@@ -194,9 +194,7 @@ def test_curvature_lists_and_tensors_follow_the_same_rules():
 
 
 def test_parse_reading_checks_id_t_and_gratings_and_ignores_other_keys():
-    r = parse_reading(
-        {"id": "a", "t": 2, "curvature": pairs(1, 2), "gratings": list(GRATINGS), "x": 1}, G, GRATINGS
-    )
+    r = parse_reading({"id": "a", "t": 2, "curvature": pairs(1, 2), "gratings": list(GRATINGS), "x": 1}, G, GRATINGS)
     assert (r.id, r.t, r.ok) == ("a", 2.0, True)
     with pytest.raises(ValueError, match="gratings .* do not match the rod's"):
         parse_reading({"curvature": pairs(1, 2), "gratings": [0.0, 0.2, 0.3]}, G, GRATINGS)

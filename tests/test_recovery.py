@@ -53,9 +53,10 @@ def test_identifiable_classifier():
     """The classifier's rules, on hand-made cases."""
     rod = tr.presets.nitinol290()
     G = len(rod.gratings)
-    case = lambda s, f, present=None, stratum="anywhere": R.RecoveryCase(
-        s, f, present or [True] * G, stratum, False
-    )
+
+    def case(s, f, present=None, stratum="anywhere"):
+        return R.RecoveryCase(s, f, present or [True] * G, stratum, False)
+
     # One force mid-interval: decided.
     assert R.identifiable(rod, case([0.15], [(0.5, -0.3)]))
     # In the first interval (only the first grating sees it): not decided.

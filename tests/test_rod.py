@@ -166,7 +166,10 @@ def _with(**changes) -> str:
 
 BAD_ROD_FILES = {
     "null inner_diameter": (_with(inner_diameter=None), r"inner_diameter must be a number \[m\], got null"),
-    "list inner_diameter": (_with(inner_diameter=[1e-3]), r"inner_diameter must be a number \[m\], got \[0.001\]"),
+    "list inner_diameter": (
+        _with(inner_diameter=[1e-3]),
+        r"inner_diameter must be a number \[m\], got \[0.001\]",
+    ),
     "bool length": (_with(length=True), "length must be a number .*got true"),
     "string length": (_with(length="0.29"), 'length must be a number .*got "0.29"'),
     "400-digit number": (_with(youngs_modulus=int("6" * 400)), r"youngs_modulus is too large .*400 digits"),
@@ -174,7 +177,8 @@ BAD_ROD_FILES = {
     "null grating": (_with(gratings=[0.01, None, 0.05]), r"gratings\[1\] must be a number .*got null"),
     "grating beyond the tip": (_with(gratings=[0.01, 0.3]), r"gratings\[1\] = 0.3 m must lie inside the rod"),
     "contradictory stiffness and geometry": (
-        _with(bending_stiffness=7.5e-3), r"bending_stiffness 0.0075 N m\^2 contradicts the geometry"
+        _with(bending_stiffness=7.5e-3),
+        r"bending_stiffness 0.0075 N m\^2 contradicts the geometry",
     ),
     "repeated key": ('{"length": 0.29, "length": 0.3}', "'length' appears twice"),
     "invalid JSON": ('{"length": 0.29,', "not valid JSON"),
@@ -310,7 +314,10 @@ def test_a_directory_as_rod_through_the_command_line_prints_no_traceback(tmp_pat
     readings.write_text(json.dumps({"curvature": [[0.0, 0.0]] * 14}) + "\n")
     done = subprocess.run(
         [sys.executable, "-m", "torchrod", "plot", str(readings), str(readings), "--rod", str(tmp_path)],
-        check=False, capture_output=True, text=True, timeout=120,
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert done.returncode == 2
     assert done.stderr == f"torchrod plot: error: {tmp_path}: is a directory, not a rod file\n"

@@ -70,7 +70,9 @@ def test_long_rod_clean_recovery():
     rod = tr.Rod.from_json(ROOT / "data" / "tube1000.json")
     rows = R.run(rod, 60, seed=5)
     verdicts = [r["verdict"] for r in rows]
-    assert "wrong" not in verdicts and "missed" not in verdicts, [r for r in rows if r["verdict"] in ("wrong", "missed")]
+    assert "wrong" not in verdicts and "missed" not in verdicts, [
+        r for r in rows if r["verdict"] in ("wrong", "missed")
+    ]
     assert verdicts.count("exact") >= 0.4 * len(rows)
 
 

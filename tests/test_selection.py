@@ -108,7 +108,10 @@ def test_the_covariance_of_a_broken_matrix_is_nan_not_an_exception(xp):
     J[1, 2, 1] = math.nan
     J[2, 0, 0] = math.inf
     cov, cond = gauss_newton_covariance(
-        xp, xp.asarray(J), xp.asarray(torch.ones(3, dtype=torch.float64)), xp.asarray(torch.ones(3, 3), "bool")
+        xp,
+        xp.asarray(J),
+        xp.asarray(torch.ones(3, dtype=torch.float64)),
+        xp.asarray(torch.ones(3, 3), "bool"),
     )
     cov, cond = np.asarray(xp.tolist(cov)), np.asarray(xp.tolist(cond))
     assert np.isfinite(cov[0]).all() and np.isfinite(cond[0])

@@ -27,9 +27,7 @@ def test_small_deflection_matches_the_cantilever_formulas():
     loads = tr.PointForces.from_lists([[(L, 0.0, F)], [(L, F, 0.0)], [(L, -F, 0.0)], [(a, 0.0, F)]])
     tip = shape(ROD, loads, samples=200).tip
     d_tip, d_mid = F * L**3 / (3 * EI), F * a**2 * (3 * L - a) / (6 * EI)
-    expected = torch.tensor(
-        [[0.0, d_tip, L], [d_tip, 0.0, L], [-d_tip, 0.0, L], [0.0, d_mid, L]], dtype=torch.float64
-    )
+    expected = torch.tensor([[0.0, d_tip, L], [d_tip, 0.0, L], [-d_tip, 0.0, L], [0.0, d_mid, L]], dtype=torch.float64)
     # Nonlinear terms are of relative size (F L^2 / EI)^2 ~ 1e-6; the shortening along z is ~ d^2 / L.
     assert torch.allclose(tip[:, :2], expected[:, :2], rtol=1e-4, atol=1e-12)
     assert torch.allclose(tip[:, 2], expected[:, 2], atol=1e-6)
@@ -56,9 +54,7 @@ def test_tip_matches_the_global_bvp_at_large_deflection():
     forces = [(0.1, 0.8, 0.6), (0.2, -0.5, 1.2), (0.29, 0.6, 0.4)]  # non-planar, 141 degrees of bending
     ref = solve_reference(ROD, forces, at=[0.0, L])
     sh = shape(ROD, tr.PointForces.from_lists([forces]), samples=401)
-    assert math.degrees(float(bending_angle(sh))) == pytest.approx(
-        math.degrees(math.acos(ref.R[-1][2, 2])), abs=1e-3
-    )
+    assert math.degrees(float(bending_angle(sh))) == pytest.approx(math.degrees(math.acos(ref.R[-1][2, 2])), abs=1e-3)
     assert math.degrees(float(bending_angle(sh))) > 90.0
     error = np.abs(sh.tip[0].numpy() - ref.P[-1]).max()
     assert error <= 1e-5, error  # second order: 3.7e-6 m with 400 intervals here (0.0013 % of L)

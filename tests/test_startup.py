@@ -22,7 +22,11 @@ def _python(code: str) -> str:
     """stdout of ``python -c code`` in a fresh process, with this checkout's torchrod first on the path."""
     done = subprocess.run(
         [sys.executable, "-c", f"import sys; sys.path.insert(0, {ROOT!r}); {code}"],
-        capture_output=True, text=True, timeout=120, check=True, cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+        cwd=ROOT,
     )
     return done.stdout
 
@@ -97,7 +101,9 @@ def test_bench_startup_quick_measures_all_four_side_by_side(capsys):
         if m:
             rows[m.group(1)] = (float(m.group(2)), float(m.group(4)))
     assert list(rows) == [
-        'python -c "import torch"', "torchrod --version", "torchrod --help",
+        'python -c "import torch"',
+        "torchrod --version",
+        "torchrod --help",
         "torchrod estimate --rod nitinol290 (one reading)",
     ], out
     assert rows['python -c "import torch"'][1] == 1.0

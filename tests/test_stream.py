@@ -72,9 +72,7 @@ def test_order_count_and_bad_readings(rod, estimator):
         good[5],
     ]
     out = list(stream(estimator, items, StreamOptions(batch_size=3, max_latency=0.0)))
-    assert [r.id for r in out] == [
-        getattr(x, "id", x.get("id") if isinstance(x, dict) else None) for x in items
-    ]
+    assert [r.id for r in out] == [getattr(x, "id", x.get("id") if isinstance(x, dict) else None) for x in items]
     errors = {r.id: r.error for r in out if not r.ok}
     assert set(errors) == {"upstream", "short", "nan", "empty", "bad-t", None}
     assert errors["upstream"] == "line 2: not valid JSON"
@@ -178,7 +176,7 @@ def test_tracking_starts_are_the_last_solution_in_reported_coordinates():
     list(stream(Spy(), items, StreamOptions(batch_size=2, max_latency=10.0, track_limit=2)))
     starts, results = seen[0::2], seen[1::2]
     assert starts[0] is None and len(starts) == 3
-    for before, given in zip(results, starts[1:]):
+    for before, given in zip(results, starts[1:], strict=False):
         h = int(before.num_forces[-1])
         assert h == 2 and set(given) == {2, 1}
         torch.testing.assert_close(given[2].s, before.forces.s[-1:, :2].expand(2, 2))
@@ -521,15 +519,29 @@ def test_cli_hostile_lines_and_out(rod, tmp_path, capsys):
     path = tmp_path / "in.jsonl"
     path.write_text("\n".join(lines) + "\n")
     target = tmp_path / "out.jsonl"
-    base = ["stream", "--rod", "nitinol290", "--checkpoint", "none", "--noise", str(NOISE), "--max-forces", "1"]
+    base = [
+        "stream",
+        "--rod",
+        "nitinol290",
+        "--checkpoint",
+        "none",
+        "--noise",
+        str(NOISE),
+        "--max-forces",
+        "1",
+    ]
     assert main([*base, "--input", str(path), "--out", str(target)]) == 1
     assert capsys.readouterr().out == ""
     out = [json.loads(x) for x in target.read_text().splitlines()]
     assert [o["id"] for o in out] == ["r0", "t400", "u400", "e308", None, "big", "last"]
     assert [("error" in o) for o in out] == [False, True, True, True, True, True, False]
-    for k, message in [(1, "t must be a finite number"), (2, "curvature[0][0] must be a finite number"),
-                       (3, "curvature[0][0] = 1e+308 1/m is beyond the bound"), (4, "id Infinity"),
-                       (5, "curvature[0][0] must be a number, got a string")]:
+    for k, message in [
+        (1, "t must be a finite number"),
+        (2, "curvature[0][0] must be a finite number"),
+        (3, "curvature[0][0] = 1e+308 1/m is beyond the bound"),
+        (4, "id Infinity"),
+        (5, "curvature[0][0] must be a number, got a string"),
+    ]:
         assert out[k]["error"].startswith(f"line {k + 1}: ") and message in out[k]["error"], out[k]["error"]
         assert len(out[k]["error"]) < 400
     assert main([*base, "--input", str(path), "--out", str(tmp_path / "no" / "x.jsonl")]) == 2
@@ -596,9 +608,7 @@ def test_cli_default_checkpoint_is_refused_for_another_layout(tmp_path, capsys):
     loads = tr.PointForces.from_lists([[(0.2, 0.3, 0.1)]])
     u = tr.simulate(rod, loads).grating_curvature[0].tolist()
     path = tmp_path / "in.jsonl"
-    path.write_text(
-        json.dumps({"id": 1, "curvature": u}) + "\n" + json.dumps({"id": 2, "curvature": u}) + "\n"
-    )
+    path.write_text(json.dumps({"id": 1, "curvature": u}) + "\n" + json.dumps({"id": 2, "curvature": u}) + "\n")
     assert main(["stream", "--rod", str(rod_path), "--max-forces", "1", "--input", str(path)]) == 0
     cap = capsys.readouterr()
     assert cap.err.count("no warm-start network") == 1

@@ -172,8 +172,9 @@ def test_location_bias_moves_the_forces_seen(rod):
     bias = -0.004
     d = sy.generate(rod, 200, sensor=sy.SensorModel(noise=0.0, location_bias=bias), seed=3)
     # Same meaning as Rod.location_bias: reported = model + bias, so the model sees the forces at s - bias.
-    moved = tr.PointForces(torch.where(d.loads.active, d.loads.s - bias, d.loads.s).clamp(0, rod.length), d.loads.f,
-                           d.loads.mask)
+    moved = tr.PointForces(
+        torch.where(d.loads.active, d.loads.s - bias, d.loads.s).clamp(0, rod.length), d.loads.f, d.loads.mask
+    )
     assert torch.allclose(d.clean, _grating_curvature(rod, moved), atol=1e-7)
     assert not torch.allclose(d.clean, _grating_curvature(rod, d.loads), atol=1e-3)
 
@@ -343,8 +344,27 @@ def test_dataset_items(small_set):
 # ------------------------------------------------------------------------------------------------ CLI
 def test_cli_generates_the_set_of_the_api(tmp_path, rod, capsys):
     out = tmp_path / "cli.npz"
-    argv = ["generate", "--rod", "nitinol290", "--count", "60", "--out", str(out), "--seed", "7", "--noise", "0.3",
-            "--max-forces", "2", "--force-max", "1.0", "--missing-prob", "0.05", "--max-bending-deg", "60"]
+    argv = [
+        "generate",
+        "--rod",
+        "nitinol290",
+        "--count",
+        "60",
+        "--out",
+        str(out),
+        "--seed",
+        "7",
+        "--noise",
+        "0.3",
+        "--max-forces",
+        "2",
+        "--force-max",
+        "1.0",
+        "--missing-prob",
+        "0.05",
+        "--max-bending-deg",
+        "60",
+    ]
     assert main(argv) == 0
     err = capsys.readouterr().err
     assert "60 cases" in err and "samples/s" in err and "rejection rate" in err
@@ -444,8 +464,27 @@ def test_noisy_stream_with_missing_gratings(rod):
 
 def test_cli_writes_a_stream(tmp_path, capsys):
     out = tmp_path / "s.jsonl"
-    assert main(["generate", "--trajectory", "--rod", "nitinol290", "--count", "120", "--rate", "40",
-                 "--out", str(out), "--seed", "3", "--noise", "0.1"]) == 0
+    assert (
+        main(
+            [
+                "generate",
+                "--trajectory",
+                "--rod",
+                "nitinol290",
+                "--count",
+                "120",
+                "--rate",
+                "40",
+                "--out",
+                str(out),
+                "--seed",
+                "3",
+                "--noise",
+                "0.1",
+            ]
+        )
+        == 0
+    )
     assert "120 readings" in capsys.readouterr().err
     readings = [json.loads(line) for line in out.read_text().splitlines()]
     truth = [json.loads(line) for line in (tmp_path / "s_truth.jsonl").read_text().splitlines()]
@@ -454,8 +493,23 @@ def test_cli_writes_a_stream(tmp_path, capsys):
     assert readings[1]["t"] == pytest.approx(1 / 40) and len(readings[0]["curvature"]) == 14
     assert set(truth[5]["forces"][0]) == {"s", "fx", "fy"}
     other = tmp_path / "elsewhere.jsonl"
-    assert main(["generate", "--trajectory", "--rod", "nitinol290", "--count", "10", "--out", str(out),
-                 "--truth", str(other)]) == 0
+    assert (
+        main(
+            [
+                "generate",
+                "--trajectory",
+                "--rod",
+                "nitinol290",
+                "--count",
+                "10",
+                "--out",
+                str(out),
+                "--truth",
+                str(other),
+            ]
+        )
+        == 0
+    )
     assert len(other.read_text().splitlines()) == 10
 
 

@@ -23,7 +23,13 @@ from torchrod.learn.training import (
 from torchrod.learn.warm_start import NetConfig, NetOutput, WarmStart, WarmStartGuess, load_checkpoint
 
 TINY = {
-    "batch_size": 64, "validation": 64, "hidden": 32, "depth": 2, "physics_batch": 16, "logdir": None, "progress": False
+    "batch_size": 64,
+    "validation": 64,
+    "hidden": 32,
+    "depth": 2,
+    "physics_batch": 16,
+    "logdir": None,
+    "progress": False,
 }
 
 
@@ -83,14 +89,24 @@ def test_losses_vanish_for_the_true_forces_and_not_otherwise(tiny):
     present[::3, 5] = False
     reading[~present] = 1e3  # garbage at missing gratings must not enter the physics loss
     config = NetConfig.for_rod(tiny.rod, **tiny.normalisation())
-    terms = compute_losses(_Oracle(s, f, count, 3), config, reading, present, s, f, count,
-                           physics_weight=1.0, physics_batch=32)
+    terms = compute_losses(
+        _Oracle(s, f, count, 3), config, reading, present, s, f, count, physics_weight=1.0, physics_batch=32
+    )
     assert float(terms["location"]) == 0.0 and float(terms["force"]) == 0.0
     assert float(terms["count"]) < 1e-6
     assert float(terms["physics"]) < 1e-6  # the rod model of the true forces reproduces the reading
     f_wrong = f * 1.2
-    terms = compute_losses(_Oracle(s, f_wrong, count, 3), config, reading, present, s, f, count,
-                           physics_weight=1.0, physics_batch=32)
+    terms = compute_losses(
+        _Oracle(s, f_wrong, count, 3),
+        config,
+        reading,
+        present,
+        s,
+        f,
+        count,
+        physics_weight=1.0,
+        physics_batch=32,
+    )
     assert float(terms["force"]) > 0.1 and float(terms["physics"]) > 1e-3
 
 
@@ -104,8 +120,17 @@ def test_the_physics_loss_pulls_the_forces_toward_the_reading(tiny):
     scale = torch.tensor(1.2, requires_grad=True)
 
     def physics(k):
-        terms = compute_losses(_Oracle(s, f * k, count, 3), config, tiny.clean[idx], present, s, f, count,
-                               physics_weight=1.0, physics_batch=16)
+        terms = compute_losses(
+            _Oracle(s, f * k, count, 3),
+            config,
+            tiny.clean[idx],
+            present,
+            s,
+            f,
+            count,
+            physics_weight=1.0,
+            physics_batch=16,
+        )
         return terms["physics"]
 
     loss = physics(scale)
@@ -151,7 +176,7 @@ def test_checkpoint_holds_what_resuming_needs_and_resume_matches_an_uninterrupte
         data=tiny,
     )
     assert resumed.step == straight.step == 16 and len(resumed.history) == 1
-    for (name, a), b in zip(straight.net.state_dict().items(), resumed.net.state_dict().values()):
+    for (name, a), b in zip(straight.net.state_dict().items(), resumed.net.state_dict().values(), strict=False):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=name)
     # The resumed run really moved on from the checkpoint.
     assert not torch.allclose(net.state_dict()["out.weight"], resumed.net.state_dict()["out.weight"])
@@ -163,10 +188,14 @@ def test_evaluate_guess_measures_what_it_says():
     )
     probs = torch.tensor([[0.9, 0.1, 0.0], [0.2, 0.8, 0.0], [0.1, 0.3, 0.6]], dtype=torch.float64)
     forces = {
-        1: tr.PointForces(torch.tensor([[0.102], [0.0], [0.15]], dtype=torch.float64),
-                          torch.tensor([[[1.0, 0.3]], [[0.0, 0.0]], [[-1.0, 0.0]]], dtype=torch.float64)),
-        2: tr.PointForces(torch.tensor([[0.0, 0.1], [0.051, 0.196], [0.1, 0.2]], dtype=torch.float64),
-                          torch.tensor([[[0.0, 0.0], [0.0, 0.0]], [[0.0, 1.0], [0.5, 0.4]], [[0.0, 0.0]] * 2], dtype=torch.float64)),
+        1: tr.PointForces(
+            torch.tensor([[0.102], [0.0], [0.15]], dtype=torch.float64),
+            torch.tensor([[[1.0, 0.3]], [[0.0, 0.0]], [[-1.0, 0.0]]], dtype=torch.float64),
+        ),
+        2: tr.PointForces(
+            torch.tensor([[0.0, 0.1], [0.051, 0.196], [0.1, 0.2]], dtype=torch.float64),
+            torch.tensor([[[0.0, 0.0], [0.0, 0.0]], [[0.0, 1.0], [0.5, 0.4]], [[0.0, 0.0]] * 2], dtype=torch.float64),
+        ),
         3: tr.PointForces(torch.zeros(3, 3).double(), torch.zeros(3, 3, 2).double()),
     }
     m = evaluate_guess(WarmStartGuess(probs, forces), truth)
@@ -197,8 +226,12 @@ def _free_port() -> int:
 
 def _ddp_worker(rank: int, world: int, port: int, folder: str, data_path: str) -> None:
     os.environ.update(
-        MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
-        LOCAL_RANK=str(rank), LOCAL_WORLD_SIZE=str(world),
+        MASTER_ADDR="127.0.0.1",
+        MASTER_PORT=str(port),
+        RANK=str(rank),
+        WORLD_SIZE=str(world),
+        LOCAL_RANK=str(rank),
+        LOCAL_WORLD_SIZE=str(world),
     )
     data = TrainingData.from_set(SyntheticSet.load(data_path))
     config = TrainConfig(epochs=2, checkpoint=os.path.join(folder, "ddp.pt"), threads=1, device="cpu", **TINY)
@@ -212,8 +245,13 @@ def test_two_processes_with_ddp_end_with_identical_weights(tiny_set, tmp_path):
 
     data_path = str(tmp_path / "tiny.npz")
     tiny_set.save(data_path)
-    ctx = mp.start_processes(_ddp_worker, args=(2, _free_port(), str(tmp_path), data_path), nprocs=2,
-                             join=False, start_method="spawn")
+    ctx = mp.start_processes(
+        _ddp_worker,
+        args=(2, _free_port(), str(tmp_path), data_path),
+        nprocs=2,
+        join=False,
+        start_method="spawn",
+    )
     deadline = time.monotonic() + 120.0
     try:
         while not ctx.join(timeout=1.0):
@@ -237,11 +275,32 @@ def test_cli_trains_logs_and_saves(tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     ckpt, logs = tmp_path / "ws.pt", tmp_path / "logs"
-    status = cli_main([
-        "train", "--generate", "256", "--validation", "32", "--epochs", "1", "--batch-size", "64",
-        "--hidden", "16", "--depth", "1", "--log-every", "1", "--physics-batch", "8", "--logdir", str(logs),
-        "--checkpoint", str(ckpt), "--quiet",
-    ])
+    status = cli_main(
+        [
+            "train",
+            "--generate",
+            "256",
+            "--validation",
+            "32",
+            "--epochs",
+            "1",
+            "--batch-size",
+            "64",
+            "--hidden",
+            "16",
+            "--depth",
+            "1",
+            "--log-every",
+            "1",
+            "--physics-batch",
+            "8",
+            "--logdir",
+            str(logs),
+            "--checkpoint",
+            str(ckpt),
+            "--quiet",
+        ]
+    )
     assert status == 0
     ws = WarmStart.load(ckpt, tr.presets.nitinol290())
     assert ws.meta["step"] == 4
@@ -259,20 +318,38 @@ def test_cli_train_refuses_a_rod_that_contradicts_the_data_set_and_accepts_one_t
     tiny_set.save(data)
     softer = tmp_path / "softer.json"
     tr.presets.nitinol290().with_(youngs_modulus=60e9).to_json(softer)
-    small = ["--validation", "32", "--epochs", "1", "--batch-size", "64", "--hidden", "16", "--depth", "1",
-             "--physics-batch", "8", "--logdir", "none", "--quiet"]
+    small = [
+        "--validation",
+        "32",
+        "--epochs",
+        "1",
+        "--batch-size",
+        "64",
+        "--hidden",
+        "16",
+        "--depth",
+        "1",
+        "--physics-batch",
+        "8",
+        "--logdir",
+        "none",
+        "--quiet",
+    ]
     ckpt = tmp_path / "ws.pt"
     status = cli_main(["train", "--data", str(data), "--rod", str(softer), "--checkpoint", str(ckpt), *small])
     err = capsys.readouterr().err
     assert status == 2 and not ckpt.exists()
-    assert err.startswith(f"torchrod train: error: --rod {softer} contradicts the data set {data}, made for another rod: "
-                          "bending_stiffness 0.00738830604 vs 0.00661639347 N m^2"), err
+    assert err.startswith(
+        f"torchrod train: error: --rod {softer} contradicts the data set {data}, made for another rod: "
+        "bending_stiffness 0.00738830604 vs 0.00661639347 N m^2"
+    ), err
     assert err.count("\n") == 1
     # A rod that agrees (the preset by name, or the same rod written as a file with its stiffness) is accepted.
     same = tmp_path / "same.json"
     rod = tr.presets.nitinol290()
-    same.write_text(json.dumps({"length": rod.length, "bending_stiffness": rod.bending_stiffness,
-                                "gratings": list(rod.gratings)}))
+    same.write_text(
+        json.dumps({"length": rod.length, "bending_stiffness": rod.bending_stiffness, "gratings": list(rod.gratings)})
+    )
     for given in ("nitinol290", str(same)):
         assert cli_main(["train", "--data", str(data), "--rod", given, "--checkpoint", str(ckpt), *small]) == 0
         assert WarmStart.load(ckpt, rod).meta["epoch"] == 1

@@ -261,7 +261,10 @@ def _damage(kind: str, rod: tr.Rod, tmp_path):
     if kind == "wrong shape":
         payload["state_dict"]["body.0.weight"] = payload["state_dict"]["body.0.weight"][:, :-1].clone()
         torch.save(payload, path)
-        return path, r"weights do not fit .*'body.0.weight' has shape \(32, \d+\), the config asks for \(32, \d+\)"
+        return (
+            path,
+            r"weights do not fit .*'body.0.weight' has shape \(32, \d+\), the config asks for \(32, \d+\)",
+        )
     if kind == "missing weights":
         del payload["state_dict"]["out.bias"]
         torch.save(payload, path)
@@ -298,8 +301,18 @@ def _damage(kind: str, rod: tr.Rod, tmp_path):
 
 
 DAMAGE = [
-    "truncated", "random bytes", "empty", "directory", "wrong shape", "missing weights", "missing config",
-    "invalid config", "config larger than the weights", "wrong format", "missing step", "NaN weights",
+    "truncated",
+    "random bytes",
+    "empty",
+    "directory",
+    "wrong shape",
+    "missing weights",
+    "missing config",
+    "invalid config",
+    "config larger than the weights",
+    "wrong format",
+    "missing step",
+    "NaN weights",
     "malicious pickle",
 ]
 
@@ -327,8 +340,19 @@ def test_a_layout_mismatch_names_the_file(rod, tmp_path):
         WarmStart.load(path, rod.with_(length=0.35))
 
 
-@pytest.mark.parametrize("kind", ["truncated", "random bytes", "empty", "directory", "wrong shape", "missing config",
-                                  "NaN weights", "malicious pickle"])
+@pytest.mark.parametrize(
+    "kind",
+    [
+        "truncated",
+        "random bytes",
+        "empty",
+        "directory",
+        "wrong shape",
+        "missing config",
+        "NaN weights",
+        "malicious pickle",
+    ],
+)
 def test_the_cli_refuses_a_damaged_checkpoint_with_status_2_and_no_traceback(kind, rod, tmp_path, capsys):
     from torchrod.cli import main
 
@@ -347,9 +371,22 @@ def test_a_damaged_checkpoint_through_the_command_line_prints_no_traceback(rod, 
 
     path, _ = _damage("truncated", rod, tmp_path)
     done = subprocess.run(
-        [sys.executable, "-m", "torchrod", "stream", "--rod", "nitinol290", "--checkpoint", str(path), "--input",
-         str(path)],
-        check=False, capture_output=True, text=True, timeout=300,
+        [
+            sys.executable,
+            "-m",
+            "torchrod",
+            "stream",
+            "--rod",
+            "nitinol290",
+            "--checkpoint",
+            str(path),
+            "--input",
+            str(path),
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert done.stderr.startswith(f"torchrod stream: error: {path}: not a readable checkpoint"), done.stderr

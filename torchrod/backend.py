@@ -121,8 +121,10 @@ class Backend:
         try:
             x = self.lib.linalg.solve(safe, rhs)
         except (np.linalg.LinAlgError, RuntimeError):  # singular somewhere: least squares row by row
-            x = self.lib.linalg.lstsq(safe, rhs)[0] if self.name == "torch" else np.stack(
-                [np.linalg.lstsq(safe[i], rhs[i], rcond=None)[0] for i in range(flat.shape[0])]
+            x = (
+                self.lib.linalg.lstsq(safe, rhs)[0]
+                if self.name == "torch"
+                else np.stack([np.linalg.lstsq(safe[i], rhs[i], rcond=None)[0] for i in range(flat.shape[0])])
             )
         ok = ok & self.all(self.isfinite(x.reshape(x.shape[0], -1)), 1)
         x = self.where(ok[:, None, None], x, 0.0)
@@ -317,7 +319,12 @@ class TorchBackend(Backend):
 
     def __init__(self, device: torch.device | str = "cpu") -> None:
         self.device = torch.device(device)
-        self._dtypes = {"float": torch.float64, "complex": torch.complex128, "int": torch.int64, "bool": torch.bool}
+        self._dtypes = {
+            "float": torch.float64,
+            "complex": torch.complex128,
+            "int": torch.int64,
+            "bool": torch.bool,
+        }
 
     def asarray(self, x: Any, dtype: str = "float") -> Any:
         return torch.as_tensor(x, dtype=self._dtypes[dtype], device=self.device)

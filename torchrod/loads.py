@@ -116,7 +116,10 @@ class PointForces:
         s = self.s.detach().cpu().tolist()
         f = self.f.detach().cpu().tolist()
         m = self.active.cpu().tolist()
-        return [[(si, fi[0], fi[1]) for si, fi, mi in zip(sr, fr, mr) if mi] for sr, fr, mr in zip(s, f, m)]
+        return [
+            [(si, fi[0], fi[1]) for si, fi, mi in zip(sr, fr, mr, strict=False) if mi]
+            for sr, fr, mr in zip(s, f, m, strict=False)
+        ]
 
     # ------------------------------------------------------------------ constructors
     @classmethod

@@ -105,7 +105,9 @@ def _positive(name: str, value: Any, unit: str = "") -> float:
     return x
 
 
-def _geometry_stiffness(outer_diameter: Any, inner_diameter: Any, youngs_modulus: Any) -> tuple[float, float, float, float]:
+def _geometry_stiffness(
+    outer_diameter: Any, inner_diameter: Any, youngs_modulus: Any
+) -> tuple[float, float, float, float]:
     """Checked (d_out [m], d_in [m], E [Pa], EI [N m^2]) of a tube; ``ValueError`` naming the bad one."""
     d_out = _positive("outer_diameter", outer_diameter, " [m]")
     d_in = _real("inner_diameter", inner_diameter, " [m]")
@@ -236,7 +238,9 @@ class Rod:
                 f"rod description gives {geometry}: outer_diameter, inner_diameter and youngs_modulus go together"
             )
         if "bending_stiffness" not in data and not geometry:
-            raise ValueError("rod description needs bending_stiffness, or outer_diameter, inner_diameter and youngs_modulus")
+            raise ValueError(
+                "rod description needs bending_stiffness, or outer_diameter, inner_diameter and youngs_modulus"
+            )
         if "bending_stiffness" not in data:
             return cls.from_geometry(**data)
         return cls(**data)
@@ -332,10 +336,13 @@ class Rod:
             out.append(f"bending_stiffness {self.bending_stiffness:.9g} vs {other.bending_stiffness:.9g} N m^2")
         tol = rel_tol * max(self.length, other.length)
         if self.num_gratings != other.num_gratings or any(
-            abs(a - b) > tol for a, b in zip(self.gratings, other.gratings)
+            abs(a - b) > tol for a, b in zip(self.gratings, other.gratings, strict=False)
         ):
-            out.append(_clip(f"{self.num_gratings} gratings at {list(self.gratings)}") + " vs "
-                       + _clip(f"{other.num_gratings} at {list(other.gratings)}"))
+            out.append(
+                _clip(f"{self.num_gratings} gratings at {list(self.gratings)}")
+                + " vs "
+                + _clip(f"{other.num_gratings} at {list(other.gratings)}")
+            )
         return out
 
     @property

@@ -44,9 +44,7 @@ def _command_list(width: int = 88) -> str:
     indent = 2 + max(map(len, COMMANDS)) + 2
     lines = ["commands:"]
     for name, text in COMMANDS.items():
-        lines += textwrap.wrap(
-            text, width, initial_indent=f"  {name:<{indent - 2}}", subsequent_indent=" " * indent
-        )
+        lines += textwrap.wrap(text, width, initial_indent=f"  {name:<{indent - 2}}", subsequent_indent=" " * indent)
     return "\n".join(lines)
 
 

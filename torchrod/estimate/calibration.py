@@ -241,9 +241,7 @@ class _Problem:
         self.num_unknowns = n_global + int(used.sum())
         obs = self.obs.cpu().numpy()
         self.num_obs = int(obs.sum())
-        self.obs_reading = np.broadcast_to(np.arange(R)[:, None, None], obs.shape)[
-            obs
-        ]  # reading of each residual
+        self.obs_reading = np.broadcast_to(np.arange(R)[:, None, None], obs.shape)[obs]  # reading of each residual
         self._cache: tuple[bytes, np.ndarray, np.ndarray] | None = None
 
     def rows(self, theta: np.ndarray) -> torch.Tensor:
@@ -287,9 +285,7 @@ class _Problem:
         self._cache = (key, r, full)
         return r, full
 
-    def solve(
-        self, theta0: np.ndarray, lower: np.ndarray, upper: np.ndarray, free: np.ndarray | None = None
-    ) -> _Fit:
+    def solve(self, theta0: np.ndarray, lower: np.ndarray, upper: np.ndarray, free: np.ndarray | None = None) -> _Fit:
         """Least squares over the unknowns marked ``free`` (default all; the others stay at ``theta0``). The
         standard errors come from the Jacobian of ALL unknowns: a fixed one counts as estimated from the same data,
         so its uncertainty and correlations propagate into the others'."""
@@ -380,9 +376,7 @@ def calibrate(
     # s_true - b must stay in [0, L] for every real force
     lo_b, hi_b = float(s_real.max()) - rod.length, float(s_real.min())
     if not lo_b <= initial_bias <= hi_b:
-        raise ValueError(
-            f"initial_bias {initial_bias} m would move a force off the rod; allowed [{lo_b}, {hi_b}] m"
-        )
+        raise ValueError(f"initial_bias {initial_bias} m would move a force off the rod; allowed [{lo_b}, {hi_b}] m")
     ei0 = rod.bending_stiffness
     h = loads.max_forces
     mask = loads.mask
@@ -418,9 +412,7 @@ def calibrate(
 
         def model_stiffness(X: torch.Tensor) -> torch.Tensor:
             scale = torch.exp(-X[:, 1:2]).unsqueeze(-1)
-            return grating_curvature(
-                rod, PointForces(shifted(X), f_known * scale, mask), bending_stiffness=ei0
-            )
+            return grating_curvature(rod, PointForces(shifted(X), f_known * scale, mask), bending_stiffness=ei0)
 
         used2 = torch.zeros(R, 0, dtype=torch.bool, device=active.device)
         fixed2 = torch.zeros(R, 0, dtype=loads.dtype, device=loads.device)
@@ -438,9 +430,7 @@ def calibrate(
         used2, fixed2 = active, angle0.detach()
         theta0 = np.concatenate(([bias, 0.0], angle0[active].cpu().numpy()))
     # a sensible start: the magnitude ratio of the step-1 fit (EI / EI0 = |f_known| / |f_fitted|)
-    ratio = float(
-        (magnitude[active] ** 2).sum() / (magnitude[active] * fitted_forces.magnitude()[active]).sum()
-    )
+    ratio = float((magnitude[active] ** 2).sum() / (magnitude[active] * fitted_forces.magnitude()[active]).sum())
     if math.isfinite(ratio) and ratio > 0:
         theta0[1] = math.log(ratio)
     step2 = _Problem(model_stiffness, data, 2, used2, fixed2)

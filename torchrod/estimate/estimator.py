@@ -289,9 +289,7 @@ class Estimator:
         if not isinstance(options, EstimatorOptions):
             raise TypeError(f"options must be EstimatorOptions, got {type(options).__name__}")
         if warm_start is not None and not (hasattr(warm_start, "guess") or callable(warm_start)):
-            raise TypeError(
-                f"warm_start must have a guess() method or be callable, got {type(warm_start).__name__}"
-            )
+            raise TypeError(f"warm_start must have a guess() method or be callable, got {type(warm_start).__name__}")
         self.rod = rod
         self.options = options
         self.warm_start = warm_start
@@ -311,8 +309,8 @@ class Estimator:
         checkpoint whose recorded held-back quality meets :data:`torchrod.learn.warm_start.TRUSTED` is trusted:
         its guesses start the fits alone, and the scan serves the fits found suspicious (``trust_guesses``).
         Otherwise the network is said to be weak, once, through ``warn`` (default: a :class:`UserWarning`), and its
-        guesses are starts beside the scan's, so it cannot make results worse. When the layout does not match (or the file is missing
-        or damaged), the estimator runs without a network and says so, and how to train one.
+        guesses are starts beside the scan's, so it cannot make results worse. When the layout does not match (or the
+        file is missing or damaged), the estimator runs without a network and says so, and how to train one.
 
         Args:
             path: a checkpoint written by :mod:`torchrod.learn.training` (loaded with ``weights_only=True``).
@@ -604,7 +602,12 @@ class Estimator:
             steps[at] = st.steps
         active = xp.arange(W)[None, :] < chosen[:, None]
         unc = fit_uncertainty(
-            problem, Fits(xp.arange(B), s, f, interval), active, J, sigma, condition_limit=opts.condition_limit
+            problem,
+            Fits(xp.arange(B), s, f, interval),
+            active,
+            J,
+            sigma,
+            condition_limit=opts.condition_limit,
         )
         residuals = problem.residuals
         # The verdict: the chi-square p-value at the given noise, or (noise unknown) at the largest believed.
@@ -618,7 +621,9 @@ class Estimator:
         status = verdict(xp, p_value, converged, unc.poorly_determined, opts.misfit_level)
 
         # Reported form: sorted by location, the location bias added, in the input's dtype and device.
-        to = lambda x: xp.to_torch(x, device)
+        def to(x):
+            return xp.to_torch(x, device)
+
         s_t, f_t, act_t = to(s), to(f), to(active)
         order = s_t.masked_fill(~act_t, float("inf")).argsort(dim=1)
         s_t = s_t.gather(1, order)
@@ -631,7 +636,10 @@ class Estimator:
         by_count = torch.full((B, W + 1), nan, dtype=torch.float64, device=device)
         for k, h in enumerate(counts):
             by_count[:, h] = to(losses[:, k])
-        cast = lambda x: x.to(out_dtype)
+
+        def cast(x):
+            return x.to(out_dtype)
+
         return EstimateResult(
             forces=PointForces(cast(s_rep), cast(f_t), act_t),
             num_forces=to(chosen).long(),

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
 
 import torch
 
@@ -39,7 +38,10 @@ def refine_open(problem: Problem, policy: lm.LMPolicy, options: LBFGSOptions, st
     lo, hi = bounds(problem, fits)
     width = hi - lo
     device = torch.device("cpu") if xp.name == "numpy" else xp.device
-    to_t = lambda x: xp.to_torch(x, device).to(torch.float64)
+
+    def to_t(x):
+        return xp.to_torch(x, device).to(torch.float64)
+
     lo_t, width_t = to_t(lo), to_t(width)
     edge = 1e-3  # keep z off +-pi/2, where ds/dz = 0
     frac = ((to_t(fits.s) - lo_t) / torch.where(width_t > 0, width_t, torch.ones_like(width_t))) * 2.0 - 1.0

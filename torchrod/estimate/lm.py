@@ -27,9 +27,8 @@ digits), and reports that residual and its loss: what the count tests and the ve
 
 from __future__ import annotations
 
-import math
-
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -135,7 +134,9 @@ class LMState:
             a, b = getattr(self, name), getattr(part, name)
             return None if a is None or b is None else xp.put(a, idx, b)
 
-        fits = Fits(*(xp.put(getattr(self.fits, k), idx, getattr(part.fits, k)) for k in ("reading", "s", "f", "interval")))
+        fits = Fits(
+            *(xp.put(getattr(self.fits, k), idx, getattr(part.fits, k)) for k in ("reading", "s", "f", "interval"))
+        )
         return LMState(**{f.name: (fits if f.name == "fits" else merge(f.name)) for f in dataclasses.fields(self)})
 
 
@@ -311,15 +312,21 @@ def _step(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
         # correction it asks for, taken when small against v.
         probe = moved(policy.probe * v)
         r_p, _ = evaluate(problem, probe, jacobian=False)
-        actual = xp.concat(
-            [((probe.s - fits.s) / problem.length)[..., None], (probe.f - fits.f) / problem.force_unit], 2
-        ).reshape(R, 3 * h) / policy.probe
+        actual = (
+            xp.concat(
+                [((probe.s - fits.s) / problem.length)[..., None], (probe.f - fits.f) / problem.force_unit], 2
+            ).reshape(R, 3 * h)
+            / policy.probe
+        )
         free = _free(held, xp)
         Jf = sided(problem, fits, state.J) * free[:, None, :]
         r_vv = (2.0 / policy.probe) * ((r_p - state.r) / policy.probe - xp.einsum("rkp,rp->rk", Jf, actual))
         x_a, ok_a = xp.spd_solve(_damped(xp, A, free, state.damping), xp.einsum("rkp,rk->rp", Jf, r_vv))
         a = -x_a
-        norm = lambda x: xp.lib.sqrt((x * x).sum(1))
+
+        def norm(x):
+            return xp.lib.sqrt((x * x).sum(1))
+
         use = ok_a & xp.all(xp.isfinite(r_vv), 1) & (2.0 * norm(a) <= policy.acceleration_limit * norm(v))
         use = use & curved
         dx = shortened(v + xp.where(use[:, None], 0.5 * a, 0.0))

@@ -174,7 +174,6 @@ class Fits:
 
 def bounds(problem: Problem, fits: Fits) -> tuple[Any, Any]:
     """(R, h) lower and upper bound [m] of each force's interval."""
-    xp = problem.xp
     rows = fits.reading[:, None]
     return problem.lo[rows, fits.interval], problem.hi[rows, fits.interval]
 
@@ -329,7 +328,10 @@ def kink_slopes(problem: Problem, fits: Fits, r: Any) -> tuple[Any, Any]:
     hi_k = problem.hi_k[rows, fits.interval]
     jc = _jump_column(problem, fits)  # (R, h, 2)
     rr = r.reshape(R, G, 2)
-    at = lambda k: xp.take(rr, xp.expand(xp.clip(k, lo=0)[:, :, None], (R, h, 2)), 1)  # (R, h, 2)
+
+    def at(k):
+        return xp.take(rr, xp.expand(xp.clip(k, lo=0)[:, :, None], (R, h, 2)), 1)  # (R, h, 2)
+
     c_lo = xp.where(near_lo & (lo_k >= 0), (at(lo_k) * jc).sum(2), 0.0)
     c_hi = xp.where(near_hi & (hi_k >= 0), (at(hi_k) * jc).sum(2), 0.0)
     return c_lo, c_hi

@@ -15,8 +15,9 @@ minimum of each count from the one below it, with work linear in the number of g
 * **Exchange** (:func:`exchange`). A fit whose loss is worse than a correct fit's typically is (noise known:
   above the ``suspect`` quantile of the chi-square law; noise unknown: always), or that holds a force on a grating
   (a kink of the loss, where the loss rises on both sides: true forces seldom sit exactly on a grating, wrong local
-  minima often do), may hold one force in a wrong interval. For each of its forces in turn, the force is removed and the scan re-places it among all intervals; the
-  best re-placement that lowers the loss replaces the fit. Repeated while it helps (at most ``rounds``).
+  minima often do), may hold one force in a wrong interval. For each of its forces in turn, the force is removed and the
+  scan re-places it among all intervals; the best re-placement that lowers the loss replaces the fit. Repeated while it
+  helps (at most ``rounds``).
 
 Rows are laid out in blocks of B (one row per reading), so the best row of each reading is a minimum over the
 block axis (:func:`best_of`).
@@ -192,9 +193,7 @@ def _responses(problem: Problem, base: Fits, cand: Any, known: tuple[Any, Any] |
     return r, J, Jc
 
 
-def scan(
-    problem: Problem, base: Fits | lm.LMState, *, per_interval: int, top: int, trust: float
-) -> Scan:
+def scan(problem: Problem, base: Fits | lm.LMState, *, per_interval: int, top: int, trust: float) -> Scan:
     """Starts for h = base.h + 1 forces from R0 base fits (module docstring).
 
     Args:
@@ -480,7 +479,13 @@ def fit_counts(
         sc = None
         if n and (starts > 0 or rules.settled is not None):
             base = states[h - 1].take(xp, open_)
-            sc = scan(problem, base, per_interval=options.per_interval, top=max(starts, 1), trust=solver.policy.max_force_step)
+            sc = scan(
+                problem,
+                base,
+                per_interval=options.per_interval,
+                top=max(starts, 1),
+                trust=solver.policy.max_force_step,
+            )
             evaluations = xp.add_at(evaluations, open_, xp.ones((n,), "int"))
             if rules.settled is not None:
                 done = rules.settled(xp.stack([states[k].loss[open_] for k in range(h)], 1), open_, sc.gain)
@@ -576,12 +581,16 @@ def _explore(
 ) -> tuple[lm.LMState, Any]:
     """The best of ``starts`` (blocks of n rows) per reading, fitted only while promising: each row takes at most
     ``options.explore`` steps, and only the rows whose loss, or the loss a Gauss-Newton step promises from it,
-    has fallen below ``current`` (n,), the reading's loss to beat, are fitted to the end. Returns the best rows (n), finished on the exact model, and the evaluations
-    spent per reading."""
+    has fallen below ``current`` (n,), the reading's loss to beat, are fitted to the end. Returns the best rows (n),
+    finished on the exact model, and the evaluations spent per reading."""
     xp = problem.xp
     n = starts[0].rows
     rows = _rows(starts)
-    short = dataclasses.replace(solver, policy=dataclasses.replace(solver.policy, iterations=min(options.explore, solver.policy.iterations)), lbfgs=None)
+    short = dataclasses.replace(
+        solver,
+        policy=dataclasses.replace(solver.policy, iterations=min(options.explore, solver.policy.iterations)),
+        lbfgs=None,
+    )
     st = short.solve(problem, rows)
     goal = xp.concat([current] * len(starts))
     # Promising: the loss, or what a Gauss-Newton step promises from it, is below the loss to beat.

@@ -25,7 +25,6 @@ eigenvalues of the unit-diagonal matrix D J^T J D measure identifiability indepe
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 from typing import Any
 
@@ -137,13 +136,7 @@ def uncertainty(
     nonfinite = xp.any(active & ~xp.all(xp.isfinite(std), 2), 1)
     one_grating = xp.any(active & (interval == 0), 1)
     unplaced = xp.any(active & (std[..., 0] > interval_length), 1)
-    poorly = (
-        ~(condition <= condition_limit)
-        | underdetermined
-        | nonfinite
-        | one_grating
-        | unplaced
-    )
+    poorly = ~(condition <= condition_limit) | underdetermined | nonfinite | one_grating | unplaced
     return Uncertainty(std=std, covariance=cov, condition=condition, poorly_determined=poorly)
 
 

@@ -163,9 +163,7 @@ class GridStarts:
         B, G, _ = curvature.shape
         cand = self.candidates(h)
         K = cand.shape[0]
-        u = torch.where(
-            mask.unsqueeze(-1), curvature, torch.zeros((), dtype=curvature.dtype, device=curvature.device)
-        )
+        u = torch.where(mask.unsqueeze(-1), curvature, torch.zeros((), dtype=curvature.dtype, device=curvature.device))
         loss = torch.empty(B, K, dtype=self.dtype, device=self.device)
         iu = torch.triu_indices(G, G, device=self.device)
         moments = torch.einsum("bgc,bkc->bgk", u, u)[:, iu[0], iu[1]]  # (B, T)

@@ -23,7 +23,8 @@ Baseline estimators (:func:`fit_forces`, :func:`paper_estimate`)
 
     The count: :func:`paper_estimate` fits h = 1, 2, ... until the loss drops below the paper's threshold 3.0
     (its rule, erratum 4 in docs/physics.md), or fits a given count. Starts: the best candidate of torchrod's grid scan
-    (:class:`torchrod.eval.grid_starts.GridStarts`, small-deflection linear least squares), the same for every inner model.
+    (:class:`torchrod.eval.grid_starts.GridStarts`, small-deflection linear least squares), the same for every inner
+    model.
 
 Readings and accuracy (:func:`paper_readings`, :func:`accuracy`)
     Shaped like the paper's experiments: for k = 1, 2, 3 forces, 13 cases whose (mean) locations are spread along
@@ -46,12 +47,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .grid_starts import GridStarts
 from ..loads import PointForces
 from ..model.body_frame import grating_curvature, simulate
 from ..model.global_bvp import BVPSolution, ShootingSolver
 from ..model.shape import rod_shape
 from ..rod import Rod
+from .grid_starts import GridStarts
 
 __all__ = [
     "BASELINES",
@@ -166,9 +167,7 @@ class NodeModel(CurvatureModel):
         self.evaluations += x.shape[0]
         t = torch.from_numpy(np.ascontiguousarray(x))
         with torch.no_grad():
-            u = grating_curvature(
-                self.rod, PointForces(t[..., 0], t[..., 1:]), scheme="nodes", nodes=self.nodes
-            )
+            u = grating_curvature(self.rod, PointForces(t[..., 0], t[..., 1:]), scheme="nodes", nodes=self.nodes)
         return u.numpy()
 
 
@@ -186,9 +185,7 @@ class BVPModel(CurvatureModel):
 
     def __init__(self, rod: Rod, nodes: int, jacobian: str = "dp", *, tol: float = 1e-10) -> None:
         super().__init__(rod, nodes)
-        self.solver = ShootingSolver(
-            rod, nodes=nodes, jacobian=jacobian, scheme="nodes", tol=tol, warm_start=False
-        )
+        self.solver = ShootingSolver(rod, nodes=nodes, jacobian=jacobian, scheme="nodes", tol=tol, warm_start=False)
         self.name = f"bvp_{'lm' if jacobian == 'fd' else 'dp'}"
         self._anchor: BVPSolution | None = None
         self.solves = self.iterations = self.failures = 0
@@ -268,9 +265,7 @@ class Fit:
 
 
 def _reading(curvature, mask, G: int) -> tuple[np.ndarray, np.ndarray]:
-    u = np.asarray(
-        curvature.detach().cpu().numpy() if isinstance(curvature, torch.Tensor) else curvature, float
-    )
+    u = np.asarray(curvature.detach().cpu().numpy() if isinstance(curvature, torch.Tensor) else curvature, float)
     if u.shape != (G, 2):
         raise ValueError(f"a reading must have shape (G, 2) = ({G}, 2), got {u.shape}")
     if mask is None:
@@ -430,9 +425,7 @@ def paper_estimate(
     fits: dict[int, Fit] = {}
     chosen = None
     for h in counts:
-        fits[h] = fit_forces(
-            model, curvature, grid_start(grid, curvature, h, mask), mask=mask, options=options
-        )
+        fits[h] = fit_forces(model, curvature, grid_start(grid, curvature, h, mask), mask=mask, options=options)
         chosen = fits[h]
         if num_forces is None and chosen.loss < threshold:
             break
@@ -490,9 +483,7 @@ def paper_readings(
 
     if count < 1:
         raise ValueError(f"count must be >= 1, got {count}")
-    lo, hi = (
-        s_range if s_range is not None else (rod.gratings[min(1, rod.num_gratings - 1)], rod.length - 0.01)
-    )
+    lo, hi = s_range if s_range is not None else (rod.gratings[min(1, rod.num_gratings - 1)], rod.length - 0.01)
     sampler = LoadSampler(
         min_forces=forces,
         max_forces=forces,
@@ -533,12 +524,12 @@ def match_forces(true: np.ndarray, estimate: np.ndarray) -> list[tuple[int, int]
     true = np.asarray(true, dtype=np.float64).reshape(-1, 3)
     estimate = np.asarray(estimate, dtype=np.float64).reshape(-1, 3)
     if len(true) == len(estimate):
-        return list(zip(np.argsort(true[:, 0]).tolist(), np.argsort(estimate[:, 0]).tolist()))
+        return list(zip(np.argsort(true[:, 0]).tolist(), np.argsort(estimate[:, 0]).tolist(), strict=False))
     from scipy.optimize import linear_sum_assignment
 
     cost = np.abs(true[:, None, 0] - estimate[None, :, 0])
     i, j = linear_sum_assignment(cost)
-    return list(zip(i.tolist(), j.tolist()))
+    return list(zip(i.tolist(), j.tolist(), strict=False))
 
 
 @dataclass(frozen=True)
@@ -567,7 +558,7 @@ def accuracy(truth: Sequence[np.ndarray], estimates: Sequence[np.ndarray]) -> Ac
         raise ValueError(f"{len(truth)} truths but {len(estimates)} estimates")
     df, ds = [], []
     right = 0
-    for t, e in zip(truth, estimates):
+    for t, e in zip(truth, estimates, strict=False):
         t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
         e = np.asarray(e, dtype=np.float64).reshape(-1, 3)
         right += int(len(t) == len(e))
@@ -746,7 +737,7 @@ class SpeedTable:
         """Per reading, the largest |s_a - s_b| [m] and |f_a - f_b| [N] (vector difference) over paired forces of
         methods ``a`` and ``b`` (baselines at ``q``, or ``"torchrod"``)."""
         ds, df = [], []
-        for x, y in zip(self.estimates(a, q), self.estimates(b, q)):
+        for x, y in zip(self.estimates(a, q), self.estimates(b, q), strict=False):
             pairs = match_forces(x, y)
             ds.append(max((abs(x[i, 0] - y[j, 0]) for i, j in pairs), default=0.0))
             df.append(max((math.hypot(x[i, 1] - y[j, 1], x[i, 2] - y[j, 2]) for i, j in pairs), default=0.0))
@@ -763,10 +754,7 @@ class SpeedTable:
             raise ValueError("this table does not hold its rod and readings")
         rd = self.readings
         return np.array(
-            [
-                exact_loss(self.rod, rd.curvature[i], x, rd.mask[i])
-                for i, x in enumerate(self.estimates(method, q))
-            ]
+            [exact_loss(self.rod, rd.curvature[i], x, rd.mask[i]) for i, x in enumerate(self.estimates(method, q))]
         )
 
 

@@ -109,9 +109,7 @@ def versus_q_figure(
         acc = [study.accuracy(f"nodes q={n}", k) for n in q]
         mine = study.accuracy("torchrod", k)
         runs = [study.runs[f"nodes q={n}"][k] for n in q]
-        axes[0].plot(
-            q, [a.force_rmse for a in acc], marker="o", color=colour, label=f"{k} force(s), node scheme"
-        )
+        axes[0].plot(q, [a.force_rmse for a in acc], marker="o", color=colour, label=f"{k} force(s), node scheme")
         axes[0].axhline(mine.force_rmse, color=colour, ls=":", label=f"{k}, torchrod")
         axes[1].plot(q, [1e3 * a.location_rmse for a in acc], marker="o", color=colour)
         axes[1].axhline(1e3 * mine.location_rmse, color=colour, ls=":")
@@ -129,9 +127,7 @@ def versus_q_figure(
                 label=f"{k}, paper (real bench)",
             )
         if paper_location and k in paper_location:
-            axes[1].plot(
-                [250], [1e3 * paper_location[k]], marker="*", mfc="none", ms=10, color=colour, ls="none"
-            )
+            axes[1].plot([250], [1e3 * paper_location[k]], marker="*", mfc="none", ms=10, color=colour, ls="none")
         if paper_times:
             pq = sorted(n for n in paper_times if k in paper_times[n])
             axes[2].plot(
@@ -168,9 +164,7 @@ def loss_maps_figure(maps) -> Figure:
         ax = fig.add_subplot(1, 2, i + 1)
         positive = grid[grid > 0]
         floor = positive.min() if positive.size else 1e-30
-        img = ax.imshow(
-            np.log10(np.maximum(grid, floor)), origin="lower", extent=extent, aspect="auto", cmap="viridis"
-        )
+        img = ax.imshow(np.log10(np.maximum(grid, floor)), origin="lower", extent=extent, aspect="auto", cmap="viridis")
         fig.colorbar(img, ax=ax, label=f"log10 {which} loss [{unit}]")
         ax.contour(
             1e3 * maps.s,
@@ -216,9 +210,7 @@ def _profile(rod: Rod, rows: np.ndarray, samples: int) -> tuple[np.ndarray, ...]
     model = rows.copy()
     model[:, 0] = np.clip(model[:, 0] - rod.location_bias, 0.0, rod.length)
     if len(model):
-        loads = PointForces(
-            torch.from_numpy(model[None, :, 0].copy()), torch.from_numpy(model[None, :, 1:].copy())
-        )
+        loads = PointForces(torch.from_numpy(model[None, :, 0].copy()), torch.from_numpy(model[None, :, 1:].copy()))
     else:
         loads = PointForces(torch.zeros(1, 1, dtype=torch.float64), torch.zeros(1, 1, 2, dtype=torch.float64))
     with torch.no_grad():
@@ -380,7 +372,7 @@ def stream_figure(
 
     def points(times, rows_list):
         tt, mm, ss = [], [], []
-        for ti, rows in zip(times, rows_list):
+        for ti, rows in zip(times, rows_list, strict=False):
             for si, fx, fy in _rows(rows):
                 tt.append(ti)
                 mm.append(math.hypot(fx, fy))

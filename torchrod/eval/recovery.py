@@ -16,8 +16,8 @@ between present gratings, none in the first interval (one grating sees it: its m
 lever), the gratings that see the forces leave at least three residuals beyond the unknowns (one more force could
 otherwise hide there), and every force changes the reading by at least ``visible`` [1/m] at two or more gratings
 (a force a few micrometres past a grating bends that grating by nothing measurable, so only the gratings before it
-see it and, if that is one, its magnitude trades against its lever as in the first interval). A result is *exact* when the count is right, every
-force within 0.1 % and every location within 0.1 mm. :func:`judge` sorts each result into
+see it and, if that is one, its magnitude trades against its lever as in the first interval). A result is *exact* when
+the count is right, every force within 0.1 % and every location within 0.1 mm. :func:`judge` sorts each result into
 
 * ``exact``: recovered;
 * ``within_error``: the right count, answered ``ok``, every location and force component within three of the
@@ -44,7 +44,16 @@ import torch
 from ..loads import PointForces
 from ..rod import Rod
 
-__all__ = ["RecoveryCase", "VERDICTS", "explains", "identifiable", "judge", "recovery_cases", "run", "summarise"]
+__all__ = [
+    "RecoveryCase",
+    "VERDICTS",
+    "explains",
+    "identifiable",
+    "judge",
+    "recovery_cases",
+    "run",
+    "summarise",
+]
 
 STRATA = ("near base", "missing", "anywhere")
 VERDICTS = ("exact", "within_error", "missed", "flagged", "parsimonious", "wrong")
@@ -69,7 +78,10 @@ def recovery_cases(rod: Rod, count: int, seed: int = 0, max_bending: float = mat
     q = list(rod.gratings)
     G, L = len(q), rod.length
     spacing = (q[-1] - q[0]) / max(G - 1, 1)
-    rand = lambda: float(torch.rand(1, generator=g, dtype=torch.float64))
+
+    def rand():
+        return float(torch.rand(1, generator=g, dtype=torch.float64))
+
     out: list[RecoveryCase] = []
     while len(out) < count:
         stratum = STRATA[len(out) % 3]
@@ -90,11 +102,11 @@ def recovery_cases(rod: Rod, count: int, seed: int = 0, max_bending: float = mat
         while len(s) < k:
             s.append(first + (L - first) * rand())
         s = sorted(min(max(x, first), L) for x in s[:k])
-        if any(b - a < 0.002 for a, b in zip(s, s[1:])):
+        if any(b - a < 0.002 for a, b in zip(s, s[1:], strict=False)):
             continue
         mag = [0.05 + 1.95 * rand() for _ in range(k)]
         ang = [2.0 * math.pi * rand() for _ in range(k)]
-        f = [(m * math.cos(a), m * math.sin(a)) for m, a in zip(mag, ang)]
+        f = [(m * math.cos(a), m * math.sin(a)) for m, a in zip(mag, ang, strict=False)]
         loads = PointForces(torch.tensor([s], dtype=torch.float64), torch.tensor([f], dtype=torch.float64))
         if float(total_turning(rod, loads)[0]) > max_bending:
             continue
@@ -108,7 +120,9 @@ def readings(rod: Rod, cases: list[RecoveryCase]) -> tuple[torch.Tensor, torch.T
     from ..model.body_frame import simulate
 
     h = max(len(c.s) for c in cases)
-    loads = PointForces.from_lists([[(si, fx, fy) for si, (fx, fy) in zip(c.s, c.f)] for c in cases], max_forces=h)
+    loads = PointForces.from_lists(
+        [[(si, fx, fy) for si, (fx, fy) in zip(c.s, c.f, strict=False)] for c in cases], max_forces=h
+    )
     u = simulate(rod, loads).grating_curvature
     mask = torch.tensor([c.present for c in cases])
     return torch.where(mask.unsqueeze(-1), u, torch.full_like(u, math.nan)), mask
@@ -117,15 +131,16 @@ def readings(rod: Rod, cases: list[RecoveryCase]) -> tuple[torch.Tensor, torch.T
 def identifiable(rod: Rod, case: RecoveryCase, visible: float = 0.01, condition: float = 1e6) -> bool:
     """Whether the data decide the case (module docstring): every force in its own interval between present
     gratings and none in the first, at least three residuals to spare among the gratings that see the forces,
-    every force changing the reading by at least ``visible`` [1/m] at two or more gratings, and the Gauss-Newton matrix at the truth (unit
-    diagonal) conditioned better than ``condition`` (else a nearby answer fits as well: two forces the gratings
+    every force changing the reading by at least ``visible`` [1/m] at two or more gratings, and the Gauss-Newton matrix
+    at the truth (unit diagonal) conditioned better than ``condition`` (else a nearby answer fits as well: two forces
+    the gratings
     between them barely separate can have another exact solution a fraction of a millimetre away)."""
     from ..backend import NUMPY
     from ..estimate.uncertainty import gauss_newton_covariance
     from ..model.body_frame import simulate
     from ..model.sensitivity import march
 
-    q = [x for x, p in zip(rod.gratings, case.present) if p]
+    q = [x for x, p in zip(rod.gratings, case.present, strict=False) if p]
     intervals = [max(j for j in range(len(q)) if q[j] <= s) for s in case.s]
     if len(set(intervals)) < len(intervals) or 0 in intervals:
         return False
@@ -133,8 +148,8 @@ def identifiable(rod: Rod, case: RecoveryCase, visible: float = 0.01, condition:
     if 2 * seen - 3 * len(case.s) < 3:
         return False
     for i in range(len(case.s)):
-        rest = [(s, fx, fy) for j, (s, (fx, fy)) in enumerate(zip(case.s, case.f)) if j != i]
-        full = [(s, fx, fy) for s, (fx, fy) in zip(case.s, case.f)]
+        rest = [(s, fx, fy) for j, (s, (fx, fy)) in enumerate(zip(case.s, case.f, strict=False)) if j != i]
+        full = [(s, fx, fy) for s, (fx, fy) in zip(case.s, case.f, strict=False)]
         pair = PointForces.from_lists([full, rest], max_forces=len(full))
         u = simulate(rod, pair).grating_curvature
         gone = (u[0] - u[1])[torch.tensor(case.present)].abs().amax(dim=-1)
@@ -143,8 +158,16 @@ def identifiable(rod: Rod, case: RecoveryCase, visible: float = 0.01, condition:
     import numpy as np
 
     h = len(case.s)
-    _, jac = march(NUMPY, np.asarray(rod.gratings), np.asarray([case.s]), np.asarray([case.f]), rod.length,
-                   rod.bending_stiffness, step_angle=0.05, max_steps=400)
+    _, jac = march(
+        NUMPY,
+        np.asarray(rod.gratings),
+        np.asarray([case.s]),
+        np.asarray([case.f]),
+        rod.length,
+        rod.bending_stiffness,
+        step_angle=0.05,
+        max_steps=400,
+    )
     J = (jac * np.repeat(np.asarray(case.present, dtype=float), 1)[None, :, None, None, None]).reshape(1, -1, 3 * h)
     _, cond = gauss_newton_covariance(NUMPY, J, np.ones(1), np.ones((1, 3 * h), dtype=bool))
     return bool(cond[0] <= condition)
@@ -163,16 +186,20 @@ def judge(
     """One verdict of the module docstring. ``s``, ``f``, ``std``: the estimate in model coordinates, sorted by
     location, and its standard deviations (s [m], f_x [N], f_y [N]); ``explains``: whether the estimate, simulated
     again, reproduces the reading (:func:`explains`)."""
-    pairs = list(zip(s, case.s, f, case.f, std))
+    pairs = list(zip(s, case.s, f, case.f, std, strict=False))
     same = num_forces == len(case.s)
     if same and all(
         abs(a - b) <= 1e-4 and math.hypot(fa[0] - fb[0], fa[1] - fb[1]) <= 1e-3 * math.hypot(*fb)
         for a, b, fa, fb, _ in pairs
     ):
         return "exact"
-    if same and status == "ok" and all(
-        abs(a - b) <= 3.0 * sd[0] and abs(fa[0] - fb[0]) <= 3.0 * sd[1] and abs(fa[1] - fb[1]) <= 3.0 * sd[2]
-        for a, b, fa, fb, sd in pairs
+    if (
+        same
+        and status == "ok"
+        and all(
+            abs(a - b) <= 3.0 * sd[0] and abs(fa[0] - fb[0]) <= 3.0 * sd[1] and abs(fa[1] - fb[1]) <= 3.0 * sd[2]
+            for a, b, fa, fb, sd in pairs
+        )
     ):
         return "within_error"
     if decidable:
@@ -182,13 +209,21 @@ def judge(
     return "parsimonious" if num_forces < len(case.s) and explains else "wrong"
 
 
-def explains(rod: Rod, case: RecoveryCase, reading: torch.Tensor, s: list[float], f: list[tuple[float, float]],
-             floor: float) -> bool:
+def explains(
+    rod: Rod,
+    case: RecoveryCase,
+    reading: torch.Tensor,
+    s: list[float],
+    f: list[tuple[float, float]],
+    floor: float,
+) -> bool:
     """Whether the answer (s, f), simulated again, reproduces the clean ``reading`` (G, 2) [1/m] at the present
     gratings to within ``floor`` [1/m], root mean square."""
     from ..model.body_frame import simulate
 
-    loads = PointForces.from_lists([[(si, fx, fy) for si, (fx, fy) in zip(s, f)]], max_forces=max(len(s), 1))
+    loads = PointForces.from_lists(
+        [[(si, fx, fy) for si, (fx, fy) in zip(s, f, strict=False)]], max_forces=max(len(s), 1)
+    )
     u = simulate(rod, loads).grating_curvature[0]
     present = torch.tensor(case.present)
     diff = (u - reading)[present]
@@ -234,9 +269,9 @@ def run(rod: Rod, count: int, *, seed: int = 0, estimator: Any = None, batch_siz
                     "decidable": decidable,
                     "verdict": judge(case, n, s, f, std, statuses[i], decidable, fits),
                     "status": statuses[i],
-                    "truth": [(si, fi) for si, fi in zip(case.s, case.f)],
+                    "truth": [(si, fi) for si, fi in zip(case.s, case.f, strict=False)],
                     "missing": [k for k, p in enumerate(case.present) if not p],
-                    "estimate": list(zip(s, f)),
+                    "estimate": list(zip(s, f, strict=False)),
                 }
             )
     return rows

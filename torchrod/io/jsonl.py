@@ -123,9 +123,7 @@ class ReadControl:
         self.halted.set()
 
 
-def read_lines(
-    source: str | os.PathLike | IO[str], control: ReadControl | None = None
-) -> Iterator[tuple[int, str]]:
+def read_lines(source: str | os.PathLike | IO[str], control: ReadControl | None = None) -> Iterator[tuple[int, str]]:
     """Non-blank lines of ``source`` with their 1-based numbers, lazily.
 
     ``source`` is a path, ``"-"`` for standard input (looked up when reading starts, so tests may replace it), or an
@@ -167,9 +165,7 @@ def _numbered(stream: IO[str], control: ReadControl) -> Iterator[tuple[int, str]
             yield number, text
 
 
-def _raw_lines(
-    read: Callable[[int], bytes], control: ReadControl, chunk: int = 2**16
-) -> Iterator[bytes | None]:
+def _raw_lines(read: Callable[[int], bytes], control: ReadControl, chunk: int = 2**16) -> Iterator[bytes | None]:
     """Lines (with their newline) from an unbuffered ``read``, as soon as each is complete; None for a line over
     :data:`MAX_LINE_BYTES` (dropped as it is read, so memory stays bounded). Once ``control`` is halted, ends when
     the complete lines in memory are out (a partial line is dropped)."""
@@ -246,9 +242,7 @@ def _clip(message: str, limit: int = MAX_MESSAGE_CHARS) -> str:
     return message if len(message) <= limit else message[:limit] + f"... ({len(message)} characters)"
 
 
-def parse_records(
-    lines: Iterable[tuple[int, str]], parse: Callable[[dict[str, Any]], T]
-) -> Iterator[Record[T]]:
+def parse_records(lines: Iterable[tuple[int, str]], parse: Callable[[dict[str, Any]], T]) -> Iterator[Record[T]]:
     """Decode each (number, text) line as a JSON object and apply ``parse``; failures become error records.
 
     One record per line, in order. ``ValueError``, ``TypeError``, ``KeyError``, ``OverflowError`` and
@@ -286,9 +280,7 @@ def _record(number: int, text: str, parse: Callable[[dict[str, Any]], T]) -> Rec
     return Record(number, ident, value)
 
 
-def read_records(
-    source: str | os.PathLike | IO[str], parse: Callable[[dict[str, Any]], T]
-) -> Iterator[Record[T]]:
+def read_records(source: str | os.PathLike | IO[str], parse: Callable[[dict[str, Any]], T]) -> Iterator[Record[T]]:
     """:func:`read_lines` then :func:`parse_records`: one :class:`Record` per non-blank line, in order, lazily."""
     return parse_records(read_lines(source), parse)
 
@@ -408,12 +400,7 @@ def open_output(path: str | None, inputs: Sequence[str] = ()) -> Iterator[IO[str
         yield None
         return
     for source in inputs:
-        if (
-            source != "-"
-            and os.path.exists(source)
-            and os.path.exists(path)
-            and os.path.samefile(source, path)
-        ):
+        if source != "-" and os.path.exists(source) and os.path.exists(path) and os.path.samefile(source, path):
             raise ValueError(f"--out {path} is the input {source}: writing it would erase the input")
     try:
         fh = open(path, "w", encoding="utf-8")  # noqa: SIM115 - closed below

@@ -122,8 +122,9 @@ class Reading:
 
 
 class HugeInteger:
-    """A JSON integer literal of more than :func:`int_digit_limit` digits (4300, Python's default limit). The JSON decoder of :mod:`torchrod.io.jsonl` yields it in place of the integer, so such a line fails
-    with a message naming the field instead of aborting the run. Keeps only the head of the digits."""
+    """A JSON integer literal of more than :func:`int_digit_limit` digits (4300, Python's default limit). The JSON
+    decoder of :mod:`torchrod.io.jsonl` yields it in place of the integer, so such a line fails with a message naming
+    the field instead of aborting the run. Keeps only the head of the digits."""
 
     __slots__ = ("digits", "head", "negative")
 
@@ -305,9 +306,7 @@ def as_number(value: Any, what: str, *, bound: float | None = None, unit: str = 
     try:
         x = float(value)
     except OverflowError:
-        raise ValueError(
-            f"{what} must be a finite number, got {quote(value)}, which overflows a float"
-        ) from None
+        raise ValueError(f"{what} must be a finite number, got {quote(value)}, which overflows a float") from None
     if not math.isfinite(x):
         raise ValueError(f"{what} must be finite, got {quote(x)}")
     if bound is not None and not abs(x) <= bound:
@@ -416,7 +415,7 @@ def check_gratings(value: Any, gratings: Sequence[float], what: str = "gratings"
         raise ValueError(f"{what} must be an array of the grating positions [m], got {describe(value)}")  # noqa: TRY004
     positions = [as_number(x, f"{what}[{k}]") for k, x in enumerate(value)]
     if len(positions) != len(gratings) or any(
-        abs(a - b) > GRATING_TOLERANCE for a, b in zip(positions, gratings)
+        abs(a - b) > GRATING_TOLERANCE for a, b in zip(positions, gratings, strict=False)
     ):
         raise ValueError(
             f"{what} {quote(positions)} do not match the rod's {quote(list(gratings))}: "
@@ -527,9 +526,7 @@ def parse_reading(
         )
     ident = check_id(obj.get("id"))
     if "curvature" not in obj:
-        raise ValueError(
-            f"missing 'curvature' (an array of {num_gratings} [ux, uy] pairs [1/m], one per grating)"
-        )
+        raise ValueError(f"missing 'curvature' (an array of {num_gratings} [ux, uy] pairs [1/m], one per grating)")
     if "gratings" in obj and gratings is not None:
         check_gratings(obj["gratings"], gratings)
     curvature = curvature_tensor(obj["curvature"], num_gratings)
@@ -568,9 +565,7 @@ def to_reading(item: Any, num_gratings: int, gratings: Sequence[float] | None = 
     except ValueError as exc:
         return Reading(ident, error=_at(line, str(exc)), line=line)
     except Exception as exc:  # noqa: BLE001 - a reading never stops the stream
-        return Reading(
-            ident, error=_at(line, f"unreadable reading ({type(exc).__name__}: {quote(str(exc))})")
-        )
+        return Reading(ident, error=_at(line, f"unreadable reading ({type(exc).__name__}: {quote(str(exc))})"))
 
 
 def _at(line: int | None, message: str) -> str:
@@ -771,9 +766,7 @@ def check_readings(curvature: Any, mask: Any, num_gratings: int) -> tuple[torch.
     bad = mask & ~(curvature.abs() <= MAX_CURVATURE).all(-1)
     if bool(bad.any()):
         b, g = (int(x) for x in bad.nonzero()[0])
-        raise ValueError(
-            _present_problem(b, g, [float(x) for x in curvature[b, g]], " but the mask marks it present")
-        )
+        raise ValueError(_present_problem(b, g, [float(x) for x in curvature[b, g]], " but the mask marks it present"))
     return curvature, mask
 
 

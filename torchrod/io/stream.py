@@ -179,9 +179,7 @@ class _Pending:
 class _Stream:
     """The state of one :func:`stream`: queue, pending batch, last solution."""
 
-    def __init__(
-        self, estimator: Any, readings: Iterable[Any], options: StreamOptions, overrides: dict
-    ) -> None:
+    def __init__(self, estimator: Any, readings: Iterable[Any], options: StreamOptions, overrides: dict) -> None:
         self.estimator, self.options, self.overrides = estimator, options, overrides
         self.G = estimator.rod.num_gratings
         self.device = torch.device(options.device)
@@ -269,18 +267,12 @@ class _Stream:
                 rec = {"id": r.id, "error": error}
                 if r.t is not None:
                     rec["t"] = r.t
-                out.append(
-                    StreamResult(r.id, r.t, rec, latency, error, len(batch), elapsed, line=r.line)
-                )
+                out.append(StreamResult(r.id, r.t, rec, latency, error, len(batch), elapsed, line=r.line))
                 continue
             if r.t is not None:
                 rec["t"] = r.t
             rec["latency_ms"] = round(1e3 * latency, 3)
-            out.append(
-                StreamResult(
-                    r.id, r.t, rec, latency, None, len(good), elapsed, result, index, line=r.line
-                )
-            )
+            out.append(StreamResult(r.id, r.t, rec, latency, None, len(good), elapsed, result, index, line=r.line))
         return out
 
     def _estimate(self, good: Sequence[_Pending]) -> list[tuple[Any, int, dict | None, str | None]]:
@@ -505,7 +497,7 @@ class StreamStats:
         if len(forces) != len(truth):
             return
         self.right += 1
-        for est, (s, fx, fy) in zip(forces, sorted(truth)):
+        for est, (s, fx, fy) in zip(forces, sorted(truth), strict=False):
             self._force.add(math.hypot(est["fx"] - fx, est["fy"] - fy))
             self._location.add(abs(est["s"] - s))
 

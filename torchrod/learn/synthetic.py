@@ -184,8 +184,7 @@ class LoadSampler:
                 raise ValueError(f"s_range must be non-negative, got {self.s_range!r}")
             if s_hi - s_lo < (hi - 1) * sep:
                 raise ValueError(
-                    f"s_range {self.s_range!r} is too short for {hi} forces {sep} m apart "
-                    f"(needs {(hi - 1) * sep} m)"
+                    f"s_range {self.s_range!r} is too short for {hi} forces {sep} m apart (needs {(hi - 1) * sep} m)"
                 )
             set_(self, "s_range", (s_lo, s_hi))
         mb = float(self.max_bending)
@@ -200,8 +199,7 @@ class LoadSampler:
             raise ValueError(f"s_range {self.s_range!r} reaches beyond the rod's length {rod.length} m")
         if hi - lo < (self.max_forces - 1) * self.min_separation:
             raise ValueError(
-                f"location range ({lo}, {hi}) m is too short for {self.max_forces} forces "
-                f"{self.min_separation} m apart"
+                f"location range ({lo}, {hi}) m is too short for {self.max_forces} forces {self.min_separation} m apart"
             )
         return lo, hi
 
@@ -375,7 +373,7 @@ def _sample_rows(
     for round_ in range(_MAX_ROUNDS):
         r = _REPEATS[min(round_, len(_REPEATS) - 1)]
         parts, rows = [], []
-        for (g, _), cnt, pend, off in zip(chunks, counts, pending, offsets):
+        for (g, _), cnt, pend, off in zip(chunks, counts, pending, offsets, strict=False):
             if pend.numel() == 0:
                 continue
             parts.append(_draw(cnt[pend].repeat_interleave(r), sampler, s_range, g))
@@ -416,7 +414,9 @@ def _sample_rows(
     return PointForces(out_s, out_f, out_m), out_c, examined
 
 
-def sample_loads(rod: Rod, count: int, sampler: LoadSampler = LoadSampler(), generator: torch.Generator | None = None) -> PointForces:
+def sample_loads(
+    rod: Rod, count: int, sampler: LoadSampler = LoadSampler(), generator: torch.Generator | None = None
+) -> PointForces:
     """``count`` random load cases within the sampler's limits (module docstring), drawn from ``generator``.
 
     Args:
@@ -449,9 +449,7 @@ def sample_loads(rod: Rod, count: int, sampler: LoadSampler = LoadSampler(), gen
     )
 
 
-def _sensor_draws(
-    n: int, G: int, generator: torch.Generator
-) -> tuple[torch.Tensor, torch.Tensor]:
+def _sensor_draws(n: int, G: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """Standard normal noise (n, G, 2) and uniforms (n, G) for the missing gratings, on CPU."""
     noise = torch.randn(n, G, 2, generator=generator, dtype=torch.float64)
     missing = torch.rand(n, G, generator=generator, dtype=torch.float64)
@@ -459,7 +457,11 @@ def _sensor_draws(
 
 
 def _apply_sensor(
-    clean: torch.Tensor, offsets: torch.Tensor, noise: torch.Tensor, missing_u: torch.Tensor, sensor: SensorModel
+    clean: torch.Tensor,
+    offsets: torch.Tensor,
+    noise: torch.Tensor,
+    missing_u: torch.Tensor,
+    sensor: SensorModel,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     mask = ~(missing_u < sensor.missing_prob)
     curvature = clean + offsets + sensor.noise * noise
@@ -530,7 +532,12 @@ class SyntheticSet:
             self.offsets = torch.zeros(G, 2, dtype=self.clean.dtype, device=self.clean.device)
         if h != self.sampler.max_forces:
             raise ValueError(f"loads hold {h} forces per case, the sampler's max_forces is {self.sampler.max_forces}")
-        for name, want in (("clean", (N, G, 2)), ("curvature", (N, G, 2)), ("mask", (N, G)), ("offsets", (G, 2))):
+        for name, want in (
+            ("clean", (N, G, 2)),
+            ("curvature", (N, G, 2)),
+            ("mask", (N, G)),
+            ("offsets", (G, 2)),
+        ):
             got = tuple(getattr(self, name).shape)
             if got != want:
                 raise ValueError(f"{name} must have shape {want} (N cases, G = {G} gratings), got {got}")
@@ -654,7 +661,9 @@ class SyntheticSet:
             if diff:
                 raise ValueError(f"{path}: the set was made for a different rod ({'; '.join(diff)})")
         loads = PointForces(
-            torch.from_numpy(arrays["s"]), torch.from_numpy(arrays["f"]), torch.from_numpy(arrays["force_mask"])
+            torch.from_numpy(arrays["s"]),
+            torch.from_numpy(arrays["f"]),
+            torch.from_numpy(arrays["force_mask"]),
         )
         return cls(
             rod=stored_rod,
@@ -711,7 +720,9 @@ def _rod_differences(a: Rod, b: Rod) -> list[str]:
         out.append(f"length {a.length} m vs {b.length} m")
     if not math.isclose(a.bending_stiffness, b.bending_stiffness, rel_tol=1e-9):
         out.append(f"bending_stiffness {a.bending_stiffness} vs {b.bending_stiffness} N m^2")
-    if len(a.gratings) != len(b.gratings) or any(abs(x - y) > 1e-12 for x, y in zip(a.gratings, b.gratings)):
+    if len(a.gratings) != len(b.gratings) or any(
+        abs(x - y) > 1e-12 for x, y in zip(a.gratings, b.gratings, strict=False)
+    ):
         out.append(f"gratings {list(a.gratings)} vs {list(b.gratings)}")
     return out
 
@@ -773,8 +784,7 @@ def generate(
             if sensor.location_bias != 0.0:
                 clean, _ = _profile(rod, _shifted(rod, loads, -sensor.location_bias))
             draws = [
-                _sensor_draws(sizes[c], G, torch.Generator().manual_seed(_derive_seed(seed, "sensor", c)))
-                for c in idx
+                _sensor_draws(sizes[c], G, torch.Generator().manual_seed(_derive_seed(seed, "sensor", c))) for c in idx
             ]
             noise = torch.cat([d[0] for d in draws])
             missing = torch.cat([d[1] for d in draws])
@@ -794,7 +804,9 @@ def generate(
         return torch.cat(parts) if parts else torch.zeros(shape, dtype=dtype)
 
     loads = PointForces(
-        cat(s_parts, (0, h), torch.float64), cat(f_parts, (0, h, 2), torch.float64), cat(m_parts, (0, h), torch.bool)
+        cat(s_parts, (0, h), torch.float64),
+        cat(f_parts, (0, h, 2), torch.float64),
+        cat(m_parts, (0, h), torch.bool),
     )
     return SyntheticSet(
         rod=rod,
@@ -885,7 +897,21 @@ class Trajectory:
 
 
 class _Contact:
-    __slots__ = ("angle", "down", "end", "ident", "omega", "peak", "period", "phase", "s", "start", "up", "v", "wob")
+    __slots__ = (
+        "angle",
+        "down",
+        "end",
+        "ident",
+        "omega",
+        "peak",
+        "period",
+        "phase",
+        "s",
+        "start",
+        "up",
+        "v",
+        "wob",
+    )
 
 
 def _smoothstep(x: float) -> float:
@@ -1087,7 +1113,7 @@ def generate_trajectory(
         ident = f"f{k:06d}"
         row = [
             ([round(u, decimals) for u in uv] if decimals is not None else uv) if ok else None
-            for uv, ok in zip(values[k], present[k])
+            for uv, ok in zip(values[k], present[k], strict=False)
         ]
         readings.append({"id": ident, "t": times[k], "curvature": row})
         truth.append({"id": ident, "t": times[k], "forces": [{"s": s, "fx": fx, "fy": fy} for s, fx, fy in forces]})

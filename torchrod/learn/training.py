@@ -153,13 +153,30 @@ class TrainConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        positive = ("generate", "validation", "max_forces", "epochs", "batch_size", "hidden", "depth", "log_every")
+        positive = (
+            "generate",
+            "validation",
+            "max_forces",
+            "epochs",
+            "batch_size",
+            "hidden",
+            "depth",
+            "log_every",
+        )
         for name in positive:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
-        for name in ("lr", "noise_jitter", "missing_prob", "warmup", "weight_decay", "physics_weight", "noise",
-                     "count_weight"):
+        for name in (
+            "lr",
+            "noise_jitter",
+            "missing_prob",
+            "warmup",
+            "weight_decay",
+            "physics_weight",
+            "noise",
+            "count_weight",
+        ):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
@@ -216,7 +233,9 @@ class TrainingData:
             raise ValueError("every training case needs at least one force")
         N, G = clean.shape[0], rod.num_gratings
         if clean.shape != (N, G, 2) or loads.batch_size != N:
-            raise ValueError(f"clean must have shape (N, G, 2) = ({loads.batch_size}, {G}, 2), got {tuple(clean.shape)}")
+            raise ValueError(
+                f"clean must have shape (N, G, 2) = ({loads.batch_size}, {G}, 2), got {tuple(clean.shape)}"
+            )
         if mask is None:
             mask = torch.ones(N, G, dtype=torch.bool)
         s = torch.where(active, loads.s / L, torch.zeros_like(loads.s))
@@ -251,8 +270,6 @@ class TrainingData:
             "curvature_scale": float(u.square().mean().sqrt()),
             "force_scale": float(fm.square().mean().sqrt()),
         }
-
-
 
 
 def _simulated(rod: Rod, count: int, max_forces: int, seed: int, noise: float, missing_prob: float):
@@ -395,7 +412,10 @@ def held_back_quality(guess: WarmStartGuess, truth: PointForces, noise: float) -
         tf = truth.f[sel, :h].to(g.f)
         rel.append((torch.linalg.vector_norm(g.f[sel] - tf, dim=-1) / torch.linalg.vector_norm(tf, dim=-1)).flatten())
         loc.append((g.s[sel] - truth.s[sel, :h].to(g.s)).abs().flatten())
-    median = lambda xs: float(torch.cat(xs).quantile(0.5)) if xs else math.nan
+
+    def median(xs):
+        return float(torch.cat(xs).quantile(0.5)) if xs else math.nan
+
     return {
         "count_accuracy": float(right.double().mean()),
         "force_error_median": median(rel),
@@ -437,14 +457,22 @@ def fit_figure(rod: Rod, curvature: torch.Tensor, mask: torch.Tensor, guess: War
         for k, (name, colour) in enumerate((("u_x", "tab:blue"), ("u_y", "tab:orange"))):
             ax.plot(sx, sim.curvature[0, :, k].tolist(), color=colour, label=f"{name} guess")
             ys = curvature[b, :, k].cpu().tolist()
-            ax.plot([g for g, keep in zip(grat, m) if keep], [y for y, keep in zip(ys, m) if keep], "o",
-                    color=colour, ms=3, label=f"{name} read")
+            ax.plot(
+                [g for g, keep in zip(grat, m, strict=False) if keep],
+                [y for y, keep in zip(ys, m, strict=False) if keep],
+                "o",
+                color=colour,
+                ms=3,
+                label=f"{name} read",
+            )
         for s, _, _ in truth_lists[b]:
             ax.axvline(1e3 * s, color="k", ls="--", lw=0.8)
         for s in loads.s[0].tolist():
             ax.axvline(1e3 * s, color="tab:red", lw=0.8)
-        ax.set_title(f"true {len(truth_lists[b])} forces, guess {h} (p={float(guess.count_probs[b, h - 1]):.2f})",
-                     fontsize=9)
+        ax.set_title(
+            f"true {len(truth_lists[b])} forces, guess {h} (p={float(guess.count_probs[b, h - 1]):.2f})",
+            fontsize=9,
+        )
         ax.set_xlabel("s [mm]")
     axes[0].set_ylabel("curvature [1/m]")
     axes[0].legend(fontsize=7)
@@ -498,7 +526,9 @@ def _distributed_env() -> tuple[int, int, int]:
     return world, rank, local
 
 
-def train(config: TrainConfig, *, data: TrainingData | None = None, log: Callable[[str], None] | None = None) -> TrainResult:
+def train(
+    config: TrainConfig, *, data: TrainingData | None = None, log: Callable[[str], None] | None = None
+) -> TrainResult:
     """Train (or resume training) the warm-start network as ``config`` says; see the module docstring.
 
     Args:
@@ -539,8 +569,18 @@ def train(config: TrainConfig, *, data: TrainingData | None = None, log: Callabl
     say = log if main_rank else (lambda msg: None)
 
     try:
-        return _train(config, data, device, world, rank, distributed, main_rank, say,
-                      DistributedDataParallel, DistributedSampler)
+        return _train(
+            config,
+            data,
+            device,
+            world,
+            rank,
+            distributed,
+            main_rank,
+            say,
+            DistributedDataParallel,
+            DistributedSampler,
+        )
     finally:
         if owns_group:
             dist.destroy_process_group()
@@ -568,8 +608,11 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
         )
     if data.max_forces != config.max_forces:
         raise ValueError(f"the data hold up to {data.max_forces} forces but max_forces is {config.max_forces}")
-    held = _simulated(rod, config.validation, config.max_forces, _mix(config.seed, 1), config.noise,
-                      config.missing_prob) if main_rank else None
+    held = (
+        _simulated(rod, config.validation, config.max_forces, _mix(config.seed, 1), config.noise, config.missing_prob)
+        if main_rank
+        else None
+    )
 
     meta: dict[str, Any] = {}
     if config.resume is not None:
@@ -579,8 +622,13 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
             raise ValueError(f"{config.resume}: its network does not match the rod's grating layout")
         say(f"resuming from {config.resume} (epoch {meta['epoch']}, step {meta['step']})")
     else:
-        net_config = NetConfig.for_rod(rod, max_forces=config.max_forces, hidden=config.hidden,
-                                       depth=config.depth, **data.normalisation())
+        net_config = NetConfig.for_rod(
+            rod,
+            max_forces=config.max_forces,
+            hidden=config.hidden,
+            depth=config.depth,
+            **data.normalisation(),
+        )
         with torch.random.fork_rng(devices=[]):  # the initial weights, from the seed alone: the same on every rank
             torch.manual_seed(config.seed)
             net = WarmStartNet(net_config)
@@ -594,8 +642,9 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
     step = int(meta.get("step", 0))
     first_epoch = int(meta.get("epoch", 0)) + 1
 
-    sampler = DistributedSampler(_Sized(len(data)), num_replicas=world, rank=rank, shuffle=True,
-                                 seed=config.seed, drop_last=True)
+    sampler = DistributedSampler(
+        _Sized(len(data)), num_replicas=world, rank=rank, shuffle=True, seed=config.seed, drop_last=True
+    )
     steps_per_epoch = len(sampler) // config.batch_size
     if steps_per_epoch < 1:
         raise ValueError(f"{len(data)} cases over {world} processes make no batch of {config.batch_size}")
@@ -607,8 +656,10 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
         writer = SummaryWriter(config.logdir, purge_step=step if step else None)
         if step == 0:
             writer.add_text("config", "\n".join(f"    {k}: {v}" for k, v in config.to_dict().items()))
-    say(f"training {sum(p.numel() for p in net.parameters())} parameters on {device} x {world}, "
-        f"{steps_per_epoch} steps per epoch, epochs {first_epoch}..{config.epochs}")
+    say(
+        f"training {sum(p.numel() for p in net.parameters())} parameters on {device} x {world}, "
+        f"{steps_per_epoch} steps per epoch, epochs {first_epoch}..{config.epochs}"
+    )
 
     metrics: dict[str, float] = {}
     history: list[dict[str, float]] = []
@@ -626,15 +677,28 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
             for i in range(steps_per_epoch):
                 index = order[i * config.batch_size : (i + 1) * config.batch_size]
                 gen = torch.Generator().manual_seed(_mix(config.seed, step, rank))
-                reading, present = noisy_batch(data, index, noise=config.noise, jitter=config.noise_jitter,
-                                               missing_prob=config.missing_prob, generator=gen)
+                reading, present = noisy_batch(
+                    data,
+                    index,
+                    noise=config.noise,
+                    jitter=config.noise_jitter,
+                    missing_prob=config.missing_prob,
+                    generator=gen,
+                )
                 count = data.count[index].to(device)
                 for group in optimiser.param_groups:
                     group["lr"] = _lr_at(step, total_steps, config)
                 terms = compute_losses(
-                    model, net_config, reading.to(device), present.to(device), data.s[index].to(device),
-                    data.f[index].to(device), count, physics_weight=config.physics_weight,
-                    physics_batch=config.physics_batch, count_weight=config.count_weight,
+                    model,
+                    net_config,
+                    reading.to(device),
+                    present.to(device),
+                    data.s[index].to(device),
+                    data.f[index].to(device),
+                    count,
+                    physics_weight=config.physics_weight,
+                    physics_batch=config.physics_batch,
+                    count_weight=config.count_weight,
                 )
                 optimiser.zero_grad(set_to_none=True)
                 terms["total"].backward()
@@ -660,9 +724,15 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
             if main_rank:
                 metrics = _validate(net, rod, held, writer, step, config)
                 train_dict = config.to_dict()
-                save_checkpoint(config.checkpoint, net, step=step, epoch=epoch, train_config=train_dict,
-                                optimizer=optimiser.state_dict() if config.optimizer_state else None,
-                                metrics=metrics)
+                save_checkpoint(
+                    config.checkpoint,
+                    net,
+                    step=step,
+                    epoch=epoch,
+                    train_config=train_dict,
+                    optimizer=optimiser.state_dict() if config.optimizer_state else None,
+                    metrics=metrics,
+                )
                 say(
                     f"epoch {epoch}/{config.epochs} step {step}: loss {means['total']:.4f} "
                     f"(count {means['count']:.3f}, location {means['location']:.3f}, force {means['force']:.3f}"
@@ -682,9 +752,16 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
             device_ = next(net.parameters()).device
             guess = WarmStart(net, rod).guess(held.curvature.to(device_), held.mask.to(device_))
         quality = held_back_quality(guess, held.loads.to(device=device_), config.noise)
-        save_checkpoint(config.checkpoint, net, step=step, epoch=epoch, train_config=config.to_dict(),
-                        optimizer=optimiser.state_dict() if config.optimizer_state else None,
-                        metrics=metrics, quality=quality)
+        save_checkpoint(
+            config.checkpoint,
+            net,
+            step=step,
+            epoch=epoch,
+            train_config=config.to_dict(),
+            optimizer=optimiser.state_dict() if config.optimizer_state else None,
+            metrics=metrics,
+            quality=quality,
+        )
         say(format_quality(quality))
     return TrainResult(net=net, step=step, epoch=epoch, metrics=metrics, history=history, quality=quality)
 
@@ -722,10 +799,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The training options (shared by ``train/train_warm_start.py`` and ``torchrod train``)."""
     d = TrainConfig()
     a = parser.add_argument
-    a("--rod", default=None, help=f"preset name or rod JSON file (default {DEFAULT_ROD} when generating; with "
-      "--data the set's rod, which a --rod given must match)")
-    a("--data", default=None, help="a saved synthetic set (torchrod generate); default: generate --generate cases")
-    a("--generate", type=int, default=d.generate, help="cases generated at start without --data (%(default)s)")
+    a(
+        "--rod",
+        default=None,
+        help=f"preset name or rod JSON file (default {DEFAULT_ROD} when generating; with "
+        "--data the set's rod, which a --rod given must match)",
+    )
+    a(
+        "--data",
+        default=None,
+        help="a saved synthetic set (torchrod generate); default: generate --generate cases",
+    )
+    a(
+        "--generate",
+        type=int,
+        default=d.generate,
+        help="cases generated at start without --data (%(default)s)",
+    )
     a("--validation", type=int, default=d.validation, help="held-back cases (%(default)s)")
     a("--max-forces", type=int, default=d.max_forces, help="largest number of forces (%(default)s)")
     a("--epochs", type=int, default=d.epochs, help="%(default)s")
@@ -733,37 +823,89 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--lr", type=float, default=d.lr, help="peak learning rate (%(default)s)")
     a("--weight-decay", type=float, default=d.weight_decay, help="%(default)s")
     a("--seed", type=int, default=d.seed, help="%(default)s")
-    a("--count-weight", type=float, default=d.count_weight, help="weight of the count cross-entropy (%(default)s)")
-    a("--physics-weight", type=float, default=d.physics_weight, help="weight of the physics loss (%(default)s)")
-    a("--physics-batch", type=int, default=d.physics_batch, help="cases per batch in the physics loss (%(default)s)")
+    a(
+        "--count-weight",
+        type=float,
+        default=d.count_weight,
+        help="weight of the count cross-entropy (%(default)s)",
+    )
+    a(
+        "--physics-weight",
+        type=float,
+        default=d.physics_weight,
+        help="weight of the physics loss (%(default)s)",
+    )
+    a(
+        "--physics-batch",
+        type=int,
+        default=d.physics_batch,
+        help="cases per batch in the physics loss (%(default)s)",
+    )
     a("--noise", type=float, default=d.noise, help="sensor noise sigma [1/m] (%(default)s)")
-    a("--noise-jitter", type=float, default=d.noise_jitter, help="relative spread of the training noise (%(default)s)")
-    a("--missing-prob", type=float, default=d.missing_prob, help="probability of a missing grating (%(default)s)")
+    a(
+        "--noise-jitter",
+        type=float,
+        default=d.noise_jitter,
+        help="relative spread of the training noise (%(default)s)",
+    )
+    a(
+        "--missing-prob",
+        type=float,
+        default=d.missing_prob,
+        help="probability of a missing grating (%(default)s)",
+    )
     a("--hidden", type=int, default=d.hidden, help="hidden width (%(default)s)")
     a("--depth", type=int, default=d.depth, help="hidden layers (%(default)s)")
     a("--logdir", default=d.logdir, help="tensorboard folder (%(default)s); 'none' for no logs")
     a("--checkpoint", default=d.checkpoint, help="checkpoint written after every epoch (%(default)s)")
     a("--resume", default=None, help="continue from this checkpoint")
-    a("--no-optimizer-state", dest="optimizer_state", action="store_false",
-      help="leave the optimiser state out of the checkpoint (smaller; --resume then starts a fresh optimiser)")
+    a(
+        "--no-optimizer-state",
+        dest="optimizer_state",
+        action="store_false",
+        help="leave the optimiser state out of the checkpoint (smaller; --resume then starts a fresh optimiser)",
+    )
     a("--log-every", type=int, default=d.log_every, help="steps between logged losses (%(default)s)")
     a("--device", default=d.device, choices=("auto", "cpu", "cuda"), help="%(default)s")
     a("--threads", type=int, default=None, help="CPU threads per process")
     a("--quiet", action="store_true", help="no progress lines")
-    a("--evaluate", metavar="CHECKPOINT", default=None,
-      help="no training: measure CHECKPOINT's held-back quality (--validation readings at --noise) and record it")
+    a(
+        "--evaluate",
+        metavar="CHECKPOINT",
+        default=None,
+        help="no training: measure CHECKPOINT's held-back quality (--validation readings at --noise) and record it",
+    )
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
     logdir = None if args.logdir in (None, "", "none") else args.logdir
     return TrainConfig(
-        rod=args.rod, data=args.data, generate=args.generate, validation=args.validation,
-        max_forces=args.max_forces, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
-        weight_decay=args.weight_decay, seed=args.seed, count_weight=args.count_weight, physics_weight=args.physics_weight,
-        physics_batch=args.physics_batch, noise=args.noise, noise_jitter=args.noise_jitter,
-        missing_prob=args.missing_prob, hidden=args.hidden, depth=args.depth, logdir=logdir,
-        checkpoint=args.checkpoint, resume=args.resume, optimizer_state=args.optimizer_state, log_every=args.log_every, device=args.device,
-        threads=args.threads, progress=not args.quiet,
+        rod=args.rod,
+        data=args.data,
+        generate=args.generate,
+        validation=args.validation,
+        max_forces=args.max_forces,
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        weight_decay=args.weight_decay,
+        seed=args.seed,
+        count_weight=args.count_weight,
+        physics_weight=args.physics_weight,
+        physics_batch=args.physics_batch,
+        noise=args.noise,
+        noise_jitter=args.noise_jitter,
+        missing_prob=args.missing_prob,
+        hidden=args.hidden,
+        depth=args.depth,
+        logdir=logdir,
+        checkpoint=args.checkpoint,
+        resume=args.resume,
+        optimizer_state=args.optimizer_state,
+        log_every=args.log_every,
+        device=args.device,
+        threads=args.threads,
+        progress=not args.quiet,
     )
 
 
@@ -790,7 +932,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def record_quality(
-    path: str | os.PathLike, *, rod: str | Rod | None = None, count: int = 4096, noise: float = 0.1, seed: int = 0
+    path: str | os.PathLike,
+    *,
+    rod: str | Rod | None = None,
+    count: int = 4096,
+    noise: float = 0.1,
+    seed: int = 0,
 ) -> dict[str, float]:
     """Measure a checkpoint's held-back quality (:func:`held_back_quality`) on ``count`` readings simulated for
     ``rod`` (default: the rod its training config names, else the preset whose layout it fits) at ``noise``

@@ -8,7 +8,8 @@ whose layout differs (by more than ``LAYOUT_TOLERANCE``).
 
 Input: the reading u~ (B, G, 2) and the grating mask (B, G) (False = missing grating; its values are ignored).
 Output, for each possible count h = 1..H: the h forces, sorted by location by construction (the locations are the
-cumulative sums of a softmax over h + 1 gaps, each at least ``MIN_GAP``, so 0 < s~_1 < ... < s~_h < 1), and logits for the count.
+cumulative sums of a softmax over h + 1 gaps, each at least ``MIN_GAP``, so 0 < s~_1 < ... < s~_h < 1), and logits for
+the count.
 
 The problem is symmetric under a rotation of the cross-section plane (an isotropic rod: rotating every force by an
 angle rotates every curvature by it) and under a reflection (u_y -> -u_y is f_x -> -f_x). The network uses both:
@@ -35,7 +36,9 @@ from ..loads import PointForces
 from ..rod import Rod
 
 SHIPPED_CHECKPOINT = os.path.join(
-    os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "checkpoints", "nitinol290.pt"
+    os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
+    "checkpoints",
+    "nitinol290.pt",
 )
 """The shipped warm-start network, trained for the ``nitinol290`` grating layout (in the repository's checkpoints/;
 present with an editable install from the repository)."""
@@ -194,7 +197,9 @@ class WarmStartNet(nn.Module):
         # Shape and size apart: the reading divided by its RMS over the read gratings, and the log of that RMS.
         # In the small-deflection regime forces are linear in the reading, so forces are predicted relative to it.
         pf = present.to(dtype)
-        rms = ((xc.square().sum(-1) * pf).sum(1) / pf.sum(1).clamp(min=1.0)).sqrt().clamp(min=1e-3 * cfg.curvature_scale)
+        rms = (
+            ((xc.square().sum(-1) * pf).sum(1) / pf.sum(1).clamp(min=1.0)).sqrt().clamp(min=1e-3 * cfg.curvature_scale)
+        )
         parts = [(xc / rms.view(-1, 1, 1)).flatten(1), pf, torch.log(rms / cfg.curvature_scale).unsqueeze(1)]
         if cfg.num_gratings >= 3:
             parts += list(self._load_density(xc, pf, rms))
@@ -206,7 +211,7 @@ class WarmStartNet(nn.Module):
         s_out: list[torch.Tensor] = []
         f_out: list[torch.Tensor] = []
         start = 0
-        for h, size in zip(range(1, H + 1), _head_sizes(H)):
+        for h, size in zip(range(1, H + 1), _head_sizes(H), strict=False):
             chunk = rest[:, start : start + size]
             start += size
             # Every gap at least MIN_GAP: locations strictly inside (0, 1) and strictly increasing, even in float32.
@@ -217,7 +222,6 @@ class WarmStartNet(nn.Module):
             fc = torch.stack((fc[..., 0] * sign.unsqueeze(1), fc[..., 1]), dim=-1)
             f_out.append(_rotate(fc, cos.unsqueeze(1), sin.unsqueeze(1)))
         return NetOutput(count_logits, tuple(s_out), tuple(f_out))
-
 
     def _load_density(self, xc: torch.Tensor, pf: torch.Tensor, rms: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The distributed load the reading implies at the interior gratings, and where it is defined.
@@ -546,7 +550,9 @@ class WarmStart:
         """True if ``rod``'s gratings sit at the network's relative positions (within ``LAYOUT_TOLERANCE``)."""
         mine = self.net.config.relative_gratings
         theirs = rod.relative_gratings
-        return len(mine) == len(theirs) and all(abs(a - b) <= LAYOUT_TOLERANCE for a, b in zip(mine, theirs))
+        return len(mine) == len(theirs) and all(
+            abs(a - b) <= LAYOUT_TOLERANCE for a, b in zip(mine, theirs, strict=False)
+        )
 
     def _mismatch(self, rod: Rod) -> str:
         mine = [round(x, 6) for x in self.net.config.relative_gratings]
@@ -585,7 +591,7 @@ class WarmStart:
         probs = torch.softmax(out.count_logits, dim=1).to(dtype)
         forces = {
             h: PointForces((s * L).to(dtype), (f * (EI / (L * L))).to(dtype))
-            for h, (s, f) in enumerate(zip(out.s, out.f), start=1)
+            for h, (s, f) in enumerate(zip(out.s, out.f, strict=False), start=1)
         }
         return WarmStartGuess(probs, forces)
 

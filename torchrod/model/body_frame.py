@@ -1,7 +1,7 @@
 """The body-frame rod model: curvature as an initial-value problem integrated from the free tip to the base.
 
-Equations (docs/physics.md, "The body-frame equations"): for a straight, isotropic, inextensible, unshearable rod with no
-external moment, u_z = 0 and
+Equations (docs/physics.md, "The body-frame equations"): for a straight, isotropic, inextensible, unshearable rod with
+no external moment, u_z = 0 and
 
     u_x' = n_y / EI,    u_y' = -n_x / EI,    n' = -f - u x n.
 
@@ -131,14 +131,18 @@ def _events(
     # Jump of W = dU/dt (t = L - s) at a force: W(s_i-) = W(s_i+) - (f_y - i f_x)/EI, as real pairs (-f_y, f_x)/EI.
     jump_f = torch.stack((-f[..., 1], f[..., 0]), dim=-1) / ei.unsqueeze(-1)  # (B, h, 2)
     pos_sorted, order, seg = schedule.events(torch_backend(s.device), query, s, length)
-    jump = torch.cat((jump_f, jump_f.new_zeros(B, Q, 2)), dim=1).gather(
-        1, order.unsqueeze(-1).expand(-1, -1, 2)
-    )
+    jump = torch.cat((jump_f, jump_f.new_zeros(B, Q, 2)), dim=1).gather(1, order.unsqueeze(-1).expand(-1, -1, 2))
     return pos_sorted, order, seg, jump
 
 
 def _step_counts(
-    s: torch.Tensor, f: torch.Tensor, ei: torch.Tensor, pos: torch.Tensor, seg: torch.Tensor, angle: float, cap: int
+    s: torch.Tensor,
+    f: torch.Tensor,
+    ei: torch.Tensor,
+    pos: torch.Tensor,
+    seg: torch.Tensor,
+    angle: float,
+    cap: int,
 ) -> torch.Tensor:
     """(B, E) steps per segment: the schedule's rigorous ``"bound"`` rule (:mod:`torchrod.model.schedule`)."""
     fmag = torch.linalg.vector_norm(f, dim=-1) / ei  # (B, h) [1/m^2]
@@ -244,9 +248,7 @@ def march_curvature(
     ei = float(bending_stiffness)
     pos, order, seg = schedule.events(xp, query, s, length)
     fmag = xp.lib.sqrt((f * f).sum(-1)) / ei
-    steps = schedule.step_counts(
-        xp, s, fmag, pos, seg, step_angle=max_step_angle, max_steps=64, rule="bound"
-    )
+    steps = schedule.step_counts(xp, s, fmag, pos, seg, step_angle=max_step_angle, max_steps=64, rule="bound")
     jump = xp.complex(-f[..., 1], f[..., 0]) / ei  # (B, h) slope jumps
     if xp.name == "numpy" and B <= SCALAR_MAX_BATCH:
         import numpy as np
@@ -358,9 +360,7 @@ def _check_loads(rod: Rod, loads: PointForces) -> None:
     bad = active & ((s < 0.0) | (s > rod.length))
     if bool(bad.any()):
         b, i = (int(x) for x in bad.nonzero()[0])
-        raise ValueError(
-            f"force location s[{b}, {i}] = {float(s[b, i])} m lies outside [0, L = {rod.length}] m"
-        )
+        raise ValueError(f"force location s[{b}, {i}] = {float(s[b, i])} m lies outside [0, L = {rod.length}] m")
 
 
 def _check_options(bending_stiffness, steps, max_step_angle, method, scheme) -> None:
@@ -476,6 +476,4 @@ def simulate(
         profile_s, profile_u, profile_n = srt, curv[:, G:][:, idx], force[:, G:][:, idx]
     else:
         profile_s, profile_u, profile_n = grat, curv[:, :G], force[:, :G]
-    return Simulation(
-        grating_curvature=curv[:, :G], s=profile_s, curvature=profile_u, internal_force=profile_n
-    )
+    return Simulation(grating_curvature=curv[:, :G], s=profile_s, curvature=profile_u, internal_force=profile_n)

@@ -133,8 +133,10 @@ def _force_array(rod: Rod, forces) -> np.ndarray:
 
 def _scales(rod: Rod, forces: np.ndarray) -> tuple[float, float]:
     """Force scale F_s [N] and moment scale F_s L [N m] for the unknowns and the residual."""
-    fs = max(float(np.hypot(forces[:, 1], forces[:, 2]).sum()) if len(forces) else 0.0,
-             rod.bending_stiffness / rod.length**2)
+    fs = max(
+        float(np.hypot(forces[:, 1], forces[:, 2]).sum()) if len(forces) else 0.0,
+        rod.bending_stiffness / rod.length**2,
+    )
     return fs, fs * rod.length
 
 
@@ -305,14 +307,30 @@ def _reference_shoot(
 
 
 def _solution(
-    rod: Rod, query: np.ndarray, states: np.ndarray, z: np.ndarray, r: np.ndarray, iters: int, evals: int, ok: bool
+    rod: Rod,
+    query: np.ndarray,
+    states: np.ndarray,
+    z: np.ndarray,
+    r: np.ndarray,
+    iters: int,
+    evals: int,
+    ok: bool,
 ) -> BVPSolution:
     R = states[:, _R].reshape(-1, 3, 3)
     M = states[:, _M]
     u = _stiffness(rod) * np.einsum("kji,kj->ki", R, M)
     return BVPSolution(
-        s=query.copy(), P=states[:, _P].copy(), R=R.copy(), N=states[:, _N].copy(), M=M.copy(), u=u, base=z.copy(),
-        residual=float(np.abs(r).max()), iterations=iters, evaluations=evals, converged=ok,
+        s=query.copy(),
+        P=states[:, _P].copy(),
+        R=R.copy(),
+        N=states[:, _N].copy(),
+        M=M.copy(),
+        u=u,
+        base=z.copy(),
+        residual=float(np.abs(r).max()),
+        iterations=iters,
+        evaluations=evals,
+        converged=ok,
     )
 
 
@@ -741,4 +759,3 @@ class ShootingSolver:
         """(G, 2) curvature (u_x, u_y) at the rod's gratings [1/m]; see :meth:`solve` (``self.last`` holds the
         counters and the converged flag)."""
         return self.solve(forces, at=self.rod.gratings, initial=initial).curvature
-

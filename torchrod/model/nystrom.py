@@ -58,9 +58,7 @@ class Tableau:
     def __post_init__(self) -> None:
         s = len(self.c)
         rows = tuple(tuple((j, x) for j, x in enumerate(row) if x != 0.0) for row in self.a)
-        cols = tuple(
-            tuple((i, self.a[i][j]) for i in range(j + 1, s) if self.a[i][j] != 0.0) for j in range(s)
-        )
+        cols = tuple(tuple((i, self.a[i][j]) for i in range(j + 1, s) if self.a[i][j] != 0.0) for j in range(s))
         object.__setattr__(self, "a_rows", rows)
         object.__setattr__(self, "a_cols", cols)
 
@@ -83,10 +81,11 @@ class Tableau:
 
 def _tableau(name: str, order: int, c, a, bp, bv, fsal: bool) -> Tableau:
     half = Fraction(-1, 2)  # g(Y) = -|Y|^2 Y / 2
-    scaled = lambda xs: tuple(float(half * Fraction(x)) for x in xs)
-    return Tableau(
-        name, order, tuple(float(x) for x in c), tuple(scaled(r) for r in a), scaled(bp), scaled(bv), fsal
-    )
+
+    def scaled(xs):
+        return tuple(float(half * Fraction(x)) for x in xs)
+
+    return Tableau(name, order, tuple(float(x) for x in c), tuple(scaled(r) for r in a), scaled(bp), scaled(bv), fsal)
 
 
 F = Fraction
@@ -481,17 +480,20 @@ def _run_forward(backend: str, tab: Tableau, h, kick, forcing, save: bool):
             Us, Ws, saved = _forward_generic(
                 tab, 0j, hl[b], h2, kicks, None if fl is None else fl[b], _sq_complex, save
             )
-            rows.append([(u.real, u.imag, w.real, w.imag) for u, w in zip(Us, Ws)])
+            rows.append([(u.real, u.imag, w.real, w.imag) for u, w in zip(Us, Ws, strict=False)])
             state.append((hl[b], h2, saved))
         return torch.tensor(rows, dtype=h.dtype, device=h.device).reshape(B, K, 4), state
     if backend == "torch":
         hs = h.detach().t().contiguous()
-        rows = lambda t: None if t is None else t.detach().permute(1, 2, 0).contiguous()
+
+        def rows(t):
+            return None if t is None else t.detach().permute(1, 2, 0).contiguous()
     else:
         hs = np.ascontiguousarray(h.detach().cpu().numpy().T)
-        rows = lambda t: (
-            None if t is None else np.ascontiguousarray(t.detach().cpu().numpy().transpose(1, 2, 0))
-        )
+
+        def rows(t):
+            return None if t is None else np.ascontiguousarray(t.detach().cpu().numpy().transpose(1, 2, 0))
+
     Z, state = _forward_array(tab, hs, rows(kick), rows(forcing), save)  # (B, n, 2) -> (n, 2, B)
     return torch.as_tensor(Z, device=h.device).permute(2, 0, 1), state
 
@@ -503,7 +505,10 @@ def _run_backward(backend: str, tab: Tableau, state, gZ: torch.Tensor, forcing: 
     if backend == "scalar":
         g = gZ.tolist()
         hb, kb, Pb = [], [], []
-        pair = lambda z: (0.0, 0.0) if z is None else (z.real, z.imag)
+
+        def pair(z):
+            return (0.0, 0.0) if z is None else (z.real, z.imag)
+
         for b in range(B):
             hl, h2, saved = state[b]
             gU = [complex(x[0], x[1]) for x in g[b]]
@@ -520,7 +525,10 @@ def _run_backward(backend: str, tab: Tableau, state, gZ: torch.Tensor, forcing: 
     else:
         gZ_k = gZ.detach().permute(1, 2, 0).contiguous()
     hb, kb, Pb = _backward_array(tab, state, gZ_k, forcing)
-    back = lambda x: torch.as_tensor(x, device=dev).permute(2, 0, 1)  # (n, 2, B) -> (B, n, 2)
+
+    def back(x):
+        return torch.as_tensor(x, device=dev).permute(2, 0, 1)  # (n, 2, B) -> (B, n, 2)
+
     return torch.as_tensor(hb, device=dev).t(), back(kb), back(Pb) if forcing else None
 
 
@@ -577,7 +585,10 @@ def march(
         return h.new_zeros(B, K, 4) + keep
     if adjoint:
         return _March.apply(h, kick, forcing, tab, backend or default_backend(B, h.device))
-    rows = lambda t: None if t is None else t.permute(1, 2, 0).unbind(0)  # (B, n, 2) -> n x (2, B)
+
+    def rows(t):
+        return None if t is None else t.permute(1, 2, 0).unbind(0)  # (B, n, 2) -> n x (2, B)
+
     hs = h.unbind(1)
     Us, Ws, _ = _forward_generic(
         tab, h.new_zeros(2, B), hs, [x * x for x in hs], rows(kick), rows(forcing), _sq_rows, False

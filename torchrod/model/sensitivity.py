@@ -40,7 +40,14 @@ import torch
 from ..backend import NUMPY, Backend, TorchBackend
 from .schedule import events, step_counts
 
-__all__ = ["CHUNK", "ESTIMATION_STEP_ANGLE", "SCALAR_WORK", "curvature_and_jacobian", "march", "march_propagator"]
+__all__ = [
+    "CHUNK",
+    "ESTIMATION_STEP_ANGLE",
+    "SCALAR_WORK",
+    "curvature_and_jacobian",
+    "march",
+    "march_propagator",
+]
 
 SCALAR_WORK = 48
 """Batches on the NumPy backend with rows x (4 + tangent columns) at most this are marched one row at a time on
@@ -139,7 +146,10 @@ def _march(xp, query, s, f, length, ei, active, jacobian, seeds, step_angle, max
             )
             for i in range(0, B, CHUNK)
         ]
-        cat = lambda k: None if parts[0][k] is None else xp.concat([p[k] for p in parts])
+
+        def cat(k):
+            return None if parts[0][k] is None else xp.concat([p[k] for p in parts])
+
         return cat(0), cat(1), cat(2)
     return _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps)
 
@@ -312,20 +322,20 @@ def _row(order, seg, steps, jumps, active, Q, h, F, seeds, ei):
             a = y0.real * y0.real + y0.imag * y0.imag
             q2 = y0 * y0
             g2 = a * y0
-            ys = [z + ch * w + k16 * g for z, w, g in zip(du, dw, t1)]
+            ys = [z + ch * w + k16 * g for z, w, g in zip(du, dw, t1, strict=False)]
             t2 = [2.0 * a * y + q2 * y.conjugate() for y in ys]
             p0 = u0 + hs * w0
             y0 = p0 + k4 * g2
             a = y0.real * y0.real + y0.imag * y0.imag
             q3 = y0 * y0
             g3 = a * y0
-            ps = [z + hs * w for z, w in zip(du, dw)]
-            ys = [p + k4 * g for p, g in zip(ps, t2)]
+            ps = [z + hs * w for z, w in zip(du, dw, strict=False)]
+            ys = [p + k4 * g for p, g in zip(ps, t2, strict=False)]
             t3 = [2.0 * a * y + q3 * y.conjugate() for y in ys]
             u0 = p0 + k12 * (g1 + 2.0 * g2)
             w0 = w0 + kw * (g1 + 4.0 * g2 + g3)
-            du = [p + k12 * (x1 + 2.0 * x2) for p, x1, x2 in zip(ps, t1, t2)]
-            dw = [w + kw * (x1 + 4.0 * x2 + x3) for w, x1, x2, x3 in zip(dw, t1, t2, t3)]
+            du = [p + k12 * (x1 + 2.0 * x2) for p, x1, x2 in zip(ps, t1, t2, strict=False)]
+            dw = [w + kw * (x1 + 4.0 * x2 + x3) for w, x1, x2, x3 in zip(dw, t1, t2, t3, strict=False)]
         if idx < h:
             started = True
             w0 += jumps[idx]
@@ -336,7 +346,7 @@ def _row(order, seg, steps, jumps, active, Q, h, F, seeds, ei):
                 dw += [0j, d_fx, d_fy]
         else:
             full = list(zeros)
-            for c, v in zip(cols, du):
+            for c, v in zip(cols, du, strict=False):
                 full[c] = v
             out_u[idx - h] = u0
             out_j[idx - h] = full
@@ -366,7 +376,10 @@ def curvature_and_jacobian(
     device = s.device
     name = backend or ("numpy" if device.type == "cpu" else "torch")
     xp: Backend = NUMPY if name == "numpy" else TorchBackend(device)
-    conv = lambda t, kind="float": None if t is None else xp.asarray(t.detach(), kind)
+
+    def conv(t, kind="float"):
+        return None if t is None else xp.asarray(t.detach(), kind)
+
     u, jac = march(
         xp,
         conv(query),
@@ -379,6 +392,8 @@ def curvature_and_jacobian(
         step_angle=max_step_angle,
         max_steps=max_steps,
     )
-    back = lambda x: None if x is None else xp.to_torch(x, device).to(torch.float64)
-    return back(u), back(jac)
 
+    def back(x):
+        return None if x is None else xp.to_torch(x, device).to(torch.float64)
+
+    return back(u), back(jac)

@@ -57,9 +57,7 @@ def _hat(v: torch.Tensor) -> torch.Tensor:
     """(..., 3) -> (..., 3, 3) with hat(v) w = v x w."""
     x, y, z = v.unbind(-1)
     o = torch.zeros_like(x)
-    return torch.stack(
-        (torch.stack((o, -z, y), -1), torch.stack((z, o, -x), -1), torch.stack((-y, x, o), -1)), dim=-2
-    )
+    return torch.stack((torch.stack((o, -z, y), -1), torch.stack((z, o, -x), -1), torch.stack((-y, x, o), -1)), dim=-2)
 
 
 def _arc_coefficients(t2: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -100,7 +98,9 @@ def rod_shape(s: torch.Tensor, curvature: torch.Tensor) -> Shape:
         raise ValueError(f"s must have shape (S,) with S >= 1, got {tuple(s.shape)}")
     S = s.shape[0]
     if curvature.dim() != 3 or curvature.shape[1] != S or curvature.shape[2] not in (2, 3):
-        raise ValueError(f"curvature must have shape (B, S, 2) = (B, {S}, 2) (or (B, S, 3)), got {tuple(curvature.shape)}")
+        raise ValueError(
+            f"curvature must have shape (B, S, 2) = (B, {S}, 2) (or (B, S, 3)), got {tuple(curvature.shape)}"
+        )
     if not curvature.is_floating_point():
         raise TypeError(f"curvature must be floating point, got {curvature.dtype}")
     if s.device != curvature.device:

@@ -3,7 +3,7 @@
 Readings: the envelope of ``torchrod evaluate`` (k forces at least 25 mm apart, 0.05 to 2 N in any body-frame
 direction, locations uniform from the rod's second grating to the tip, bending <= 90 degrees), Gaussian noise
 ``--noise`` per component, for k = 1, 2, 3 and for a mix of the three. The estimator runs with its default options,
-the count chosen automatically among 1..3, and is told the noise (as a calibrated sensor would).
+the count chosen automatically among 0..3, and is told the noise (as a calibrated sensor would).
 
 Per k: B = 1 (``--single`` readings estimated one after the other: mean, median and 90th percentile of the wall time
 per call, and the mean process CPU time, which a busy machine inflates less) and batched (``--batched`` readings in
@@ -30,16 +30,10 @@ __all__ = ["HELP", "configure", "readings", "run"]
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)"
-    )
+    parser.add_argument("--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)")
     parser.add_argument("--noise", type=float, default=0.1, help="sensor sigma [1/m] (default 0.1)")
-    parser.add_argument(
-        "--single", type=int, default=40, help="readings timed one at a time per k (default 40)"
-    )
-    parser.add_argument(
-        "--batched", type=int, default=1000, help="readings timed batched per k (default 1000)"
-    )
+    parser.add_argument("--single", type=int, default=40, help="readings timed one at a time per k (default 40)")
+    parser.add_argument("--batched", type=int, default=1000, help="readings timed batched per k (default 1000)")
     parser.add_argument("--batch-size", type=int, default=500, help="readings per batched call (default 500)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the readings (default 0)")
@@ -74,8 +68,8 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     estimator = Estimator(rod, EstimatorOptions(noise=args.noise))
     print(
-        f"# torchrod bench estimate: {rod.num_gratings} gratings, noise {args.noise:g} 1/m (known), count chosen in 1..3, "
-        f"torch threads {torch.get_num_threads()}"
+        f"# torchrod bench estimate: {rod.num_gratings} gratings, noise {args.noise:g} 1/m (known), "
+        f"count chosen in 0..3, torch threads {torch.get_num_threads()}"
     )
     print(
         f"{'forces':>6} | {'B=1 ms mean':>11} {'median':>7} {'p90':>7} {'cpu':>7} | {'batched rd/s':>12} "

@@ -53,9 +53,7 @@ SCHEMES: tuple[tuple[str, dict], ...] = (
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--quick", action="store_true", help="a smoke run: B = 1 and 16, 3 accuracy cases, 1 repeat"
-    )
+    parser.add_argument("--quick", action="store_true", help="a smoke run: B = 1 and 16, 3 accuracy cases, 1 repeat")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--batch-sizes", type=int, nargs="+", metavar="B", help="default: 1 64 4096")
     parser.add_argument("--cases", type=int, help="accuracy cases (default 24)")
@@ -104,9 +102,7 @@ def large_deflection_cases(
     return PointForces(torch.cat(kept_s)[:count], torch.cat(kept_f)[:count], torch.cat(kept_m)[:count])
 
 
-def reference_curvature(
-    rod: Rod, forces: Sequence[tuple[float, float, float]], rtol: float = 1e-12
-) -> np.ndarray:
+def reference_curvature(rod: Rod, forces: Sequence[tuple[float, float, float]], rtol: float = 1e-12) -> np.ndarray:
     """(G, 2) curvature at the gratings [1/m] of one load case ((s [m], f_x [N], f_y [N]) forces), by scipy's
     DOP853 on the full body-frame system (module docstring), tip to base, event by event."""
     from scipy.integrate import solve_ivp
@@ -194,9 +190,7 @@ def run(args: argparse.Namespace) -> int:
     previous = torch.get_num_threads()
     torch.set_num_threads(args.threads)
     try:
-        loads = large_deflection_cases(
-            rod, max(max(sizes), cases), generator=torch.Generator().manual_seed(args.seed)
-        )
+        loads = large_deflection_cases(rod, max(max(sizes), cases), generator=torch.Generator().manual_seed(args.seed))
         load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
         print(
             f"torchrod bench forward: nitinol290 (L = {rod.length} m, {rod.num_gratings} gratings), float64, CPU, "
@@ -227,16 +221,12 @@ def run(args: argparse.Namespace) -> int:
         print()
         acc = loads[:cases]
         refs = [reference_curvature(rod, forces) for forces in acc.to_lists()]
-        print(
-            f"accuracy at the gratings vs a converged reference (DOP853, rtol 1e-12), {cases} of the cases:"
-        )
-        print(
-            f"{'scheme':12s} {'max rel. error':>15s} {'median':>10s}   (max |u - u_ref| / max |u_ref| per case)"
-        )
+        print(f"accuracy at the gratings vs a converged reference (DOP853, rtol 1e-12), {cases} of the cases:")
+        print(f"{'scheme':12s} {'max rel. error':>15s} {'median':>10s}   (max |u - u_ref| / max |u_ref| per case)")
         for name, options in SCHEMES:
             with torch.no_grad():
                 got = grating_curvature(rod, acc, **options).numpy()
-            errors = [float(np.abs(g - r).max() / np.abs(r).max()) for g, r in zip(got, refs)]
+            errors = [float(np.abs(g - r).max() / np.abs(r).max()) for g, r in zip(got, refs, strict=False)]
             print(f"{name:12s} {max(errors):15.2e} {float(np.median(errors)):10.2e}")
     finally:
         torch.set_num_threads(previous)

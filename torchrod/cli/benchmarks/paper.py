@@ -47,7 +47,6 @@ HELP = SUITES["paper"]
 __all__ = ["HELP", "configure", "default_estimator", "run"]
 
 
-
 def _ints(text: str) -> list[int]:
     try:
         values = [int(x) for x in text.split(",") if x.strip()]
@@ -61,9 +60,7 @@ def _ints(text: str) -> list[int]:
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.epilog = "\n\n".join((__doc__ or "").split("\n\n")[1:]).replace("``", "")
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument(
-        "--rod", default=None, help="rod JSON file or preset (default: nitinol290, calibrated)"
-    )
+    parser.add_argument("--rod", default=None, help="rod JSON file or preset (default: nitinol290, calibrated)")
     parser.add_argument(
         "--location-bias",
         type=float,
@@ -92,9 +89,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-network", action="store_true", help="torchrod without the warm-start network")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the readings (default 0)")
-    parser.add_argument(
-        "--out", default="bench-paper", help="folder for the PNG figures (default bench-paper)"
-    )
+    parser.add_argument("--out", default="bench-paper", help="folder for the PNG figures (default bench-paper)")
     parser.add_argument("--no-figures", action="store_true", help="tables only")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
     parser.add_argument("--quick", action="store_true", help="a tiny configuration (seconds): a smoke test")
@@ -180,9 +175,7 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(threads)
 
 
-def _run(
-    args, rod, table_nodes, acc_nodes, table_readings, per_count, map_size, batch_size, progress, t_start
-) -> int:
+def _run(args, rod, table_nodes, acc_nodes, table_readings, per_count, map_size, batch_size, progress, t_start) -> int:
     checkpoint = None if args.no_network else args.checkpoint
     single, which = default_estimator(rod, args.noise, checkpoint, num_forces=1)
     auto, _ = default_estimator(rod, args.noise, checkpoint)
@@ -254,12 +247,8 @@ def _run(
         )
 
     # ------------------------------------------------------------------ 2. accuracy
-    readings = {
-        k: P.paper_readings(rod, k, per_count, noise=args.noise, seed=args.seed + k) for k in (1, 2, 3)
-    }
-    study = P.accuracy_study(
-        rod, readings, auto, nodes=acc_nodes, threshold_nodes=acc_nodes[-1], progress=progress
-    )
+    readings = {k: P.paper_readings(rod, k, per_count, noise=args.noise, seed=args.seed + k) for k in (1, 2, 3)}
+    study = P.accuracy_study(rod, readings, auto, nodes=acc_nodes, threshold_nodes=acc_nodes[-1], progress=progress)
     qp = acc_nodes[-1]
     print()
     print(
@@ -289,17 +278,14 @@ def _run(
 
     # ------------------------------------------------------------------ 3. against q, and 1/2/3 forces
     print()
-    print(
-        "## Against q: the paper's method (count given); force RMSE [N] / location RMSE [mm] / median time [s]"
-    )
+    print("## Against q: the paper's method (count given); force RMSE [N] / location RMSE [mm] / median time [s]")
     print(f"{'q':>5} | " + " | ".join(f"{k} force(s)".center(26) for k in readings))
     for q in acc_nodes:
         cells = []
         for k in readings:
             a = study.accuracy(f"nodes q={q}", k)
             cells.append(
-                f"{a.force_rmse:>8.4f} {1e3 * a.location_rmse:>7.2f} "
-                f"{study.runs[f'nodes q={q}'][k].median_wall:>9.4f}"
+                f"{a.force_rmse:>8.4f} {1e3 * a.location_rmse:>7.2f} {study.runs[f'nodes q={q}'][k].median_wall:>9.4f}"
             )
         print(f"{q:>5} | " + " | ".join(cells))
     cells = []
@@ -314,10 +300,7 @@ def _run(
     print(f"{'method':<30} " + " ".join(f"{k} force(s)".rjust(11) for k in readings))
     for q in (90, 250):
         if q in P.PAPER_TIMES:
-            print(
-                f"{f'paper, q={q} (MATLAB)':<30} "
-                + " ".join(f"{P.PAPER_TIMES[q][k]:>11.3f}" for k in readings)
-            )
+            print(f"{f'paper, q={q} (MATLAB)':<30} " + " ".join(f"{P.PAPER_TIMES[q][k]:>11.3f}" for k in readings))
         if f"nodes q={q}" in study.runs:
             print(
                 f"{f'paper method here, q={q}':<30} "
@@ -349,9 +332,7 @@ def _run(
         from ...eval import plots
 
         written = [
-            plots.save(
-                plots.speed_figure(table, P.PAPER_TABLE_II), os.path.join(args.out, "paper_table2.png")
-            ),
+            plots.save(plots.speed_figure(table, P.PAPER_TABLE_II), os.path.join(args.out, "paper_table2.png")),
             plots.save(
                 plots.versus_q_figure(study, P.PAPER_FORCE_RMSE, P.PAPER_LOCATION_RMSE, P.PAPER_TIMES),
                 os.path.join(args.out, "paper_vs_q.png"),

@@ -43,12 +43,19 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.epilog = (__doc__ or "").split("\n\n", 1)[1].replace("``", "")
     parser.add_argument("--runs", type=int, default=5, help="timed runs of each command (default 5)")
     parser.add_argument(
-        "--rod", default="nitinol290", help="rod of the one-reading estimate: rod file or preset (default nitinol290)"
+        "--rod",
+        default="nitinol290",
+        help="rod of the one-reading estimate: rod file or preset (default nitinol290)",
     )
     parser.add_argument(
-        "--min-ms", type=float, default=50.0, help="list imports made by torchrod that take at least this [ms] (50)"
+        "--min-ms",
+        type=float,
+        default=50.0,
+        help="list imports made by torchrod that take at least this [ms] (50)",
     )
-    parser.add_argument("--quick", action="store_true", help="a smoke run: one timed run each, no warm-up, no import list")
+    parser.add_argument(
+        "--quick", action="store_true", help="a smoke run: one timed run each, no warm-up, no import list"
+    )
 
 
 def _one_reading(rod) -> dict:
@@ -135,7 +142,13 @@ def run(args: argparse.Namespace) -> int:
             "torchrod --version": [py, "-m", "torchrod", "--version"],
             "torchrod --help": [py, "-m", "torchrod", "--help"],
             f"torchrod estimate --rod {args.rod} (one reading)": [
-                py, "-m", "torchrod", "estimate", "--rod", rod_arg, reading,
+                py,
+                "-m",
+                "torchrod",
+                "estimate",
+                "--rod",
+                rod_arg,
+                reading,
             ],
         }
         times: dict[str, list[float]] = {name: [] for name in commands}
@@ -148,7 +161,12 @@ def run(args: argparse.Namespace) -> int:
         if not args.quick:
             estimate = list(commands.values())[-1]
             done = subprocess.run(
-                [py, "-X", "importtime", *estimate[1:]], cwd=tmp, env=env, capture_output=True, text=True, check=False
+                [py, "-X", "importtime", *estimate[1:]],
+                cwd=tmp,
+                env=env,
+                capture_output=True,
+                text=True,
+                check=False,
             )
             imports = heavy_imports(done.stderr, 1e-3 * args.min_ms)
 
@@ -164,8 +182,10 @@ def run(args: argparse.Namespace) -> int:
         median = statistics.median(walls)
         print(f"{name:<{width}} | {median:>8.3f} {min(walls):>7.3f} | {median / floor:>14.2f}")
     ratio = statistics.median(times[list(commands)[-1]]) / floor
-    print(f"aim: the one-reading estimate within {AIM}x the torch import: {'met' if ratio <= AIM else 'missed'} "
-          f"({ratio:.2f}x)")
+    print(
+        f"aim: the one-reading estimate within {AIM}x the torch import: {'met' if ratio <= AIM else 'missed'} "
+        f"({ratio:.2f}x)"
+    )
     if imports is not None:
         if imports:
             print(f"imports of {args.min_ms:g} ms or more made by torchrod during that estimate:")

@@ -54,19 +54,13 @@ __all__ = ["HELP", "configure", "run"]
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)"
-    )
-    parser.add_argument(
-        "--count", type=int, default=10_000, help="readings in the trajectory (default 10000)"
-    )
+    parser.add_argument("--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)")
+    parser.add_argument("--count", type=int, default=10_000, help="readings in the trajectory (default 10000)")
     parser.add_argument("--rate", type=float, default=100.0, help="trajectory frame rate [Hz] (default 100)")
     parser.add_argument("--noise", type=float, default=0.1, help="sensor sigma [1/m] (default 0.1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the trajectory (default 0)")
     parser.add_argument("--batch-size", type=int, default=64, help="readings per batch (default 64)")
-    parser.add_argument(
-        "--max-latency-ms", type=float, default=20.0, help="stream latency bound (default 20)"
-    )
+    parser.add_argument("--max-latency-ms", type=float, default=20.0, help="stream latency bound (default 20)")
     parser.add_argument(
         "--pace", type=float, default=None, help="paced stream release rate [Hz] (default: --rate, real time)"
     )
@@ -85,12 +79,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="an EstimatorOptions field for every way (repeatable; e.g. starts=1, lbfgs.max_iter=10)",
     )
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    parser.add_argument(
-        "--profile", action="store_true", help="where the time goes (a separate profiled pass)"
-    )
-    parser.add_argument(
-        "--quick", action="store_true", help="a smoke run: 300 readings, 100 paced, 20 one at a time"
-    )
+    parser.add_argument("--profile", action="store_true", help="where the time goes (a separate profiled pass)")
+    parser.add_argument("--quick", action="store_true", help="a smoke run: 300 readings, 100 paced, 20 one at a time")
 
 
 def _network(spec: str | None, rod: Any) -> tuple[Any, str]:
@@ -205,9 +195,7 @@ def _profile_lines(profile: cProfile.Profile, wall: float, readings: int) -> lis
         return sum(ct for (f, _, n), (_, _, _, ct, _) in stats.items() if match(f, n))
 
     total = cumulative(lambda f, n: f.endswith("estimator.py") and n == "estimate")
-    head = (
-        f"# where the time goes: backlog stream of the first {readings} readings under cProfile, {wall:.2f} s"
-    )
+    head = f"# where the time goes: backlog stream of the first {readings} readings under cProfile, {wall:.2f} s"
     lines = [head + " wall (profiler overhead included):"]
     inside = 0.0  # the phases within estimate
     for name, match in _PHASES:

@@ -23,9 +23,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = "suites:\n" + "\n".join(lines)
     parser.add_argument("suite", metavar="SUITE", nargs="?", help=f"one of: {', '.join(SUITES)}")
-    parser.add_argument(
-        "options", nargs=argparse.REMAINDER, help="the suite's options (SUITE --help lists them)"
-    )
+    parser.add_argument("options", nargs=argparse.REMAINDER, help="the suite's options (SUITE --help lists them)")
 
 
 def load_suite(name: str) -> ModuleType | None:

@@ -45,9 +45,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default="known",
         help="stiffness step: use the known force components, or only their magnitudes (default: %(default)s)",
     )
-    parser.add_argument(
-        "--initial-bias", type=float, default=0.0, help="start of the bias fit [m] (default: 0)"
-    )
+    parser.add_argument("--initial-bias", type=float, default=0.0, help="start of the bias fit [m] (default: 0)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -25,8 +25,9 @@ reading at the noise: check the sensor and the rod file, do not act on the force
 the chi-square p-value of the fit. ``num_forces`` 0 with ``forces`` [] means no contact. ``forces`` sorted by s [m]
 (reported location: model location + the rod's location_bias), body-frame components [N], their Gauss-Newton
 standard deviations; ``loss`` the sum of squared curvature residuals [1/m^2]; ``time_ms`` the estimation time of the
-line's batch divided by its readings. The count is chosen among 0 to ``--max-forces`` (or fixed by ``--num-forces``) by the rule of ``--selection``; with ``--noise`` (the sensor's sigma
-per component [1/m]) the tests know the noise, without it they estimate it from each reading (slower and weaker).
+line's batch divided by its readings. The count is chosen among 0 to ``--max-forces`` (or fixed by ``--num-forces``) by
+the rule of ``--selection``; with ``--noise`` (the sensor's sigma per component [1/m]) the tests know the noise, without
+it they estimate it from each reading (slower and weaker).
 ``--checkpoint PATH`` adds the starts of a trained warm-start network (as ``Estimator.from_checkpoint``: its
 guesses are starts beside the scan's, so a weak network cannot make results worse); by default there is none.
 
@@ -69,18 +70,12 @@ __all__ = ["HELP", "configure", "load_network", "options_from_args", "run"]
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.epilog = "\n\n".join((__doc__ or "").split("\n\n")[1:]).replace("``", "").replace("::", ":")
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument(
-        "readings", metavar="READINGS.jsonl", help="readings, one JSON object a line; '-' for stdin"
-    )
+    parser.add_argument("readings", metavar="READINGS.jsonl", help="readings, one JSON object a line; '-' for stdin")
     parser.add_argument("--rod", required=True, help="rod JSON file or preset name (e.g. nitinol290)")
     count = parser.add_mutually_exclusive_group()
-    count.add_argument(
-        "--max-forces", type=int, default=3, metavar="H", help="choose the count in 0..H (default 3)"
-    )
+    count.add_argument("--max-forces", type=int, default=3, metavar="H", help="choose the count in 0..H (default 3)")
     count.add_argument("--num-forces", type=int, metavar="N", help="fit exactly N forces")
-    parser.add_argument(
-        "--noise", type=float, metavar="SIGMA", help="sensor noise sigma [1/m]; default: estimated"
-    )
+    parser.add_argument("--noise", type=float, metavar="SIGMA", help="sensor noise sigma [1/m]; default: estimated")
     parser.add_argument("--selection", choices=RULES, default="noise", help="count rule (default noise)")
     parser.add_argument(
         "--threshold",
@@ -100,13 +95,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="PATH",
         help="warm-start network checkpoint whose guesses start the fit ('none' or default: no network)",
     )
-    parser.add_argument(
-        "--format", choices=FORMATS, default="jsonl", help="input format: jsonl (default), csv or auto"
-    )
+    parser.add_argument("--format", choices=FORMATS, default="jsonl", help="input format: jsonl (default), csv or auto")
     parser.add_argument("--out", metavar="FILE", help="write the answers to FILE (default: standard output)")
-    parser.add_argument(
-        "--batch-size", type=int, default=256, metavar="B", help="readings per batch (default 256)"
-    )
+    parser.add_argument("--batch-size", type=int, default=256, metavar="B", help="readings per batch (default 256)")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -153,8 +144,11 @@ def load_network(checkpoint: str | None, rod: Rod) -> Any:
         ) from None
     weak = quality_verdict(network.meta)
     if weak:
-        print(f"torchrod: the warm-start network {checkpoint} is weak ({weak}); its guesses are used beside the "
-              "scan's starts", file=sys.stderr)
+        print(
+            f"torchrod: the warm-start network {checkpoint} is weak ({weak}); its guesses are used beside the "
+            "scan's starts",
+            file=sys.stderr,
+        )
     return network
 
 

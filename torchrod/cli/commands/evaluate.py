@@ -54,7 +54,16 @@ HELP = "accuracy of the estimator on simulated readings over a realistic envelop
 STRONG = 0.2
 """[N] the column ``ok >=0.2N`` counts only readings whose weakest force is at least this strong."""
 
-__all__ = ["HELP", "cell_metrics", "configure", "evaluate_cell", "misfit_cell", "run", "unexplainable", "zero_cell"]
+__all__ = [
+    "HELP",
+    "cell_metrics",
+    "configure",
+    "evaluate_cell",
+    "misfit_cell",
+    "run",
+    "unexplainable",
+    "zero_cell",
+]
 
 
 def _floats(text: str) -> list[float]:
@@ -70,37 +79,23 @@ def _floats(text: str) -> list[float]:
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.epilog = "\n\n".join((__doc__ or "").split("\n\n")[1:]).replace("``", "")
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument(
-        "--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)"
-    )
-    parser.add_argument(
-        "--count-per-cell", type=int, default=200, metavar="N", help="readings per cell (default 200)"
-    )
-    parser.add_argument(
-        "--noise", type=_floats, default=[0.0, 0.1, 0.3], help="sigmas [1/m] (default 0,0.1,0.3)"
-    )
+    parser.add_argument("--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)")
+    parser.add_argument("--count-per-cell", type=int, default=200, metavar="N", help="readings per cell (default 200)")
+    parser.add_argument("--noise", type=_floats, default=[0.0, 0.1, 0.3], help="sigmas [1/m] (default 0,0.1,0.3)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the load cases and noise (default 0)")
     parser.add_argument("--max-forces", type=int, default=3, help="forces per reading 1..H (default 3)")
     parser.add_argument("--force-range", type=_floats, default=[0.05, 2.0], help="[N] (default 0.05,2)")
     parser.add_argument("--min-separation", type=float, default=0.025, help="[m] (default 0.025)")
-    parser.add_argument(
-        "--s-min", type=float, default=None, help="[m] lowest location (default: the 2nd grating)"
-    )
-    parser.add_argument(
-        "--max-bending-deg", type=float, default=90.0, help="turning limit [deg] (default 90)"
-    )
+    parser.add_argument("--s-min", type=float, default=None, help="[m] lowest location (default: the 2nd grating)")
+    parser.add_argument("--max-bending-deg", type=float, default=90.0, help="turning limit [deg] (default 90)")
     parser.add_argument(
         "--estimator-noise",
         choices=("known", "estimate"),
         default="known",
         help="give sigma to the estimator?",
     )
-    parser.add_argument(
-        "--batch-size", type=int, default=500, help="readings per estimate call (default 500)"
-    )
-    parser.add_argument(
-        "--threads", type=int, default=1, help="torch threads (default 1, as the timings assume)"
-    )
+    parser.add_argument("--batch-size", type=int, default=500, help="readings per estimate call (default 500)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1, as the timings assume)")
     parser.add_argument(
         "--rows",
         type=_rows,
@@ -192,7 +187,13 @@ def _estimate(rod, curvature, mask, sigma, max_forces, noise_known, batch_size):
 
 
 def zero_cell(
-    rod: Rod, sigma: float, count: int, *, seed: int = 0, max_forces: int = 3, noise_known: bool = True,
+    rod: Rod,
+    sigma: float,
+    count: int,
+    *,
+    seed: int = 0,
+    max_forces: int = 3,
+    noise_known: bool = True,
     batch_size: int = 500,
 ) -> dict[str, Any]:
     """``count`` readings of an untouched rod (Gaussian noise ``sigma`` alone): how often the count is 0."""
@@ -237,7 +238,13 @@ def unexplainable(rod: Rod, count: int, sigma: float, seed: int = 0) -> torch.Te
 
 
 def misfit_cell(
-    rod: Rod, sigma: float, count: int, *, seed: int = 0, max_forces: int = 3, noise_known: bool = True,
+    rod: Rod,
+    sigma: float,
+    count: int,
+    *,
+    seed: int = 0,
+    max_forces: int = 3,
+    noise_known: bool = True,
     batch_size: int = 500,
 ) -> dict[str, Any]:
     """``count`` :func:`unexplainable` readings: how often the verdict is ``misfit``."""
@@ -250,9 +257,7 @@ def misfit_cell(
     return out
 
 
-def cell_metrics(
-    results: list[EstimateResult], s_true: torch.Tensor, f_true: torch.Tensor, k: int
-) -> dict[str, Any]:
+def cell_metrics(results: list[EstimateResult], s_true: torch.Tensor, f_true: torch.Tensor, k: int) -> dict[str, Any]:
     """Count accuracy, statuses, and force / location errors of estimates against the truth.
 
     Args:
@@ -266,7 +271,10 @@ def cell_metrics(
     statuses = [s for r in results for s in r.statuses]
     ok = num == k
     n = num.shape[0]
-    frac = lambda x: float(x.double().mean()) if x.numel() else math.nan
+
+    def frac(x):
+        return float(x.double().mean()) if x.numel() else math.nan
+
     strong = (
         torch.linalg.vector_norm(f_true[:, :k], dim=-1).amin(dim=1) >= STRONG
         if k > 0
@@ -284,9 +292,7 @@ def cell_metrics(
     if k > 0 and bool(ok.any()):
         ts, tf = s_true[ok][:, :k], f_true[ok][:, :k]
         es, ef = s_est[ok][:, :k], f_est[ok][:, :k]
-        f_err = (
-            torch.linalg.vector_norm(ef - tf, dim=-1) / torch.linalg.vector_norm(tf, dim=-1)
-        ).flatten() * 100
+        f_err = (torch.linalg.vector_norm(ef - tf, dim=-1) / torch.linalg.vector_norm(tf, dim=-1)).flatten() * 100
         s_err = (es - ts).abs().flatten() * 1e3
         for label, err in (("force_error", f_err), ("location_error", s_err)):
             out.update(
@@ -324,14 +330,32 @@ def run(args: argparse.Namespace) -> int:
             f"grating), bending <= {args.max_bending_deg:g} deg; "
             f"sigma {'given to' if args.estimator_noise == 'known' else 'estimated by'} the estimator; seed {args.seed}"
         )
-        head = ("forces", "noise", "n", "count ok", "ok >=0.2N", "F med", "F p90", "F rms", "s med", "s p90",
-                "s rms", "not ok", "misfit", "ms/read")
+        head = (
+            "forces",
+            "noise",
+            "n",
+            "count ok",
+            "ok >=0.2N",
+            "F med",
+            "F p90",
+            "F rms",
+            "s med",
+            "s p90",
+            "s rms",
+            "not ok",
+            "misfit",
+            "ms/read",
+        )
         units = ("", "[1/m]", "", "[%]", "[%]", "[%]", "[%]", "[%]", "[mm]", "[mm]", "[mm]", "[%]", "[%]", "")
         widths = (7, 6, 5, 9, 10, 7, 7, 7, 7, 7, 7, 7, 7, 8)
-        print(" ".join(f"{h:>{w}}" for h, w in zip(head, widths)))
-        print(" ".join(f"{u:>{w}}" for u, w in zip(units, widths)))
-    common = dict(seed=args.seed, max_forces=args.max_forces, noise_known=args.estimator_noise == "known",
-                  batch_size=args.batch_size)
+        print(" ".join(f"{h:>{w}}" for h, w in zip(head, widths, strict=False)))
+        print(" ".join(f"{u:>{w}}" for u, w in zip(units, widths, strict=False)))
+    common = dict(
+        seed=args.seed,
+        max_forces=args.max_forces,
+        noise_known=args.estimator_noise == "known",
+        batch_size=args.batch_size,
+    )
     cells = [("zero", 0)] if "zero" in args.rows else []
     if "forces" in args.rows:
         cells += [("k", k) for k in range(1, args.max_forces + 1)]
@@ -361,21 +385,33 @@ def run(args: argparse.Namespace) -> int:
             if args.json:
                 print(
                     json.dumps(
-                        {
-                            key: (v if not isinstance(v, float) or math.isfinite(v) else None)
-                            for key, v in m.items()
-                        }
+                        {key: (v if not isinstance(v, float) or math.isfinite(v) else None) for key, v in m.items()}
                     )
                 )
             else:
-                pct = lambda v: "-" if not math.isfinite(v) else f"{100 * v:.1f}"
-                num = lambda v: "-" if not math.isfinite(v) else f"{v:.2f}"
+
+                def pct(v):
+                    return "-" if not math.isfinite(v) else f"{100 * v:.1f}"
+
+                def num(v):
+                    return "-" if not math.isfinite(v) else f"{v:.2f}"
+
                 cols = (
-                    m["row"], f"{sigma:g}", str(m["readings"]), pct(m["count_accuracy"]),
-                    pct(m["count_accuracy_strong"]), num(m["force_error_median"]), num(m["force_error_p90"]),
-                    num(m["force_error_rms"]), num(m["location_error_median"]), num(m["location_error_p90"]),
-                    num(m["location_error_rms"]), pct(m["not_ok"]), pct(m["misfit"]), num(m["time_ms"]),
+                    m["row"],
+                    f"{sigma:g}",
+                    str(m["readings"]),
+                    pct(m["count_accuracy"]),
+                    pct(m["count_accuracy_strong"]),
+                    num(m["force_error_median"]),
+                    num(m["force_error_p90"]),
+                    num(m["force_error_rms"]),
+                    num(m["location_error_median"]),
+                    num(m["location_error_p90"]),
+                    num(m["location_error_rms"]),
+                    pct(m["not_ok"]),
+                    pct(m["misfit"]),
+                    num(m["time_ms"]),
                 )
-                print(" ".join(f"{c:>{w}}" for c, w in zip(cols, widths)))
+                print(" ".join(f"{c:>{w}}" for c, w in zip(cols, widths, strict=False)))
             sys.stdout.flush()
     return 0

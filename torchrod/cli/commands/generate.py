@@ -41,12 +41,20 @@ def configure(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--noise", type=float, default=sm.noise, help="Gaussian sigma [1/m] (default: %(default)s)")
     g.add_argument("--offset-std", type=float, default=sm.offset_std, help="[1/m] (default: %(default)s)")
     g.add_argument("--missing-prob", type=float, default=sm.missing_prob, help="default: %(default)s")
-    g.add_argument("--location-bias", type=float, default=sm.location_bias, help="[m], as in the rod file: the readings see the forces at s - bias (default: %(default)s)")
+    g.add_argument(
+        "--location-bias",
+        type=float,
+        default=sm.location_bias,
+        help="[m], as in the rod file: the readings see the forces at s - bias (default: %(default)s)",
+    )
     g = parser.add_argument_group("sets")
     g.add_argument("--batch-size", type=int, default=4096, help="cases per forward pass (default: %(default)s)")
     g.add_argument("--device", default=None, help="torch device for the forward model (default: cpu)")
     g.add_argument(
-        "--progress", action=argparse.BooleanOptionalAction, default=None, help="progress bar (default: if a terminal)"
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="progress bar (default: if a terminal)",
     )
     g = parser.add_argument_group("streams")
     g.add_argument("--trajectory", action="store_true", help="write a stream of readings instead of a set")
@@ -54,7 +62,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--truth", default=None, help="ground-truth file (default: OUT with _truth before the suffix)")
     g.add_argument("--drift-speed", type=float, default=cm.drift_speed, help="[m/s] (default: %(default)s)")
     g.add_argument("--decimals", type=int, default=6, help="decimals of the curvature written [1/m] (default: 6)")
-
 
 
 def run(args: argparse.Namespace) -> int:

@@ -44,11 +44,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.epilog = "\n\n".join((__doc__ or "").split("\n\n")[1:]).replace("``", "")
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("readings", metavar="READINGS.jsonl", help="readings, one JSON object a line")
+    parser.add_argument("estimates", metavar="ESTIMATES.jsonl", help="their estimates (torchrod estimate/stream)")
     parser.add_argument(
-        "estimates", metavar="ESTIMATES.jsonl", help="their estimates (torchrod estimate/stream)"
-    )
-    parser.add_argument(
-        "--rod", help="rod JSON file or preset name the estimates were made with (required unless the inputs say)"
+        "--rod",
+        help="rod JSON file or preset name the estimates were made with (required unless the inputs say)",
     )
     parser.add_argument("--truth", metavar="TRUTH.jsonl", help="true forces per reading (optional)")
     parser.add_argument("--id", dest="ident", metavar="ID", help="only the reading with this id")
@@ -117,7 +116,7 @@ def _rod_named_in(*paths: str) -> Rod:
     if isinstance(spec, dict):
         return Rod.from_dict(spec)
     if not isinstance(spec, str):
-        raise ValueError(f"{path}: \"rod\" must be a preset name, a rod file or a rod object, got {spec!r:.60}")  # noqa: TRY004
+        raise ValueError(f'{path}: "rod" must be a preset name, a rod file or a rod object, got {spec!r:.60}')  # noqa: TRY004
     beside = os.path.join(os.path.dirname(path), spec)
     return load_rod(beside if not os.path.isabs(spec) and os.path.exists(beside) else spec)
 
@@ -163,16 +162,14 @@ def run(args: argparse.Namespace) -> int:
         jobs = [("reading", k) for k in range(len(readings))]
     single_file = args.out.lower().endswith(".png")
     if single_file and len(jobs) > 1:
-        raise ValueError(
-            f"--out {args.out} names one file but {len(jobs)} figures are due: give a folder or --id"
-        )
+        raise ValueError(f"--out {args.out} names one file but {len(jobs)} figures are due: give a folder or --id")
 
     def target(name: str) -> str:
         return args.out if single_file else os.path.join(args.out, name)
 
     for kind, k in jobs:
         if kind == "stream":
-            t = [r.value[1] for r, e in zip(readings, matched) if e is not None]
+            t = [r.value[1] for r, e in zip(readings, matched, strict=False) if e is not None]
             est = [e.value[0] for e in matched if e is not None]
             if not est:
                 raise ValueError(f"{args.estimates}: no estimate matches the readings")
@@ -198,11 +195,7 @@ def run(args: argparse.Namespace) -> int:
             true_rows = None
             if truth is not None and repr(r.id) in truth:
                 true_rows = truth[repr(r.id)].value[0]
-            title = (
-                f"reading {r.id!r}"
-                + (f", t = {t:g} s" if t is not None else "")
-                + f": {len(e.value[0])} force(s)"
-            )
+            title = f"reading {r.id!r}" + (f", t = {t:g} s" if t is not None else "") + f": {len(e.value[0])} force(s)"
             fig = plots.reading_figure(rod, curvature, e.value[0], truth=true_rows, title=title)
             path = target(_file_name(r.id, r.line))
         print(plots.save(fig, path, dpi=args.dpi))

@@ -8,8 +8,8 @@ Each input line is a load case::
     {"id": "c1", "forces": [{"s": 0.12, "fx": 0.3, "fy": -0.1}, ...]}
 
 with ``s`` the force location [m] from the clamped base and ``fx``, ``fy`` its body-frame components [N] (standard
-Cosserat sign, docs/physics.md: a small ``fy > 0`` at s_i gives u_x = -fy (s_i - s)/EI proximal to it). ``forces`` may be
-empty (a straight rod); ``id`` is optional (any JSON value, echoed back); other top-level keys are ignored. A rod
+Cosserat sign, docs/physics.md: a small ``fy > 0`` at s_i gives u_x = -fy (s_i - s)/EI proximal to it). ``forces`` may
+be empty (a straight rod); ``id`` is optional (any JSON value, echoed back); other top-level keys are ignored. A rod
 with a location bias (a calibrated rod, paper: s_est = s_model + s_bias) takes ``s`` in the same coordinate its
 estimates are reported in, and simulates at s_model = s - location_bias, which must lie in [0, L].
 
@@ -75,9 +75,7 @@ Force = tuple[float, float, float]
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.epilog = "\n\n".join(__doc__.split("\n\n")[1:]).replace("``", "").replace("::", ":")
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument(
-        "forces", metavar="FORCES.jsonl", help="load cases, one JSON object a line; '-' for stdin"
-    )
+    parser.add_argument("forces", metavar="FORCES.jsonl", help="load cases, one JSON object a line; '-' for stdin")
     parser.add_argument("--rod", required=True, help="rod JSON file or preset name (e.g. nitinol290)")
     parser.add_argument(
         "--samples", type=int, default=0, metavar="N", help="also output the curvature profile at N positions"
@@ -88,9 +86,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default="exact",
         help="'exact' point loads (default) or the paper's node spreading",
     )
-    parser.add_argument(
-        "--tip-angle", action="store_true", help="also output the tip's bending angle [rad] (slower)"
-    )
+    parser.add_argument("--tip-angle", action="store_true", help="also output the tip's bending angle [rad] (slower)")
     parser.add_argument("--nodes", type=int, default=250, metavar="Q", help="node count q for --scheme nodes")
     parser.add_argument(
         "--batch-size",

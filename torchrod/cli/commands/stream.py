@@ -98,16 +98,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--input", default="-", metavar="FILE", help="readings file (default '-': stdin)")
     parser.add_argument("--format", choices=("auto", "jsonl", "csv"), default="auto", help="input format")
     parser.add_argument("--out", metavar="FILE", help="write the answers to FILE (default: standard output)")
-    parser.add_argument(
-        "--batch-size", type=int, default=64, metavar="B", help="most readings per batch (64)"
-    )
+    parser.add_argument("--batch-size", type=int, default=64, metavar="B", help="most readings per batch (64)")
     parser.add_argument(
         "--max-latency-ms", type=float, default=20.0, metavar="MS", help="longest wait for a batch (20 ms)"
     )
     parser.add_argument("--max-forces", type=int, default=3, metavar="H", help="choose the count in 0..H (3)")
-    parser.add_argument(
-        "--noise", type=float, metavar="SIGMA", help="sensor noise sigma [1/m]; default: estimated"
-    )
+    parser.add_argument("--noise", type=float, metavar="SIGMA", help="sensor noise sigma [1/m]; default: estimated")
     parser.add_argument(
         "--iterations",
         type=int,
