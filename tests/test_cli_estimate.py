@@ -338,3 +338,14 @@ def test_sigterm_answers_every_line_read_then_exits_143(rod):
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_evaluate_recovery_prints_verdicts_per_stratum(capsys):
+    assert main(["evaluate", "--recovery", "12", "--seed", "2"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    table = {line.split()[0]: line.split()[1:] for line in out[2:] if line.split() and line.split()[0] != "near"}
+    assert out[0].startswith("# 12 clean cases (seed 2)")
+    assert int(table["all"][0]) == 12 and sum(int(x) for x in table["all"][1:]) == 12
+    assert main(["evaluate", "--recovery", "6", "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["summary"]["all"]["cases"] == 6 and isinstance(record["failures"], list)

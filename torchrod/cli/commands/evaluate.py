@@ -32,6 +32,9 @@ and root mean square of the force error |f_est - f_true| / |f_true| [%] and of t
 are what the root mean square shows); the share of readings whose status is not ``ok`` and the share ``misfit``;
 estimation wall time per reading (all readings of a row estimated in batches of ``--batch-size``). ``--json``
 prints the same numbers as JSON lines instead.
+
+``--recovery N`` runs the clean-recovery study instead (:mod:`torchrod.eval.recovery`): N stratified noise-free
+cases, the verdicts per stratum, and every case missed or answered wrong.
 """
 
 from __future__ import annotations
@@ -101,6 +104,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
         type=_rows,
         default=ROWS,
         help="comma-separated rows to run, of " + ",".join(ROWS) + " (default: all)",
+    )
+    parser.add_argument(
+        "--recovery",
+        type=int,
+        default=0,
+        metavar="N",
+        help="instead of the table: N stratified clean cases (torchrod.eval.recovery), verdicts per stratum and every "
+        "failure (the tests run 1000 at seed 0)",
     )
     parser.add_argument("--json", action="store_true", help="JSON lines instead of a table")
 
@@ -320,6 +331,8 @@ def run(args: argparse.Namespace) -> int:
     if args.threads < 1:
         raise ValueError(f"--threads must be >= 1, got {args.threads}")
     torch.set_num_threads(args.threads)
+    if args.recovery:
+        return _recovery(rod, args.recovery, args.seed, args.json)
     bending = math.radians(args.max_bending_deg) if args.max_bending_deg > 0 else math.inf
     lo = args.s_min if args.s_min is not None else rod.gratings[1] if rod.num_gratings > 1 else None
     if not args.json:
@@ -414,4 +427,38 @@ def run(args: argparse.Namespace) -> int:
                 )
                 print(" ".join(f"{c:>{w}}" for c, w in zip(cols, widths, strict=False)))
             sys.stdout.flush()
+    return 0
+
+
+def _recovery(rod: Rod, count: int, seed: int, as_json: bool) -> int:
+    """``--recovery N``: the clean-recovery study (:mod:`torchrod.eval.recovery`), its verdicts per stratum and
+    every case that is missed or wrong."""
+    from ...eval import recovery
+
+    if count < 1:
+        raise ValueError(f"--recovery must be >= 1, got {count}")
+    start = time.perf_counter()
+    rows = recovery.run(rod, count, seed=seed)
+    elapsed = time.perf_counter() - start
+    summary = recovery.summarise(rows)
+    failures = [r for r in rows if r["verdict"] in ("missed", "wrong")]
+    if as_json:
+        print(json.dumps({"summary": summary, "failures": failures, "seconds": elapsed}))
+        return 0
+    decided = sum(r["decidable"] for r in rows)
+    print(
+        f"# {count} clean cases (seed {seed}): {decided} the data decide, "
+        f"{sum(r['straddle'] for r in rows)} with a pair straddling a grating; {elapsed:.1f} s"
+    )
+    print(f"{'stratum':<10} {'cases':>6} " + " ".join(f"{v:>13}" for v in recovery.VERDICTS))
+    for key in (*recovery.STRATA, "all"):
+        cell = summary.get(key, {"cases": 0})
+        print(f"{key:<10} {cell['cases']:>6} " + " ".join(f"{cell.get(v, 0):>13}" for v in recovery.VERDICTS))
+    for r in failures:
+        truth = ", ".join(f"{1e3 * s:.3f} mm {math.hypot(*f):.3f} N" for s, f in r["truth"])
+        est = ", ".join(f"{1e3 * s:.3f} mm {math.hypot(*f):.3f} N" for s, f in r["estimate"])
+        print(
+            f"{r['verdict']}: {r['stratum']}, status {r['status']}, missing gratings {r['missing']}; "
+            f"truth [{truth}]; estimate [{est}]"
+        )
     return 0
