@@ -441,6 +441,16 @@ def interrupt_status(exc: BaseException) -> int:
     return 143 if isinstance(exc, Terminated) else 130
 
 
+def until_interrupted(command: Callable[[], int]) -> int:
+    """Run a command with SIGTERM as an interrupt; its status, or :func:`interrupt_status` if interrupted (the
+    command flushes what it answered on the way out)."""
+    with sigterm_as_interrupt():
+        try:
+            return command()
+        except KeyboardInterrupt as exc:
+            return interrupt_status(exc)
+
+
 # ---------------------------------------------------------------------------------------------- field helpers
 def get_number(obj: Mapping[str, Any], key: str, where: str = "") -> float:
     """``obj[key]`` as a finite float. ``where`` prefixes the field name in errors, e.g. ``"forces[2]"``."""

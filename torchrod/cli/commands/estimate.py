@@ -56,7 +56,7 @@ import torch
 
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.selection import RULES
-from ...io.jsonl import LineWriter, check_input, interrupt_status, open_output, sigterm_as_interrupt
+from ...io.jsonl import LineWriter, check_input, open_output, until_interrupted
 from ...io.readings import FORMATS, Reading, ReadingSource, stack_readings
 from ...presets import load as load_rod
 from ...rod import Rod
@@ -153,11 +153,7 @@ def load_network(checkpoint: str | None, rod: Rod) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
-    with sigterm_as_interrupt():
-        try:
-            return _run(args)
-        except KeyboardInterrupt as exc:
-            return interrupt_status(exc)
+    return until_interrupted(lambda: _run(args))
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -209,13 +209,18 @@ def zero_cell(
 ) -> dict[str, Any]:
     """``count`` readings of an untouched rod (Gaussian noise ``sigma`` alone): how often the count is 0."""
     g = torch.Generator().manual_seed(seed * 1000 + round(100 * sigma) + 1)
-    G = rod.num_gratings
-    curvature = sigma * torch.randn(count, G, 2, generator=g, dtype=torch.float64)
-    mask = torch.ones(count, G, dtype=torch.bool)
+    curvature = sigma * torch.randn(count, rod.num_gratings, 2, generator=g, dtype=torch.float64)
+    return _forceless_cell(rod, curvature, sigma, 0, "0", max_forces, noise_known, batch_size)
+
+
+def _forceless_cell(rod, curvature, sigma, k, row, max_forces, noise_known, batch_size) -> dict[str, Any]:
+    """The metrics of readings that carry no true forces (k = 0: none; -1: not made of forces at all)."""
+    count = curvature.shape[0]
+    mask = torch.ones(count, rod.num_gratings, dtype=torch.bool)
     results, elapsed = _estimate(rod, curvature, mask, sigma, max_forces, noise_known, batch_size)
     empty = torch.zeros(count, 0, dtype=torch.float64)
-    out = cell_metrics(results, empty, empty.unsqueeze(-1).expand(count, 0, 2), 0)
-    out.update(forces=0, noise=sigma, time_ms=1e3 * elapsed / count, row="0")
+    out = cell_metrics(results, empty, empty.unsqueeze(-1).expand(count, 0, 2), k)
+    out.update(forces=k if k >= 0 else None, noise=sigma, time_ms=1e3 * elapsed / count, row=row)
     return out
 
 
@@ -260,12 +265,7 @@ def misfit_cell(
 ) -> dict[str, Any]:
     """``count`` :func:`unexplainable` readings: how often the verdict is ``misfit``."""
     curvature = unexplainable(rod, count, sigma, seed)
-    mask = torch.ones(count, rod.num_gratings, dtype=torch.bool)
-    results, elapsed = _estimate(rod, curvature, mask, sigma, max_forces, noise_known, batch_size)
-    empty = torch.zeros(count, 0, dtype=torch.float64)
-    out = cell_metrics(results, empty, empty.unsqueeze(-1).expand(count, 0, 2), -1)
-    out.update(forces=None, noise=sigma, time_ms=1e3 * elapsed / count, row="unexpl.")
-    return out
+    return _forceless_cell(rod, curvature, sigma, -1, "unexpl.", max_forces, noise_known, batch_size)
 
 
 def cell_metrics(results: list[EstimateResult], s_true: torch.Tensor, f_true: torch.Tensor, k: int) -> dict[str, Any]:

@@ -71,7 +71,7 @@ from ...io.jsonl import (
     open_output,
     parse_records,
     read_lines,
-    sigterm_as_interrupt,
+    until_interrupted,
 )
 from ...io.readings import ReadingSource
 from ...io.stream import StreamOptions, StreamResult, StreamStats, stream, warm_up
@@ -163,11 +163,7 @@ def _warm_start(args: argparse.Namespace, rod: Rod) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
-    with sigterm_as_interrupt():
-        try:
-            return _run(args)
-        except KeyboardInterrupt as exc:
-            return interrupt_status(exc)
+    return until_interrupted(lambda: _run(args))
 
 
 def _run(args: argparse.Namespace) -> int:
