@@ -1,9 +1,10 @@
 """``torchrod bench estimate``: speed of force estimation, one reading at a time and batched.
 
 Readings: the envelope of ``torchrod evaluate`` (k forces at least 25 mm apart, 0.05 to 2 N in any body-frame
-direction, locations uniform from the rod's second grating to the tip, bending <= 90 degrees), Gaussian noise
-``--noise`` per component, for k = 1, 2, 3 and for a mix of the three. The estimator runs with its default options,
-the count chosen automatically among 0..3, and is told the noise (as a calibrated sensor would).
+direction (on a rod of length L other than 0.29 m, scaled by (0.29 m / L)^2, which bends it alike), locations uniform
+from the rod's second grating to the tip, bending <= 90 degrees), Gaussian noise ``--noise`` per component, for k =
+1, 2, 3 and for a mix of the three. The estimator runs with its default options, the count chosen automatically among
+0..3, and is told the noise (as a calibrated sensor would).
 
 Per k: B = 1 (``--single`` readings estimated one after the other: mean, median and 90th percentile of the wall time
 per call, and the mean process CPU time, which a busy machine inflates less) and batched (``--batched`` readings in
@@ -45,10 +46,11 @@ def readings(rod, k: int | None, count: int, noise: float, seed: int):
     from ...learn.synthetic import LoadSampler, SensorModel, generate
 
     lo = rod.gratings[1] if rod.num_gratings > 1 else 0.02 * rod.length
+    scale = (0.29 / rod.length) ** 2  # the same turning as on the 290 mm tube (moment ~ force x length)
     sampler = LoadSampler(
         min_forces=k or 1,
         max_forces=k or 3,
-        force_range=(0.05, 2.0),
+        force_range=(0.05 * scale, 2.0 * scale),
         s_range=(lo, rod.length),
         max_bending=math.pi / 2,
     )
