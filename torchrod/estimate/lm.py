@@ -366,7 +366,10 @@ def solve(problem: Problem, policy: LMPolicy, fits: Fits | LMState) -> LMState:
         idx = xp.nonzero(~state.done)
         if idx.shape[0] == 0:
             return state
-        state = state.put(xp, idx, _step(problem, policy, state.take(xp, idx)))
+        if idx.shape[0] == state.done.shape[0]:  # every row still going: no need to gather and scatter
+            state = _step(problem, policy, state)
+        else:
+            state = state.put(xp, idx, _step(problem, policy, state.take(xp, idx)))
 
 
 def finish(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
