@@ -2,7 +2,7 @@
 
 Readings: a synthetic trajectory (:func:`torchrod.synthetic.generate_trajectory`) of ``--count`` readings at
 ``--rate`` Hz: 1 to 3 contacts that appear, move, grow and vanish, Gaussian noise ``--noise`` per component. The
-estimator (default options, count chosen among 1..3, told the noise; the warm-start network of ``--checkpoint``
+estimator (default options, count chosen among 0..3, told the noise; the warm-start network of ``--checkpoint``
 when it fits the rod, loaded as :meth:`Estimator.from_checkpoint` does: its guesses are starts beside the scan's
 unless its recorded quality says it can be trusted; ``--set`` changes any option) runs
 the same readings five ways, in one run:
@@ -272,7 +272,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"# torchrod bench stream: {count} readings of a {args.rate:g} Hz trajectory "
         f"({', '.join(f'{sum(c == h for c in counts)} with {h}' for h in sorted(set(counts)))} forces), "
-        f"noise {args.noise:g} 1/m (known), count chosen in 1..{estimator.options.max_forces}, "
+        f"noise {args.noise:g} 1/m (known), count chosen in 0..{estimator.options.max_forces}, "
         f"network {network_name}, torch threads {torch.get_num_threads()}"
     )
     print(
