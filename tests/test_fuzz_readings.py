@@ -20,9 +20,11 @@ from hypothesis import strategies as st
 import torchrod as tr
 from torchrod.cli import main
 from torchrod.io.readings import MAX_CURVATURE, Reading, check_readings, id_problem, iter_readings, to_reading
+from torchrod.sensors import Fibre
 
 ROD = tr.presets.nitinol290()
 G = ROD.num_gratings
+FIBRE = Fibre(cores=[[3.5e-5, 0.0], [-1.75e-5, 3.03e-5], [-1.75e-5, -3.03e-5]])
 UNKNOWN = object()  # an answer's id the test does not predict
 
 
@@ -65,14 +67,26 @@ curvatures = st.one_of(
     values,
 )
 ids = st.one_of(st.text(max_size=10), st.integers(-5, 5), numbers, values, st.just(Raw("[" * 60 + "]" * 60)))
-readings = st.fixed_dictionaries(
-    {"curvature": curvatures},
-    optional={
-        "id": ids,
-        "t": st.one_of(numbers, st.none(), values),
-        "gratings": st.one_of(st.just([Raw(repr(g)) for g in ROD.gratings]), values),
-        "extra": values,
-    },
+small = st.floats(-1e-3, 1e-3).map(lambda x: Raw(repr(x)))
+core_strains = st.one_of(
+    st.none(), st.lists(small, min_size=3, max_size=3), st.lists(st.one_of(numbers, small), max_size=4), values
+)
+strains = st.one_of(
+    st.lists(st.one_of(st.none(), st.lists(small, min_size=3, max_size=3)), min_size=G, max_size=G),
+    st.lists(core_strains, min_size=G, max_size=G),
+    values,
+)
+OPTIONAL = {
+    "id": ids,
+    "t": st.one_of(numbers, st.none(), values),
+    "gratings": st.one_of(st.just([Raw(repr(g)) for g in ROD.gratings]), values),
+    "extra": values,
+}
+readings = st.one_of(
+    st.fixed_dictionaries({"curvature": curvatures}, optional=OPTIONAL),
+    st.fixed_dictionaries({"strain": strains}, optional=OPTIONAL),
+    st.fixed_dictionaries({"curvature_polar": curvatures}, optional=OPTIONAL),
+    st.fixed_dictionaries({"curvature": curvatures, "strain": strains}, optional=OPTIONAL),
 )
 line_text = st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\n"), max_size=120)
 deep = st.integers(1, 3000).map(lambda d: '{"id": "deep", "curvature": ' + "[" * d + "]" * d + "}")
@@ -112,11 +126,11 @@ csv_cells = st.one_of(
 
 
 @st.composite
-def csv_lines(draw: Any, max_lines: int = 6) -> list[tuple[str, Any]]:
-    """CSV rows (id, t, 2 G curvature cells, mostly), with the ids the answers must carry."""
+def csv_lines(draw: Any, max_lines: int = 6, per: int = 2) -> list[tuple[str, Any]]:
+    """CSV rows (id, t, ``per`` G value cells, mostly), with the ids the answers must carry."""
     out = []
     for k in range(draw(st.integers(0, max_lines))):
-        width = draw(st.sampled_from([2 * G + 2] * 4 + [0, 1, 2 * G + 1, 2 * G + 3]))
+        width = draw(st.sampled_from([per * G + 2] * 4 + [0, 1, per * G + 1, per * G + 3]))
         cells = draw(st.lists(csv_cells, min_size=width, max_size=width))
         if width and draw(st.booleans()):
             cells[0] = f"C{k}"
@@ -181,8 +195,20 @@ SETTINGS = settings(max_examples=200, deadline=None, suppress_health_check=[Heal
 @given(json_lines(max_lines=8))
 def test_parser_reads_every_json_line_into_one_reading(lines):
     text = "".join(line + "\n" for line, _ in lines)
-    got = list(iter_readings(io.StringIO(text), G, ROD.gratings, "jsonl"))
+    got = list(iter_readings(io.StringIO(text), G, ROD.gratings, "jsonl", fibre=FIBRE))
     expected = expected_lines(lines)
+    assert len(got) == len(expected)
+    for reading, (number, ident) in zip(got, expected, strict=False):
+        check_reading(reading, number, ident)
+
+
+@SETTINGS
+@given(csv_lines(max_lines=8, per=3))
+def test_parser_reads_every_csv_strain_row_into_one_reading(lines):
+    header = ",".join(["id", "t"] + [f"eps{k}_{c}" for k in range(G) for c in range(3)])
+    text = header + "\n" + "".join(line + "\n" for line, _ in lines)
+    got = list(iter_readings(io.StringIO(text), G, ROD.gratings, "csv", quantity="strain", fibre=FIBRE))
+    expected = [(number + 1, ident) for number, ident in expected_lines(lines)]
     assert len(got) == len(expected)
     for reading, (number, ident) in zip(got, expected, strict=False):
         check_reading(reading, number, ident)

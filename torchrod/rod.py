@@ -23,6 +23,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # torch is imported where a tensor is made: a rod file can be checked without it
     import torch
 
+    from .sensors import Fibre
+
 __all__ = ["AGREEMENT", "Rod", "tube_bending_stiffness"]
 
 AGREEMENT = 1e-9
@@ -137,6 +139,8 @@ class Rod:
         outer_diameter, inner_diameter: tube diameters [m], if the stiffness came from geometry.
         youngs_modulus: E [Pa], if the stiffness came from geometry.
         poisson_ratio: nu, optional (torsion never enters the model: see ``docs/physics.md``, erratum 2).
+        fibre: a multicore shape-sensing fibre (:class:`torchrod.sensors.Fibre`, or its JSON form
+            ``{"cores": [[x, y], ...]}``), optional: needed only for readings given as core strains.
 
     Build one with :meth:`from_geometry`, the constructor (stiffness given directly), :meth:`from_dict` or
     :meth:`from_json`. The constructor validates everything strictly (a bool, a string or null is not a number;
@@ -153,6 +157,7 @@ class Rod:
     inner_diameter: float | None = None
     youngs_modulus: float | None = None
     poisson_ratio: float | None = None
+    fibre: Fibre | None = None
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -191,6 +196,11 @@ class Rod:
             if not (-1.0 < nu < 0.5):
                 raise ValueError(f"poisson_ratio must lie in (-1, 0.5), got {_show(self.poisson_ratio)}")
             set_(self, "poisson_ratio", nu)
+        if self.fibre is not None:
+            from .sensors import Fibre
+
+            if not isinstance(self.fibre, Fibre):
+                set_(self, "fibre", Fibre.from_dict(self.fibre))
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -203,6 +213,7 @@ class Rod:
         gratings: Sequence[float],
         location_bias: float = 0.0,
         poisson_ratio: float | None = None,
+        fibre: Fibre | Mapping[str, Any] | None = None,
     ) -> Rod:
         """A tube of the given diameters [m] and Young's modulus [Pa]; EI follows from them."""
         d_out, d_in, e, ei = _geometry_stiffness(outer_diameter, inner_diameter, youngs_modulus)
@@ -215,14 +226,15 @@ class Rod:
             inner_diameter=d_in,
             youngs_modulus=e,
             poisson_ratio=poisson_ratio,
+            fibre=fibre,
         )
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Rod:
         """From the JSON form (SI units): ``length``, ``gratings``, ``location_bias`` (optional), and
         ``bending_stiffness`` or ``outer_diameter`` + ``inner_diameter`` + ``youngs_modulus`` (or both, if they
-        agree to ``AGREEMENT``), ``poisson_ratio`` (optional). Unknown keys are refused (a misspelt key would
-        otherwise be ignored)."""
+        agree to ``AGREEMENT``), ``poisson_ratio`` (optional), ``fibre`` (optional: ``{"cores": [[x, y], ...]}``).
+        Unknown keys are refused (a misspelt key would otherwise be ignored)."""
         if not isinstance(data, Mapping):
             raise ValueError(f"a rod description must be a JSON object, got {type(data).__name__}")  # noqa: TRY004 (a bad file)
         known = {f.name for f in dataclasses.fields(cls)}
@@ -292,6 +304,8 @@ class Rod:
             out["poisson_ratio"] = self.poisson_ratio
         out["gratings"] = list(self.gratings)
         out["location_bias"] = self.location_bias
+        if self.fibre is not None:
+            out["fibre"] = self.fibre.to_dict()
         return out
 
     def to_json(self, path: str | os.PathLike) -> None:

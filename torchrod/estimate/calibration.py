@@ -136,18 +136,19 @@ class CalibrationResult:
 
 # ---------------------------------------------------------------------------------------------- reading files
 def parse_reading(
-    obj: Any, num_gratings: int, gratings: Sequence[float] | None = None
+    obj: Any, num_gratings: int, gratings: Sequence[float] | None = None, fibre: Any = None
 ) -> tuple[list[list[float] | None], list[tuple[float, float, float]]]:
     """One calibration record: the curvature pairs (None where missing) and the known forces (s, f_x, f_y).
 
-    The reading itself (``curvature``, ``id``, ``t``, ``gratings``; other keys ignored) follows the rules of every
+    The reading itself (``curvature`` or ``strain`` or ``curvature_polar``, ``id``, ``t``, ``gratings``; other keys
+    ignored) follows the rules of every
     reading (:mod:`torchrod.io.readings`); ``forces`` is required, a list of ``{"s", "fx", "fy"}`` objects (finite,
     nonzero). Raises ``ValueError`` naming the first bad field.
     """
     from ..io.readings import as_number, describe
     from ..io.readings import parse_reading as parse_one
 
-    reading = parse_one(obj, num_gratings, gratings)
+    reading = parse_one(obj, num_gratings, gratings, fibre=fibre)
     if "forces" not in obj:
         raise ValueError('missing \'forces\' (the known forces, [{"s": ..., "fx": ..., "fy": ...}, ...])')
     forces = obj["forces"]
@@ -182,7 +183,7 @@ def read_readings(
 
     name = "standard input" if os.fspath(path) == "-" else os.fspath(path)
     rows, forces, ids, bad = [], [], [], []
-    for record in read_records(path, lambda obj: parse_reading(obj, rod.num_gratings, rod.gratings)):
+    for record in read_records(path, lambda obj: parse_reading(obj, rod.num_gratings, rod.gratings, rod.fibre)):
         if not record.ok or record.value is None:
             bad.append(record.error)
             continue

@@ -13,6 +13,12 @@ A reading
     echoed. ``gratings`` (optional, JSON): the grating positions [m]; when given they must be the rod's (within
     1e-9 m), which catches readings meant for another rod. Other keys are ignored.
 
+    Instead of ``curvature`` a reading may give one of (:mod:`torchrod.sensors`; exactly one of the three):
+    ``strain``: per grating the C core strains ``[eps_1, ..., eps_C]`` of the rod file's multicore ``fibre``
+    (dimensionless: 1e-6 is one microstrain; ``|eps| <= MAX_STRAIN``), or null; ``curvature_polar``: per grating
+    ``[kappa, phi]``, the curvature magnitude (>= 0) [1/m] and the bend angle [rad] from d1 towards d2, or null.
+    Both are turned into (ux, uy) here, so everything downstream sees curvature.
+
 Numbers
     A number is a JSON number (Python: ``int``, ``float`` or another real number; never a boolean or a string). It
     must be finite: ``NaN``, ``Infinity`` and literals that overflow a double (``1e999``, an integer of 400 digits)
@@ -20,7 +26,12 @@ Numbers
     no rod or fibre bends that much, so such a value is a unit or scaling error). Finite values within the bound
     are passed on as they are, however implausible (1e4 1/m reaches the estimator, which flags a bad fit).
 
-CSV numbers (``torchrod stream``, ``--format csv``)
+CSV rows (``--format csv``)
+    ``id, t`` and then, per grating in order, ``ux, uy`` (``quantity="curvature"``), ``kappa, phi``
+    (``"polar"``) or the C core strains (``"strain"``); all the cells of a missing grating are empty. A first row
+    of names is a header and skipped.
+
+CSV numbers
     ``[+-]? (digits [. digits?] | . digits) ([eE] [+-]? digits)?`` with ASCII digits, spaces around the cell
     allowed: ``12``, ``-1.5``, ``.5``, ``5.``, ``2.5E-3``. Not numbers: ``1_000`` (Python's ``float`` takes it, a
     CSV number must not), ``0x1f``, ``1,000`` (two cells), ``1 000``, ``½``, non-ASCII digits. ``nan``, ``inf`` and
@@ -57,6 +68,7 @@ __all__ = [
     "MAX_ID_CHARS",
     "MAX_ID_DEPTH",
     "MAX_INT_DIGITS",
+    "QUANTITIES",
     "QUOTE_CHARS",
     "HugeInteger",
     "Reading",
@@ -73,8 +85,11 @@ __all__ = [
     "iter_readings",
     "parse_csv_row",
     "parse_reading",
+    "polar_curvature",
     "quote",
+    "reading_curvature",
     "stack_readings",
+    "strain_curvature",
     "to_reading",
 ]
 
@@ -506,17 +521,116 @@ def _tensor_rows(value: Any, G: int, what: str) -> torch.Tensor:
     return t
 
 
+QUANTITIES = {"curvature": "curvature", "strain": "strain", "polar": "curvature_polar"}
+"""What a reading may give, by its name in options (``--csv-quantity``) and its JSON key."""
+
+
+def _entries(value: Any, G: int, what: str, shape: str) -> list[Any]:
+    if not isinstance(value, (list, tuple)):
+        raise ValueError(f"{what} must be an array of {G} {shape} (null for a missing grating), got {describe(value)}")  # noqa: TRY004
+    if len(value) != G:
+        raise ValueError(f"{what} holds {len(value)} gratings, the rod has {G}: give one {shape} or null per grating")
+    return list(value)
+
+
+def _converted(pair: tuple[float, float], where: str, source: str) -> list[float]:
+    if not (abs(pair[0]) <= MAX_CURVATURE and abs(pair[1]) <= MAX_CURVATURE):
+        raise ValueError(
+            f"{where} gives a curvature of {quote(list(pair))} 1/m, beyond the bound of {MAX_CURVATURE:g} 1/m; "
+            f"check the units of the {source}"
+        )
+    return [pair[0], pair[1]]
+
+
+def strain_curvature(value: Any, num_gratings: int, fibre: Any, what: str = "strain") -> list[Any]:
+    """A reading's core strains (one list of C per grating, or None) -> its G (ux, uy) pairs [1/m] or None, by
+    the fibre's least squares (:class:`torchrod.sensors.Fibre`). ``ValueError`` naming the entry."""
+    from ..sensors import MAX_STRAIN
+
+    if fibre is None:
+        raise ValueError(
+            f'{what} needs the rod\'s multicore fibre: add "fibre": {{"cores": [[x, y], ...]}} (core positions [m]) '
+            "to the rod file"
+        )
+    C = fibre.num_cores
+    rows: list[Any] = []
+    for k, entry in enumerate(_entries(value, num_gratings, what, f"list of {C} core strains")):
+        if entry is None:
+            rows.append(None)
+            continue
+        where = f"{what}[{k}]"
+        if not isinstance(entry, (list, tuple)) or len(entry) != C:
+            raise ValueError(
+                f"{where} must be a list of {C} core strains (the fibre has {C} cores), got {describe(entry)}"
+            )
+        eps = []
+        for c, x in enumerate(entry):
+            try:
+                eps.append(as_number(x, f"{where}[{c}]", bound=MAX_STRAIN))
+            except ValueError as exc:
+                if isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(float(x)):
+                    raise ValueError(f"{exc} (strain is dimensionless: 1e-6 is one microstrain)") from None
+                raise
+        rows.append(_converted(fibre.strain_to_curvature(eps), where, "strains"))
+    return rows
+
+
+def polar_curvature(value: Any, num_gratings: int, what: str = "curvature_polar") -> list[Any]:
+    """A reading's (kappa [1/m], phi [rad]) per grating, or None -> its G (ux, uy) pairs [1/m] or None."""
+    from ..sensors import polar_to_curvature
+
+    rows: list[Any] = []
+    for k, entry in enumerate(_entries(value, num_gratings, what, "[kappa, phi] pair")):
+        if entry is None:
+            rows.append(None)
+            continue
+        where = f"{what}[{k}]"
+        if not isinstance(entry, (list, tuple)) or len(entry) != 2:
+            raise ValueError(f"{where} must be a pair [kappa, phi] ([1/m], [rad]) or null, got {describe(entry)}")
+        kappa = as_number(entry[0], f"{where}[0]", bound=MAX_CURVATURE, unit="1/m")
+        if kappa < 0.0:
+            raise ValueError(f"{where}[0] is a curvature magnitude and must be >= 0 [1/m], got {quote(entry[0])}")
+        phi = as_number(entry[1], f"{where}[1]", bound=1e6, unit="rad")
+        rows.append(_converted(polar_to_curvature(kappa, phi), where, "curvature"))
+    return rows
+
+
+def reading_curvature(obj: Mapping[str, Any], num_gratings: int, fibre: Any = None) -> torch.Tensor:
+    """The (G, 2) curvature [1/m] of a reading object that gives ``curvature``, ``strain`` or
+    ``curvature_polar`` (exactly one)."""
+    given = [key for key in QUANTITIES.values() if key in obj]
+    if len(given) > 1:
+        raise ValueError(f"a reading gives {' and '.join(given)}: give exactly one of {', '.join(QUANTITIES.values())}")
+    if not given:
+        raise ValueError(
+            f"missing 'curvature' (an array of {num_gratings} [ux, uy] pairs [1/m], one per grating; or 'strain' "
+            "or 'curvature_polar')"
+        )
+    key = given[0]
+    if key == "strain":
+        rows = strain_curvature(obj[key], num_gratings, fibre)
+    elif key == "curvature_polar":
+        rows = polar_curvature(obj[key], num_gratings)
+    else:
+        return curvature_tensor(obj[key], num_gratings)
+    if all(r is None for r in rows):
+        raise ValueError(f"all gratings are missing: {key} needs at least one grating's values")
+    return curvature_tensor(rows, num_gratings)
+
+
 def parse_reading(
     obj: Mapping[str, Any],
     num_gratings: int,
     gratings: Sequence[float] | None = None,
     *,
     line: int | None = None,
+    fibre: Any = None,
 ) -> Reading:
     """One reading object (a decoded JSON line or a dict) -> a checked :class:`Reading`.
 
-    Keys (module docstring): ``curvature`` (required), ``id``, ``t``, ``gratings`` (checked against ``gratings``,
-    the rod's positions [m], when both are given); others are ignored.
+    Keys (module docstring): ``curvature`` (or ``strain`` with the rod's ``fibre``, or ``curvature_polar``),
+    ``id``, ``t``, ``gratings`` (checked against ``gratings``, the rod's positions [m], when both are given);
+    others are ignored.
     Raises:
         ValueError: naming the first bad field.
     """
@@ -525,11 +639,9 @@ def parse_reading(
             f'a reading must be an object {{"id": ..., "curvature": [[ux, uy], ...]}}, got {describe(obj)}'
         )
     ident = check_id(obj.get("id"))
-    if "curvature" not in obj:
-        raise ValueError(f"missing 'curvature' (an array of {num_gratings} [ux, uy] pairs [1/m], one per grating)")
     if "gratings" in obj and gratings is not None:
         check_gratings(obj["gratings"], gratings)
-    curvature = curvature_tensor(obj["curvature"], num_gratings)
+    curvature = reading_curvature(obj, num_gratings, fibre)
     t = check_time(obj.get("t"))
     return Reading(ident, curvature, t, None, line)
 
@@ -542,9 +654,10 @@ def _given_error(error: Any) -> str:
     return quote(error)
 
 
-def to_reading(item: Any, num_gratings: int, gratings: Sequence[float] | None = None) -> Reading:
+def to_reading(item: Any, num_gratings: int, gratings: Sequence[float] | None = None, *, fibre: Any = None) -> Reading:
     """Anything given as a reading (a :class:`Reading` or a mapping with its keys) -> a checked :class:`Reading`
-    (float64 CPU curvature), or one with ``error`` set. Never raises (the Python stream API's entry point)."""
+    (float64 CPU curvature), or one with ``error`` set. Never raises (the Python stream API's entry point).
+    ``fibre``: the rod's (:class:`torchrod.sensors.Fibre`), for readings that give core strains."""
     if isinstance(item, Reading):
         if item.error is not None:
             ident = item.id if id_problem(item.id) is None else None
@@ -561,7 +674,7 @@ def to_reading(item: Any, num_gratings: int, gratings: Sequence[float] | None = 
     ident = fields.get("id")
     ident = ident if id_problem(ident) is None else None
     try:
-        return parse_reading(fields, num_gratings, gratings, line=line)
+        return parse_reading(fields, num_gratings, gratings, line=line, fibre=fibre)
     except ValueError as exc:
         return Reading(ident, error=_at(line, str(exc)), line=line)
     except Exception as exc:  # noqa: BLE001 - a reading never stops the stream
@@ -580,31 +693,47 @@ def stack_readings(readings: Sequence[Reading]) -> tuple[torch.Tensor, torch.Ten
 
 
 # ---------------------------------------------------------------------------------------------------- CSV
-def parse_csv_row(cells: Sequence[str], num_gratings: int, *, line: int | None = None) -> Reading:
-    """One CSV row ``id, t, ux_1, uy_1, ..., ux_G, uy_G`` -> a checked :class:`Reading` (``ValueError`` naming the
-    cell, as ``curvature[k][j]``, so messages match the JSON ones). Both cells of a missing grating are empty."""
+def parse_csv_row(
+    cells: Sequence[str],
+    num_gratings: int,
+    *,
+    line: int | None = None,
+    quantity: str = "curvature",
+    fibre: Any = None,
+) -> Reading:
+    """One CSV row ``id, t``, then per grating ``ux, uy`` (``quantity="curvature"``), ``kappa, phi``
+    (``"polar"``) or the fibre's C core strains (``"strain"``) -> a checked :class:`Reading` (``ValueError``
+    naming the cell as the JSON field, ``curvature[k][j]``, so messages match the JSON ones). All the cells of a
+    missing grating are empty."""
+    if quantity not in QUANTITIES:
+        raise ValueError(f"quantity must be one of {', '.join(QUANTITIES)}, got {quantity!r}")
     G = num_gratings
-    width = 2 + 2 * G
+    key = QUANTITIES[quantity]
+    if quantity == "strain" and fibre is None:
+        strain_curvature([], G, None)  # raises: the rod has no fibre
+    per = fibre.num_cores if quantity == "strain" else 2
+    names = {"curvature": "ux, uy", "polar": "kappa, phi", "strain": f"{per} core strains"}[quantity]
+    width = 2 + per * G
     if len(cells) != width:
-        raise ValueError(f"expected {width} cells (id, t, then ux, uy for {G} gratings), got {len(cells)}")
+        raise ValueError(f"expected {width} cells (id, t, then {names} for {G} gratings), got {len(cells)}")
     ident = check_id(cells[0].strip() or None)
     t = csv_number(cells[1], "t")
     rows: list[Any] = []
     for k in range(G):
-        a, b = cells[2 + 2 * k], cells[3 + 2 * k]
-        if not a.strip() and not b.strip():
+        group = cells[2 + per * k : 2 + per * (k + 1)]
+        if not any(c.strip() for c in group):
             rows.append(None)
             continue
-        where = f"curvature[{k}]"
-        pair = [csv_number(c, f"{where}[{j}]", bound=MAX_CURVATURE, unit="1/m") for j, c in enumerate((a, b))]
-        for j, x in enumerate(pair):
+        where = f"{key}[{k}]"
+        values = [csv_number(c, f"{where}[{j}]") for j, c in enumerate(group)]
+        for j, x in enumerate(values):
             if x is None:
                 raise ValueError(
-                    f"{where}[{j}] must be a number, got null (an empty cell): leave both cells of a missing "
+                    f"{where}[{j}] must be a number, got null (an empty cell): leave all the cells of a missing "
                     "grating empty"
                 )
-        rows.append(pair)
-    return Reading(ident, curvature_tensor(rows, G), t, None, line)
+        rows.append(values)
+    return Reading(ident, reading_curvature({key: rows}, G, fibre), t, None, line)
 
 
 def _csv_cells(text: str) -> list[str]:
@@ -621,7 +750,9 @@ def _is_csv_header(cells: Sequence[str]) -> bool:
     return not any(_CSV_NUMBER.fullmatch(c) or _CSV_NONFINITE.fullmatch(c) for c in rest)
 
 
-def _csv_readings(lines: Iterable[tuple[int, str]], num_gratings: int) -> Iterator[Reading]:
+def _csv_readings(
+    lines: Iterable[tuple[int, str]], num_gratings: int, quantity: str = "curvature", fibre: Any = None
+) -> Iterator[Reading]:
     import csv
 
     first = True
@@ -638,7 +769,7 @@ def _csv_readings(lines: Iterable[tuple[int, str]], num_gratings: int) -> Iterat
         ident = (cells[0].strip() or None) if cells else None
         ident = ident if id_problem(ident) is None else None
         try:
-            yield parse_csv_row(cells, num_gratings, line=number)
+            yield parse_csv_row(cells, num_gratings, line=number, quantity=quantity, fibre=fibre)
         except ValueError as exc:
             yield Reading(ident, error=f"line {number}: {exc}", line=number)
 
@@ -653,6 +784,9 @@ def iter_readings(
     gratings: Sequence[float] | None = None,
     fmt: str = "jsonl",
     control: Any = None,
+    *,
+    quantity: str = "curvature",
+    fibre: Any = None,
 ) -> Iterator[Reading]:
     """Readings from ``source`` (a path, ``"-"`` for standard input, or an open text stream), lazily, one
     :class:`Reading` per non-blank line in order (a CSV header row excepted): checked, or with ``error`` set
@@ -662,11 +796,15 @@ def iter_readings(
         fmt: ``"jsonl"``, ``"csv"`` (module docstring), or ``"auto"``: JSON lines when the first non-blank line
             starts with ``{``, else CSV.
         control: a :class:`torchrod.io.jsonl.ReadControl` to end the reading at the lines already read.
+        quantity: what a CSV row gives per grating (:data:`QUANTITIES`); a JSON line says it by its key.
+        fibre: the rod's multicore fibre, for strains.
     """
     from .jsonl import parse_records, read_lines
 
     if fmt not in FORMATS:
         raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    if quantity not in QUANTITIES:
+        raise ValueError(f"quantity must be one of {', '.join(QUANTITIES)}, got {quantity!r}")
     lines: Iterator[tuple[int, str]] = iter(read_lines(source, control))
     if fmt == "auto":
         head = next(lines, None)
@@ -675,9 +813,9 @@ def iter_readings(
         fmt = "jsonl" if head[1].lstrip().startswith("{") else "csv"
         lines = _chain(head, lines)
     if fmt == "csv":
-        yield from _csv_readings(lines, num_gratings)
+        yield from _csv_readings(lines, num_gratings, quantity, fibre)
         return
-    for record in parse_records(lines, lambda obj: parse_reading(obj, num_gratings, gratings)):
+    for record in parse_records(lines, lambda obj: parse_reading(obj, num_gratings, gratings, fibre=fibre)):
         if record.ok and record.value is not None:
             yield replace(record.value, line=record.line)
         else:
@@ -691,14 +829,23 @@ class ReadingSource:
     (holding no complete line). :func:`torchrod.io.stream.stream` uses both when its source has them."""
 
     def __init__(
-        self, source: Any, num_gratings: int, gratings: Sequence[float] | None = None, fmt: str = "jsonl"
+        self,
+        source: Any,
+        num_gratings: int,
+        gratings: Sequence[float] | None = None,
+        fmt: str = "jsonl",
+        *,
+        quantity: str = "curvature",
+        fibre: Any = None,
     ) -> None:
         from .jsonl import ReadControl
 
         if fmt not in FORMATS:
             raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
         self.control = ReadControl()
-        self._readings = iter_readings(source, num_gratings, gratings, fmt, self.control)
+        self._readings = iter_readings(
+            source, num_gratings, gratings, fmt, self.control, quantity=quantity, fibre=fibre
+        )
 
     def __iter__(self) -> Iterator[Reading]:
         return self._readings

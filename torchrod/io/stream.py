@@ -154,7 +154,7 @@ def _reader(state: _Stream, source: Iterable[Any]) -> None:
             finally:
                 in_source.clear()
             arrived = time.perf_counter()
-            reading = to_reading(item, state.G)
+            reading = to_reading(item, state.G, fibre=state.fibre)
             if not put(_Pending(reading, arrived)):
                 return
         else:
@@ -182,6 +182,7 @@ class _Stream:
     def __init__(self, estimator: Any, readings: Iterable[Any], options: StreamOptions, overrides: dict) -> None:
         self.estimator, self.options, self.overrides = estimator, options, overrides
         self.G = estimator.rod.num_gratings
+        self.fibre = estimator.rod.fibre
         self.device = torch.device(options.device)
         read_ahead = options.read_ahead if options.read_ahead is not None else 2 * options.batch_size
         self.q: queue.Queue = queue.Queue(maxsize=read_ahead)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-__all__ = ["check_estimation_options"]
+__all__ = ["add_sensor_options", "check_estimation_options", "sensor_noise"]
 
 
 def check_estimation_options(args: argparse.Namespace) -> None:
@@ -22,3 +22,36 @@ def check_estimation_options(args: argparse.Namespace) -> None:
         if args.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
+
+
+def add_sensor_options(parser: argparse.ArgumentParser) -> None:
+    """``--csv-quantity`` and ``--strain-noise``: readings from other sensors (:mod:`torchrod.sensors`)."""
+    parser.add_argument(
+        "--csv-quantity",
+        choices=("curvature", "polar", "strain"),
+        default="curvature",
+        help="what a CSV row gives per grating: ux, uy [1/m] (default); kappa [1/m], phi [rad]; or the fibre's "
+        "core strains (JSON lines say it by their key: curvature, curvature_polar, strain)",
+    )
+    parser.add_argument(
+        "--strain-noise",
+        type=float,
+        metavar="SIGMA",
+        help="strain noise sigma per core (dimensionless) of the rod's multicore fibre, instead of --noise: the "
+        "curvature noise it implies weighs the fit",
+    )
+
+
+def sensor_noise(args: argparse.Namespace, rod) -> None:
+    """Turn ``--strain-noise`` into ``args.noise`` (the curvature sigma it implies through the rod's fibre);
+    ``ValueError`` when it cannot be used."""
+    strain = getattr(args, "strain_noise", None)
+    if strain is None:
+        return
+    if args.noise is not None:
+        raise ValueError("give --noise (curvature sigma) or --strain-noise (core strain sigma), not both")
+    if rod.fibre is None:
+        raise ValueError('--strain-noise needs the rod file\'s multicore fibre ("fibre": {"cores": [[x, y], ...]})')
+    if not strain >= 0.0 or strain == float("inf"):
+        raise ValueError(f"--strain-noise must be >= 0 and finite, got {strain}")
+    args.noise = rod.fibre.curvature_sigma(strain)

@@ -14,6 +14,12 @@ curvature component at most 1e6 1/m in magnitude (a bend radius of 1 um: a large
 error); finite values within that bound reach the estimator, however implausible. ``--format csv`` reads the CSV
 rows of ``torchrod stream`` instead (``id, t, ux_1, uy_1, ...``; see ``torchrod stream --help``).
 
+Other sensors: a line may give ``"strain": [[eps_1, ..., eps_C] or null, ...]`` (the core strains of the rod
+file's multicore ``"fibre": {"cores": [[x, y], ...]}``, dimensionless) or ``"curvature_polar": [[kappa, phi] or
+null, ...]`` (magnitude [1/m] and bend angle [rad]) instead of ``curvature``; both are turned into curvature as
+they are read (torchrod.sensors). In CSV, ``--csv-quantity strain`` or ``polar`` says what the cells are.
+``--strain-noise SIGMA`` gives the core strain noise instead of ``--noise``.
+
 Each output line answers the input line in the same position::
 
     {"id": "r1", "status": "ok", "num_forces": 2, "forces": [{"s", "fx", "fy", "magnitude", "std_s", "std_fx",
@@ -60,7 +66,7 @@ from ...io.jsonl import LineWriter, check_input, open_output, until_interrupted
 from ...io.readings import FORMATS, Reading, ReadingSource, stack_readings
 from ...presets import load as load_rod
 from ...rod import Rod
-from . import check_estimation_options
+from . import add_sensor_options, check_estimation_options, sensor_noise
 
 HELP = "forces from FBG curvature readings (JSON lines in, JSON lines out)"
 
@@ -96,6 +102,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="warm-start network checkpoint whose guesses start the fit ('none' or default: no network)",
     )
     parser.add_argument("--format", choices=FORMATS, default="jsonl", help="input format: jsonl (default), csv or auto")
+    add_sensor_options(parser)
     parser.add_argument("--out", metavar="FILE", help="write the answers to FILE (default: standard output)")
     parser.add_argument("--batch-size", type=int, default=256, metavar="B", help="readings per batch (default 256)")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
@@ -159,6 +166,7 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     rod = load_rod(args.rod)
     check_estimation_options(args)
+    sensor_noise(args, rod)
     check_counts(args)
     if args.starts is not None and args.starts < 0:
         raise ValueError(f"--starts must be >= 0, got {args.starts}")
@@ -166,7 +174,9 @@ def _run(args: argparse.Namespace) -> int:
     network = load_network(args.checkpoint, rod)
     estimator = Estimator(rod, options_from_args(args), warm_start=network)
     device = torch.device(args.device)
-    readings = ReadingSource(args.readings, rod.num_gratings, rod.gratings, args.format)
+    readings = ReadingSource(
+        args.readings, rod.num_gratings, rod.gratings, args.format, quantity=args.csv_quantity, fibre=rod.fibre
+    )
     from tqdm import tqdm
 
     with open_output(args.out, [args.readings]) as out:

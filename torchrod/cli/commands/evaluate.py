@@ -33,6 +33,12 @@ are what the root mean square shows); the share of readings whose status is not 
 estimation wall time per reading (all readings of a row estimated in batches of ``--batch-size``). ``--json``
 prints the same numbers as JSON lines instead.
 
+``--input strain`` passes every reading through a multicore fibre (the rod's ``fibre``, else
+:data:`EVALUATION_FIBRE`): the clean curvature becomes core strains, plus a random common strain per grating
+(temperature, uniform within +-1e-3) and Gaussian strain noise per core at the level that implies the row's sigma
+for the curvature, and is turned back by the fibre's least squares (:mod:`torchrod.sensors`), as strain readings
+are read; the estimator is given that sigma, as ``--strain-noise`` gives it.
+
 ``--recovery N`` runs the clean-recovery study instead (:mod:`torchrod.eval.recovery`): N stratified noise-free
 cases, the verdicts per stratum, and every case missed or answered wrong.
 """
@@ -53,6 +59,13 @@ from ...presets import load as load_rod
 from ...rod import Rod
 
 HELP = "accuracy of the estimator on simulated readings over a realistic envelope"
+
+EVALUATION_FIBRE = ((3.5e-5, 0.0), (-1.75e-5, 3.0311e-5), (-1.75e-5, -3.0311e-5))
+"""[m] The cores of ``--input strain`` when the rod has no fibre: three at 120 degrees, 35 um off the axis (a
+common multicore shape-sensing fibre)."""
+
+COMMON_STRAIN = 1e-3
+"""``--input strain``: the common strain per grating is uniform in +-this (about 100 K of temperature change)."""
 
 STRONG = 0.2
 """[N] the column ``ok >=0.2N`` counts only readings whose weakest force is at least this strong."""
@@ -113,6 +126,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="instead of the table: N stratified clean cases (torchrod.eval.recovery), verdicts per stratum and every "
         "failure (the tests run 1000 at seed 0)",
     )
+    parser.add_argument(
+        "--input",
+        choices=("curvature", "strain"),
+        default="curvature",
+        help="readings as curvature (default) or as a multicore fibre's core strains (see below)",
+    )
     parser.add_argument("--json", action="store_true", help="JSON lines instead of a table")
 
 
@@ -142,11 +161,13 @@ def evaluate_cell(
     noise_known: bool = True,
     batch_size: int = 500,
     near_base: bool = False,
+    fibre: Any = None,
 ) -> dict[str, Any]:
     """Simulate ``count`` readings with ``k`` forces and noise ``sigma``, estimate them, return the cell's metrics
     (:func:`cell_metrics` plus ``time_ms`` per reading, wall clock of the estimation alone). ``near_base``: only
     cases whose most proximal force lies between the first grating and 20 mm distal to the second (drawn over
-    [first grating, L] and kept when they do)."""
+    [first grating, L] and kept when they do). ``fibre``: readings pass through its core strains
+    (:func:`through_fibre`)."""
     from ...learn.synthetic import LoadSampler, SensorModel, generate
 
     lo = s_min if s_min is not None else (rod.gratings[1] if rod.num_gratings > 1 else 0.02 * rod.length)
@@ -160,7 +181,7 @@ def evaluate_cell(
         s_range=(lo, rod.length),
         max_bending=max_bending,
     )
-    sensor = SensorModel(noise=sigma, location_bias=rod.location_bias)
+    sensor = SensorModel(noise=0.0 if fibre is not None else sigma, location_bias=rod.location_bias)
     cell_seed = seed * 1000 + 10 * k + round(100 * sigma) + (500 if near_base else 0)
     if near_base:
         edge = (rod.gratings[1] if rod.num_gratings > 1 else rod.gratings[0]) + 0.02 + rod.location_bias
@@ -180,10 +201,25 @@ def evaluate_cell(
     else:
         data = generate(rod, count, sampler=sampler, sensor=sensor, seed=cell_seed)
         curvature, mask, s_true, f_true = data.curvature, data.mask, data.loads.s, data.loads.f
+    if fibre is not None:
+        curvature = through_fibre(curvature, sigma, fibre, cell_seed)
     results, elapsed = _estimate(rod, curvature, mask, sigma, max_forces, noise_known, batch_size)
     out = cell_metrics(results, s_true, f_true, k)
     out.update(forces=k, noise=sigma, time_ms=1e3 * elapsed / max(1, count), row=f"{k} nb" if near_base else str(k))
     return out
+
+
+def through_fibre(clean: torch.Tensor, sigma: float, fibre: Any, seed: int) -> torch.Tensor:
+    """(N, G, 2) clean curvature [1/m] -> the curvature read from a multicore fibre: core strains plus a common
+    strain per grating (uniform in +-:data:`COMMON_STRAIN`) and Gaussian strain noise per core at the sigma that
+    implies ``sigma`` [1/m] for the curvature (:meth:`torchrod.sensors.Fibre.curvature_sigma`), turned back by the
+    fibre's least squares."""
+    g = torch.Generator().manual_seed(seed + 7)
+    N, G, _ = clean.shape
+    common = COMMON_STRAIN * (2.0 * torch.rand(N, G, generator=g, dtype=clean.dtype) - 1.0)
+    strain_sigma = sigma / fibre.curvature_sigma(1.0)
+    noise = strain_sigma * torch.randn(N, G, fibre.num_cores, generator=g, dtype=clean.dtype)
+    return fibre.curvature(fibre.strain(clean, common) + noise)
 
 
 def _estimate(rod, curvature, mask, sigma, max_forces, noise_known, batch_size):
@@ -206,10 +242,15 @@ def zero_cell(
     max_forces: int = 3,
     noise_known: bool = True,
     batch_size: int = 500,
+    fibre: Any = None,
 ) -> dict[str, Any]:
     """``count`` readings of an untouched rod (Gaussian noise ``sigma`` alone): how often the count is 0."""
     g = torch.Generator().manual_seed(seed * 1000 + round(100 * sigma) + 1)
-    curvature = sigma * torch.randn(count, rod.num_gratings, 2, generator=g, dtype=torch.float64)
+    if fibre is not None:
+        zero = torch.zeros(count, rod.num_gratings, 2, dtype=torch.float64)
+        curvature = through_fibre(zero, sigma, fibre, seed * 1000 + round(100 * sigma) + 1)
+    else:
+        curvature = sigma * torch.randn(count, rod.num_gratings, 2, generator=g, dtype=torch.float64)
     return _forceless_cell(rod, curvature, sigma, 0, "0", max_forces, noise_known, batch_size)
 
 
@@ -224,7 +265,7 @@ def _forceless_cell(rod, curvature, sigma, k, row, max_forces, noise_known, batc
     return out
 
 
-def unexplainable(rod: Rod, count: int, sigma: float, seed: int = 0) -> torch.Tensor:
+def unexplainable(rod: Rod, count: int, sigma: float, seed: int = 0, fibre: Any = None) -> torch.Tensor:
     """(count, G, 2) readings [1/m] no few point forces produce, plus noise ``sigma``.
 
     Between point forces the bending moment is linear in s (small deflection), so h forces give a curvature along
@@ -250,6 +291,8 @@ def unexplainable(rod: Rod, count: int, sigma: float, seed: int = 0) -> torch.Te
     ang = 2.0 * math.pi * torch.rand(count, generator=g, dtype=torch.float64)
     direction = torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # (count, 2)
     clean = (amp[:, None] * shapes)[:, :, None] * direction[:, None, :]
+    if fibre is not None:
+        return through_fibre(clean, sigma, fibre, seed * 1000 + round(100 * sigma) + 2)
     return clean + sigma * torch.randn(count, G, 2, generator=g, dtype=torch.float64)
 
 
@@ -262,9 +305,10 @@ def misfit_cell(
     max_forces: int = 3,
     noise_known: bool = True,
     batch_size: int = 500,
+    fibre: Any = None,
 ) -> dict[str, Any]:
     """``count`` :func:`unexplainable` readings: how often the verdict is ``misfit``."""
-    curvature = unexplainable(rod, count, sigma, seed)
+    curvature = unexplainable(rod, count, sigma, seed, fibre)
     return _forceless_cell(rod, curvature, sigma, -1, "unexpl.", max_forces, noise_known, batch_size)
 
 
@@ -333,6 +377,17 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     if args.recovery:
         return _recovery(rod, args.recovery, args.seed, args.json)
+    fibre = None
+    if args.input == "strain":
+        from ...sensors import Fibre
+
+        fibre = rod.fibre if rod.fibre is not None else Fibre(cores=EVALUATION_FIBRE)
+        if not args.json:
+            cores = ", ".join(f"({1e6 * x:.1f}, {1e6 * y:.1f})" for x, y in fibre.cores)
+            print(
+                f"# readings as core strains of a fibre with cores at {cores} um, common strain within "
+                f"+-{COMMON_STRAIN:g}, strain sigma = sigma x {1.0 / fibre.curvature_sigma(1.0):.3g} m"
+            )
     bending = math.radians(args.max_bending_deg) if args.max_bending_deg > 0 else math.inf
     lo = args.s_min if args.s_min is not None else rod.gratings[1] if rod.num_gratings > 1 else None
     if not args.json:
@@ -368,6 +423,7 @@ def run(args: argparse.Namespace) -> int:
         max_forces=args.max_forces,
         noise_known=args.estimator_noise == "known",
         batch_size=args.batch_size,
+        fibre=fibre,
     )
     cells = [("zero", 0)] if "zero" in args.rows else []
     if "forces" in args.rows:

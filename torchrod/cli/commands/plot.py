@@ -77,7 +77,7 @@ def _reading(rod: Rod):
     from ...io.readings import parse_reading
 
     def parse(obj: dict[str, Any]):
-        reading = parse_reading(obj, rod.num_gratings, rod.gratings)
+        reading = parse_reading(obj, rod.num_gratings, rod.gratings, fibre=rod.fibre)
         return reading.curvature.tolist(), reading.t
 
     return parse

@@ -53,10 +53,12 @@ reading is then the cost of estimation.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
 import time
+from collections.abc import Iterator
 from typing import Any
 
 from ...estimate.estimator import Estimator, EstimatorOptions
@@ -77,7 +79,7 @@ from ...io.readings import ReadingSource
 from ...io.stream import StreamOptions, StreamResult, StreamStats, stream, warm_up
 from ...presets import load as load_rod
 from ...rod import Rod
-from . import check_estimation_options
+from . import add_sensor_options, check_estimation_options, sensor_noise
 from .estimate import check_counts, load_network
 
 HELP = "amortised estimation on a stream of readings"
@@ -97,6 +99,19 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--input", default="-", metavar="FILE", help="readings file (default '-': stdin)")
     parser.add_argument("--format", choices=("auto", "jsonl", "csv"), default="auto", help="input format")
+    parser.add_argument(
+        "--topic",
+        help="read --input as a ROS bag (ROS 1 .bag, ROS 2 directory) and take the readings from TOPIC "
+        "(std_msgs/Float64MultiArray, 2G values; needs pip install 'torchrod[ros]')",
+    )
+    parser.add_argument(
+        "--output-bag",
+        metavar="OUT",
+        help="also write the estimates into a new ROS bag OUT (a ROS 1 bag if it ends in .bag, else a ROS 2 "
+        "directory): /torchrod/estimate (String, the JSON answer), /torchrod/contact_<k>/wrench (WrenchStamped) "
+        "and /torchrod/contact_<k>/arc_length (Float64)",
+    )
+    add_sensor_options(parser)
     parser.add_argument("--out", metavar="FILE", help="write the answers to FILE (default: standard output)")
     parser.add_argument("--batch-size", type=int, default=64, metavar="B", help="most readings per batch (64)")
     parser.add_argument(
@@ -117,11 +132,18 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 # ---------------------------------------------------------------------------------------------------- input
-def read_stream(source: str, rod: Rod, fmt: str = "auto") -> ReadingSource:
+def read_stream(
+    source: str, rod: Rod, fmt: str = "auto", *, quantity: str = "curvature", topic: str | None = None
+) -> Any:
     """Readings from ``source`` (a path or ``"-"``) in format ``"jsonl"``, ``"csv"`` or ``"auto"`` (JSON lines if
     the first non-blank line starts with ``{``), lazily, checked by :mod:`torchrod.io.readings`: unusable lines
-    become readings with an ``error``. The flush after an interrupt ends it at the lines already read."""
-    return ReadingSource(source, rod.num_gratings, rod.gratings, fmt)
+    become readings with an ``error``. The flush after an interrupt ends it at the lines already read. With
+    ``topic``, ``source`` is a ROS bag (:class:`torchrod.io.rosbag.BagSource`)."""
+    if topic is not None:
+        from ...io.rosbag import BagSource
+
+        return BagSource(source, topic, rod.num_gratings)
+    return ReadingSource(source, rod.num_gratings, rod.gratings, fmt, quantity=quantity, fibre=rod.fibre)
 
 
 def load_truth(path: str) -> dict[str, list[tuple[float, float, float]]]:
@@ -169,13 +191,23 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     rod = load_rod(args.rod)
     check_estimation_options(args)
+    sensor_noise(args, rod)
     check_counts(args)
+    if args.topic is not None and args.input == "-":
+        raise ValueError("--topic reads a ROS bag: give its path with --input")
+    if args.output_bag is not None:
+        from ...io.rosbag import require_rosbags
+
+        require_rosbags()
+        if os.path.exists(args.output_bag):
+            raise ValueError(f"--output-bag {args.output_bag} exists already: a bag is never overwritten")
     if not 0.0 <= args.max_latency_ms < float("inf"):
         raise ValueError(f"--max-latency-ms must be >= 0, got {args.max_latency_ms}")
     if args.truth is not None and not args.summary:
         raise ValueError("--truth is used by --summary; give both")
     truth = load_truth(args.truth) if args.truth is not None else None
-    check_input(args.input, "--input")
+    if args.topic is None:
+        check_input(args.input, "--input")
     network = _warm_start(args, rod)
     if args.iterations < 0:
         raise ValueError(f"--iterations must be >= 0, got {args.iterations}")
@@ -185,16 +217,31 @@ def _run(args: argparse.Namespace) -> int:
     options = StreamOptions(batch_size=args.batch_size, max_latency=args.max_latency_ms / 1e3)
     # Warm-up before the first reading: per-rod caches and first-call costs would otherwise land on its latency.
     warm_up(estimator)
-    with open_output(args.out, [args.input]) as out:
-        return _answer(args, estimator, options, LineWriter(out), truth)
+    source = read_stream(args.input, rod, args.format, quantity=args.csv_quantity, topic=args.topic)
+    with open_output(args.out, [args.input]) as out, _bag(args.output_bag, args.max_forces) as bag:
+        return _answer(args, estimator, options, source, LineWriter(out), truth, bag)
+
+
+@contextlib.contextmanager
+def _bag(path: str | None, slots: int) -> Iterator[Any]:
+    """The :class:`torchrod.io.rosbag.BagWriter` of ``--output-bag``, or None."""
+    if path is None:
+        yield None
+        return
+    from ...io.rosbag import BagWriter
+
+    with BagWriter(path, slots) as bag:
+        yield bag
 
 
 def _answer(
     args: argparse.Namespace,
     estimator: Estimator,
     options: StreamOptions,
+    source: Any,
     writer: LineWriter,
     truth: dict[str, Any] | None,
+    bag: Any = None,
 ) -> int:
     stats = StreamStats()
     start = time.perf_counter()
@@ -203,13 +250,17 @@ def _answer(
         if result.error is not None:
             extra = {"t": result.t} if result.t is not None else {}
             writer.error(result.id, result.error, **extra)
+            if bag is not None:
+                bag.write({"id": result.id, "error": result.error, **extra}, result.t)
         else:
             writer.answer(result.record, result.line)
+            if bag is not None:
+                bag.write(result.record, result.t)
         if args.summary:
             known = truth.get(_key(result.id)) if truth is not None and result.ok else None
             stats.add(result, known)
 
-    results = stream(estimator, read_stream(args.input, estimator.rod, args.format), options)
+    results = stream(estimator, source, options)
     interrupted: KeyboardInterrupt | None = None
     current: StreamResult | None = None
     written = writer.lines

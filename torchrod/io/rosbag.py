@@ -1,0 +1,219 @@
+"""Readings from ROS bags and estimates into them, without a ROS install (the optional ``rosbags`` package:
+``pip install "torchrod[ros]"``).
+
+Reading (:class:`BagSource`)
+    Any bag ``rosbags`` opens: a ROS 1 ``.bag`` file, or a ROS 2 bag directory (SQLite3 or MCAP storage). The
+    topic's messages are ``std_msgs/msg/Float64MultiArray`` holding 2G values, ``ux_1, uy_1, ..., ux_G, uy_G``
+    [1/m] in the rod file's grating order, with NaN for both values of a missing grating. A reading's ``t`` is
+    the bag's time stamp of the message [s] and its ``id`` the message's index in the topic (0-based). A message
+    that cannot be used (another length, a half-missing grating, a value beyond the bounds) becomes an error
+    answer in its place, as a bad line of a file does (:mod:`torchrod.io.readings`).
+
+Writing (:class:`BagWriter`)
+    A ROS 2 bag directory (SQLite3 storage), or a ROS 1 bag when the path ends in ``.bag``; standard messages only,
+    all stamped with the reading's ``t``, one message per topic per reading, so that the topics stay aligned:
+
+    * ``/torchrod/estimate`` (``std_msgs/msg/String``): the full JSON answer line (forces, standard deviations,
+      ``status``, ``p_value``, ...), or the error line;
+    * ``/torchrod/contact_<k>/wrench`` (``geometry_msgs/msg/WrenchStamped``), k = 0 .. H-1 for the H contact
+      slots, in order of location from the base: the force (f_x, f_y, 0) [N] in the rod's body frame at the
+      contact (``header.frame_id`` ``torchrod_body``), torque zero; NaN when the slot holds no contact;
+    * ``/torchrod/contact_<k>/arc_length`` (``std_msgs/msg/Float64``): the contact's location s [m] from the base
+      (as reported: ``s_model + location_bias``), NaN when the slot is empty.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from .readings import Reading, quote, to_reading
+
+__all__ = ["ESTIMATE_TOPIC", "MESSAGE_TYPE", "BagSource", "BagWriter", "require_rosbags", "write_readings"]
+
+MESSAGE_TYPE = "std_msgs/msg/Float64MultiArray"
+"""The message type of a reading topic."""
+
+ESTIMATE_TOPIC = "/torchrod/estimate"
+"""The topic of the JSON answers; the contact slots' topics are ``/torchrod/contact_<k>/...``."""
+
+
+def require_rosbags() -> None:
+    """``ValueError`` with the install command when ``rosbags`` is missing."""
+    try:
+        import rosbags  # noqa: F401
+    except ImportError:
+        raise ValueError(
+            "ROS bags need the rosbags package: pip install 'torchrod[ros]' (or pip install rosbags)"
+        ) from None
+
+
+def _typestore(ros1: bool) -> Any:
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+
+
+class BagSource:
+    """The readings of ``topic`` in the bag at ``path``, in the bag's time order (module docstring).
+
+    Raises ``ValueError`` (at construction) for a path that is not a bag, a missing topic (the message lists the
+    bag's topics) or a topic of another message type."""
+
+    def __init__(self, path: str | os.PathLike, topic: str, num_gratings: int) -> None:
+        require_rosbags()
+        from rosbags.highlevel import AnyReader
+
+        self.path, self.topic, self.G = Path(path), topic, num_gratings
+        if not self.path.exists():
+            raise ValueError(f"{self.path}: no such bag")
+        try:
+            self._reader = AnyReader([self.path], default_typestore=_typestore(self.path.suffix == ".bag"))
+            self._reader.open()
+        except Exception as exc:  # noqa: BLE001 - rosbags raises its own classes for every kind of bad bag
+            raise ValueError(f"{self.path}: not a readable ROS bag ({type(exc).__name__}: {quote(str(exc))})") from None
+        self._connections = [c for c in self._reader.connections if c.topic == topic]
+        if not self._connections:
+            topics = sorted({c.topic for c in self._reader.connections})
+            self._reader.close()
+            raise ValueError(f"{self.path}: no topic {topic!r}; the bag has {quote(topics)}")
+        kinds = {c.msgtype for c in self._connections}
+        if kinds != {MESSAGE_TYPE}:
+            self._reader.close()
+            raise ValueError(f"{self.path}: topic {topic!r} holds {sorted(kinds)}, not {MESSAGE_TYPE}")
+
+    def __iter__(self) -> Iterator[Reading]:
+        try:
+            for index, (connection, stamp, raw) in enumerate(self._reader.messages(connections=self._connections)):
+                yield self._reading(index, connection, stamp, raw)
+        finally:
+            self._reader.close()
+
+    def _reading(self, index: int, connection: Any, stamp: int, raw: Any) -> Reading:
+        t = stamp * 1e-9
+        where = f"message {index} of {self.topic}"
+        try:
+            data = [float(x) for x in self._reader.deserialize(raw, connection.msgtype).data]
+        except Exception as exc:  # noqa: BLE001 - one bad message is one error answer
+            return Reading(index, t=t, error=f"{where}: cannot be decoded ({type(exc).__name__})")
+        if len(data) != 2 * self.G:
+            return Reading(
+                index,
+                t=t,
+                error=f"{where} holds {len(data)} values; the rod has {self.G} gratings: give 2G = {2 * self.G} "
+                "(ux, uy per grating, NaN for a missing one)",
+            )
+        rows = []
+        for k in range(self.G):
+            a, b = data[2 * k], data[2 * k + 1]
+            if math.isnan(a) != math.isnan(b):
+                return Reading(
+                    index, t=t, error=f"{where}: grating {k} has one NaN value: a missing grating is NaN in both"
+                )
+            rows.append(None if math.isnan(a) else [a, b])
+        reading = to_reading({"id": index, "t": t, "curvature": rows}, self.G)
+        if reading.error is not None:
+            return Reading(index, t=t, error=f"{where}: {reading.error}")
+        return reading
+
+
+class BagWriter:
+    """Estimates into a new bag (module docstring); a context manager. ``slots``: H, the contact slots written per
+    reading (the estimator's ``max_forces``, or ``num_forces``)."""
+
+    def __init__(self, path: str | os.PathLike, slots: int) -> None:
+        require_rosbags()
+        self.path, self.slots = Path(path), slots
+        if self.path.exists():
+            raise ValueError(f"{self.path} exists already: a bag is never overwritten; give a new path")
+        self.ros1 = self.path.suffix == ".bag"
+        self.store = _typestore(self.ros1)
+        if self.ros1:
+            from rosbags.rosbag1 import Writer as Writer1
+
+            self._writer = Writer1(self.path)
+        else:
+            from rosbags.rosbag2 import Writer as Writer2
+
+            self._writer = Writer2(self.path, version=9)
+        self._count = 0
+
+    def __enter__(self) -> BagWriter:
+        self._writer.open()
+        add, types = self._writer.add_connection, self.store.types
+        self._estimate = add(ESTIMATE_TOPIC, types["std_msgs/msg/String"].__msgtype__, typestore=self.store)
+        self._wrench, self._arc = [], []
+        for k in range(self.slots):
+            self._wrench.append(
+                add(f"/torchrod/contact_{k}/wrench", "geometry_msgs/msg/WrenchStamped", typestore=self.store)
+            )
+            self._arc.append(add(f"/torchrod/contact_{k}/arc_length", "std_msgs/msg/Float64", typestore=self.store))
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._writer.close()
+
+    def _put(self, connection: Any, stamp: int, message: Any) -> None:
+        kind = connection.msgtype
+        raw = self.store.serialize_ros1(message, kind) if self.ros1 else self.store.serialize_cdr(message, kind)
+        self._writer.write(connection, stamp, raw)
+
+    def write(self, record: Mapping[str, Any], t: float | None) -> None:
+        """One answer (an estimate's record or an error record, as written to the JSON lines) at time ``t`` [s]
+        (None: the answer's index in microseconds, so that the order is kept)."""
+        types = self.store.types
+        stamp = round(t * 1e9) if t is not None and math.isfinite(t) and t >= 0 else self._count * 1000
+        self._count += 1
+        sec, nsec = divmod(stamp, 10**9)
+        try:
+            text = json.dumps(record, allow_nan=False)
+        except (ValueError, TypeError, OverflowError, RecursionError):
+            text = json.dumps({"id": None, "error": "the answer cannot be written as JSON"})
+        self._put(self._estimate, stamp, types["std_msgs/msg/String"](data=text))
+        forces = record.get("forces") or []
+        header_type = types["std_msgs/msg/Header"]
+        time_type = types["builtin_interfaces/msg/Time"]
+        vector, wrench = types["geometry_msgs/msg/Vector3"], types["geometry_msgs/msg/Wrench"]
+        for k in range(self.slots):
+            nan = math.nan
+            force = forces[k] if k < len(forces) else None
+            fx, fy, s = (force["fx"], force["fy"], force["s"]) if force else (nan, nan, nan)
+            header = (
+                header_type(seq=self._count, stamp=time_type(sec=sec, nanosec=nsec), frame_id="torchrod_body")
+                if self.ros1
+                else header_type(stamp=time_type(sec=sec, nanosec=nsec), frame_id="torchrod_body")
+            )
+            message = types["geometry_msgs/msg/WrenchStamped"](
+                header=header,
+                wrench=wrench(force=vector(x=fx, y=fy, z=0.0), torque=vector(x=0.0, y=0.0, z=0.0)),
+            )
+            self._put(self._wrench[k], stamp, message)
+            self._put(self._arc[k], stamp, types["std_msgs/msg/Float64"](data=s))
+
+
+def write_readings(path: str | os.PathLike, topic: str, readings: list[tuple[float, list[Any]]]) -> None:
+    """A bag of readings (module docstring): ``(t [s], curvature)`` pairs, the curvature G ``[ux, uy]`` pairs or
+    None per grating. For tests and for making example bags; a ROS 1 bag when ``path`` ends in ``.bag``."""
+    require_rosbags()
+    import numpy as np
+
+    path = Path(path)
+    ros1 = path.suffix == ".bag"
+    store = _typestore(ros1)
+    if ros1:
+        from rosbags.rosbag1 import Writer
+    else:
+        from rosbags.rosbag2 import Writer
+    writer = Writer(path) if ros1 else Writer(path, version=9)
+    array, layout = store.types[MESSAGE_TYPE], store.types["std_msgs/msg/MultiArrayLayout"]
+    with writer:
+        connection = writer.add_connection(topic, MESSAGE_TYPE, typestore=store)
+        for t, curvature in readings:
+            data = np.array([x for pair in curvature for x in (pair if pair is not None else (math.nan, math.nan))])
+            message = array(layout=layout(dim=[], data_offset=0), data=data.astype(np.float64))
+            raw = store.serialize_ros1(message, MESSAGE_TYPE) if ros1 else store.serialize_cdr(message, MESSAGE_TYPE)
+            writer.write(connection, round(t * 1e9), raw)
