@@ -15,6 +15,16 @@ Input, one reading a line, read as it arrives (a pipe from an interrogator is fi
   around the cell are fine); ``1_000``, ``0x1f``, ``1 000`` are not numbers, and ``nan``/``inf`` are refused as not
   finite (leave a missing value's cell empty).
 
+* or a ROS bag (``--input RUN --topic TOPIC``; ``pip install "torchrod[ros]"``): ``std_msgs/Float64MultiArray``
+  messages of 2G values (ux, uy per grating, NaN for a missing one), ``t`` the bag's time stamp, ``id`` the
+  message's index (torchrod.io.rosbag). ``--output-bag OUT`` also writes the answers into a new bag:
+  ``/torchrod/estimate`` (String, the JSON answer), ``/torchrod/contact_<k>/wrench`` (WrenchStamped, body frame) and
+  ``/torchrod/contact_<k>/arc_length`` (Float64, s [m]), NaN for an empty slot.
+
+A JSON line may give ``strain`` (the core strains of the rod file's multicore ``fibre``) or ``curvature_polar``
+(``[kappa, phi]`` per grating) instead of ``curvature``; CSV says which with ``--csv-quantity``, and
+``--strain-noise`` gives the core strain noise instead of ``--noise`` (see ``torchrod estimate --help``).
+
 ``--format auto`` (the default) reads JSON lines when the first non-blank line starts with ``{``, else CSV. The
 rules for a reading are those of ``torchrod estimate`` (one parser for both): finite numbers, each curvature
 component at most 1e6 1/m in magnitude, ids that JSON can echo.
