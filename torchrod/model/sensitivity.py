@@ -313,29 +313,42 @@ def _row(order, seg, steps, jumps, active, Q, h, F, seeds, ei):
         hs = seg[e] / n if n else 0.0
         ch, k16, k4, k12, kw = 0.5 * hs, -hs * hs / 16.0, -hs * hs / 4.0, -hs * hs / 12.0, -hs / 12.0
         for _ in range(n):
-            # g(U) = |U|^2 U and its tangent 2 |U|^2 dU + U^2 conj(dU), at the three stages
-            a = u0.real * u0.real + u0.imag * u0.imag
+            # The primal stages, g(U) = |U|^2 U at each.
+            a1 = u0.real * u0.real + u0.imag * u0.imag
             q1 = u0 * u0
-            g1 = a * u0
-            t1 = [2.0 * a * y + q1 * y.conjugate() for y in du]
+            g1 = a1 * u0
             y0 = u0 + ch * w0 + k16 * g1
-            a = y0.real * y0.real + y0.imag * y0.imag
+            a2 = y0.real * y0.real + y0.imag * y0.imag
             q2 = y0 * y0
-            g2 = a * y0
-            ys = [z + ch * w + k16 * g for z, w, g in zip(du, dw, t1, strict=False)]
-            t2 = [2.0 * a * y + q2 * y.conjugate() for y in ys]
+            g2 = a2 * y0
             p0 = u0 + hs * w0
             y0 = p0 + k4 * g2
-            a = y0.real * y0.real + y0.imag * y0.imag
+            a3 = y0.real * y0.real + y0.imag * y0.imag
             q3 = y0 * y0
-            g3 = a * y0
-            ps = [z + hs * w for z, w in zip(du, dw, strict=False)]
-            ys = [p + k4 * g for p, g in zip(ps, t2, strict=False)]
-            t3 = [2.0 * a * y + q3 * y.conjugate() for y in ys]
+            g3 = a3 * y0
             u0 = p0 + k12 * (g1 + 2.0 * g2)
             w0 = w0 + kw * (g1 + 4.0 * g2 + g3)
-            du = [p + k12 * (x1 + 2.0 * x2) for p, x1, x2 in zip(ps, t1, t2, strict=False)]
-            dw = [w + kw * (x1 + 4.0 * x2 + x3) for w, x1, x2, x3 in zip(dw, t1, t2, t3, strict=False)]
+            if not du:
+                continue
+            # The step's tangent map is real-linear, the same for every column: dU' = A dU + B conj(dU) + C dW +
+            # D conj(dW), dW' likewise. Its coefficients, from the same three stages (each stage's tangent is
+            # 2 |y|^2 x + y^2 conj(x)), cost a fixed few operations; every column then costs two of those forms.
+            t1a, t1b = 2.0 * a1, q1  # stage 1's tangent of dU (no dW)
+            s2a, s2b = 1.0 + k16 * t1a, k16 * t1b  # the stage-2 point: dU + ch dW + k16 t1
+            c2 = 2.0 * a2
+            t2a, t2b = c2 * s2a + q2 * s2b.conjugate(), c2 * s2b + q2 * s2a.conjugate()
+            t2c, t2d = c2 * ch, q2 * ch
+            s3a, s3b, s3c, s3d = 1.0 + k4 * t2a, k4 * t2b, hs + k4 * t2c, k4 * t2d  # dU + hs dW + k4 t2
+            c3 = 2.0 * a3
+            t3a, t3b = c3 * s3a + q3 * s3b.conjugate(), c3 * s3b + q3 * s3a.conjugate()
+            t3c, t3d = c3 * s3c + q3 * s3d.conjugate(), c3 * s3d + q3 * s3c.conjugate()
+            ya, yb = 1.0 + k12 * (t1a + 2.0 * t2a), k12 * (t1b + 2.0 * t2b)
+            yc, yd = hs + k12 * 2.0 * t2c, k12 * 2.0 * t2d
+            wa, wb = kw * (t1a + 4.0 * t2a + t3a), kw * (t1b + 4.0 * t2b + t3b)
+            wc, wd = 1.0 + kw * (4.0 * t2c + t3c), kw * (4.0 * t2d + t3d)
+            pairs = [(y, y.conjugate(), w, w.conjugate()) for y, w in zip(du, dw, strict=True)]
+            du = [ya * y + yb * yy + yc * w + yd * ww for y, yy, w, ww in pairs]
+            dw = [wa * y + wb * yy + wc * w + wd * ww for y, yy, w, ww in pairs]
         if idx < h:
             started = True
             w0 += jumps[idx]
