@@ -206,3 +206,16 @@ def test_strain_noise_option_errors(tmp_path: Path, capsys, fibre_rod):
     fibre_rod.to_json(rod_file)
     assert main(["estimate", "--rod", str(rod_file), str(path), "--strain-noise", "1e-6", "--noise", "0.1"]) == 2
     assert "not both" in capsys.readouterr().err
+
+
+def test_evaluate_through_fibre_keeps_the_curvature_and_implies_its_sigma():
+    """``torchrod evaluate --input strain``: the common strain leaves no trace, and the strain noise implies the
+    row's curvature sigma."""
+    from torchrod.cli.commands.evaluate import EVALUATION_FIBRE, through_fibre
+
+    fibre = Fibre(cores=EVALUATION_FIBRE)
+    clean = torch.randn(4000, 14, 2, dtype=F64, generator=torch.Generator().manual_seed(5))
+    assert torch.allclose(through_fibre(clean, 0.0, fibre, seed=1), clean, rtol=0, atol=1e-9)
+    noise = through_fibre(clean, 0.3, fibre, seed=2) - clean
+    assert float(noise.std()) == pytest.approx(0.3, rel=0.02)
+    assert abs(float(noise.mean())) < 0.01
