@@ -42,6 +42,8 @@ from typing import Any
 
 import torch
 
+from ..estimate.noise import NoiseLearning, RunningNoise
+from ..estimate.status import STATUSES
 from ..loads import PointForces
 from .readings import Reading, stack_readings, to_reading
 
@@ -101,6 +103,10 @@ class StreamOptions:
             they are nearly free, and without a warm-start network they lift the count accuracy (0.62 to 0.84 on
             a hard stretch of the synthetic trajectory, batches of 8).
         device: torch device the readings are estimated on.
+        learn_noise: with no noise given (neither the estimator's ``noise`` nor an override), learn the sensor's
+            sigma from the stream's own fits (:mod:`torchrod.estimate.noise`) and, once learned, solve every
+            reading with it as a known noise: faster (counts settle early) and as accurate as with the true sigma.
+            None: every reading estimates its own noise.
     """
 
     batch_size: int = 64
@@ -109,8 +115,11 @@ class StreamOptions:
     track: bool = True
     track_limit: int = 16
     device: str | torch.device = "cpu"
+    learn_noise: NoiseLearning | None = NoiseLearning()
 
     def __post_init__(self) -> None:
+        if self.learn_noise is not None and not isinstance(self.learn_noise, NoiseLearning):
+            raise TypeError(f"learn_noise must be NoiseLearning or None, got {type(self.learn_noise).__name__}")
         for name in ("batch_size", "read_ahead", "track_limit"):
             v = getattr(self, name)
             if v is None and name == "read_ahead":
@@ -194,6 +203,11 @@ class _Stream:
         self.previous: PointForces | None = None
         self.finished = False
         self.error: BaseException | None = None
+        base = getattr(estimator, "options", None)
+        given = overrides.get("noise", getattr(base, "noise", None))
+        learn = options.learn_noise is not None and given is None and getattr(base, "selection", "noise") == "noise"
+        self.noise = RunningNoise(options.learn_noise) if learn else None
+        self.max_noise = float(overrides.get("max_noise", getattr(base, "max_noise", math.inf)))
         # Started by the first ``next``: a stream that is never iterated takes nothing from its source.
         self.thread = threading.Thread(target=_reader, args=(self, readings), daemon=True)
         self.source = readings
@@ -281,18 +295,35 @@ class _Stream:
         and (None, 0, None, message) for one that fails alone too (the stream goes on)."""
         curvature, mask = stack_readings([p.reading for p in good])
         curvature, mask = curvature.to(self.device), mask.to(self.device)
+        overrides, learned = self.overrides, self.learned_noise
+        if learned is not None:
+            overrides = {**overrides, "noise": learned}
         try:
             result = self.estimator.estimate(
-                curvature, mask, extra_starts=self._tracking_starts(len(good)), **self.overrides
+                curvature, mask, extra_starts=self._tracking_starts(len(good)), **overrides
             )
         except Exception as exc:  # noqa: BLE001 - a reading that breaks the solver must not stop the stream
             if len(good) == 1:
                 return [(None, 0, None, f"estimation failed: {_exception_text(exc)}")]
             return [a for k in range(len(good)) for a in self._estimate(good[k : k + 1])]
         records = result.to_records([p.reading.id for p in good])
+        if learned is not None:
+            for rec in records:
+                rec["noise"] = learned
+        if self.noise is not None:
+            use = result.status != STATUSES.index("unconverged")
+            dof = 2 * mask.sum(1) - 3 * result.num_forces.to(mask.device)
+            self.noise.add(result.loss[use].tolist(), dof[use].tolist())
         if self.options.track:
             self.previous = _last_solution(result)
         return [(result, k, rec, None) for k, rec in enumerate(records)]
+
+    @property
+    def learned_noise(self) -> float | None:
+        """The sigma learned from the stream [1/m] once there is one the verdict believes (at most the estimator's
+        ``max_noise``), else None."""
+        sigma = self.noise.sigma if self.noise is not None else None
+        return sigma if sigma is not None and sigma <= self.max_noise else None
 
     def _tracking_starts(self, B: int) -> dict[int, PointForces] | None:
         """The last solution as starts for every reading of the batch: its count h, and h - 1 without its weakest
@@ -480,6 +511,8 @@ class StreamStats:
         self.right = 0  # ... whose count is right
         self._force = _Quantiles(1e-7, 1e3)
         self._location = _Quantiles(1e-9, 1e2)
+        self.learned_noise: float | None = None  # the last sigma learned from the stream [1/m]
+        self.learned_from: int | None = None  # the first reading (1-based) solved with a learned sigma
 
     def add(self, result: StreamResult, truth: Sequence[tuple[float, float, float]] | None = None) -> None:
         """Count ``result``; ``truth``: the reading's true forces as (s [m], fx [N], fy [N]), any order."""
@@ -487,6 +520,10 @@ class StreamStats:
         if not result.ok:
             self.errors += 1
             return
+        if "noise" in result.record:
+            self.learned_noise = result.record["noise"]
+            if self.learned_from is None:
+                self.learned_from = self.readings
         self._latency.add(result.latency)
         self._solve.add(max(result.solve_time, 1e-7))
         self.busy += result.solve_time / max(1, result.batch)
@@ -540,6 +577,11 @@ class StreamStats:
                     "estimation, and a source no faster than the solver sees about a small batch's solve time plus "
                     "the batching wait"
                 )
+        if self.learned_noise is not None:
+            lines.append(
+                f"noise learned from the stream: sigma {self.learned_noise:.4g} 1/m (last value), used from reading "
+                f"{self.learned_from} on"
+            )
         if self.judged:
             lines.append(
                 f"against the truth ({self.judged} readings): count accuracy {100 * self.count_accuracy:.1f}%"

@@ -12,6 +12,9 @@ the same readings five ways, in one run:
   the trajectory, one call each (latency: the call's wall time);
 * ``stream, backlog``: :func:`torchrod.stream.stream` over all readings available at once (throughput; latency is
   then mostly the wait in the read-ahead queue);
+* ``stream, backlog, noise learned`` and ``noise per reading``: the same backlog with an estimator told no noise,
+  which the stream learns from its fits (:mod:`torchrod.estimate.noise`, the default) or, as before that existed,
+  each reading estimates alone;
 * ``stream, paced``: the first ``--paced`` readings, the source releasing reading k at k / ``--pace`` seconds (as an
   interrogator would; default: the trajectory's own rate, real time); latency from release to answer, batches
   closed by ``--max-latency-ms``;
@@ -272,7 +275,8 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"# torchrod bench stream: {count} readings of a {args.rate:g} Hz trajectory "
         f"({', '.join(f'{sum(c == h for c in counts)} with {h}' for h in sorted(set(counts)))} forces), "
-        f"noise {args.noise:g} 1/m (known), count chosen in 0..{estimator.options.max_forces}, "
+        f"noise {args.noise:g} 1/m (known but where a row says otherwise), "
+        f"count chosen in 0..{estimator.options.max_forces}, "
         f"network {network_name}, torch threads {torch.get_num_threads()}"
     )
     print(
@@ -294,6 +298,13 @@ def run(args: argparse.Namespace) -> int:
     row = _Row(f"stream, backlog (B<={B})")
     _timed(row, stream(estimator, items, options), truth)
     rows.append(row)
+
+    # The same backlog from an estimator told no noise: learned from the stream's fits, and estimated per reading.
+    blind = Estimator(rod, _options(None, args.set, network), warm_start=network)
+    for name, learn in (("learned", options.learn_noise), ("per reading", None)):
+        row = _Row(f"stream, backlog, noise {name}")
+        _timed(row, stream(blind, items, dataclasses.replace(options, learn_noise=learn)), truth)
+        rows.append(row)
 
     row = _Row(f"stream, paced {pace:g} Hz")
     _timed(row, stream(estimator, _paced(items[:paced], pace), options), truth)

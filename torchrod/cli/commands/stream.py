@@ -39,7 +39,10 @@ its answer). Readings are solved in batches of up to ``--batch-size``, a batch c
 has waited ``--max-latency-ms``. Each reading starts from the scan of the estimator, the warm-start network's guess
 and the previous reading's solution (as in ``Estimator.from_checkpoint``, a network adds starts, never replaces the
 scan); the number of forces is chosen among 0..``--max-forces`` (``--noise``: the sensor's
-sigma [1/m]; without it the noise is estimated per reading). ``--checkpoint`` defaults to the shipped
+sigma [1/m]). Without ``--noise`` the stream learns the sigma from its own fits (the median of each fit's loss over
+its chi-square median, torchrod.estimate.noise): the first 32 fits estimate the noise per reading, every later batch
+uses the learned sigma as a known noise and its answers carry it as ``"noise"`` [1/m]; ``--per-reading-noise`` keeps
+estimating it per reading instead. ``--checkpoint`` defaults to the shipped
 ``checkpoints/nitinol290.pt`` when the rod's grating layout matches it, else the stream runs without a network (said
 once on stderr); ``--checkpoint none`` turns the network off. ``--out FILE`` writes the answers to FILE.
 
@@ -73,6 +76,7 @@ from typing import Any
 
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.lm import LMPolicy
+from ...estimate.noise import NoiseLearning
 from ...io.jsonl import (
     LineWriter,
     check_input,
@@ -128,7 +132,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--max-latency-ms", type=float, default=20.0, metavar="MS", help="longest wait for a batch (20 ms)"
     )
     parser.add_argument("--max-forces", type=int, default=3, metavar="H", help="choose the count in 0..H (3)")
-    parser.add_argument("--noise", type=float, metavar="SIGMA", help="sensor noise sigma [1/m]; default: estimated")
+    parser.add_argument(
+        "--noise", type=float, metavar="SIGMA", help="sensor noise sigma [1/m]; default: learned from the stream"
+    )
+    parser.add_argument(
+        "--per-reading-noise",
+        action="store_true",
+        help="without --noise, estimate each reading's noise alone instead of learning one sigma from the stream",
+    )
     parser.add_argument(
         "--iterations",
         type=int,
@@ -224,7 +235,11 @@ def _run(args: argparse.Namespace) -> int:
     # As Estimator.from_checkpoint: the network's guesses are starts beside the scan's.
     options = EstimatorOptions(max_forces=args.max_forces, noise=args.noise, lm=LMPolicy(iterations=args.iterations))
     estimator = Estimator(rod, options, warm_start=network)
-    options = StreamOptions(batch_size=args.batch_size, max_latency=args.max_latency_ms / 1e3)
+    options = StreamOptions(
+        batch_size=args.batch_size,
+        max_latency=args.max_latency_ms / 1e3,
+        learn_noise=None if args.per_reading_noise else NoiseLearning(),
+    )
     # Warm-up before the first reading: per-rod caches and first-call costs would otherwise land on its latency.
     warm_up(estimator)
     source = read_stream(args.input, rod, args.format, quantity=args.csv_quantity, topic=args.topic)

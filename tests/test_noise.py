@@ -1,0 +1,128 @@
+"""The noise a stream learns from its own fits (torchrod.estimate.noise) and how the stream uses it."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torchrod as tr
+from torchrod.estimate.noise import NoiseLearning, RunningNoise
+from torchrod.io.stream import StreamOptions, stream
+
+
+def _fits(rng: np.random.Generator, sigma: float, n: int) -> tuple[list[float], list[int]]:
+    """Losses of n correct fits: sigma^2 chi2(dof), dof as for 14 gratings (some missing) and 0 to 3 forces."""
+    dof = rng.choice([28, 26, 25, 22, 19, 16], size=n).tolist()
+    return (sigma**2 * rng.chisquare(dof)).tolist(), dof
+
+
+def test_running_noise_is_right_and_robust():
+    rng = np.random.default_rng(0)
+    est = RunningNoise(NoiseLearning(after=50, window=2000))
+    loss, dof = _fits(rng, 0.2, 49)
+    est.add(loss, dof)
+    assert est.sigma is None  # not before `after` fits
+    loss, dof = _fits(rng, 0.2, 1451)
+    # A quarter of the fits are gross misfits (a force missed, a reading no force explains): the median ignores them.
+    bad = [100.0 * x for x in rng.uniform(1.0, 50.0, size=500).tolist()]
+    est.add(loss + bad, dof + [20] * len(bad))
+    assert est.count == 2000  # the window keeps the latest 2000 (here all)
+    assert est.sigma == pytest.approx(0.2, rel=0.12)
+    clean = RunningNoise(NoiseLearning(after=50, window=2000))
+    clean.add(*_fits(rng, 0.2, 1500))
+    assert clean.sigma == pytest.approx(0.2, rel=0.03)
+
+
+def test_running_noise_skips_unusable_fits_and_follows_a_drift():
+    est = RunningNoise(NoiseLearning(after=2, window=100))
+    est.add([1.0, math.nan, math.inf, 1.0, -1.0], [0, 10, 10, -3, 10])
+    assert est.count == 0 and est.used == 0
+    rng = np.random.default_rng(1)
+    est.add(*_fits(rng, 0.1, 300))
+    assert est.sigma == pytest.approx(0.1, rel=0.1)
+    est.add(*_fits(rng, 0.3, 100))  # the window (100) now holds only the new sensor's fits
+    assert est.sigma == pytest.approx(0.3, rel=0.1)
+    assert est.used == 400
+    with pytest.raises(ValueError, match="mismatch|zip|length|argument"):
+        est.add([1.0, 2.0], [10])
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"after": 0}, "after"),
+        ({"window": 0}, "window"),
+        ({"after": 10, "window": 5}, "window"),
+        ({"after": 2.5}, "after"),
+    ],
+)
+def test_learning_options_are_checked(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        NoiseLearning(**kwargs)
+    with pytest.raises(TypeError, match="learn_noise"):
+        StreamOptions(learn_noise=32)
+
+
+def test_a_stream_without_noise_learns_it_and_answers_like_the_true_noise():
+    """Readings of one and two forces at sigma 0.2, the estimator told no noise: the first batch estimates the noise
+    per reading, every later batch uses the sigma learned from the fits before it, close to the true one, and counts
+    as the estimator told the true sigma does."""
+    rod = tr.presets.nitinol290()
+    sigma, n = 0.2, 90
+    g = torch.Generator().manual_seed(3)
+    s = 0.08 + 0.2 * torch.rand(n, 2, generator=g, dtype=torch.float64)
+    f = 0.4 + 0.6 * torch.rand(n, 2, 2, generator=g, dtype=torch.float64)
+    mask = torch.ones(n, 2, dtype=torch.bool)
+    mask[::2, 1] = False  # every other reading has one force
+    s[:, 1] = torch.where(mask[:, 1], s[:, 1], s[:, 0])
+    loads = tr.PointForces(s, f, mask)
+    u = tr.simulate(rod, loads).grating_curvature
+    u = u + sigma * torch.randn(u.shape, generator=g, dtype=u.dtype)
+    lines = [{"id": k, "curvature": u[k].tolist()} for k in range(n)]
+    options = StreamOptions(batch_size=30, track=False, learn_noise=NoiseLearning(after=20))
+
+    learned = list(stream(tr.Estimator(rod, tr.EstimatorOptions(max_forces=2)), lines, options))
+    assert all("noise" not in r.record for r in learned[:30])
+    used = [r.record["noise"] for r in learned[30:]]
+    assert len(used) == 60 and all(v == pytest.approx(sigma, rel=0.15) for v in used)
+    known = list(stream(tr.Estimator(rod, tr.EstimatorOptions(max_forces=2, noise=sigma)), lines, options))
+    assert all("noise" not in r.record for r in known)  # a noise given is never replaced
+    same = sum(a.record["num_forces"] == b.record["num_forces"] for a, b in zip(learned[30:], known[30:], strict=True))
+    assert same >= 58
+    off = StreamOptions(batch_size=30, track=False, learn_noise=None)
+    unknown = list(stream(tr.Estimator(rod, tr.EstimatorOptions(max_forces=2)), lines[:40], off))
+    assert all("noise" not in r.record for r in unknown)
+
+
+def test_cli_stream_learns_the_noise_unless_told(tmp_path, capsys):
+    """``torchrod stream`` without ``--noise``: answers after the first fits carry the learned sigma and the summary
+    says from which reading it was used; ``--per-reading-noise`` and ``--noise`` learn nothing."""
+    from torchrod.cli import main
+
+    rod = tr.presets.nitinol290()
+    n = 50
+    g = torch.Generator().manual_seed(5)
+    loads = tr.PointForces(
+        0.1 + 0.15 * torch.rand(n, 1, generator=g, dtype=torch.float64),
+        0.5 + 0.5 * torch.rand(n, 1, 2, generator=g, dtype=torch.float64),
+    )
+    u = tr.simulate(rod, loads).grating_curvature
+    u = u + 0.1 * torch.randn(u.shape, generator=g, dtype=u.dtype)
+    path = tmp_path / "in.jsonl"
+    path.write_text("".join(json.dumps({"id": k, "curvature": u[k].tolist()}) + "\n" for k in range(n)))
+    base = ["stream", "--rod", "nitinol290", "--checkpoint", "none", "--input", str(path), "--batch-size", "40"]
+    assert main([*base, "--summary"]) == 0
+    cap = capsys.readouterr()
+    records = [json.loads(line) for line in cap.out.splitlines()]
+    assert len(records) == n and all("noise" not in r for r in records[:40])
+    assert all(r["noise"] == pytest.approx(0.1, rel=0.2) for r in records[40:])
+    assert "noise learned from the stream: sigma" in cap.err and "used from reading 41 on" in cap.err
+    for extra in (["--per-reading-noise"], ["--noise", "0.1"]):
+        assert main([*base, *extra, "--summary"]) == 0
+        cap = capsys.readouterr()
+        assert not any("noise" in json.loads(line) for line in cap.out.splitlines())
+        assert "noise learned" not in cap.err

@@ -1,0 +1,80 @@
+"""The sensor's noise learned from the fits themselves: a running robust estimate for streams.
+
+A reading whose noise is not given is tested with the F law against a sigma estimated from that reading alone
+(:mod:`.selection`). This costs accuracy (the F law's quantiles are wider than the chi-square law's) and time (a
+count is never settled early, so every count is fitted). A stream comes from one sensor, so its sigma can be
+learned once from the stream and then used as a known noise.
+
+The estimate: a correct fit of h forces to n residuals leaves ``loss ~ sigma^2 chi2(n - 3h)`` (:mod:`.selection`),
+so each fit gives ``loss / median(chi2(n - 3h))``, whose median over fits is sigma^2 (exactly when every fit has the
+same degrees of freedom, and to within a few percent when gratings are missing now and then). The median ignores
+the fits that are not correct (a misfit, a force missed) as long as they are fewer than half. Fits without degrees
+of freedom left, and unconverged ones, are not used. Only the most recent ``window`` fits count, so a sensor whose
+noise drifts slowly is followed.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+from .selection import chi2_quantile
+
+__all__ = ["NoiseLearning", "RunningNoise"]
+
+
+@dataclass(frozen=True)
+class NoiseLearning:
+    """How a stream learns its noise (module docstring).
+
+    Attributes:
+        after: fits used before the estimate is (until then every reading estimates its own noise).
+        window: the most recent fits the estimate is made from.
+    """
+
+    after: int = 32
+    window: int = 1000
+
+    def __post_init__(self) -> None:
+        for name in ("after", "window"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+        if self.window < self.after:
+            raise ValueError(f"window ({self.window}) must be at least after ({self.after})")
+
+
+class RunningNoise:
+    """The running estimate (module docstring): :meth:`add` the chosen fits, read :attr:`sigma`."""
+
+    def __init__(self, learning: NoiseLearning = NoiseLearning()) -> None:
+        self.learning = learning
+        self._ratios: collections.deque[float] = collections.deque(maxlen=learning.window)
+        self.used = 0  # fits added in all
+
+    def add(self, loss: Iterable[float], dof: Iterable[int]) -> None:
+        """Add fits: their losses [1/m^2] and degrees of freedom (residuals less 3 per force); fits with no
+        degree of freedom or a non-finite loss are skipped."""
+        for x, d in zip(loss, dof, strict=True):
+            d = int(d)
+            if d <= 0 or not math.isfinite(float(x)) or float(x) < 0.0:
+                continue
+            self._ratios.append(float(x) / chi2_quantile(0.5, d))
+            self.used += 1
+
+    @property
+    def count(self) -> int:
+        """Fits the current estimate is made from."""
+        return len(self._ratios)
+
+    @property
+    def sigma(self) -> float | None:
+        """The estimate [1/m], or None before ``learning.after`` fits."""
+        if len(self._ratios) < self.learning.after:
+            return None
+        ordered = sorted(self._ratios)
+        n = len(ordered)
+        mid = ordered[n // 2] if n % 2 else 0.5 * (ordered[n // 2 - 1] + ordered[n // 2])
+        return math.sqrt(mid)
