@@ -83,7 +83,7 @@ def test_a_stream_without_noise_learns_it_and_answers_like_the_true_noise():
     u = tr.simulate(rod, loads).grating_curvature
     u = u + sigma * torch.randn(u.shape, generator=g, dtype=u.dtype)
     lines = [{"id": k, "curvature": u[k].tolist()} for k in range(n)]
-    options = StreamOptions(batch_size=30, track=False, learn_noise=NoiseLearning(after=20))
+    options = StreamOptions(batch_size=30, max_latency=10.0, track=False, learn_noise=NoiseLearning(after=20))
 
     learned = list(stream(tr.Estimator(rod, tr.EstimatorOptions(max_forces=2)), lines, options))
     assert all("noise" not in r.record for r in learned[:30])
@@ -114,7 +114,19 @@ def test_cli_stream_learns_the_noise_unless_told(tmp_path, capsys):
     u = u + 0.1 * torch.randn(u.shape, generator=g, dtype=u.dtype)
     path = tmp_path / "in.jsonl"
     path.write_text("".join(json.dumps({"id": k, "curvature": u[k].tolist()}) + "\n" for k in range(n)))
-    base = ["stream", "--rod", "nitinol290", "--checkpoint", "none", "--input", str(path), "--batch-size", "40"]
+    base = [
+        "stream",
+        "--rod",
+        "nitinol290",
+        "--checkpoint",
+        "none",
+        "--input",
+        str(path),
+        "--batch-size",
+        "40",
+        "--max-latency-ms",
+        "10000",
+    ]
     assert main([*base, "--summary"]) == 0
     cap = capsys.readouterr()
     records = [json.loads(line) for line in cap.out.splitlines()]

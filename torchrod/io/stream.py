@@ -5,8 +5,9 @@ iterable of readings and yields one result per reading, in input order, as soon 
 
 - a reader thread pulls the input into a bounded queue, so a slow source never holds a batch back;
 - readings are gathered into batches, closed when ``batch_size`` readings are pending or when the oldest pending
-  reading has waited ``max_latency`` seconds; readings that queued up while a batch was being solved all join the
-  next one (up to ``batch_size``), so under load batches grow instead of falling behind;
+  reading has waited ``max_latency`` seconds (by default 0: a reading that finds the estimator idle is solved at
+  once); readings that queued up while a batch was being solved all join the next one (up to ``batch_size``), so
+  under load batches form by themselves and grow instead of falling behind;
 - each reading starts from the warm-start network's guess (when the estimator has one), from the grid scan
   (unless the estimator's ``starts=0``), and, in batches of at most ``track_limit`` readings, from the forces of
   the last solved reading (loads change slowly between frames: the count it chose, and that count less its
@@ -93,7 +94,8 @@ class StreamOptions:
     Attributes:
         batch_size: the most readings solved together.
         max_latency: [s] the longest the oldest pending reading waits for more readings before its batch is
-            solved (0: solve whatever is available at once).
+            solved (0, the default: solve whatever is available at once; a wait lets a fast source fill larger
+            batches at the cost of latency).
         read_ahead: bound on readings taken from the source and queued beyond the pending batch; None: twice
             ``batch_size`` (with less, a backlog cannot fill whole batches: a batch takes what is queued).
         track: start the readings of a batch from the last solved reading's forces too, when the batch holds
@@ -110,7 +112,7 @@ class StreamOptions:
     """
 
     batch_size: int = 64
-    max_latency: float = 0.02
+    max_latency: float = 0.0
     read_ahead: int | None = None
     track: bool = True
     track_limit: int = 16

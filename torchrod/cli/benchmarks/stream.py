@@ -63,7 +63,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--noise", type=float, default=0.1, help="sensor sigma [1/m] (default 0.1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the trajectory (default 0)")
     parser.add_argument("--batch-size", type=int, default=64, help="readings per batch (default 64)")
-    parser.add_argument("--max-latency-ms", type=float, default=20.0, help="stream latency bound (default 20)")
+    parser.add_argument("--max-latency-ms", type=float, default=0.0, help="stream batching wait (default 0)")
     parser.add_argument(
         "--pace", type=float, default=None, help="paced stream release rate [Hz] (default: --rate, real time)"
     )
@@ -115,7 +115,7 @@ class _Row:
         per_batch = solved / s.batches if s.batches else math.nan
         ferr, serr = (s.force_error(), 1e3 * s.location_error()) if s.right else (math.nan, math.nan)
         return (
-            f"{self.name:<28} | {n:>6} {n / self.wall:>7.0f} {1e3 * self.cpu / n:>7.2f} | "
+            f"{self.name:<34} | {n:>6} {n / self.wall:>7.0f} {1e3 * self.cpu / n:>7.2f} | "
             f"{1e3 * s.latency(0.5):>7.1f} {1e3 * s.latency(0.99):>7.1f} | {per_batch:>6.1f} | "
             f"{100 * s.count_accuracy:>6.1f}% {ferr:>8.4f} {serr:>7.2f}"
         )
@@ -316,7 +316,7 @@ def run(args: argparse.Namespace) -> int:
     rows.append(row)
 
     print(
-        f"{'way':<28} | {'rd':>6} {'rd/s':>7} {'cpu ms':>7} | {'lat ms':>7} {'p99':>7} | {'rd/bt':>6} | "
+        f"{'way':<34} | {'rd':>6} {'rd/s':>7} {'cpu ms':>7} | {'lat ms':>7} {'p99':>7} | {'rd/bt':>6} | "
         f"{'count':>7} {'f err N':>8} {'s err mm':>7}"
     )
     for row in rows:

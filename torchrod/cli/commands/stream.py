@@ -35,16 +35,17 @@ Output: one JSON line per input line, in input order, each written and flushed a
      "p_value", "loss", "converged", "iterations", "poorly_determined", "t", "latency_ms"}
 
 (the fields of ``torchrod estimate``; ``t`` echoed when given; ``latency_ms`` from the moment the line was read to
-its answer). Readings are solved in batches of up to ``--batch-size``, a batch closing when the oldest reading in it
-has waited ``--max-latency-ms``. Each reading starts from the scan of the estimator, the warm-start network's guess
-and the previous reading's solution (as in ``Estimator.from_checkpoint``, a network adds starts, never replaces the
-scan); the number of forces is chosen among 0..``--max-forces`` (``--noise``: the sensor's
-sigma [1/m]). Without ``--noise`` the stream learns the sigma from its own fits (the median of each fit's loss over
-its chi-square median, torchrod.estimate.noise): the first 32 fits estimate the noise per reading, every later batch
+its answer). Readings are solved in batches of up to ``--batch-size``: a line that finds the estimator idle is
+solved at once, and lines that arrive while a batch is solved form the next batch (``--max-latency-ms`` MS makes a
+batch wait up to MS for more lines). Each reading starts from the scan of the estimator, the warm-start network's
+guess and the previous reading's solution (as in ``Estimator.from_checkpoint``, a network adds starts, never
+replaces the scan); the number of forces is chosen among 0..``--max-forces`` (``--noise``: the sensor's sigma
+[1/m]). Without ``--noise`` the stream learns the sigma from its own fits (the median of each fit's loss over its
+chi-square median, torchrod.estimate.noise): the first 32 fits estimate the noise per reading, every later batch
 uses the learned sigma as a known noise and its answers carry it as ``"noise"`` [1/m]; ``--per-reading-noise`` keeps
-estimating it per reading instead. ``--checkpoint`` defaults to the shipped
-``checkpoints/nitinol290.pt`` when the rod's grating layout matches it, else the stream runs without a network (said
-once on stderr); ``--checkpoint none`` turns the network off. ``--out FILE`` writes the answers to FILE.
+estimating it per reading instead. ``--checkpoint`` defaults to the shipped ``checkpoints/nitinol290.pt`` when the
+rod's grating layout matches it, else the stream runs without a network (said once on stderr); ``--checkpoint none``
+turns the network off. ``--out FILE`` writes the answers to FILE.
 
 Every non-blank input line gets exactly one output line (a CSV header excepted). A line that cannot be used (bad
 JSON or CSV, a wrong number of gratings, NaN, a value out of bounds, all gratings missing) gives
@@ -129,7 +130,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="FILE", help="write the answers to FILE (default: standard output)")
     parser.add_argument("--batch-size", type=int, default=64, metavar="B", help="most readings per batch (64)")
     parser.add_argument(
-        "--max-latency-ms", type=float, default=20.0, metavar="MS", help="longest wait for a batch (20 ms)"
+        "--max-latency-ms",
+        type=float,
+        default=0.0,
+        metavar="MS",
+        help="longest wait for more lines before a batch is solved (default 0)",
     )
     parser.add_argument("--max-forces", type=int, default=3, metavar="H", help="choose the count in 0..H (3)")
     parser.add_argument(
