@@ -4,6 +4,10 @@
 E = 67 GPa (EI about 7.39e-3 N m^2), FBG gratings every 20 mm at 10, 30, ..., 270 mm (14 gratings).
 Its calibrated location bias is -3.12 mm; the preset ships with ``location_bias=0`` (an uncalibrated rod) and
 ``nitinol290(calibrated=True)`` carries the paper's value.
+
+``ctr250`` is a precurved tube of a concentric-tube robot: the same Nitinol cross-section, L = 250 mm, straight
+for the first 150 mm and then curved at 12 1/m about its d1 axis (u* = (12, 0) 1/m) to the tip, nu = 0.33 (GJ =
+EI / 1.33), gratings every 20 mm at 10, 30, ..., 230 mm (12 gratings).
 """
 
 from __future__ import annotations
@@ -12,7 +16,7 @@ import os
 
 from .rod import Rod
 
-__all__ = ["PAPER_LOCATION_BIAS", "PRESETS", "get", "load", "nitinol290"]
+__all__ = ["PAPER_LOCATION_BIAS", "PRESETS", "ctr250", "get", "load", "nitinol290"]
 
 PAPER_LOCATION_BIAS = -3.12e-3  # [m], the paper's calibrated s_bias
 
@@ -29,7 +33,20 @@ def nitinol290(calibrated: bool = False) -> Rod:
     )
 
 
-PRESETS = {"nitinol290": nitinol290}
+def ctr250() -> Rod:
+    """A precurved 250 mm Nitinol tube: straight to 150 mm, then 12 1/m to the tip; 12 gratings at 10..230 mm."""
+    return Rod.from_geometry(
+        length=0.25,
+        outer_diameter=1.397e-3,
+        inner_diameter=1.118e-3,
+        youngs_modulus=67e9,
+        gratings=[(10 + 20 * k) * 1e-3 for k in range(12)],
+        poisson_ratio=0.33,
+        intrinsic_curvature=[{"from": 0.15, "to": 0.25, "u": [12.0, 0.0]}],
+    )
+
+
+PRESETS = {"nitinol290": nitinol290, "ctr250": ctr250}
 
 
 def get(name: str) -> Rod:

@@ -25,7 +25,11 @@ if TYPE_CHECKING:  # torch is imported where a tensor is made: a rod file can be
 
     from .sensors import Fibre
 
-__all__ = ["AGREEMENT", "Rod", "tube_bending_stiffness"]
+__all__ = ["AGREEMENT", "DEFAULT_POISSON_RATIO", "Rod", "tube_bending_stiffness"]
+
+DEFAULT_POISSON_RATIO = 0.33
+"""nu for the torsional stiffness GJ = EI / (1 + nu) of a tube when the rod gives neither ``poisson_ratio`` nor
+``torsional_stiffness`` (a straight rod never twists under follower forces, so there it changes nothing)."""
 
 AGREEMENT = 1e-9
 """Relative tolerance within which a given ``bending_stiffness`` and the one the geometry gives must agree."""
@@ -138,7 +142,13 @@ class Rod:
         location_bias: the paper's s_bias [m]; reported locations are ``s_model + location_bias``.
         outer_diameter, inner_diameter: tube diameters [m], if the stiffness came from geometry.
         youngs_modulus: E [Pa], if the stiffness came from geometry.
-        poisson_ratio: nu, optional (torsion never enters the model: see ``docs/physics.md``, erratum 2).
+        poisson_ratio: nu, optional: the torsional stiffness is GJ = EI / (1 + nu) (nu = ``DEFAULT_POISSON_RATIO``
+            when neither it nor ``torsional_stiffness`` is given). Torsion enters only a precurved rod: a straight
+            one never twists under follower forces (``docs/physics.md``, erratum 2).
+        torsional_stiffness: GJ [N m^2] given directly, instead of ``poisson_ratio``.
+        intrinsic_curvature: the unloaded rod's body-frame curvature u* [1/m], piecewise constant: segments
+            ``(from, to, ux, uy)`` ([m], [m], [1/m], [1/m]), sorted and not overlapping, zero elsewhere; JSON
+            ``[{"from": s0, "to": s1, "u": [ux, uy]}, ...]``. A rod without any is straight.
         fibre: a multicore shape-sensing fibre (:class:`torchrod.sensors.Fibre`, or its JSON form
             ``{"cores": [[x, y], ...]}``), optional: needed only for readings given as core strains.
 
@@ -158,6 +168,8 @@ class Rod:
     youngs_modulus: float | None = None
     poisson_ratio: float | None = None
     fibre: Fibre | None = None
+    torsional_stiffness: float | None = None
+    intrinsic_curvature: tuple[tuple[float, float, float, float], ...] = ()
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -201,6 +213,14 @@ class Rod:
 
             if not isinstance(self.fibre, Fibre):
                 set_(self, "fibre", Fibre.from_dict(self.fibre))
+        if self.torsional_stiffness is not None:
+            if self.poisson_ratio is not None:
+                raise ValueError(
+                    f"give poisson_ratio ({_show(self.poisson_ratio)}) or torsional_stiffness "
+                    f"({_show(self.torsional_stiffness)} N m^2), not both"
+                )
+            set_(self, "torsional_stiffness", _positive("torsional_stiffness", self.torsional_stiffness, " [N m^2]"))
+        set_(self, "intrinsic_curvature", _check_intrinsic(self.intrinsic_curvature, length))
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -214,6 +234,8 @@ class Rod:
         location_bias: float = 0.0,
         poisson_ratio: float | None = None,
         fibre: Fibre | Mapping[str, Any] | None = None,
+        torsional_stiffness: float | None = None,
+        intrinsic_curvature: Any = (),
     ) -> Rod:
         """A tube of the given diameters [m] and Young's modulus [Pa]; EI follows from them."""
         d_out, d_in, e, ei = _geometry_stiffness(outer_diameter, inner_diameter, youngs_modulus)
@@ -227,13 +249,16 @@ class Rod:
             youngs_modulus=e,
             poisson_ratio=poisson_ratio,
             fibre=fibre,
+            torsional_stiffness=torsional_stiffness,
+            intrinsic_curvature=intrinsic_curvature,
         )
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Rod:
         """From the JSON form (SI units): ``length``, ``gratings``, ``location_bias`` (optional), and
         ``bending_stiffness`` or ``outer_diameter`` + ``inner_diameter`` + ``youngs_modulus`` (or both, if they
-        agree to ``AGREEMENT``), ``poisson_ratio`` (optional), ``fibre`` (optional: ``{"cores": [[x, y], ...]}``).
+        agree to ``AGREEMENT``), ``poisson_ratio`` or ``torsional_stiffness`` (optional), ``fibre`` (optional:
+        ``{"cores": [[x, y], ...]}``), ``intrinsic_curvature`` (optional: ``[{"from", "to", "u": [ux, uy]}, ...]``).
         Unknown keys are refused (a misspelt key would otherwise be ignored)."""
         if not isinstance(data, Mapping):
             raise ValueError(f"a rod description must be a JSON object, got {type(data).__name__}")  # noqa: TRY004 (a bad file)
@@ -306,6 +331,12 @@ class Rod:
         out["location_bias"] = self.location_bias
         if self.fibre is not None:
             out["fibre"] = self.fibre.to_dict()
+        if self.torsional_stiffness is not None:
+            out["torsional_stiffness"] = self.torsional_stiffness
+        if self.intrinsic_curvature:
+            out["intrinsic_curvature"] = [
+                {"from": a, "to": b, "u": [ux, uy]} for a, b, ux, uy in self.intrinsic_curvature
+            ]
         return out
 
     def to_json(self, path: str | os.PathLike) -> None:
@@ -318,6 +349,36 @@ class Rod:
     @property
     def num_gratings(self) -> int:
         return len(self.gratings)
+
+    @property
+    def precurved(self) -> bool:
+        """Whether the unloaded rod is curved somewhere (a nonzero ``intrinsic_curvature``)."""
+        return any(ux != 0.0 or uy != 0.0 for _, _, ux, uy in self.intrinsic_curvature)
+
+    @property
+    def torsion_stiffness(self) -> float:
+        """GJ [N m^2]: ``torsional_stiffness``, else EI / (1 + nu) with nu = ``poisson_ratio`` or
+        ``DEFAULT_POISSON_RATIO``."""
+        if self.torsional_stiffness is not None:
+            return self.torsional_stiffness
+        nu = DEFAULT_POISSON_RATIO if self.poisson_ratio is None else self.poisson_ratio
+        return self.bending_stiffness / (1.0 + nu)
+
+    def intrinsic_at(self, s: Sequence[float]) -> list[tuple[float, float]]:
+        """u* = (ux*, uy*) [1/m] at each position s [m]; at a breakpoint, the value just distal to it (towards the
+        tip), which is what a grating there reads on the unloaded rod."""
+        out = []
+        for x in s:
+            value = (0.0, 0.0)
+            for a, b, ux, uy in self.intrinsic_curvature:
+                if a <= x < b or (x == b == self.length):
+                    value = (ux, uy)
+            out.append(value)
+        return out
+
+    def breakpoints(self) -> list[float]:
+        """The positions [m] inside (0, L) where u* may jump: every segment's ends."""
+        return sorted({x for a, b, _, _ in self.intrinsic_curvature for x in (a, b) if 0.0 < x < self.length})
 
     def grating_positions(
         self, dtype: torch.dtype | None = None, device: torch.device | str | None = None
@@ -348,6 +409,16 @@ class Rod:
             out.append(f"length {self.length} m vs {other.length} m")
         if not math.isclose(self.bending_stiffness, other.bending_stiffness, rel_tol=rel_tol):
             out.append(f"bending_stiffness {self.bending_stiffness:.9g} vs {other.bending_stiffness:.9g} N m^2")
+        if not math.isclose(self.torsion_stiffness, other.torsion_stiffness, rel_tol=rel_tol) and (
+            self.precurved or other.precurved
+        ):
+            out.append(f"torsional stiffness {self.torsion_stiffness:.9g} vs {other.torsion_stiffness:.9g} N m^2")
+        if self.intrinsic_curvature != other.intrinsic_curvature and (self.precurved or other.precurved):
+            out.append(
+                _clip(f"intrinsic curvature {list(self.intrinsic_curvature)}")
+                + " vs "
+                + _clip(f"{list(other.intrinsic_curvature)}")
+            )
         tol = rel_tol * max(self.length, other.length)
         if self.num_gratings != other.num_gratings or any(
             abs(a - b) > tol for a, b in zip(self.gratings, other.gratings, strict=False)
@@ -383,6 +454,47 @@ def _check_gratings(gratings: Any, length: float) -> tuple[float, ...]:
         if b <= a:
             raise ValueError(f"gratings must be strictly increasing: gratings[{k}] = {b} m follows {a} m")
     return g
+
+
+def _check_intrinsic(segments: Any, length: float) -> tuple[tuple[float, float, float, float], ...]:
+    """Intrinsic-curvature segments as sorted ``(from, to, ux, uy)`` tuples: from the JSON form (dicts with
+    ``from``, ``to``, ``u``) or tuples; each inside [0, L] with from < to, none overlapping."""
+    if segments is None:
+        return ()
+    if isinstance(segments, (str, bytes, Mapping)) or not isinstance(segments, Iterable):
+        raise ValueError(f"intrinsic_curvature must be a list of segments, got {_show(segments)}")
+    out = []
+    for k, seg in enumerate(segments):
+        where = f"intrinsic_curvature[{k}]"
+        if isinstance(seg, Mapping):
+            extra = sorted(str(key) for key in seg if key not in ("from", "to", "u"))
+            missing = [key for key in ("from", "to", "u") if key not in seg]
+            if extra or missing:
+                raise ValueError(
+                    f'{where} must be {{"from": s0, "to": s1, "u": [ux, uy]}}'
+                    + (f": unknown {extra}" if extra else "")
+                    + (f": missing {missing}" if missing else "")
+                )
+            u = seg["u"]
+            if isinstance(u, (str, bytes, Mapping)) or not isinstance(u, Sequence) or len(u) != 2:
+                raise ValueError(f"{where}.u must be [ux, uy] [1/m], got {_show(u)}")
+            a, b, ux, uy = seg["from"], seg["to"], u[0], u[1]
+        elif isinstance(seg, Sequence) and not isinstance(seg, (str, bytes)) and len(seg) == 4:
+            a, b, ux, uy = seg
+        else:
+            raise ValueError(f'{where} must be {{"from": s0, "to": s1, "u": [ux, uy]}}, got {_show(seg)}')
+        a = _real(f"{where}.from", a, " [m]")
+        b = _real(f"{where}.to", b, " [m]")
+        ux = _real(f"{where}.u[0]", ux, " [1/m]")
+        uy = _real(f"{where}.u[1]", uy, " [1/m]")
+        if not 0.0 <= a < b <= length:
+            raise ValueError(f"{where} must satisfy 0 <= from < to <= length ({length} m), got from {a}, to {b}")
+        out.append((a, b, ux, uy))
+    out.sort()
+    for (a0, b0, *_), (a1, b1, *_) in itertools.pairwise(out):
+        if a1 < b0:
+            raise ValueError(f"intrinsic_curvature segments [{a0}, {b0}] and [{a1}, {b1}] m overlap")
+    return tuple(out)
 
 
 def _no_repeated_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:

@@ -290,6 +290,11 @@ class Estimator:
             raise TypeError(f"options must be EstimatorOptions, got {type(options).__name__}")
         if warm_start is not None and not (hasattr(warm_start, "guess") or callable(warm_start)):
             raise TypeError(f"warm_start must have a guess() method or be callable, got {type(warm_start).__name__}")
+        if rod.precurved:
+            raise ValueError(
+                "forces on a precurved rod (intrinsic_curvature) cannot be estimated yet: the estimator's fitting "
+                "model is the straight rod's (torchrod simulate and torchrod.model.precurved model precurved rods)"
+            )
         self.rod = rod
         self.options = options
         self.warm_start = warm_start

@@ -432,6 +432,10 @@ def simulate(
             operation instead (for ``torch.func`` transforms and higher derivatives).
     Returns:
         :class:`Simulation`; dtype and device follow ``loads``.
+
+    A precurved rod (``rod.intrinsic_curvature``) is simulated by :func:`torchrod.model.precurved.march` (RK4,
+    autograd; ``scheme``, ``steps``, ``method``, ``max_step_angle`` and ``adjoint`` are the straight rod's); its
+    curvature is the total body-frame curvature u, which a fibre that is straight when unstrained reads.
     """
     _check_loads(rod, loads)
     if scheme not in ("exact", "nodes"):
@@ -453,7 +457,19 @@ def simulate(
         parts.append(at)
     query = torch.cat(parts)
     ei = rod.bending_stiffness if bending_stiffness is None else bending_stiffness
-    if scheme == "exact":
+    if rod.precurved:
+        # Intrinsic curvature: the general march (:mod:`.precurved`); the straight rod keeps the fast path below.
+        if scheme != "exact" or steps is not None or method is not None:
+            raise ValueError(
+                "a precurved rod (intrinsic_curvature) is simulated by the RK4 march of torchrod.model.precurved: "
+                f"scheme must be 'exact' and steps and method unset, got scheme={scheme!r}, steps={steps!r}, "
+                f"method={method!r}"
+            )
+        from .precurved import march
+
+        curv, force = march(rod, loads, query, bending_stiffness=ei)
+        curv = curv[..., :2]
+    elif scheme == "exact":
         curv, force = integrate_curvature(
             query,
             loads,

@@ -3,15 +3,17 @@
 This module is the independent check of :mod:`torchrod.body_frame` and the home of the paper's two baselines. It
 works in numpy/scipy, one load case at a time, with rotation matrices in the global frame (no body-frame reduction).
 
-Equations (the paper's eqs. 1-4, standard Cosserat sign, docs/physics.md) for a straight, inextensible, unshearable rod
+Equations (the paper's eqs. 1-4, standard Cosserat sign, docs/physics.md) for an inextensible, unshearable rod
 (v = e3) with no external moment::
 
-    P' = R e3,    R' = R u^,    N' = -F_e,    M' = -P' x N,    M = R K u,   K = diag(EI, EI, GJ)
+    P' = R e3,    R' = R u^,    N' = -F_e,    M' = -P' x N,    M = R K (u - u*),   K = diag(EI, EI, GJ)
 
-with GJ = EI / (1 + nu) (``rod.poisson_ratio``, 0.3 when unset; torsion stays zero at the solution anyway).
+with GJ = ``rod.torsion_stiffness`` and u* the rod's intrinsic curvature (zero for a straight rod, whose torsion
+stays zero at the solution; a precurved rod twists). u* is piecewise constant, so the integration is split at its
+breakpoints too, and a position at a breakpoint reads the distal value.
 Boundary conditions: clamped base P(0) = 0, R(0) = I; free tip N(L+) = 0, M(L) = 0. The loads are follower point
 forces: at s_i the global force is F_i = R(s_i) (f_x, f_y, 0), so going from base to tip N drops by F_i at s_i
-(a force exactly at s = L acts before the tip condition). Body-frame curvature: u = K^{-1} R^T M.
+(a force exactly at s = L acts before the tip condition). Body-frame curvature: u = u* + K^{-1} R^T M.
 
 Shooting: the unknowns are z = (N(0), M(0)) (6 numbers); the residual is r(z) = (N(L+), M(L)). Internally both are
 scaled, N by a force scale F_s = max(sum |f_i|, EI/L^2) and M by F_s L, so the 6 x 6 problem is well balanced.
@@ -46,7 +48,7 @@ from typing import Literal
 import numpy as np
 
 from ..loads import PointForces
-from ..rod import Rod
+from ..rod import DEFAULT_POISSON_RATIO, Rod
 
 __all__ = [
     "DEFAULT_POISSON_RATIO",
@@ -56,8 +58,6 @@ __all__ = [
     "solve_reference",
 ]
 
-DEFAULT_POISSON_RATIO = 0.3
-"""nu used for GJ = EI / (1 + nu) when the rod gives none (it does not change the solution: u_z stays 0)."""
 
 _STATE = 18  # P (3), R (9, row-major), N (3), M (3)
 _P, _R, _N, _M = slice(0, 3), slice(3, 12), slice(12, 15), slice(15, 18)
@@ -106,10 +106,14 @@ class BVPSolution:
 
 # ---------------------------------------------------------------------------------------------------- helpers
 def _stiffness(rod: Rod) -> np.ndarray:
-    """(3,) inverse stiffnesses K^{-1} = (1/EI, 1/EI, (1 + nu)/EI) [1/(N m^2)]."""
+    """(3,) inverse stiffnesses K^{-1} = (1/EI, 1/EI, 1/GJ) [1/(N m^2)]."""
     ei = rod.bending_stiffness
-    nu = DEFAULT_POISSON_RATIO if rod.poisson_ratio is None else rod.poisson_ratio
-    return np.array([1.0 / ei, 1.0 / ei, (1.0 + nu) / ei])
+    return np.array([1.0 / ei, 1.0 / ei, 1.0 / rod.torsion_stiffness])
+
+
+def _intrinsic(rod: Rod, s: np.ndarray) -> np.ndarray:
+    """(len(s), 3) u* [1/m] at positions s (the distal value at a breakpoint)."""
+    return np.array([[ux, uy, 0.0] for ux, uy in rod.intrinsic_at(np.asarray(s, dtype=np.float64).tolist())])
 
 
 def _force_array(rod: Rod, forces) -> np.ndarray:
@@ -256,11 +260,11 @@ def _with_continuation(
 
 
 # ---------------------------------------------------------------------------------------------------- reference
-def _reference_rhs(kinv: np.ndarray) -> Callable[[float, np.ndarray], np.ndarray]:
+def _reference_rhs(kinv: np.ndarray, ustar: np.ndarray) -> Callable[[float, np.ndarray], np.ndarray]:
     def rhs(_s: float, y: np.ndarray) -> np.ndarray:
         R = y[_R].reshape(3, 3)
         N, M = y[_N], y[_M]
-        u = kinv * (R.T @ M)  # M = R K u
+        u = ustar + kinv * (R.T @ M)  # M = R K (u - u*)
         t = R[:, 2]  # P' = R e3
         out = np.empty(_STATE)
         out[_P] = t
@@ -284,13 +288,14 @@ def _reference_shoot(
     states at ``query`` (Q, 18), proximal side of forces)."""
     from scipy.integrate import solve_ivp
 
-    rhs = _reference_rhs(_stiffness(rod))
-    events = np.unique(np.concatenate((forces[:, 0], query, [0.0, rod.length])))
+    kinv = _stiffness(rod)
+    events = np.unique(np.concatenate((forces[:, 0], query, rod.breakpoints(), [0.0, rod.length])))
     y = _initial_state(z[None])[0]
     recorded = np.empty((len(query), _STATE))
     fi = 0
     for k, s in enumerate(events):
         if k > 0 and s > events[k - 1]:
+            rhs = _reference_rhs(kinv, _intrinsic(rod, [0.5 * (events[k - 1] + s)])[0])  # u* constant here
             with np.errstate(over="ignore", invalid="ignore"):
                 sol = solve_ivp(rhs, (events[k - 1], s), y, method="DOP853", rtol=rtol, atol=atol)
             if not sol.success or not np.isfinite(sol.y[:, -1]).all():
@@ -318,7 +323,7 @@ def _solution(
 ) -> BVPSolution:
     R = states[:, _R].reshape(-1, 3, 3)
     M = states[:, _M]
-    u = _stiffness(rod) * np.einsum("kji,kj->ki", R, M)
+    u = _intrinsic(rod, query).reshape(-1, 3) + _stiffness(rod) * np.einsum("kji,kj->ki", R, M)
     return BVPSolution(
         s=query.copy(),
         P=states[:, _P].copy(),
@@ -406,7 +411,9 @@ def solve_reference(
     def guess_at(load: float) -> np.ndarray:
         return load * _small_deflection_guess(f) / scale
 
-    if initial is None:
+    if initial is None and rod.precurved:
+        z0 = guess_at(1.0)  # the straight rod's baselines do not model u*: load continuation if this start fails
+    elif initial is None:
         # A coarse RK4 shooting solve is a good start (the answer depends only on the DOP853 shots below).
         coarse = ShootingSolver(rod, nodes=64, jacobian="dp", warm_start=False).solve(f, at=[rod.length])
         z0 = coarse.base / scale if coarse.converged else guess_at(1.0)
@@ -485,6 +492,11 @@ class ShootingSolver:
     ) -> None:
         if not isinstance(rod, Rod):
             raise TypeError(f"rod must be a Rod, got {type(rod).__name__}")
+        if rod.precurved:
+            raise ValueError(
+                "the paper's shooting baselines model a straight rod; this rod has intrinsic_curvature "
+                "(solve_reference handles it)"
+            )
         if not isinstance(nodes, (int, np.integer)) or nodes < 2:
             raise ValueError(f"nodes must be an integer >= 2, got {nodes!r}")
         if jacobian not in ("fd", "dp"):

@@ -145,6 +145,9 @@ def simulate_cases(
         dicts with ``curvature`` (G x [ux, uy]) [1/m] and ``gratings`` [m], plus ``tip_angle`` [rad] and ``profile``
         when asked for. A case whose result is not finite gets ``{"error": ...}`` instead.
     """
+    if with_tip_angle and rod.precurved:
+        # The tip angle integrates the frames from (u_x, u_y) alone; a precurved rod also twists (u_z).
+        raise ValueError("--tip-angle is not available for a precurved rod (intrinsic_curvature) yet")
     dtype = torch.float64
     loads = PointForces.from_lists(cases, dtype=dtype, device=device)
     L = rod.length
@@ -179,6 +182,8 @@ def simulate_cases(
 
 def run(args: argparse.Namespace) -> int:
     rod = load_rod(args.rod)
+    if rod.precurved and (args.tip_angle or args.scheme != "exact"):
+        raise ValueError(f"--rod {args.rod} is precurved: --tip-angle and --scheme nodes are for straight rods")
     if args.samples < 0:
         raise ValueError(f"--samples must be >= 0, got {args.samples}")
     if args.batch_size < 1:

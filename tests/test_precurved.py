@@ -1,0 +1,180 @@
+"""Precurved rods: the rod file's intrinsic curvature and torsion, the general body-frame march
+(torchrod.model.precurved) against the straight rod's model and the global-frame BVP, gradients, and the preset."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import torchrod as tr
+from torchrod.model import precurved as P
+from torchrod.model.global_bvp import ShootingSolver, solve_reference
+
+
+@pytest.fixture(scope="module")
+def rod() -> tr.Rod:
+    return tr.presets.ctr250()
+
+
+def _loads(cases: list[list[tuple[float, float, float]]]) -> tr.PointForces:
+    return tr.PointForces.from_lists(cases, max_forces=max(len(c) for c in cases))
+
+
+# ---------------------------------------------------------------------------------------------------- the rod file
+def test_rod_file_round_trip_and_lookups(rod, tmp_path):
+    assert rod.precurved and rod.length == 0.25 and rod.intrinsic_curvature == ((0.15, 0.25, 12.0, 0.0),)
+    assert rod.torsion_stiffness == pytest.approx(rod.bending_stiffness / 1.33)
+    path = tmp_path / "ctr.json"
+    rod.to_json(path)
+    data = json.loads(path.read_text())
+    assert data["intrinsic_curvature"] == [{"from": 0.15, "to": 0.25, "u": [12.0, 0.0]}]
+    assert tr.Rod.from_json(path) == rod
+    # The distal value at a breakpoint; zero outside the segments; the tip belongs to a segment ending there.
+    assert rod.intrinsic_at([0.0, 0.1499, 0.15, 0.2, 0.25]) == [(0.0, 0.0), (0.0, 0.0), (12.0, 0.0), (12.0, 0.0)] + [
+        (12.0, 0.0)
+    ]
+    assert rod.breakpoints() == [0.15]
+    gj = rod.with_(poisson_ratio=None, torsional_stiffness=1e-3)
+    assert gj.torsion_stiffness == 1e-3 and tr.Rod.from_dict(gj.to_dict()) == gj
+    straight = tr.presets.nitinol290()
+    assert not straight.precurved and not straight.with_(intrinsic_curvature=[(0.0, 0.1, 0.0, 0.0)]).precurved
+    assert any("intrinsic curvature" in d for d in rod.differences(rod.with_(intrinsic_curvature=[(0.1, 0.25, 12, 0)])))
+    assert any("torsional" in d for d in rod.differences(rod.with_(poisson_ratio=0.2)))
+
+
+@pytest.mark.parametrize(
+    ("segments", "match"),
+    [
+        ([{"from": 0.1, "to": 0.05, "u": [1, 0]}], "from < to"),
+        ([{"from": 0.1, "to": 0.3, "u": [1, 0]}], "length"),
+        ([{"from": 0.0, "to": 0.2, "u": [1, 0]}, {"from": 0.1, "to": 0.25, "u": [0, 1]}], "overlap"),
+        ([{"from": 0.0, "to": 0.2, "u": [1]}], r"u must be \[ux, uy\]"),
+        ([{"from": 0.0, "to": 0.2, "u": [1, "x"]}], r"u\[1\]"),
+        ([{"from": 0.0, "to": 0.2}], "missing"),
+        ([{"from": 0.0, "to": 0.2, "u": [1, 0], "twist": 1}], "unknown"),
+        ({"from": 0.0}, "list of segments"),
+        ([{"from": 0.0, "to": float("nan"), "u": [1, 0]}], "finite"),
+    ],
+)
+def test_bad_intrinsic_curvature_is_named(segments, match):
+    data = tr.presets.ctr250().to_dict()
+    data["intrinsic_curvature"] = segments
+    with pytest.raises(ValueError, match=match):
+        tr.Rod.from_dict(data)
+
+
+def test_torsion_is_given_once():
+    data = tr.presets.ctr250().to_dict()
+    data["torsional_stiffness"] = 1e-3
+    with pytest.raises(ValueError, match="not both"):
+        tr.Rod.from_dict(data)
+    data.pop("poisson_ratio", None)
+    data["torsional_stiffness"] = -1.0
+    with pytest.raises(ValueError, match="torsional_stiffness must be positive"):
+        tr.Rod.from_dict(data)
+
+
+# ---------------------------------------------------------------------------------------------------- the model
+def test_straight_rod_agrees_with_the_complex_reduction_and_converges_at_fourth_order():
+    """Without intrinsic curvature the general march is an independent solver of the straight rod's problem."""
+    rod = tr.presets.nitinol290()
+    loads = _loads([[(0.12, -0.9, 1.1), (0.25, 0.6, -0.4)], [(0.2, 1.5, 0.2), (0.29, 0.3, 0.3)]])
+    ref = tr.simulate(rod, loads).grating_curvature
+    errors = []
+    for step in (2e-3, 1e-3):
+        u = P.grating_curvature(rod, loads, max_step=step)
+        errors.append(float((u - ref).abs().max() / ref.abs().max()))
+    assert 10.0 < errors[0] / errors[1] < 25.0  # 2^4 = 16: fourth order
+    assert float((P.grating_curvature(rod, loads) - ref).abs().max() / ref.abs().max()) < 1e-9
+
+
+def test_precurved_ivp_matches_the_global_bvp(rod):
+    """Large deflection (the curved section alone turns 69 degrees), out-of-plane forces that twist the tube: the
+    body-frame march from the tip and the global-frame shooting (DOP853, tip residual 1e-12) agree to 1e-8."""
+    cases = [[(0.12, -0.9, 1.1), (0.22, 0.6, -0.4)], [(0.2, 1.5, 0.2), (0.25, 0.3, 0.3)]]
+    q = torch.tensor([0.0, *rod.gratings], dtype=torch.float64)
+    u, n = P.march(rod, _loads(cases), q)
+    k = np.array([rod.bending_stiffness, rod.bending_stiffness, rod.torsion_stiffness])
+    for b, case in enumerate(cases):
+        # The first case from the BVP's own start (load continuation); the second from the march's base values
+        # (the shooting then only polishes: its root does not depend on where it starts).
+        initial = None if b == 0 else np.concatenate([n[b, 0].numpy(), k * u[b, 0].numpy()])
+        sol = solve_reference(rod, case, at=rod.gratings, initial=initial)
+        assert sol.converged
+        assert np.abs(sol.u[:, 2]).max() > 1.0  # it twists: torsion is part of the answer
+        rel = np.abs(u[b, 1:].numpy() - sol.u).max() / np.abs(sol.u).max()
+        assert rel < 1e-8, rel
+    # Torsional stiffness matters for a precurved rod (and the BVP uses the same one).
+    stiff = P.grating_curvature(
+        rod.with_(poisson_ratio=None, torsional_stiffness=10 * rod.torsion_stiffness), _loads(cases)
+    )
+    assert float((stiff - u[:, 1:, :2]).abs().max()) > 1e-2
+
+
+def test_unloaded_rod_reads_its_shape_and_the_jump_sits_at_the_breakpoint(rod):
+    zero = _loads([[(0.1, 0.0, 0.0)]])
+    u = P.grating_curvature(rod, zero)
+    assert torch.equal(u[0], torch.tensor(rod.intrinsic_at(rod.gratings), dtype=torch.float64))
+    assert float(P.grating_curvature(rod, zero, relative=True).abs().max()) == 0.0
+    # Under load the moment is continuous at the breakpoint, so u jumps by exactly the jump of u*.
+    loads = _loads([[(0.22, 0.8, -0.5)]])
+    q = torch.tensor([0.15 - 1e-9, 0.15], dtype=torch.float64)
+    u, _ = P.march(rod, loads, q)
+    jump = u[0, 1] - u[0, 0]
+    assert torch.allclose(jump, torch.tensor([12.0, 0.0, 0.0], dtype=torch.float64), atol=1e-6)
+
+
+def test_gradcheck_in_locations_forces_and_stiffness(rod):
+    s = torch.tensor([[0.13, 0.21]], dtype=torch.float64, requires_grad=True)
+    f = torch.tensor([[[0.4, -0.3], [0.2, 0.5]]], dtype=torch.float64, requires_grad=True)
+    ei = torch.tensor(rod.bending_stiffness, dtype=torch.float64, requires_grad=True)
+    q = torch.tensor([0.05, 0.15, 0.2, 0.24], dtype=torch.float64)
+
+    def fn(s, f, ei):
+        # Coarse steps keep it quick; a step length that does not divide any segment keeps the step counts fixed
+        # under gradcheck's perturbations (the discrete march is smooth between changes of its step counts).
+        u, n = P.march(rod, tr.PointForces(s, f), q, max_step=7.3e-3, bending_stiffness=ei)
+        return u, n
+
+    assert torch.autograd.gradcheck(fn, (s, f, ei), eps=1e-7, atol=1e-6, rtol=1e-5)
+
+
+def test_simulate_dispatches_and_refuses_what_does_not_apply(rod):
+    loads = _loads([[(0.12, -0.9, 1.1), (0.22, 0.6, -0.4)]])
+    sim = tr.simulate(rod, loads, samples=11)
+    assert torch.allclose(sim.grating_curvature, P.grating_curvature(rod, loads), rtol=1e-9, atol=1e-9)
+    assert sim.curvature.shape == (1, 11, 2) and sim.internal_force.shape == (1, 11, 3)
+    padded = tr.PointForces(
+        torch.tensor([[0.12, float("nan")]], dtype=torch.float64),
+        torch.tensor([[[-0.9, 1.1], [5.0, 5.0]]], dtype=torch.float64),
+        torch.tensor([[True, False]]),
+    )
+    alone = tr.simulate(rod, _loads([[(0.12, -0.9, 1.1)]])).grating_curvature
+    assert torch.equal(tr.simulate(rod, padded).grating_curvature, alone)  # padding carries no force
+    for kwargs in ({"scheme": "nodes"}, {"steps": 4}, {"method": "rkn4"}):
+        with pytest.raises(ValueError, match="precurved"):
+            tr.simulate(rod, loads, **kwargs)
+    with pytest.raises(ValueError, match="straight rod"):
+        ShootingSolver(rod)
+
+
+def test_the_estimator_says_it_cannot_fit_a_precurved_rod_yet(rod):
+    with pytest.raises(ValueError, match="precurved"):
+        tr.Estimator(rod)
+
+
+def test_cli_simulate_on_the_preset(tmp_path, capsys):
+    from torchrod.cli import main
+
+    path = tmp_path / "forces.jsonl"
+    path.write_text(json.dumps({"id": "a", "forces": [{"s": 0.2, "fx": 0.5, "fy": 0.3}]}) + "\n")
+    assert main(["simulate", "--rod", "ctr250", str(path)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    expected = P.grating_curvature(tr.presets.ctr250(), _loads([[(0.2, 0.5, 0.3)]]))[0]
+    assert np.allclose(out["curvature"], expected.numpy(), rtol=1e-9, atol=1e-9)
+    assert out["curvature"][-1] == [12.0, 0.0]  # distal to the force the tube keeps its shape
+    assert main(["simulate", "--rod", "ctr250", "--tip-angle", str(path)]) == 2
+    assert "precurved" in capsys.readouterr().err
