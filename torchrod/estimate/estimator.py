@@ -36,6 +36,7 @@ import torch
 from ..backend import NUMPY, Backend, TorchBackend
 from ..io.readings import check_readings
 from ..loads import PointForces
+from ..model.precurved import Precurved
 from ..model.sensitivity import ESTIMATION_STEP_ANGLE
 from ..rod import Rod
 from . import lm, search
@@ -83,6 +84,8 @@ class EstimatorOptions:
             alone; the scan's starts serve only a fit found suspicious (:mod:`.search`). Set by
             :meth:`Estimator.from_checkpoint` when the network's recorded quality is trusted; otherwise guesses
             are starts beside the scan's.
+        relative: readings of a precurved rod are the change of curvature from the unloaded shape, u - u*, not the
+            total curvature u a fibre that is straight when unstrained reads (no effect on a straight rod).
     """
 
     max_forces: int = 3
@@ -103,6 +106,7 @@ class EstimatorOptions:
     condition_limit: float = CONDITION_LIMIT
     backend: str = "auto"
     trust_guesses: bool = False
+    relative: bool = False
 
     def __post_init__(self) -> None:
         def integer(name: str, low: int) -> None:
@@ -290,11 +294,6 @@ class Estimator:
             raise TypeError(f"options must be EstimatorOptions, got {type(options).__name__}")
         if warm_start is not None and not (hasattr(warm_start, "guess") or callable(warm_start)):
             raise TypeError(f"warm_start must have a guess() method or be callable, got {type(warm_start).__name__}")
-        if rod.precurved:
-            raise ValueError(
-                "forces on a precurved rod (intrinsic_curvature) cannot be estimated yet: the estimator's fitting "
-                "model is the straight rod's (torchrod simulate and torchrod.model.precurved model precurved rods)"
-            )
         self.rod = rod
         self.options = options
         self.warm_start = warm_start
@@ -408,7 +407,10 @@ class Estimator:
         B = curvature.shape[0]
         xp = self._backend(opts, B, device)
         rod = self.rod
-        u = torch.where(mask.unsqueeze(-1), curvature.to(torch.float64), torch.zeros((), dtype=torch.float64))
+        u = curvature.to(torch.float64)
+        if opts.relative and rod.precurved:  # readings of the change from the unloaded shape: add the shape back
+            u = u + torch.tensor(rod.intrinsic_at(rod.gratings), dtype=torch.float64, device=u.device)
+        u = torch.where(mask.unsqueeze(-1), u, torch.zeros((), dtype=torch.float64))
         floor2 = float(opts.noise_floor) ** 2
         noise2 = None if opts.noise is None else xp.full((B,), float(opts.noise) ** 2 + floor2)
         problem = make_problem(
@@ -422,6 +424,7 @@ class Estimator:
             floor2=floor2,
             step_angle=opts.max_step_angle,
             max_steps=_MAX_STEPS,
+            precurved=Precurved.of(rod) if rod.precurved else None,
         )
         counts = opts.counts
         top = max(counts)

@@ -64,6 +64,8 @@ class Problem:
             [1/m^2], or None: estimated per fit from its loss (:func:`sigma2`).
         floor2: the noise floor^2 [1/m^2] (the forward model's accuracy).
         step_angle, max_steps: the fitting model's accuracy (:mod:`torchrod.model.sensitivity`).
+        precurved: None for a straight rod; for a precurved one, its :class:`torchrod.model.precurved.Precurved`,
+            whose march (:mod:`torchrod.model.precurved`) is then the forward model of every fit.
     """
 
     xp: Backend
@@ -82,6 +84,7 @@ class Problem:
     floor2: float
     step_angle: float
     max_steps: int
+    precurved: Any = None
 
     @property
     def force_unit(self) -> float:
@@ -105,6 +108,7 @@ def make_problem(
     floor2: float,
     step_angle: float,
     max_steps: int,
+    precurved: Any = None,
 ) -> Problem:
     """:class:`Problem` from (B, G, 2) curvature (anything finite at missing gratings) and (B, G) ``present``."""
     B, G = present.shape
@@ -141,6 +145,7 @@ def make_problem(
         floor2=float(floor2),
         step_angle=float(step_angle),
         max_steps=int(max_steps),
+        precurved=precurved,
     )
 
 
@@ -200,17 +205,26 @@ def evaluate(problem: Problem, fits: Fits, jacobian: bool = True) -> tuple[Any, 
     xp = problem.xp
     R, h = fits.s.shape
     G = problem.query.shape[0]
-    u, jac = march(
-        xp,
-        problem.query,
-        fits.s,
-        fits.f,
-        problem.length,
-        problem.stiffness,
-        jacobian=jacobian,
-        step_angle=problem.step_angle,
-        max_steps=problem.max_steps,
-    )
+    if problem.precurved is not None:
+        from ..model.precurved import FIT_MAX_STEP
+        from ..model.precurved import march as march_precurved
+
+        u3, _, jac, _ = march_precurved(
+            xp, problem.query, fits.s, fits.f, problem.precurved, max_step=FIT_MAX_STEP, jacobian=jacobian
+        )
+        u = u3[..., :2]
+    else:
+        u, jac = march(
+            xp,
+            problem.query,
+            fits.s,
+            fits.f,
+            problem.length,
+            problem.stiffness,
+            jacobian=jacobian,
+            step_angle=problem.step_angle,
+            max_steps=problem.max_steps,
+        )
     w = problem.weight[fits.reading]
     r = (u.reshape(R, 2 * G) - problem.u[fits.reading]) * w
     if not jacobian:
@@ -224,17 +238,23 @@ def evaluate(problem: Problem, fits: Fits, jacobian: bool = True) -> tuple[Any, 
 
 def exact_residual(problem: Problem, fits: Fits) -> Any:
     """Residuals (R, 2G) [1/m] from the simulator's model (:func:`torchrod.model.body_frame.integrate_curvature`:
-    8th-order, rigorous step bound, ~1e-9 accurate) instead of the fitting model (4th order, relative accuracy ~1e-4
-    of the curvature): the final Gauss-Newton steps of a fit and its reported loss use it, so that the count tests
-    and the verdict see the physics, not the fitting model's discretisation."""
+    8th-order, rigorous step bound, ~1e-9 accurate; for a precurved rod :mod:`torchrod.model.precurved` at its
+    default step) instead of the fitting model (relative accuracy ~1e-4 of the curvature, ~1e-6 precurved): the
+    final Gauss-Newton steps of a fit and its reported loss use it, so that the count tests and the verdict see the
+    physics, not the fitting model's discretisation."""
     from ..model.body_frame import march_curvature
 
     xp = problem.xp
     R, h = fits.s.shape
     G = problem.query.shape[0]
-    if h == 0:  # no force: the rod is straight
+    if problem.precurved is not None:
+        from ..model.precurved import march as march_precurved
+
+        u = march_precurved(xp, problem.query, fits.s, fits.f, problem.precurved)[0][..., :2]
+    elif h == 0:  # no force: the rod is straight
         return -problem.u[fits.reading] * problem.weight[fits.reading]
-    u = march_curvature(xp, problem.query, fits.s, fits.f, problem.length, problem.stiffness)
+    else:
+        u = march_curvature(xp, problem.query, fits.s, fits.f, problem.length, problem.stiffness)
     w = problem.weight[fits.reading]
     return (u.reshape(R, 2 * G) - problem.u[fits.reading]) * w
 

@@ -154,7 +154,9 @@ def _responses(problem: Problem, base: Fits, cand: Any, known: tuple[Any, Any] |
     q = problem.query
     inv_ei = 1.0 / problem.stiffness
     w = problem.weight[base.reading]
-    if h0 == 0:
+    if problem.precurved is not None:
+        r, J, resp = _responses_precurved(problem, base, cand, known)
+    elif h0 == 0:
         # No force yet: the rod is straight and the response is the small-deflection lever, (c - q_k)^+ / EI.
         r, J = -problem.u[base.reading] * w, xp.zeros((R0, 2 * G, 0))
         lever = xp.clip(cand[:, :, None] - q[None, None, :], lo=0.0) * inv_ei  # (R0, C, G)
@@ -191,6 +193,40 @@ def _responses(problem: Problem, base: Fits, cand: Any, known: tuple[Any, Any] |
         resp = resp * prox[:, :, :, None, None]
     Jc = (resp * w.reshape(R0, 1, G, 2, 1) * problem.force_unit).reshape(R0, cand.shape[1], 2 * G, 2)
     return r, J, Jc
+
+
+def _responses_precurved(problem: Problem, base: Fits, cand: Any, known: tuple[Any, Any] | None) -> tuple[Any, ...]:
+    """:func:`_responses` for a precurved rod: the propagator Phi of the linearised equations, from the tip, of
+    :mod:`torchrod.model.precurved` (a 6-vector state (n, m)); the response of grating k to a unit force at c (a unit
+    jump of n there) is the (u_x, u_y) rows of Phi(k) Phi(c)^-1 on that jump, for gratings proximal to c. Returns
+    r, J and the responses (R0, C, G, 2 uxy, 2 f) before weights and scaling."""
+    from ..model.precurved import FIT_MAX_STEP
+    from ..model.precurved import march as march_precurved
+
+    xp = problem.xp
+    R0, h0 = base.s.shape
+    G = problem.query.shape[0]
+    C = cand.shape[1]
+    w = problem.weight[base.reading]
+    q = problem.query
+    query = xp.concat([xp.expand(q[None, :], (R0, G)), cand], 1)  # each row: the gratings and its candidates
+    u3, _, jac, phi = march_precurved(
+        xp, query, base.s, base.f, problem.precurved, max_step=FIT_MAX_STEP, jacobian=known is None, seeds=True
+    )
+    if known is None:
+        r = (u3[:, :G, :2].reshape(R0, 2 * G) - problem.u[base.reading]) * w
+        scale = xp.asarray([problem.length, problem.force_unit, problem.force_unit])
+        J = sided(problem, base, (jac[:, :G] * scale).reshape(R0, 2 * G, 3 * h0) * w[:, :, None])
+    else:
+        r, J = known
+    phi_c = phi[:, G:, 2:]  # (R0, C, 6, 6): the propagator at each candidate
+    rhs = xp.zeros((6, 2))
+    rhs[0, 0] = 1.0  # a unit f_x: n jumps by e_x
+    rhs[1, 1] = 1.0
+    M, _ = xp.solve(phi_c, xp.expand(rhs, (R0, C, 6, 2)))  # (R0, C, 6, 2)
+    resp = phi[:, None, :G, :2, :] @ M[:, :, None, :, :]  # (R0, C, G, 2, 2)
+    prox = xp.astype(q[None, None, :] < cand[:, :, None], "float")
+    return r, J, resp * prox[:, :, :, None, None]
 
 
 def scan(problem: Problem, base: Fits | lm.LMState, *, per_interval: int, top: int, trust: float) -> Scan:

@@ -271,9 +271,22 @@ def _profile(rod: Rod, loads: PointForces) -> tuple[torch.Tensor, torch.Tensor]:
     dtype, device = loads.dtype, loads.device
     grat = rod.grating_positions(dtype, device)
     grid = torch.linspace(0.0, rod.length, PROFILE_SAMPLES, dtype=dtype, device=device)
-    curv, _ = integrate_curvature(torch.cat((grat, grid)), loads, rod.length, rod.bending_stiffness, steps=_STEPS)
     G = grat.shape[0]
-    turning = torch.trapezoid(torch.linalg.vector_norm(curv[:, G:], dim=-1), dx=rod.length / (PROFILE_SAMPLES - 1))
+    if rod.precurved:
+        # The turning the load causes, int |u - u*| ds (a precurved rod's own shape is not deflection); RK4 steps
+        # of at most L/128 (relative error ~1e-7).
+        from ..backend import TorchBackend
+        from ..model.precurved import Precurved, intrinsic, simulate_torch
+
+        with torch.no_grad():
+            u3, _ = simulate_torch(rod, loads, torch.cat((grat, grid)), steps=_STEPS)
+        shape = intrinsic(TorchBackend(device), Precurved.of(rod), grid.to(torch.float64)).to(dtype)
+        curv = u3[..., :2]
+        bend = torch.linalg.vector_norm(u3[:, G:] - shape[None], dim=-1)
+    else:
+        curv, _ = integrate_curvature(torch.cat((grat, grid)), loads, rod.length, rod.bending_stiffness, steps=_STEPS)
+        bend = torch.linalg.vector_norm(curv[:, G:], dim=-1)
+    turning = torch.trapezoid(bend, dx=rod.length / (PROFILE_SAMPLES - 1))
     return curv[:, :G], turning
 
 
@@ -281,7 +294,7 @@ def _admissible(rod: Rod, loads: PointForces, limit: float) -> torch.Tensor:
     """(B,) bool: False where a coarse estimate of the total turning (17 samples, one step per segment, error
     below 0.02 rad for cases near the limit) exceeds the limit by more than ``_COARSE_MARGIN``. A cheap first pass:
     the decision on the remaining cases is taken by :func:`_profile`."""
-    if not math.isfinite(limit):
+    if not math.isfinite(limit) or rod.precurved:  # (no cheap coarse model of a precurved rod: all go on)
         return torch.ones(loads.batch_size, dtype=torch.bool, device=loads.device)
     grid = torch.linspace(0.0, rod.length, _COARSE_SAMPLES, dtype=loads.dtype, device=loads.device)
     curv, _ = integrate_curvature(grid, loads, rod.length, rod.bending_stiffness, steps=1)

@@ -465,9 +465,9 @@ def simulate(
                 f"scheme must be 'exact' and steps and method unset, got scheme={scheme!r}, steps={steps!r}, "
                 f"method={method!r}"
             )
-        from .precurved import march
+        from .precurved import simulate_torch
 
-        curv, force = march(rod, loads, query, bending_stiffness=ei)
+        curv, force = simulate_torch(rod, loads, query, bending_stiffness=ei)
         curv = curv[..., :2]
     elif scheme == "exact":
         curv, force = integrate_curvature(

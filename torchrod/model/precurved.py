@@ -16,123 +16,266 @@ Discretisation: classical Runge-Kutta (RK4) on segments split at every event (ea
 each breakpoint of u*), so that u* is constant on every step and point forces act exactly where they are; each
 segment takes ``ceil(longest such segment in the batch / max_step)`` equal steps, so the error falls as
 ``max_step^4``. A reading at s is ``u*(s+) + K^-1 m(s)``: a grating exactly at a breakpoint reads the value just
-distal to it, as on the unloaded rod. Every operation is a torch operation on (B, 3) tensors, so the march is
-batched and differentiable by autograd (``gradcheck`` holds it to that), on any device and dtype.
+distal to it, as on the unloaded rod. At a tie a force is applied before a query at the same place is read (the
+query sees the force's location derivative from the distal side, as in :mod:`.sensitivity`).
 
-This is the general model; a rod without intrinsic curvature keeps the fast straight-rod path of
-:mod:`.body_frame`, to which this march agrees (tests: to ~1e-12 with fine steps).
+One march, on either backend (:mod:`torchrod.backend`): on torch tensors it is differentiable by autograd
+(``gradcheck`` holds it to that; :func:`torchrod.simulate` uses it for precurved rods), and with ``jacobian`` or
+``seeds`` it also carries tangents through the same RK4 steps, for the estimator:
+
+* the derivatives of the readings with respect to every force's (s_i, f_x, f_y): a force's f-columns start at its
+  event as the unit jumps of n, its s-column as ``(u x f_i, e3 x f_i)``, the difference of the rates on the two
+  sides of the jump (moving the force distally by ds lets the loaded rates act over ds more);
+* with ``seeds``, the propagator Phi(s) of the linearised equations from the tip (six seed tangents, the identity
+  at s = L), which the estimator's scan uses to find the response to a force added anywhere
+  (:mod:`torchrod.estimate.search`).
+
+A rod without intrinsic curvature keeps the fast straight-rod path of :mod:`.body_frame`; this march agrees with it
+(tests: to ~2e-10 at the default step).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 
+from ..backend import Backend, TorchBackend
 from ..loads import PointForces
 from ..rod import Rod
 
-__all__ = ["DEFAULT_MAX_STEP", "grating_curvature", "intrinsic", "march"]
+__all__ = ["DEFAULT_MAX_STEP", "FIT_MAX_STEP", "Precurved", "grating_curvature", "intrinsic", "march"]
 
 DEFAULT_MAX_STEP = 5e-4
-"""Longest RK4 step [m] by default (a fraction of a millimetre: at the 12 1/m of a concentric tube's curved section
-the turning per step stays below 0.01 rad)."""
+"""Longest RK4 step [m] of the simulator and of the estimator's exact model (relative error ~2e-10 on the presets:
+at the 12 1/m of a concentric tube's curved section the turning per step stays below 0.01 rad)."""
+
+FIT_MAX_STEP = 5e-3
+"""Longest RK4 step [m] while fitting (relative error ~1e-6: far below any sensor's noise; the fits' final steps and
+reported losses use :data:`DEFAULT_MAX_STEP`)."""
 
 
-def intrinsic(rod: Rod, s: torch.Tensor) -> torch.Tensor:
-    """u* = (ux*, uy*, 0) [1/m] at positions ``s`` (any shape) as a (..., 3) tensor of s's dtype and device; at a
-    breakpoint the distal value (:meth:`torchrod.Rod.intrinsic_at`)."""
-    out = torch.zeros((*s.shape, 3), dtype=s.dtype, device=s.device)
-    for a, b, ux, uy in rod.intrinsic_curvature:
-        inside = (s >= a) & ((s < b) | ((s == b) & (b == rod.length)))
-        value = torch.tensor([ux, uy, 0.0], dtype=s.dtype, device=s.device)
-        out = torch.where(inside.unsqueeze(-1), value, out)
-    return out
+@dataclass(frozen=True)
+class Precurved:
+    """What the march needs of a precurved rod (SI units).
+
+    Attributes:
+        length: L [m]; bending, torsion: EI and GJ [N m^2].
+        segments: the intrinsic curvature, ``(from, to, ux, uy)`` per segment (:class:`torchrod.Rod`).
+    """
+
+    length: float
+    bending: float
+    torsion: float
+    segments: tuple[tuple[float, float, float, float], ...]
+
+    @classmethod
+    def of(cls, rod: Rod) -> Precurved:
+        return cls(rod.length, rod.bending_stiffness, rod.torsion_stiffness, rod.intrinsic_curvature)
+
+    def breakpoints(self) -> list[float]:
+        return sorted({x for a, b, _, _ in self.segments for x in (a, b) if 0.0 < x < self.length})
 
 
-def _rates(n: torch.Tensor, m: torch.Tensor, ustar: torch.Tensor, kinv: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """d/ds of (n, m) (B, 3) each."""
-    u = ustar + m * kinv
-    e3n = torch.stack([-n[:, 1], n[:, 0], torch.zeros_like(n[:, 0])], 1)  # e3 x n
-    return -torch.linalg.cross(u, n), -torch.linalg.cross(u, m) - e3n
+def intrinsic(xp: Backend, model: Precurved, s: Any) -> Any:
+    """u* = (ux*, uy*, 0) [1/m] at positions ``s`` (any shape) as a (..., 3) array; at a breakpoint the distal
+    value (:meth:`torchrod.Rod.intrinsic_at`)."""
+    zero = s * 0.0
+    ux, uy = zero, zero
+    for a, b, vx, vy in model.segments:
+        inside = (s >= a) & ((s < b) | ((s == b) & (b == model.length)))
+        ux = xp.where(inside, vx, ux)
+        uy = xp.where(inside, vy, uy)
+    return xp.stack([ux, uy, zero], -1)
+
+
+_HAT = ((0, 0, 0, 0, 0, -1, 0, 1, 0), (0, 0, 1, 0, 0, 0, -1, 0, 0), (0, -1, 0, 1, 0, 0, 0, 0, 0))
+"""v @ _HAT, reshaped (3, 3), is the matrix of v x (row-major)."""
+
+
+def _hat(xp: Backend, v: Any) -> Any:
+    """(R, 3, 3): the matrices of v x for v (R, 3)."""
+    return (v @ xp.asarray(_HAT)).reshape(v.shape[0], 3, 3)
 
 
 def march(
+    xp: Backend,
+    query: Any,
+    s: Any,
+    f: Any,
+    model: Precurved,
+    *,
+    active: Any = None,
+    max_step: float = DEFAULT_MAX_STEP,
+    jacobian: bool = False,
+    seeds: bool = False,
+    bending: Any = None,
+    steps: int | None = None,
+) -> tuple[Any, Any, Any, Any]:
+    """The precurved rod under R sets of forces (module docstring), read at ``query``.
+
+    Args:
+        query: (Q,) positions [m] in [0, L], any order, or (R, Q): each row its own.
+        s: (R, h) force locations [m]; f: (R, h, 2) body-frame (f_x, f_y) [N]; active: (R, h) bool (None: all).
+        max_step: the longest RK4 step [m].
+        jacobian: also the derivatives of the readings w.r.t. each force's (s [m], f_x [N], f_y [N]).
+        seeds: also the propagator of the linearised equations at the queries.
+        bending: EI [N m^2] overriding the model's (a number or an (R,) / (1,) array; GJ scales with it).
+        steps: a fixed number of RK4 steps per segment instead of ``max_step``'s count (which follows the batch's
+            longest segment): each row's result is then independent of the rest of the batch.
+    Returns:
+        u (R, Q, 3) body-frame curvature [1/m]; n (R, Q, 3) body-frame internal force [N] (proximal side);
+        jac (R, Q, 2, h, 3) d(u_x, u_y)/d(s, f_x, f_y) or None; phi (R, Q, 8, 6) or None: per query the
+        propagator's rows d(u_x, u_y) (2) and d(n, m) (6) w.r.t. the state (n, m) at the tip.
+    """
+    if not (isinstance(max_step, (int, float)) and math.isfinite(max_step) and max_step > 0.0):
+        raise ValueError(f"max_step must be a positive length [m], got {max_step!r}")
+    R, h = s.shape
+    Q = query.shape[-1]
+    rows_q = query if len(query.shape) == 2 else xp.expand(query[None, :], (R, Q))
+    L = model.length
+    ei = model.bending if bending is None else bending
+    ratio = model.torsion / model.bending
+    if isinstance(ei, (int, float)):
+        kinv = xp.asarray([[1.0 / ei, 1.0 / ei, 1.0 / (ei * ratio)]])  # (1, 3)
+    else:
+        ei = ei.reshape(-1, 1)
+        kinv = xp.concat([1.0 / ei, 1.0 / ei, 1.0 / (ei * ratio)], 1)  # (R or 1, 3)
+    on = xp.ones((R, h), "bool") if active is None else active
+    f3 = xp.concat([f * xp.astype(on, "float")[:, :, None], f[:, :, :1] * 0.0], 2)  # (R, h, 3), zero if inactive
+    s_ev = xp.where(on, s, L)  # an inactive slot: an event at the tip that does nothing
+    extra = xp.asarray([0.0, *model.breakpoints()])
+    pos = xp.concat([s_ev, rows_q, xp.expand(extra[None, :], (R, extra.shape[0]))], 1)
+    E = pos.shape[1]
+    order = xp.argsort_desc(pos.detach() if isinstance(pos, torch.Tensor) else pos)  # forces first at ties
+    at = xp.take(pos, order, 1)  # (R, E), descending
+    P = (3 * h if jacobian else 0) + (6 if seeds else 0)
+    # The state and its tangents side by side: column 0 of Yn, Ym (R, 3, 1 + P) is (n, m), the rest d(n, m).
+    Yn = xp.zeros((R, 3, 1 + P))
+    Ym = xp.zeros((R, 3, 1 + P))
+    if seeds:
+        eye = xp.eye(3)[None]
+        Yn[:, :, P - 5 : P - 2] = eye
+        Ym[:, :, P - 2 :] = eye
+    cols = xp.arange(1 + P)[None, :]  # (1, 1 + P)
+    kinv3 = kinv[:, :, None]
+    e3 = xp.asarray([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])[None]  # e3 x
+
+    def rates(Yn, Ym, ustar):
+        """d/ds of (Yn, Ym): the equations on column 0, their linearisation on the tangents."""
+        n, m = Yn[:, :, :1], Ym[:, :, :1]
+        U = _hat(xp, ustar + m[:, :, 0] * kinv)
+        rn = -(U @ Yn)
+        rm = -(U @ Ym) - e3 @ Yn
+        if not P:
+            return rn, rm
+        du = Ym[:, :, 1:] * kinv3  # -du x n = n x du, and the same for m
+        rn = xp.concat([rn[:, :, :1], rn[:, :, 1:] + _hat(xp, n[:, :, 0]) @ du], 2)
+        rm = xp.concat([rm[:, :, :1], rm[:, :, 1:] + _hat(xp, m[:, :, 0]) @ du], 2)
+        return rn, rm
+
+    cur = at[:, 0] * 0.0 + L
+    rec_n, rec_m = [], []
+    for e in range(E):
+        target = at[:, e]
+        seg = cur - target  # (R,) >= 0
+        longest = float(xp.amax(seg.detach() if isinstance(seg, torch.Tensor) else seg, 0)) if R else 0.0
+        n_steps = math.ceil(longest / max_step - 1e-9) if longest > 0.0 else 0
+        if steps is not None and longest > 0.0:
+            n_steps = steps
+        if n_steps:
+            hs = (-seg / n_steps)[:, None, None]  # (R, 1, 1): towards the base
+            half, sixth = 0.5 * hs, hs / 6.0
+            mid = 0.5 * (cur + target)
+            ustar = intrinsic(xp, model, mid.detach() if isinstance(mid, torch.Tensor) else mid)
+            for _ in range(n_steps):
+                a_n, a_m = rates(Yn, Ym, ustar)
+                b_n, b_m = rates(Yn + half * a_n, Ym + half * a_m, ustar)
+                c_n, c_m = rates(Yn + half * b_n, Ym + half * b_m, ustar)
+                d_n, d_m = rates(Yn + hs * c_n, Ym + hs * c_m, ustar)
+                Yn = Yn + sixth * (a_n + 2.0 * (b_n + c_n) + d_n)
+                Ym = Ym + sixth * (a_m + 2.0 * (b_m + c_m) + d_m)
+        cur = target
+        if h:
+            k = order[:, e]
+            is_force = k < h
+            j = xp.clip(k, hi=h - 1)
+            jump = xp.take(f3, xp.expand(j[:, None, None], (R, 1, 3)), 1)[:, 0]  # (R, 3)
+            jump = xp.where(is_force[:, None], jump, 0.0 * jump)
+            add_n = xp.where(cols == 0, jump[:, :, None], 0.0)  # (R, 3, 1 + P)
+            add_m = None
+            if jacobian:
+                # The force's columns start here: d/ds (the difference of the rates across the jump, with the
+                # distal segment's u*), d/df_x and d/df_y (unit jumps of n).
+                u_here = intrinsic(xp, model, target.detach() if isinstance(target, torch.Tensor) else target)
+                U = _hat(xp, u_here + Ym[:, :, 0] * kinv)
+                ds_n, ds_m = (U @ jump[:, :, None])[:, :, 0], (e3 @ jump[:, :, None])[:, :, 0]
+                live = (is_force & xp.take(on, j[:, None], 1)[:, 0])[:, None]
+                base = 1 + 3 * j[:, None]
+                c_s, c_x, c_y = (cols == base) & live, (cols == base + 1) & live, (cols == base + 2) & live
+                unit_x = xp.asarray([1.0, 0.0, 0.0])[None, :, None]
+                unit_y = xp.asarray([0.0, 1.0, 0.0])[None, :, None]
+                add_n = add_n + xp.where(c_s[:, None, :], ds_n[:, :, None], 0.0)
+                add_n = add_n + xp.where(c_x[:, None, :], unit_x, 0.0) + xp.where(c_y[:, None, :], unit_y, 0.0)
+                add_m = xp.where(c_s[:, None, :], ds_m[:, :, None], 0.0)
+            Yn = Yn + add_n
+            if add_m is not None:
+                Ym = Ym + add_m
+        rec_n.append(Yn)
+        rec_m.append(Ym)
+    # The event index of each query: the inverse of the sort, at the queries' kinds.
+    inverse = xp.argsort_desc(-order)[:, h : h + Q]  # (R, Q)
+    idx = xp.expand(inverse[:, :, None, None], (R, Q, 3, 1 + P))
+    Yn_q = xp.take(xp.stack(rec_n, 1), idx, 1)  # (R, Q, 3, 1 + P)
+    Ym_q = xp.take(xp.stack(rec_m, 1), idx, 1)
+    n_q = Yn_q[..., 0]
+    u_q = intrinsic(xp, model, rows_q) + Ym_q[..., 0] * kinv[:, None, :]
+    jac = phi = None
+    if P:
+        du_q = Ym_q[:, :, :2, 1:] * kinv[:, None, :2, None]  # (R, Q, 2, P)
+        if jacobian:
+            jac = du_q[..., : 3 * h].reshape(R, Q, 2, h, 3)
+        if seeds:
+            phi = xp.concat([du_q[..., P - 6 :], Yn_q[..., P - 5 :], Ym_q[..., P - 5 :]], 2)  # (R, Q, 8, 6)
+    return u_q, n_q, jac, phi
+
+
+def simulate_torch(
     rod: Rod,
     loads: PointForces,
     query: torch.Tensor,
     *,
     max_step: float = DEFAULT_MAX_STEP,
     bending_stiffness: float | torch.Tensor | None = None,
+    steps: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Curvature and internal force of the precurved ``rod`` under ``loads`` at ``query`` (module docstring).
-
-    Args:
-        rod: the rod (length, EI, GJ, intrinsic curvature).
-        loads: B sets of follower point forces (body frame, [m] and [N]); inactive slots carry no force.
-        query: (Q,) positions in [0, L] [m], any order.
-        max_step: the longest RK4 step [m].
-        bending_stiffness: overrides the rod's EI [N m^2] (a float, or a () or (B,) tensor; GJ scales with it).
-    Returns:
-        u (B, Q, 3) body-frame curvature [1/m] and n (B, Q, 3) body-frame internal force [N] (the proximal side of a
-        force at the query); dtype and device follow ``loads``.
-    """
-    if not (isinstance(max_step, (int, float)) and math.isfinite(max_step) and max_step > 0.0):
-        raise ValueError(f"max_step must be a positive length [m], got {max_step!r}")
-    dtype, device = loads.dtype, loads.device
-    B, h = loads.s.shape
-    query = torch.as_tensor(query, dtype=dtype, device=device).reshape(-1)
-    Q = query.shape[0]
-    ei = torch.as_tensor(rod.bending_stiffness if bending_stiffness is None else bending_stiffness, dtype=dtype)
-    ei = ei.to(device).reshape(-1, 1)  # (1, 1) or (B, 1)
-    gj = ei * (rod.torsion_stiffness / rod.bending_stiffness)
-    kinv = torch.cat([1.0 / ei, 1.0 / ei, 1.0 / gj], 1)  # (1 or B, 3)
-    f = loads.masked_f()  # (B, h, 2), zero where inactive
-    force3 = torch.cat([f, torch.zeros_like(f[..., :1])], -1)  # (B, h, 3)
-    extra = torch.tensor([0.0, *rod.breakpoints()], dtype=dtype, device=device)
-    # Events per sample: forces (kinds 0..h-1), queries (h..h+Q-1), breakpoints and the base (the rest).
-    s_forces = torch.where(loads.active, loads.s, torch.full_like(loads.s, rod.length))  # padding: a no-op at L
-    pos = torch.cat([s_forces, query.expand(B, Q), extra.expand(B, extra.shape[0])], 1)  # (B, E)
-    E = pos.shape[1]
-    order = torch.argsort(-pos.detach(), dim=1, stable=True)
-    at = torch.gather(pos, 1, order)  # (B, E) descending
-    kind = order
-    n = torch.zeros((B, 3), dtype=dtype, device=device)
-    m = torch.zeros((B, 3), dtype=dtype, device=device)
-    cur = torch.full((B,), rod.length, dtype=dtype, device=device)
-    recorded_m, recorded_n = [], []
-    rows = torch.arange(B, device=device)
-    for e in range(E):
-        target = at[:, e]
-        seg = cur - target  # (B,) >= 0
-        longest = float(seg.detach().max()) if B else 0.0
-        steps = math.ceil(longest / max_step - 1e-9) if longest > 0.0 else 0
-        if steps:
-            ds = (-seg / steps).unsqueeze(1)  # (B, 1): towards the base
-            ustar = intrinsic(rod, (0.5 * (cur + target)).detach())  # constant on the segment
-            for _ in range(steps):
-                a_n, a_m = _rates(n, m, ustar, kinv)
-                b_n, b_m = _rates(n + 0.5 * ds * a_n, m + 0.5 * ds * a_m, ustar, kinv)
-                c_n, c_m = _rates(n + 0.5 * ds * b_n, m + 0.5 * ds * b_m, ustar, kinv)
-                d_n, d_m = _rates(n + ds * c_n, m + ds * c_m, ustar, kinv)
-                n = n + ds / 6.0 * (a_n + 2.0 * b_n + 2.0 * c_n + d_n)
-                m = m + ds / 6.0 * (a_m + 2.0 * b_m + 2.0 * c_m + d_m)
-        cur = target
-        k = kind[:, e]
-        if h:
-            is_force = (k < h).unsqueeze(1)
-            jump = force3[rows, k.clamp(max=h - 1)]  # (B, 3)
-            n = n + torch.where(is_force, jump, torch.zeros_like(jump))
-        recorded_m.append(m)
-        recorded_n.append(n)
-    m_events = torch.stack(recorded_m, 1)  # (B, E, 3)
-    n_events = torch.stack(recorded_n, 1)
-    # The event index of each query: the inverse of the sort, at the queries' kinds.
-    inverse = torch.argsort(order, dim=1)[:, h : h + Q]  # (B, Q)
-    idx = inverse.unsqueeze(-1).expand(B, Q, 3)
-    m_q, n_q = torch.gather(m_events, 1, idx), torch.gather(n_events, 1, idx)
-    u = intrinsic(rod, query).unsqueeze(0) + m_q * kinv.unsqueeze(1)
-    return u, n_q
+    """:func:`march` on torch tensors with autograd, as :func:`torchrod.simulate` uses it: u (B, Q, 3) [1/m] and n
+    (B, Q, 3) [N] at ``query`` (Q,) [m]; dtype and device follow ``loads`` (computed in float64); ``steps`` as
+    :func:`march`'s."""
+    xp = TorchBackend(loads.device)
+    dtype = loads.dtype
+    query = torch.as_tensor(query, device=loads.device).reshape(-1).to(torch.float64)
+    ei = None
+    if bending_stiffness is not None:
+        ei = (
+            bending_stiffness.to(device=loads.device, dtype=torch.float64).reshape(-1)
+            if isinstance(bending_stiffness, torch.Tensor)
+            else float(bending_stiffness)
+        )
+    u, n, _, _ = march(
+        xp,
+        query,
+        loads.s.to(torch.float64),
+        loads.f.to(torch.float64),
+        Precurved.of(rod),
+        active=loads.active,
+        max_step=max_step,
+        bending=ei,
+        steps=steps,
+    )
+    return u.to(dtype), n.to(dtype)
 
 
 def grating_curvature(
@@ -140,8 +283,8 @@ def grating_curvature(
 ) -> torch.Tensor:
     """(B, G, 2) what the gratings read [1/m]: the total body-frame curvature (ux, uy), or with ``relative`` the
     change from the unloaded shape, u - u*."""
-    query = rod.grating_positions(loads.dtype, loads.device)
-    u, _ = march(rod, loads, query, max_step=max_step)
+    query = rod.grating_positions(torch.float64, loads.device)
+    u, _ = simulate_torch(rod, loads, query, max_step=max_step)
     if relative:
-        u = u - intrinsic(rod, query).unsqueeze(0)
+        u = u - intrinsic(TorchBackend(loads.device), Precurved.of(rod), query).to(u.dtype)[None]
     return u[..., :2]
