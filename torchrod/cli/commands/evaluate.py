@@ -244,14 +244,20 @@ def zero_cell(
     batch_size: int = 500,
     fibre: Any = None,
 ) -> dict[str, Any]:
-    """``count`` readings of an untouched rod (Gaussian noise ``sigma`` alone): how often the count is 0."""
+    """``count`` readings of an untouched rod (its unloaded shape, zero unless precurved, and Gaussian noise
+    ``sigma``): how often the count is 0."""
     g = torch.Generator().manual_seed(seed * 1000 + round(100 * sigma) + 1)
+    zero = _unloaded(rod).expand(count, rod.num_gratings, 2)
     if fibre is not None:
-        zero = torch.zeros(count, rod.num_gratings, 2, dtype=torch.float64)
         curvature = through_fibre(zero, sigma, fibre, seed * 1000 + round(100 * sigma) + 1)
     else:
-        curvature = sigma * torch.randn(count, rod.num_gratings, 2, generator=g, dtype=torch.float64)
+        curvature = zero + sigma * torch.randn(count, rod.num_gratings, 2, generator=g, dtype=torch.float64)
     return _forceless_cell(rod, curvature, sigma, 0, "0", max_forces, noise_known, batch_size)
+
+
+def _unloaded(rod: Rod) -> torch.Tensor:
+    """(1, G, 2) what the gratings read on the unloaded rod [1/m]: its intrinsic curvature (zero when straight)."""
+    return torch.tensor(rod.intrinsic_at(rod.gratings), dtype=torch.float64).reshape(1, rod.num_gratings, 2)
 
 
 def _forceless_cell(rod, curvature, sigma, k, row, max_forces, noise_known, batch_size) -> dict[str, Any]:
@@ -272,7 +278,8 @@ def unexplainable(rod: Rod, count: int, sigma: float, seed: int = 0, fibre: Any 
     the gratings made of h + 1 straight pieces; these readings change slope at nearly every grating: in turn
     alternating signs at successive gratings, a sine wave of period three grating spacings, and independent random
     values per grating; amplitude 1 to 10 1/m in a random direction. (A constant curvature or one growing toward
-    the tip is not among them: a force couple beyond the last grating, or two opposed forces, makes those.)"""
+    the tip is not among them: a force couple beyond the last grating, or two opposed forces, makes those.) On a
+    precurved rod they are changes from its unloaded shape."""
     g = torch.Generator().manual_seed(seed * 1000 + round(100 * sigma) + 2)
     G = rod.num_gratings
     k = torch.arange(G, dtype=torch.float64)
@@ -290,7 +297,7 @@ def unexplainable(rod: Rod, count: int, sigma: float, seed: int = 0, fibre: Any 
     amp = 1.0 + 9.0 * torch.rand(count, generator=g, dtype=torch.float64)
     ang = 2.0 * math.pi * torch.rand(count, generator=g, dtype=torch.float64)
     direction = torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # (count, 2)
-    clean = (amp[:, None] * shapes)[:, :, None] * direction[:, None, :]
+    clean = (amp[:, None] * shapes)[:, :, None] * direction[:, None, :] + _unloaded(rod)
     if fibre is not None:
         return through_fibre(clean, sigma, fibre, seed * 1000 + round(100 * sigma) + 2)
     return clean + sigma * torch.randn(count, G, 2, generator=g, dtype=torch.float64)
