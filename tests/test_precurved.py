@@ -235,3 +235,32 @@ def test_cli_simulate_on_the_preset(tmp_path, capsys):
     assert out["curvature"][-1] == [12.0, 0.0]  # distal to the force the tube keeps its shape
     assert main(["simulate", "--rod", "ctr250", "--tip-angle", str(path)]) == 2
     assert "precurved" in capsys.readouterr().err
+
+
+def test_cli_estimate_on_the_preset_total_and_relative(tmp_path, capsys):
+    from torchrod.cli import main
+
+    rod = tr.presets.ctr250()
+    u = tr.simulate(rod, _loads([[(0.18, 0.6, -0.3)]])).grating_curvature[0]
+    shape = torch.tensor(rod.intrinsic_at(rod.gratings), dtype=torch.float64)
+    total, relative = tmp_path / "total.jsonl", tmp_path / "relative.jsonl"
+    total.write_text(json.dumps({"id": 0, "curvature": u.tolist()}) + "\n")
+    relative.write_text(json.dumps({"id": 0, "curvature": (u - shape).tolist()}) + "\n")
+    answers = []
+    for path, extra in ((total, []), (relative, ["--relative"])):
+        assert main(["estimate", "--rod", "ctr250", "--noise", "0.05", *extra, str(path)]) == 0
+        answers.append(json.loads(capsys.readouterr().out))
+    for a in answers:
+        assert a["status"] == "ok" and a["num_forces"] == 1
+        assert a["forces"][0]["s"] == pytest.approx(0.18, abs=1e-6)
+        assert a["forces"][0]["fx"] == pytest.approx(0.6, abs=1e-5) and a["forces"][0]["fy"] == pytest.approx(
+            -0.3, abs=1e-5
+        )
+
+
+def test_evaluate_rows_on_the_preset_start_from_its_shape():
+    from torchrod.cli.commands.evaluate import misfit_cell, zero_cell
+
+    rod = tr.presets.ctr250()
+    assert zero_cell(rod, 0.1, 12, batch_size=12)["count_accuracy"] >= 0.9
+    assert misfit_cell(rod, 0.1, 3, batch_size=3)["misfit"] == 1.0

@@ -40,6 +40,12 @@ def add_sensor_options(parser: argparse.ArgumentParser) -> None:
         help="strain noise sigma per core (dimensionless) of the rod's multicore fibre, instead of --noise: the "
         "curvature noise it implies weighs the fit",
     )
+    parser.add_argument(
+        "--relative",
+        action="store_true",
+        help="readings of a precurved rod are the change from its unloaded shape, u - u* (default: the total "
+        "curvature u, which a fibre straight when unstrained reads)",
+    )
 
 
 def sensor_noise(args: argparse.Namespace, rod) -> None:

@@ -129,6 +129,7 @@ def options_from_args(args: argparse.Namespace) -> EstimatorOptions:
         selection=args.selection,
         threshold=args.threshold,
         starts=EstimatorOptions.starts if args.starts is None else args.starts,
+        relative=getattr(args, "relative", False),
     )
 
 

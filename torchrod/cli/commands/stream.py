@@ -238,7 +238,12 @@ def _run(args: argparse.Namespace) -> int:
     if args.iterations < 0:
         raise ValueError(f"--iterations must be >= 0, got {args.iterations}")
     # As Estimator.from_checkpoint: the network's guesses are starts beside the scan's.
-    options = EstimatorOptions(max_forces=args.max_forces, noise=args.noise, lm=LMPolicy(iterations=args.iterations))
+    options = EstimatorOptions(
+        max_forces=args.max_forces,
+        noise=args.noise,
+        lm=LMPolicy(iterations=args.iterations),
+        relative=args.relative,
+    )
     estimator = Estimator(rod, options, warm_start=network)
     options = StreamOptions(
         batch_size=args.batch_size,
