@@ -450,6 +450,7 @@ class _Grid:
     w: np.ndarray | None  # (n, 3) distributed body-frame load at grid points [N/m] (node scheme), else None
     jumps: dict[int, np.ndarray]  # grid index -> (3,) summed body-frame point force there [N] (exact scheme)
     record: np.ndarray  # (Q,) grid index of each query
+    ustar: np.ndarray | None = None  # (n-1, 3) intrinsic curvature on each step [1/m] (precurved), else None
 
 
 class ShootingSolver:
@@ -492,11 +493,6 @@ class ShootingSolver:
     ) -> None:
         if not isinstance(rod, Rod):
             raise TypeError(f"rod must be a Rod, got {type(rod).__name__}")
-        if rod.precurved:
-            raise ValueError(
-                "the paper's shooting baselines model a straight rod; this rod has intrinsic_curvature "
-                "(solve_reference handles it)"
-            )
         if not isinstance(nodes, (int, np.integer)) or nodes < 2:
             raise ValueError(f"nodes must be an integer >= 2, got {nodes!r}")
         if jacobian not in ("fd", "dp"):
@@ -522,7 +518,7 @@ class ShootingSolver:
     # ------------------------------------------------------------------ discretisation
     def _grid(self, forces: np.ndarray, query: np.ndarray) -> _Grid:
         L = self.rod.length
-        parts = [self._node_s, query]
+        parts = [self._node_s, query, np.asarray(self.rod.breakpoints(), dtype=np.float64)]
         if self.scheme == "exact":
             parts.append(forces[:, 0])
         s = np.unique(np.concatenate(parts))
@@ -540,15 +536,19 @@ class ShootingSolver:
                 hat = np.clip(1.0 - np.abs(forces[:, :1] - self._node_s) / d, 0.0, None)  # (h, q)
                 w_nodes[:, :2] = hat.T @ forces[:, 1:] / d  # [N/m]
             w = np.stack([np.interp(s, self._node_s, w_nodes[:, c]) for c in range(3)], axis=1)
-        return _Grid(s=s, h=np.diff(s), w=w, jumps=jumps, record=record)
+        ustar = _intrinsic(self.rod, 0.5 * (s[:-1] + s[1:])) if self.rod.precurved else None
+        return _Grid(s=s, h=np.diff(s), w=w, jumps=jumps, record=record, ustar=ustar)
 
     # ------------------------------------------------------------------ right-hand sides
-    def _rhs(self, y: np.ndarray, w: np.ndarray | None) -> np.ndarray:
-        """d/ds of K states y (K, 18); w (3,) body-frame distributed load [N/m] or None."""
+    def _rhs(self, y: np.ndarray, w: np.ndarray | None, ustar: np.ndarray | None = None) -> np.ndarray:
+        """d/ds of K states y (K, 18); w (3,) body-frame distributed load [N/m] or None; ustar (3,) the intrinsic
+        curvature on this step [1/m] or None (straight)."""
         K = y.shape[0]
         R = y[:, _R].reshape(K, 3, 3)
         N, M = y[:, _N], y[:, _M]
         u = self._kinv * np.einsum("kji,kj->ki", R, M)
+        if ustar is not None:
+            u = u + ustar
         t = R[:, :, 2]
         out = np.empty_like(y)
         out[:, _P] = t
@@ -557,7 +557,7 @@ class ShootingSolver:
         out[:, _M] = -_cross(t, N)
         return out
 
-    def _rhs_tangent(self, y: np.ndarray, w: np.ndarray | None) -> np.ndarray:
+    def _rhs_tangent(self, y: np.ndarray, w: np.ndarray | None, ustar: np.ndarray | None = None) -> np.ndarray:
         """d/ds of [state; 6 tangents] (7, 18): the state's equations and their linearisation (derivative
         propagation): dP' = dR e3, dR' = dR u^ + R du^, du = K^{-1}(dR^T M + R^T dM), dN' = -dR w,
         dM' = -(dR e3) x N - (R e3) x dN."""
@@ -568,6 +568,8 @@ class ShootingSolver:
         m = np.einsum("kji,j->ki", Rs, M)  # R^T M and dR^T M
         m[1:] += dM @ R  # + R^T dM
         H = _hat(self._kinv * m)  # u^ and du^
+        if ustar is not None:
+            H[0] += _hat(ustar)  # u = u* + K^-1 R^T M (u* constant on the step: du has no share of it)
         ts = Rs[:, :, 2]  # t = R e3 and dt = dR e3
         out = np.empty_like(y)
         out[:, _P] = ts
@@ -615,10 +617,11 @@ class ShootingSolver:
             else:
                 w0, w1 = w[k], w[k + 1]
                 wm = 0.5 * (w0 + w1)
-            k1 = rhs(y, w0)
-            k2 = rhs(y + (0.5 * h) * k1, wm)
-            k3 = rhs(y + (0.5 * h) * k2, wm)
-            k4 = rhs(y + h * k3, w1)
+            us = None if grid.ustar is None else grid.ustar[k]
+            k1 = rhs(y, w0, us)
+            k2 = rhs(y + (0.5 * h) * k1, wm, us)
+            k3 = rhs(y + (0.5 * h) * k2, wm, us)
+            k4 = rhs(y + h * k3, w1, us)
             y = y + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
         return y, (rec[grid.record] if record else None)
 
