@@ -276,3 +276,31 @@ def test_evaluate_rows_on_the_preset_start_from_its_shape():
     rod = tr.presets.ctr250()
     assert zero_cell(rod, 0.1, 12, batch_size=12)["count_accuracy"] >= 0.9
     assert misfit_cell(rod, 0.1, 3, batch_size=3)["misfit"] == 1.0
+
+
+def test_a_network_layout_carries_the_precurvature(rod):
+    """The dimensionless rod a network is trained on reproduces the preset's readings (u L for s / L and f L^2 / EI:
+    the scaling holds with precurvature and torsion too); a network for one precurvature refuses another rod."""
+    from torchrod.learn.warm_start import NetConfig, WarmStart, WarmStartNet, unit_rod
+
+    config = NetConfig.for_rod(rod)
+    assert config.intrinsic_curvature == ((0.6, 1.0, 3.0, 0.0),)
+    assert config.torsion_ratio == pytest.approx(1 / 1.33)
+    assert NetConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
+    unit = unit_rod(config)
+    L, EI = rod.length, rod.bending_stiffness
+    case = [(0.12, -0.9, 1.1), (0.22, 0.6, -0.4)]
+    scaled = [(s / L, fx * L * L / EI, fy * L * L / EI) for s, fx, fy in case]
+    u = tr.simulate(rod, _loads([case])).grating_curvature
+    u_unit = tr.simulate(unit, _loads([scaled])).grating_curvature
+    assert torch.allclose(u_unit, u * L, rtol=1e-9, atol=1e-9)
+    # body_frame.grating_curvature (the training's physics loss, calibration) takes the precurved path too
+    from torchrod.model.body_frame import grating_curvature
+
+    assert torch.allclose(grating_curvature(rod, _loads([case])), u, rtol=1e-12, atol=1e-12)
+    net = WarmStartNet(config)
+    assert WarmStart(net, rod, {}).matches(rod)
+    with pytest.raises(ValueError, match="precurvature"):
+        WarmStart(net, rod.with_(intrinsic_curvature=[(0.15, 0.25, 10.0, 0.0)]), {})
+    with pytest.raises(ValueError, match="relative positions"):
+        WarmStart(net, tr.presets.nitinol290(), {})

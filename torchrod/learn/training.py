@@ -355,7 +355,7 @@ def compute_losses(
     if physics_weight > 0 and physics_batch > 0:
         P = min(physics_batch, reading.shape[0])
         loads = PointForces(s[:P], f[:P], mask[:P])
-        rod = unit_rod(config.relative_gratings)
+        rod = unit_rod(config)
         u = grating_curvature(rod, loads)
         r = (u - reading[:P]) / config.curvature_scale
         wp = present[:P].to(r.dtype).unsqueeze(-1)

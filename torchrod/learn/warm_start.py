@@ -78,6 +78,8 @@ class NetConfig:
         depth: number of hidden layers.
         curvature_scale: typical |u L| of the training readings (dimensionless); inputs are divided by it.
         force_scale: typical |f| L^2 / EI of the training forces (dimensionless); force outputs are multiples of it.
+        intrinsic_curvature: a precurved rod's u*, dimensionless: segments ``(from / L, to / L, ux* L, uy* L)``
+            (empty for a straight rod); torsion_ratio: its GJ / EI. Both are part of the layout a network serves.
     """
 
     relative_gratings: tuple[float, ...]
@@ -86,6 +88,8 @@ class NetConfig:
     depth: int = 3
     curvature_scale: float = 5.0
     force_scale: float = 5.0
+    intrinsic_curvature: tuple[tuple[float, float, float, float], ...] = ()
+    torsion_ratio: float | None = None
 
     def __post_init__(self) -> None:
         raw = self.relative_gratings
@@ -107,6 +111,11 @@ class NetConfig:
             if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or v <= 0.0:
                 raise ValueError(f"{name} must be positive and finite, got {_brief(v)}")
             object.__setattr__(self, name, float(v))
+        # Checked by the rod they describe (the unit rod: lengths in units of L).
+        unit = unit_rod(self)
+        object.__setattr__(self, "intrinsic_curvature", unit.intrinsic_curvature)
+        if self.torsion_ratio is not None:
+            object.__setattr__(self, "torsion_ratio", unit.torsion_stiffness)
 
     @property
     def num_gratings(self) -> int:
@@ -115,6 +124,7 @@ class NetConfig:
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["relative_gratings"] = list(self.relative_gratings)
+        d["intrinsic_curvature"] = [list(x) for x in self.intrinsic_curvature]
         return d
 
     @classmethod
@@ -132,7 +142,13 @@ class NetConfig:
 
     @classmethod
     def for_rod(cls, rod: Rod, **kwargs: Any) -> NetConfig:
-        """A config with ``rod``'s layout."""
+        """A config with ``rod``'s layout (and, for a precurved rod, its dimensionless precurvature and GJ / EI)."""
+        if rod.precurved:
+            L = rod.length
+            kwargs.setdefault(
+                "intrinsic_curvature", tuple((a / L, b / L, ux * L, uy * L) for a, b, ux, uy in rod.intrinsic_curvature)
+            )
+            kwargs.setdefault("torsion_ratio", rod.torsion_stiffness / rod.bending_stiffness)
         return cls(relative_gratings=rod.relative_gratings, **kwargs)
 
 
@@ -265,9 +281,19 @@ def _canonical_frame(x: torch.Tensor, present: torch.Tensor) -> tuple[torch.Tens
 # ---------------------------------------------------------------------------------------------------- dimensionless
 
 
-def unit_rod(relative_gratings: Sequence[float]) -> Rod:
-    """The dimensionless rod: length 1, EI = 1, gratings at the relative positions (for the physics loss)."""
-    return Rod(length=1.0, bending_stiffness=1.0, gratings=tuple(relative_gratings))
+def unit_rod(layout: NetConfig | Sequence[float]) -> Rod:
+    """The dimensionless rod of a network's layout (a :class:`NetConfig`, or the relative grating positions of a
+    straight rod): length 1, EI = 1, its gratings, precurvature and GJ / EI (for the physics loss)."""
+    if not isinstance(layout, NetConfig):
+        return Rod(length=1.0, bending_stiffness=1.0, gratings=tuple(layout))
+    segments = tuple(tuple(x) for x in layout.intrinsic_curvature)
+    return Rod(
+        length=1.0,
+        bending_stiffness=1.0,
+        gratings=layout.relative_gratings,
+        intrinsic_curvature=segments,
+        torsional_stiffness=layout.torsion_ratio,
+    )
 
 
 def to_dimensionless(rod: Rod, curvature: torch.Tensor | None = None, loads: PointForces | None = None):
@@ -550,16 +576,36 @@ class WarmStart:
         """True if ``rod``'s gratings sit at the network's relative positions (within ``LAYOUT_TOLERANCE``)."""
         mine = self.net.config.relative_gratings
         theirs = rod.relative_gratings
-        return len(mine) == len(theirs) and all(
+        same = len(mine) == len(theirs) and all(
             abs(a - b) <= LAYOUT_TOLERANCE for a, b in zip(mine, theirs, strict=False)
         )
+        # A precurved rod (or a network trained for one) also needs the same dimensionless precurvature and GJ / EI.
+        other = NetConfig.for_rod(rod)
+        shape = [x for seg in self.net.config.intrinsic_curvature for x in seg]
+        other_shape = [x for seg in other.intrinsic_curvature for x in seg]
+        same_shape = len(shape) == len(other_shape) and all(
+            abs(a - b) <= LAYOUT_TOLERANCE * max(1.0, abs(a)) for a, b in zip(shape, other_shape, strict=False)
+        )
+        ratio, other_ratio = self.net.config.torsion_ratio, other.torsion_ratio
+        same_torsion = (ratio is None) == (other_ratio is None) and (
+            ratio is None or abs(ratio - other_ratio) <= LAYOUT_TOLERANCE * ratio
+        )
+        return same and same_shape and same_torsion
 
     def _mismatch(self, rod: Rod) -> str:
         mine = [round(x, 6) for x in self.net.config.relative_gratings]
         theirs = [round(x, 6) for x in rod.relative_gratings]
+        if mine != theirs:
+            return (
+                f"the warm-start network was trained for gratings at relative positions {mine} (s/L), "
+                f"but the rod has {theirs}"
+            )
+        other = NetConfig.for_rod(rod)
         return (
-            f"the warm-start network was trained for gratings at relative positions {mine} (s/L), "
-            f"but the rod has {theirs}"
+            "the warm-start network was trained for a rod with dimensionless precurvature "
+            f"{[list(x) for x in self.net.config.intrinsic_curvature]} (s/L, u* L) and GJ/EI "
+            f"{self.net.config.torsion_ratio}, but the rod has {[list(x) for x in other.intrinsic_curvature]} and "
+            f"{other.torsion_ratio}"
         )
 
     def _net_on(self, device: torch.device) -> WarmStartNet:

@@ -392,6 +392,12 @@ def grating_curvature(
     """
     query = rod.grating_positions(loads.dtype, loads.device)
     ei = rod.bending_stiffness if bending_stiffness is None else bending_stiffness
+    if rod.precurved:
+        if scheme != "exact" or method is not None:
+            raise ValueError("a precurved rod is simulated by torchrod.model.precurved: scheme 'exact', no method")
+        from .precurved import simulate_torch
+
+        return simulate_torch(rod, loads, query, bending_stiffness=ei)[0][..., :2]
     if scheme == "exact":
         return integrate_curvature(
             query, loads, rod.length, ei, max_step_angle=max_step_angle, method=method, adjoint=adjoint
