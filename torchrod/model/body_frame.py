@@ -393,11 +393,17 @@ def grating_curvature(
     query = rod.grating_positions(loads.dtype, loads.device)
     ei = rod.bending_stiffness if bending_stiffness is None else bending_stiffness
     if rod.precurved:
-        if scheme != "exact" or method is not None:
-            raise ValueError("a precurved rod is simulated by torchrod.model.precurved: scheme 'exact', no method")
+        if method is not None:
+            raise ValueError("a precurved rod is simulated by torchrod.model.precurved's RK4: no method")
         from .precurved import simulate_torch
 
-        return simulate_torch(rod, loads, query, bending_stiffness=ei)[0][..., :2]
+        if scheme == "exact":
+            return simulate_torch(rod, loads, query, bending_stiffness=ei)[0][..., :2]
+        # The paper's node scheme: the forces spread onto the nodes, a distributed load linear between them.
+        grid = torch.linspace(0.0, rod.length, nodes, dtype=loads.dtype, device=loads.device)
+        w = spread_to_nodes(loads, grid)
+        none = PointForces(loads.s[:, :0], loads.f[:, :0])
+        return simulate_torch(rod, none, query, bending_stiffness=ei, load=w)[0][..., :2]
     if scheme == "exact":
         return integrate_curvature(
             query, loads, rod.length, ei, max_step_angle=max_step_angle, method=method, adjoint=adjoint

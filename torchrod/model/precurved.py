@@ -113,6 +113,7 @@ def march(
     seeds: bool = False,
     bending: Any = None,
     steps: int | None = None,
+    load: Any = None,
 ) -> tuple[Any, Any, Any, Any]:
     """The precurved rod under R sets of forces (module docstring), read at ``query``.
 
@@ -125,6 +126,9 @@ def march(
         bending: EI [N m^2] overriding the model's (a number or an (R,) / (1,) array; GJ scales with it).
         steps: a fixed number of RK4 steps per segment instead of ``max_step``'s count (which follows the batch's
             longest segment): each row's result is then independent of the rest of the batch.
+        load: (R, q, 2) a distributed body-frame load (w_x, w_y) [N/m] at q uniform nodes over [0, L], linear
+            between them (the paper's node scheme: point forces spread onto the nodes), added to n' = -u x n - w;
+            not with ``jacobian`` or ``seeds``.
     Returns:
         u (R, Q, 3) body-frame curvature [1/m]; n (R, Q, 3) body-frame internal force [N] (proximal side);
         jac (R, Q, 2, h, 3) d(u_x, u_y)/d(s, f_x, f_y) or None; phi (R, Q, 8, 6) or None: per query the
@@ -146,7 +150,12 @@ def march(
     on = xp.ones((R, h), "bool") if active is None else active
     f3 = xp.concat([f * xp.astype(on, "float")[:, :, None], f[:, :, :1] * 0.0], 2)  # (R, h, 3), zero if inactive
     s_ev = xp.where(on, s, L)  # an inactive slot: an event at the tip that does nothing
-    extra = xp.asarray([0.0, *model.breakpoints()])
+    nodes = 0 if load is None else load.shape[1]
+    if nodes and (jacobian or seeds):
+        raise ValueError("a distributed load is for the forward march only (no jacobian, no seeds)")
+    spacing = L / (nodes - 1) if nodes > 1 else L
+    inner = [k * spacing for k in range(1, nodes - 1)]
+    extra = xp.asarray([0.0, *model.breakpoints(), *inner])
     pos = xp.concat([s_ev, rows_q, xp.expand(extra[None, :], (R, extra.shape[0]))], 1)
     E = pos.shape[1]
     order = xp.argsort_desc(pos.detach() if isinstance(pos, torch.Tensor) else pos)  # forces first at ties
@@ -163,12 +172,23 @@ def march(
     kinv3 = kinv[:, :, None]
     e3 = xp.asarray([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])[None]  # e3 x
 
-    def rates(Yn, Ym, ustar):
+    def load_at(p):
+        """(R, 3, 1) the distributed load at positions p (R,) [N/m], linear between the nodes."""
+        j = xp.clip(xp.astype(p / spacing, "int"), lo=0, hi=nodes - 2)
+        frac = (p - xp.astype(j, "float") * spacing) / spacing
+        lo = xp.take(load, xp.expand(j[:, None, None], (R, 1, 2)), 1)[:, 0]
+        hi = xp.take(load, xp.expand((j + 1)[:, None, None], (R, 1, 2)), 1)[:, 0]
+        w = lo + (hi - lo) * frac[:, None]
+        return xp.concat([w, w[:, :1] * 0.0], 1)[:, :, None]
+
+    def rates(Yn, Ym, ustar, w=None):
         """d/ds of (Yn, Ym): the equations on column 0, their linearisation on the tangents."""
         n, m = Yn[:, :, :1], Ym[:, :, :1]
         U = _hat(xp, ustar + m[:, :, 0] * kinv)
         rn = -(U @ Yn)
         rm = -(U @ Ym) - e3 @ Yn
+        if w is not None:
+            rn = rn - w
         if not P:
             return rn, rm
         du = Ym[:, :, 1:] * kinv3  # -du x n = n x du, and the same for m
@@ -190,11 +210,17 @@ def march(
             half, sixth = 0.5 * hs, hs / 6.0
             mid = 0.5 * (cur + target)
             ustar = intrinsic(xp, model, mid.detach() if isinstance(mid, torch.Tensor) else mid)
-            for _ in range(n_steps):
-                a_n, a_m = rates(Yn, Ym, ustar)
-                b_n, b_m = rates(Yn + half * a_n, Ym + half * a_m, ustar)
-                c_n, c_m = rates(Yn + half * b_n, Ym + half * b_m, ustar)
-                d_n, d_m = rates(Yn + hs * c_n, Ym + hs * c_m, ustar)
+            w0 = w1 = None
+            if nodes:
+                w0, w1 = load_at(cur), load_at(target)  # the segment lies between two nodes: linear in between
+            for i in range(n_steps):
+                wa = wb = wc = None
+                if nodes:
+                    wa, wb, wc = (w0 + (w1 - w0) * ((i + c) / n_steps) for c in (0.0, 0.5, 1.0))
+                a_n, a_m = rates(Yn, Ym, ustar, wa)
+                b_n, b_m = rates(Yn + half * a_n, Ym + half * a_m, ustar, wb)
+                c_n, c_m = rates(Yn + half * b_n, Ym + half * b_m, ustar, wb)
+                d_n, d_m = rates(Yn + hs * c_n, Ym + hs * c_m, ustar, wc)
                 Yn = Yn + sixth * (a_n + 2.0 * (b_n + c_n) + d_n)
                 Ym = Ym + sixth * (a_m + 2.0 * (b_m + c_m) + d_m)
         cur = target
@@ -250,10 +276,11 @@ def simulate_torch(
     max_step: float = DEFAULT_MAX_STEP,
     bending_stiffness: float | torch.Tensor | None = None,
     steps: int | None = None,
+    load: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`march` on torch tensors with autograd, as :func:`torchrod.simulate` uses it: u (B, Q, 3) [1/m] and n
     (B, Q, 3) [N] at ``query`` (Q,) [m]; dtype and device follow ``loads`` (computed in float64); ``steps`` as
-    :func:`march`'s."""
+    :func:`march`'s; ``load`` (B, q, 2) [N/m] a distributed load at q uniform nodes (:func:`march`)."""
     xp = TorchBackend(loads.device)
     dtype = loads.dtype
     query = torch.as_tensor(query, device=loads.device).reshape(-1).to(torch.float64)
@@ -274,6 +301,7 @@ def simulate_torch(
         max_step=max_step,
         bending=ei,
         steps=steps,
+        load=None if load is None else load.to(torch.float64),
     )
     return u.to(dtype), n.to(dtype)
 
