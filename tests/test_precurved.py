@@ -12,6 +12,7 @@ import torch
 import torchrod as tr
 from torchrod.model import precurved as P
 from torchrod.model.global_bvp import ShootingSolver, solve_reference
+from torchrod.model.shape import shape
 
 
 @pytest.fixture(scope="module")
@@ -320,3 +321,20 @@ def test_the_papers_node_scheme_on_a_precurved_rod(rod):
         assert np.abs(nodes - bvp).max() < 3e-5 * np.abs(bvp).max()
         errors.append(np.abs(nodes - exact).max() / np.abs(exact).max())
     assert 3.0 < errors[0] / errors[1] < 5.0, errors
+
+
+def test_shapes_of_the_precurved_tube_take_its_twist(rod):
+    """Unloaded: a straight 150 mm and an arc of radius 1/12 m turning 1.2 rad towards -d2. Loaded out of plane
+    (it twists): the shape from simulate's (u_x, u_y, u_z) matches the global shooting's centreline."""
+    theta = 0.1 * 12.0
+    unloaded = shape(rod, _loads([[(0.1, 0.0, 0.0)]]), samples=801)
+    tip = unloaded.position[0, -1].numpy()
+    expected = np.array([0.0, -(1.0 - np.cos(theta)) / 12.0, 0.15 + np.sin(theta) / 12.0])
+    assert np.abs(tip - expected).max() < 1e-6, (tip, expected)
+    case = [(0.12, -0.9, 1.1), (0.22, 0.6, -0.4)]
+    sim = tr.simulate(rod, _loads([case]), samples=5)
+    assert sim.twist is not None and float(sim.twist.abs().max()) > 1.0
+    loaded = shape(rod, _loads([case]), samples=801)
+    ref = solve_reference(rod, case, at=[rod.length])
+    assert np.abs(loaded.position[0, -1].numpy() - ref.P[-1]).max() < 1e-5
+    assert np.abs(loaded.frames[0, -1].numpy() - ref.R[-1]).max() < 1e-4

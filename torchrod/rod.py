@@ -364,14 +364,18 @@ class Rod:
         nu = DEFAULT_POISSON_RATIO if self.poisson_ratio is None else self.poisson_ratio
         return self.bending_stiffness / (1.0 + nu)
 
-    def intrinsic_at(self, s: Sequence[float]) -> list[tuple[float, float]]:
+    def intrinsic_at(self, s: Sequence[float], side: str = "distal") -> list[tuple[float, float]]:
         """u* = (ux*, uy*) [1/m] at each position s [m]; at a breakpoint, the value just distal to it (towards the
-        tip), which is what a grating there reads on the unloaded rod."""
+        tip), which is what a grating there reads on the unloaded rod, or with ``side="proximal"`` the value just
+        before it."""
+        if side not in ("distal", "proximal"):
+            raise ValueError(f"side must be 'distal' or 'proximal', got {side!r}")
         out = []
         for x in s:
             value = (0.0, 0.0)
             for a, b, ux, uy in self.intrinsic_curvature:
-                if a <= x < b or (x == b == self.length):
+                inside = (a <= x < b or x == b == self.length) if side == "distal" else (a < x <= b or x == a == 0.0)
+                if inside:
                     value = (ux, uy)
             out.append(value)
         return out

@@ -636,7 +636,7 @@ def loss_maps(
     loads = PointForces(torch.from_numpy(s_all).view(-1, 1), torch.from_numpy(f_all).view(-1, 1, 2))
     with torch.no_grad():
         sim = simulate(rod, loads, samples=samples)
-        shp = rod_shape(sim.s, sim.curvature)
+        shp = rod_shape(sim.s, sim.full_curvature)
     u = sim.grating_curvature.numpy()
     p = shp.position.numpy()
     curvature_loss = ((u[1:] - u[:1]) ** 2).sum((1, 2)).reshape(F, S)

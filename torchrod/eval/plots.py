@@ -215,7 +215,7 @@ def _profile(rod: Rod, rows: np.ndarray, samples: int) -> tuple[np.ndarray, ...]
         loads = PointForces(torch.zeros(1, 1, dtype=torch.float64), torch.zeros(1, 1, 2, dtype=torch.float64))
     with torch.no_grad():
         sim = simulate(rod, loads, samples=samples)
-        shp = rod_shape(sim.s, sim.curvature)
+        shp = rod_shape(sim.s, sim.full_curvature)  # with the twist of a precurved rod
     return (
         sim.s.numpy(),
         sim.curvature[0].numpy(),

@@ -78,12 +78,20 @@ class Simulation:
         s: (S,) positions along the rod where the profiles below are sampled [m], increasing.
         curvature: (B, S, 2) curvature at ``s`` [1/m].
         internal_force: (B, S, 3) body-frame internal force n = R^T N at ``s`` [N] (proximal side of a force).
+        twist: (B, S) the twist u_z at ``s`` [1/m] of a precurved rod (None for a straight rod, which never twists).
     """
 
     grating_curvature: torch.Tensor
     s: torch.Tensor
     curvature: torch.Tensor
     internal_force: torch.Tensor
+    twist: torch.Tensor | None = None
+
+    @property
+    def full_curvature(self) -> torch.Tensor:
+        """(B, S, 3) (u_x, u_y, u_z) at ``s`` [1/m] (u_z zero for a straight rod)."""
+        uz = self.twist if self.twist is not None else torch.zeros_like(self.curvature[..., 0])
+        return torch.cat([self.curvature, uz.unsqueeze(-1)], -1)
 
     def curvature_magnitude(self) -> torch.Tensor:
         """(B, S) |u| along the rod [1/m]."""
@@ -480,7 +488,6 @@ def simulate(
         from .precurved import simulate_torch
 
         curv, force = simulate_torch(rod, loads, query, bending_stiffness=ei)
-        curv = curv[..., :2]
     elif scheme == "exact":
         curv, force = integrate_curvature(
             query,
@@ -504,4 +511,11 @@ def simulate(
         profile_s, profile_u, profile_n = srt, curv[:, G:][:, idx], force[:, G:][:, idx]
     else:
         profile_s, profile_u, profile_n = grat, curv[:, :G], force[:, :G]
-    return Simulation(grating_curvature=curv[:, :G], s=profile_s, curvature=profile_u, internal_force=profile_n)
+    twist = profile_u[..., 2] if profile_u.shape[-1] == 3 else None
+    return Simulation(
+        grating_curvature=curv[:, :G, :2],
+        s=profile_s,
+        curvature=profile_u[..., :2],
+        internal_force=profile_n,
+        twist=twist,
+    )

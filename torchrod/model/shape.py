@@ -146,8 +146,29 @@ def shape(rod: Rod, loads: PointForces, samples: int = 200, **simulate_options) 
     """
     if not isinstance(samples, int) or samples < 2:
         raise ValueError(f"samples must be an integer >= 2, got {samples!r}")
-    sim = simulate(rod, loads, samples=samples, **simulate_options)
-    return rod_shape(sim.s, sim.curvature)
+    if not rod.precurved:
+        sim = simulate(rod, loads, samples=samples, **simulate_options)
+        return rod_shape(sim.s, sim.curvature)
+    # A precurved rod: with its twist, and u* jumps sampled on both sides (each breakpoint twice: proximal value,
+    # then distal), so that the midpoint rule never averages across a jump.
+    breaks = rod.breakpoints()
+    extra = simulate_options.pop("at", None)
+    at = torch.tensor(breaks, dtype=loads.dtype, device=loads.device)
+    if extra is not None:
+        at = torch.cat([at, torch.as_tensor(extra, dtype=loads.dtype, device=loads.device).reshape(-1)])
+    sim = simulate(rod, loads, samples=samples, at=at, **simulate_options)
+    s, u = sim.s, sim.full_curvature
+    parts_s, parts_u, start = [], [], 0
+    for b in breaks:
+        (dx, dy), (px, py) = rod.intrinsic_at([b])[0], rod.intrinsic_at([b], side="proximal")[0]
+        jump = torch.tensor([dx - px, dy - py, 0.0], dtype=u.dtype, device=u.device)
+        k = int(torch.searchsorted(s.detach(), torch.tensor(b, dtype=s.dtype, device=s.device)))
+        parts_s += [s[start:k], s[k : k + 1]]
+        parts_u += [u[:, start:k], u[:, k : k + 1] - jump]
+        start = k
+    parts_s.append(s[start:])
+    parts_u.append(u[:, start:])
+    return rod_shape(torch.cat(parts_s), torch.cat(parts_u, 1))
 
 
 def bending_angle(shape: Shape) -> torch.Tensor:

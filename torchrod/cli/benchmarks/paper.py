@@ -316,9 +316,12 @@ def _run(args, rod, table_nodes, acc_nodes, table_readings, per_count, map_size,
     )
 
     # ------------------------------------------------------------------ 4. loss maps
-    progress("loss maps")
-    maps = P.loss_maps(rod.with_(location_bias=0.0), size=map_size)
     print()
+    progress("loss maps")
+    L = rod.length
+    maps = P.loss_maps(
+        rod.with_(location_bias=0.0), size=map_size, true=(0.2 * L / 0.29, 0.3, 0.0), s_range=(0.1 * L / 0.29, L)
+    )
     print(
         f"## Loss maps: one force at {1e3 * maps.true[0]:.0f} mm, {maps.true[1]:.2f} N; grid "
         f"{len(maps.s)} locations x {len(maps.magnitude)} magnitudes (one batched forward call)"
