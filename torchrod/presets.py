@@ -20,14 +20,15 @@ __all__ = ["PAPER_LOCATION_BIAS", "PRESETS", "ctr250", "get", "load", "nitinol29
 
 PAPER_LOCATION_BIAS = -3.12e-3  # [m], the paper's calibrated s_bias
 
+_PAPER_TUBE = {"outer_diameter": 1.397e-3, "inner_diameter": 1.118e-3, "youngs_modulus": 67e9}
+"""The paper's Nitinol cross-section and modulus ([m], [m], [Pa]), shared by the presets."""
+
 
 def nitinol290(calibrated: bool = False) -> Rod:
     """The paper's 290 mm Nitinol tube with 14 gratings at 10, 30, ..., 270 mm."""
     return Rod.from_geometry(
         length=0.29,
-        outer_diameter=1.397e-3,
-        inner_diameter=1.118e-3,
-        youngs_modulus=67e9,
+        **_PAPER_TUBE,
         gratings=[(10 + 20 * k) * 1e-3 for k in range(14)],
         location_bias=PAPER_LOCATION_BIAS if calibrated else 0.0,
     )
@@ -37,9 +38,7 @@ def ctr250() -> Rod:
     """A precurved 250 mm Nitinol tube: straight to 150 mm, then 12 1/m to the tip; 12 gratings at 10..230 mm."""
     return Rod.from_geometry(
         length=0.25,
-        outer_diameter=1.397e-3,
-        inner_diameter=1.118e-3,
-        youngs_modulus=67e9,
+        **_PAPER_TUBE,
         gratings=[(10 + 20 * k) * 1e-3 for k in range(12)],
         poisson_ratio=0.33,
         intrinsic_curvature=[{"from": 0.15, "to": 0.25, "u": [12.0, 0.0]}],
