@@ -32,6 +32,7 @@ def test_nitinol290_bending_stiffness_matches_the_paper():
 
 def test_shipped_rod_file_is_the_preset():
     assert Rod.from_json(DATA / "nitinol290.json") == tr.presets.nitinol290()
+    assert Rod.from_json(DATA / "ctr250.json") == tr.presets.ctr250()
 
 
 def test_round_trip_geometry_form(tmp_path):
