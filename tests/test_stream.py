@@ -624,6 +624,8 @@ def _unread(pipe) -> int:
 def _start(*options: str) -> subprocess.Popen:
     cmd = [
         sys.executable,
+        "-X",
+        "faulthandler",  # a hung child dumps every thread's stack on SIGABRT (see _wait)
         "-m",
         "torchrod",
         "stream",
@@ -640,8 +642,32 @@ def _start(*options: str) -> subprocess.Popen:
         *options,
     ]
     return subprocess.Popen(
-        cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1
+        cmd,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        bufsize=1,
+        preexec_fn=_interruptible,
     )
+
+
+def _interruptible() -> None:
+    """In the child before it starts: Ctrl-C as a terminal delivers it. A process started with SIGINT ignored (as
+    background jobs are, or as any library of the parent may have left it) keeps ignoring it, and Python installs
+    no KeyboardInterrupt handler then."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
+def _wait(proc: subprocess.Popen, timeout: float) -> int:
+    """The child's exit status; if it hangs, its threads' stacks (faulthandler, on SIGABRT) in the failure."""
+    try:
+        return proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGABRT)
+        _, err = proc.communicate(timeout=10)
+        pytest.fail(f"the child did not exit within {timeout} s; its stderr and stacks:\n{err[-6000:]}")
 
 
 def _read_line(proc: subprocess.Popen, timeout: float) -> str | None:
@@ -690,7 +716,7 @@ def test_cli_flushes_pending_readings(rod, how):
             proc.stdin.close()
         else:
             proc.send_signal(signal.SIGINT if how == "ctrl-c" else signal.SIGTERM)
-        status = proc.wait(timeout=30)
+        status = _wait(proc, 30)
         assert time.monotonic() - t0 < 20
         out = proc.stdout.read().splitlines()
         assert status == {"end of input": 0, "ctrl-c": 130, "sigterm": 143}[how], proc.stderr.read()
