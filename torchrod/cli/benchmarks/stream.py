@@ -12,6 +12,7 @@ the same readings five ways, in one run:
   the trajectory, one call each (latency: the call's wall time);
 * ``stream, backlog``: :func:`torchrod.stream.stream` over all readings available at once (throughput; latency is
   then mostly the wait in the read-ahead queue);
+* ``stream, backlog, no network`` (when a network is used): the same backlog without it;
 * ``stream, backlog, noise learned`` and ``noise per reading``: the same backlog with an estimator told no noise,
   which the stream learns from its fits (:mod:`torchrod.estimate.noise`, the default) or, as before that existed,
   each reading estimates alone;
@@ -22,8 +23,9 @@ the same readings five ways, in one run:
   the previous answer is out (latency: release to answer; previous-solution starts always one frame old).
 
 Per way: readings per second (wall), process CPU time per reading, latency median and 99th percentile, readings
-per batch, and the accuracy against the truth: count accuracy, and over the readings whose count is right the median
-force error |f_est - f_true| [N] and location error [mm] (forces paired in order of location).
+per batch, the accuracy against the truth (count accuracy, and over the readings whose count is right the median
+force error |f_est - f_true| [N] and location error [mm], forces paired in order of location), and the mean number
+of forward-model evaluations per reading (every residual, with or without its Jacobian, of every fit and scan).
 ``--profile`` adds where the time goes in a backlog stream of (at most) the first 2000 readings, a separate pass
 under cProfile (cumulative times): the network's guesses, the scans, the Levenberg-Marquardt fits, the exchange,
 L-BFGS, the exact-model steps, count selection, uncertainty, the rest of ``estimate``, and the stream's own work
@@ -107,6 +109,7 @@ class _Row:
         self.name = name
         self.stats = StreamStats()
         self.wall = self.cpu = 0.0
+        self.evaluations = 0  # forward-model evaluations (residuals, with or without Jacobian) of solved readings
 
     def line(self) -> str:
         s = self.stats
@@ -117,7 +120,7 @@ class _Row:
         return (
             f"{self.name:<34} | {n:>6} {n / self.wall:>7.0f} {1e3 * self.cpu / n:>7.2f} | "
             f"{1e3 * s.latency(0.5):>7.1f} {1e3 * s.latency(0.99):>7.1f} | {per_batch:>6.1f} | "
-            f"{100 * s.count_accuracy:>6.1f}% {ferr:>8.4f} {serr:>7.2f}"
+            f"{100 * s.count_accuracy:>6.1f}% {ferr:>8.4f} {serr:>7.2f} | {self.evaluations / max(solved, 1):>6.1f}"
         )
 
 
@@ -126,6 +129,8 @@ def _timed(row: _Row, results: Iterable[StreamResult], truth: list[list[tuple[fl
     w0, c0 = time.perf_counter(), time.process_time()
     for r in results:
         row.stats.add(r, truth[r.id])
+        if r._result is not None:  # (the batch's result: slicing it per reading would cost inside the timing)
+            row.evaluations += int(r._result.evaluations[r._index])
     row.wall, row.cpu = time.perf_counter() - w0, time.process_time() - c0
 
 
@@ -137,8 +142,10 @@ def _static_batched(
         res = estimator.estimate(curvature[b0 : b0 + B], mask[b0 : b0 + B])
         records = res.to_records(list(range(b0, b0 + res.batch_size)))
         dt = time.perf_counter() - t0
-        for rec in records:
-            yield StreamResult(rec["id"], None, rec, latency=dt, batch=len(records), solve_time=dt)
+        for k, rec in enumerate(records):
+            yield StreamResult(
+                rec["id"], None, rec, latency=dt, batch=len(records), solve_time=dt, _result=res, _index=k
+            )
 
 
 def _static_single(
@@ -146,9 +153,10 @@ def _static_single(
 ) -> Iterator[StreamResult]:
     for k in frames:
         t0 = time.perf_counter()
-        (rec,) = estimator.estimate(curvature[k : k + 1], mask[k : k + 1]).to_records([k])
+        res = estimator.estimate(curvature[k : k + 1], mask[k : k + 1])
+        (rec,) = res.to_records([k])
         dt = time.perf_counter() - t0
-        yield StreamResult(k, None, rec, latency=dt, solve_time=dt)
+        yield StreamResult(k, None, rec, latency=dt, solve_time=dt, _result=res)
 
 
 def _paced(items: list[Reading], rate: float) -> Iterator[Reading]:
@@ -299,6 +307,13 @@ def run(args: argparse.Namespace) -> int:
     _timed(row, stream(estimator, items, options), truth)
     rows.append(row)
 
+    if network is not None:
+        # The same backlog without the network: what its guesses save (or cost).
+        bare = Estimator(rod, _options(args.noise, args.set, None))
+        row = _Row("stream, backlog, no network")
+        _timed(row, stream(bare, items, options), truth)
+        rows.append(row)
+
     # The same backlog from an estimator told no noise: learned from the stream's fits, and estimated per reading.
     blind = Estimator(rod, _options(None, args.set, network), warm_start=network)
     for name, learn in (("learned", options.learn_noise), ("per reading", None)):
@@ -317,7 +332,7 @@ def run(args: argparse.Namespace) -> int:
 
     print(
         f"{'way':<34} | {'rd':>6} {'rd/s':>7} {'cpu ms':>7} | {'lat ms':>7} {'p99':>7} | {'rd/bt':>6} | "
-        f"{'count':>7} {'f err N':>8} {'s err mm':>7}"
+        f"{'count':>7} {'f err N':>8} {'s err mm':>7} | {'evals':>6}"
     )
     for row in rows:
         print(row.line())
