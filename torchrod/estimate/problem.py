@@ -238,19 +238,20 @@ def evaluate(problem: Problem, fits: Fits, jacobian: bool = True) -> tuple[Any, 
 
 def exact_residual(problem: Problem, fits: Fits) -> Any:
     """Residuals (R, 2G) [1/m] from the simulator's model (:func:`torchrod.model.body_frame.integrate_curvature`:
-    8th-order, rigorous step bound, ~1e-9 accurate; for a precurved rod :mod:`torchrod.model.precurved` at its
-    default step) instead of the fitting model (relative accuracy ~1e-4 of the curvature, ~1e-6 precurved): the
-    final Gauss-Newton steps of a fit and its reported loss use it, so that the count tests and the verdict see the
-    physics, not the fitting model's discretisation."""
+    8th-order, rigorous step bound, ~1e-9 accurate; for a precurved rod :mod:`torchrod.model.precurved` at
+    ``EXACT_MAX_STEP``, ~3e-9) instead of the fitting model (relative accuracy ~1e-4 of the curvature, ~4e-5
+    precurved): the final Gauss-Newton steps of a fit and its reported loss use it, so that the count tests and the
+    verdict see the physics, not the fitting model's discretisation."""
     from ..model.body_frame import march_curvature
 
     xp = problem.xp
     R, h = fits.s.shape
     G = problem.query.shape[0]
     if problem.precurved is not None:
+        from ..model.precurved import EXACT_MAX_STEP
         from ..model.precurved import march as march_precurved
 
-        u = march_precurved(xp, problem.query, fits.s, fits.f, problem.precurved)[0][..., :2]
+        u = march_precurved(xp, problem.query, fits.s, fits.f, problem.precurved, max_step=EXACT_MAX_STEP)[0][..., :2]
     elif h == 0:  # no force: the rod is straight
         return -problem.u[fits.reading] * problem.weight[fits.reading]
     else:
