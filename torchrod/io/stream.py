@@ -207,7 +207,8 @@ class _Stream:
         self.error: BaseException | None = None
         base = getattr(estimator, "options", None)
         given = overrides.get("noise", getattr(base, "noise", None))
-        learn = options.learn_noise is not None and given is None and getattr(base, "selection", "noise") == "noise"
+        selection = overrides.get("selection", getattr(base, "selection", "noise"))
+        learn = options.learn_noise is not None and given is None and selection == "noise"
         self.noise = RunningNoise(options.learn_noise) if learn else None
         self.max_noise = float(overrides.get("max_noise", getattr(base, "max_noise", math.inf)))
         # Started by the first ``next``: a stream that is never iterated takes nothing from its source.
