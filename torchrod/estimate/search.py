@@ -152,81 +152,66 @@ def _responses(problem: Problem, base: Fits, cand: Any, known: tuple[Any, Any] |
     R0, h0 = base.s.shape
     G = problem.query.shape[0]
     q = problem.query
-    inv_ei = 1.0 / problem.stiffness
     w = problem.weight[base.reading]
-    if problem.precurved is not None:
-        r, J, resp = _responses_precurved(problem, base, cand, known)
-    elif h0 == 0:
+    if h0 == 0 and problem.precurved is None:
         # No force yet: the rod is straight and the response is the small-deflection lever, (c - q_k)^+ / EI.
         r, J = -problem.u[base.reading] * w, xp.zeros((R0, 2 * G, 0))
-        lever = xp.clip(cand[:, :, None] - q[None, None, :], lo=0.0) * inv_ei  # (R0, C, G)
+        lever = xp.clip(cand[:, :, None] - q[None, None, :], lo=0.0) * (1.0 / problem.stiffness)  # (R0, C, G)
         zero = 0.0 * lever
         resp = xp.stack([xp.stack([zero, lever], 3), xp.stack([-lever, zero], 3)], 4)  # (R0, C, G, 2 uxy, 2 f)
     else:
-        from ..model.sensitivity import march_propagator
-
-        query = xp.concat([xp.expand(q[None, :], (R0, G)), cand], 1)
-        u, jac, phi = march_propagator(
-            xp,
-            query,
-            base.s,
-            base.f,
-            problem.length,
-            problem.stiffness,
-            jacobian=known is None,
-            step_angle=problem.step_angle,
-            max_steps=problem.max_steps,
-        )
+        query = xp.concat([xp.expand(q[None, :], (R0, G)), cand], 1)  # each row: the gratings and its candidates
+        u, jac, rows, phi, rhs = _propagator(problem, base, query, jacobian=known is None)
         if known is None:
             r = (u[:, :G].reshape(R0, 2 * G) - problem.u[base.reading]) * w
             scale = xp.asarray([problem.length, problem.force_unit, problem.force_unit])
             J = sided(problem, base, (jac[:, :G] * scale).reshape(R0, 2 * G, 3 * h0) * w[:, :, None])
         else:
             r, J = known
-        # Phi(k) Phi(c)^-1 applied to the slope jumps of a unit f_x (dW = i / EI) and f_y (dW = -1 / EI).
-        C = cand.shape[1]
-        jumps = xp.asarray([[0.0, -inv_ei], [inv_ei, 0.0]])  # (Re dW, Im dW) x (f_x, f_y)
-        rhs = xp.concat([xp.zeros((2, 2)), jumps], 0)  # (4, 2)
-        M, _ = xp.solve(phi[:, G:], xp.expand(rhs, (R0, C, 4, 2)))  # (R0, C, 4, 2); a failed solve: no response
-        resp = phi[:, None, :G, :2, :] @ M[:, :, None, :, :]  # (R0, C, G, 2, 2)
+        # Phi(k) Phi(c)^-1 applied to the state's jump under a unit f_x and f_y at c.
+        C, S = cand.shape[1], rhs.shape[0]
+        M, _ = xp.solve(phi[:, G:], xp.expand(rhs, (R0, C, S, 2)))  # (R0, C, S, 2); a failed solve: no response
+        resp = rows[:, None, :G] @ M[:, :, None, :, :]  # (R0, C, G, 2, 2)
         prox = xp.astype(q[None, None, :] < cand[:, :, None], "float")  # gratings proximal to c
         resp = resp * prox[:, :, :, None, None]
     Jc = (resp * w.reshape(R0, 1, G, 2, 1) * problem.force_unit).reshape(R0, cand.shape[1], 2 * G, 2)
     return r, J, Jc
 
 
-def _responses_precurved(problem: Problem, base: Fits, cand: Any, known: tuple[Any, Any] | None) -> tuple[Any, ...]:
-    """:func:`_responses` for a precurved rod: the propagator Phi of the linearised equations, from the tip, of
-    :mod:`torchrod.model.precurved` (a 6-vector state (n, m)); the response of grating k to a unit force at c (a unit
-    jump of n there) is the (u_x, u_y) rows of Phi(k) Phi(c)^-1 on that jump, for gratings proximal to c. Returns
-    r, J and the responses (R0, C, G, 2 uxy, 2 f) before weights and scaling."""
-    from ..model.precurved import FIT_MAX_STEP
-    from ..model.precurved import march as march_precurved
-
+def _propagator(problem: Problem, base: Fits, query: Any, *, jacobian: bool) -> tuple[Any, ...]:
+    """The base fits' march with the propagator Phi of its linearised equations from the tip, at ``query``
+    (R0, Q): curvature (R0, Q, 2), its Jacobian (or None), the (u_x, u_y) rows of Phi (R0, Q, 2, S), Phi itself
+    (R0, Q, S, S), and the jump of the state under a unit f_x and f_y (S, 2). The straight rod's state is (U, W)
+    as real pairs (S = 4; :func:`torchrod.model.sensitivity.march_propagator`), a precurved rod's (n, m) (S = 6;
+    :mod:`torchrod.model.precurved`)."""
     xp = problem.xp
-    R0, h0 = base.s.shape
-    G = problem.query.shape[0]
-    C = cand.shape[1]
-    w = problem.weight[base.reading]
-    q = problem.query
-    query = xp.concat([xp.expand(q[None, :], (R0, G)), cand], 1)  # each row: the gratings and its candidates
-    u3, _, jac, phi = march_precurved(
-        xp, query, base.s, base.f, problem.precurved, max_step=FIT_MAX_STEP, jacobian=known is None, seeds=True
+    if problem.precurved is not None:
+        from ..model.precurved import FIT_MAX_STEP
+        from ..model.precurved import march as march_precurved
+
+        u3, _, jac, phi = march_precurved(
+            xp, query, base.s, base.f, problem.precurved, max_step=FIT_MAX_STEP, jacobian=jacobian, seeds=True
+        )
+        rhs = xp.zeros((6, 2))
+        rhs[0, 0] = 1.0  # a unit f_x: n jumps by e_x
+        rhs[1, 1] = 1.0
+        return u3[..., :2], jac, phi[:, :, :2], phi[:, :, 2:], rhs
+    from ..model.sensitivity import march_propagator
+
+    u, jac, phi = march_propagator(
+        xp,
+        query,
+        base.s,
+        base.f,
+        problem.length,
+        problem.stiffness,
+        jacobian=jacobian,
+        step_angle=problem.step_angle,
+        max_steps=problem.max_steps,
     )
-    if known is None:
-        r = (u3[:, :G, :2].reshape(R0, 2 * G) - problem.u[base.reading]) * w
-        scale = xp.asarray([problem.length, problem.force_unit, problem.force_unit])
-        J = sided(problem, base, (jac[:, :G] * scale).reshape(R0, 2 * G, 3 * h0) * w[:, :, None])
-    else:
-        r, J = known
-    phi_c = phi[:, G:, 2:]  # (R0, C, 6, 6): the propagator at each candidate
-    rhs = xp.zeros((6, 2))
-    rhs[0, 0] = 1.0  # a unit f_x: n jumps by e_x
-    rhs[1, 1] = 1.0
-    M, _ = xp.solve(phi_c, xp.expand(rhs, (R0, C, 6, 2)))  # (R0, C, 6, 2)
-    resp = phi[:, None, :G, :2, :] @ M[:, :, None, :, :]  # (R0, C, G, 2, 2)
-    prox = xp.astype(q[None, None, :] < cand[:, :, None], "float")
-    return r, J, resp * prox[:, :, :, None, None]
+    inv_ei = 1.0 / problem.stiffness
+    jumps = xp.asarray([[0.0, -inv_ei], [inv_ei, 0.0]])  # slope jumps (Re dW, Im dW) x (f_x, f_y)
+    return u, jac, phi[:, :, :2], phi, xp.concat([xp.zeros((2, 2)), jumps], 0)
 
 
 def scan(problem: Problem, base: Fits | lm.LMState, *, per_interval: int, top: int, trust: float) -> Scan:

@@ -68,19 +68,20 @@ class Precurved:
     Attributes:
         length: L [m]; bending, torsion: EI and GJ [N m^2].
         segments: the intrinsic curvature, ``(from, to, ux, uy)`` per segment (:class:`torchrod.Rod`).
+        breakpoints: where u* may jump inside (0, L) [m] (:meth:`torchrod.Rod.breakpoints`).
     """
 
     length: float
     bending: float
     torsion: float
     segments: tuple[tuple[float, float, float, float], ...]
+    breakpoints: tuple[float, ...]
 
     @classmethod
     def of(cls, rod: Rod) -> Precurved:
-        return cls(rod.length, rod.bending_stiffness, rod.torsion_stiffness, rod.intrinsic_curvature)
-
-    def breakpoints(self) -> list[float]:
-        return sorted({x for a, b, _, _ in self.segments for x in (a, b) if 0.0 < x < self.length})
+        return cls(
+            rod.length, rod.bending_stiffness, rod.torsion_stiffness, rod.intrinsic_curvature, tuple(rod.breakpoints())
+        )
 
 
 def intrinsic(xp: Backend, model: Precurved, s: Any) -> Any:
@@ -102,6 +103,11 @@ _HAT = ((0, 0, 0, 0, 0, -1, 0, 1, 0), (0, 0, 1, 0, 0, 0, -1, 0, 0), (0, -1, 0, 1
 def _hat(v: Any, hat: Any) -> Any:
     """(R, 3, 3): the matrices of v x for v (R, 3); ``hat`` is :data:`_HAT` as an array of v's backend."""
     return (v @ hat).reshape(v.shape[0], 3, 3)
+
+
+def _plain(x: Any) -> Any:
+    """``x`` without autograd history (positions pick u*, the order and the step counts: no gradient flows there)."""
+    return x.detach() if isinstance(x, torch.Tensor) else x
 
 
 def march(
@@ -159,10 +165,10 @@ def march(
         raise ValueError("a distributed load is for the forward march only (no jacobian, no seeds)")
     spacing = L / (nodes - 1) if nodes > 1 else L
     inner = [k * spacing for k in range(1, nodes - 1)]
-    extra = xp.asarray([0.0, *model.breakpoints(), *inner])
+    extra = xp.asarray([0.0, *model.breakpoints, *inner])
     pos = xp.concat([s_ev, rows_q, xp.expand(extra[None, :], (R, extra.shape[0]))], 1)
     E = pos.shape[1]
-    order = xp.argsort_desc(pos.detach() if isinstance(pos, torch.Tensor) else pos)  # forces first at ties
+    order = xp.argsort_desc(_plain(pos))  # forces first at ties
     at = xp.take(pos, order, 1)  # (R, E), descending
     P = (3 * h if jacobian else 0) + (6 if seeds else 0)
     # The state and its tangents side by side: column 0 of Yn, Ym (R, 3, 1 + P) is (n, m), the rest d(n, m).
@@ -206,7 +212,7 @@ def march(
     for e in range(E):
         target = at[:, e]
         seg = cur - target  # (R,) >= 0
-        longest = float(xp.amax(seg.detach() if isinstance(seg, torch.Tensor) else seg, 0)) if R else 0.0
+        longest = float(xp.amax(_plain(seg), 0)) if R else 0.0
         n_steps = math.ceil(longest / max_step - 1e-9) if longest > 0.0 else 0
         if steps is not None and longest > 0.0:
             n_steps = steps
@@ -214,7 +220,7 @@ def march(
             hs = (-seg / n_steps)[:, None, None]  # (R, 1, 1): towards the base
             half, sixth = 0.5 * hs, hs / 6.0
             mid = 0.5 * (cur + target)
-            ustar = intrinsic(xp, model, mid.detach() if isinstance(mid, torch.Tensor) else mid)
+            ustar = intrinsic(xp, model, _plain(mid))
             w0 = w1 = None
             if nodes:
                 w0, w1 = load_at(cur), load_at(target)  # the segment lies between two nodes: linear in between
@@ -240,7 +246,7 @@ def march(
             if jacobian:
                 # The force's columns start here: d/ds (the difference of the rates across the jump, with the
                 # distal segment's u*), d/df_x and d/df_y (unit jumps of n).
-                u_here = intrinsic(xp, model, target.detach() if isinstance(target, torch.Tensor) else target)
+                u_here = intrinsic(xp, model, _plain(target))
                 U = _hat(u_here + Ym[:, :, 0] * kinv, hat)
                 ds_n, ds_m = (U @ jump[:, :, None])[:, :, 0], (e3 @ jump[:, :, None])[:, :, 0]
                 live = (is_force & xp.take(on, j[:, None], 1)[:, 0])[:, None]
