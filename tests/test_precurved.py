@@ -38,6 +38,9 @@ def test_rod_file_round_trip_and_lookups(rod, tmp_path):
         (12.0, 0.0)
     ]
     assert rod.breakpoints() == [0.15]
+    shape = rod.unloaded_curvature()
+    assert shape.shape == (12, 2) and shape[7].tolist() == [12.0, 0.0] and shape[6].tolist() == [0.0, 0.0]
+    assert float(tr.presets.nitinol290().unloaded_curvature().abs().max()) == 0.0
     gj = rod.with_(poisson_ratio=None, torsional_stiffness=1e-3)
     assert gj.torsion_stiffness == 1e-3 and tr.Rod.from_dict(gj.to_dict()) == gj
     straight = tr.presets.nitinol290()

@@ -380,6 +380,17 @@ class Rod:
             out.append(value)
         return out
 
+    def unloaded_curvature(
+        self, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+    ) -> torch.Tensor:
+        """(G, 2) what the gratings read on the unloaded rod [1/m]: u* at each (the distal value at a breakpoint),
+        zero for a straight rod (``dtype`` default float64)."""
+        import torch
+
+        return torch.tensor(
+            self.intrinsic_at(self.gratings), dtype=torch.float64 if dtype is None else dtype, device=device
+        ).reshape(self.num_gratings, 2)
+
     def breakpoints(self) -> list[float]:
         """The positions [m] inside (0, L) where u* may jump: every segment's ends."""
         return sorted({x for a, b, _, _ in self.intrinsic_curvature for x in (a, b) if 0.0 < x < self.length})

@@ -409,7 +409,7 @@ class Estimator:
         rod = self.rod
         u = curvature.to(torch.float64)
         if opts.relative and rod.precurved:  # readings of the change from the unloaded shape: add the shape back
-            u = u + torch.tensor(rod.intrinsic_at(rod.gratings), dtype=torch.float64, device=u.device)
+            u = u + rod.unloaded_curvature(torch.float64, u.device)
         u = torch.where(mask.unsqueeze(-1), u, torch.zeros((), dtype=torch.float64))
         floor2 = float(opts.noise_floor) ** 2
         noise2 = None if opts.noise is None else xp.full((B,), float(opts.noise) ** 2 + floor2)

@@ -411,9 +411,7 @@ def solve_reference(
     def guess_at(load: float) -> np.ndarray:
         return load * _small_deflection_guess(f) / scale
 
-    if initial is None and rod.precurved:
-        z0 = guess_at(1.0)  # the straight rod's baselines do not model u*: load continuation if this start fails
-    elif initial is None:
+    if initial is None:
         # A coarse RK4 shooting solve is a good start (the answer depends only on the DOP853 shots below).
         coarse = ShootingSolver(rod, nodes=64, jacobian="dp", warm_start=False).solve(f, at=[rod.length])
         z0 = coarse.base / scale if coarse.converged else guess_at(1.0)

@@ -324,6 +324,5 @@ def grating_curvature(
     change from the unloaded shape, u - u*."""
     query = rod.grating_positions(torch.float64, loads.device)
     u, _ = simulate_torch(rod, loads, query, max_step=max_step)
-    if relative:
-        u = u - intrinsic(TorchBackend(loads.device), Precurved.of(rod), query).to(u.dtype)[None]
-    return u[..., :2]
+    u = u[..., :2]
+    return u - rod.unloaded_curvature(u.dtype, u.device) if relative else u

@@ -257,7 +257,7 @@ def zero_cell(
 
 def _unloaded(rod: Rod) -> torch.Tensor:
     """(1, G, 2) what the gratings read on the unloaded rod [1/m]: its intrinsic curvature (zero when straight)."""
-    return torch.tensor(rod.intrinsic_at(rod.gratings), dtype=torch.float64).reshape(1, rod.num_gratings, 2)
+    return rod.unloaded_curvature().unsqueeze(0)
 
 
 def _forceless_cell(rod, curvature, sigma, k, row, max_forces, noise_known, batch_size) -> dict[str, Any]:
