@@ -82,6 +82,9 @@ def test_verdict_order():
         "poorly_determined",
         "ok",
     ]
+    # a search cut by the time budget says so before anything else
+    codes = verdict(NUMPY, p, conv, poor, 1e-3, np.array([True, False, False, False, True]))
+    assert [STATUSES[c] for c in codes.tolist()] == ["timeout", "misfit", "unconverged", "poorly_determined", "timeout"]
 
 
 @pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)

@@ -9,8 +9,9 @@ For B readings, :meth:`Estimator.estimate`
    caller guesses, an exchange of forces that sit in a wrong interval); with the noise known, a reading whose
    count is already decided (:func:`.selection.settled`) is not fitted further;
 3. chooses the count (:func:`.selection.select_count`; 0 is a count like any other);
-4. gives every reading a verdict (:mod:`.status`: ``ok``, ``misfit``, ``unconverged``, ``poorly_determined``) with
-   the chi-square p-value of its fit, and the Gauss-Newton standard deviations (:mod:`.uncertainty`);
+4. gives every reading a verdict (:mod:`.status`: ``ok``, ``misfit``, ``unconverged``, ``poorly_determined``,
+   ``timeout``) with the chi-square p-value of its fit, and the Gauss-Newton standard deviations
+   (:mod:`.uncertainty`); a time budget, when given, cuts the search of the readings it runs out on;
 5. reports locations as ``s_model + rod.location_bias``, forces sorted by location, in the input's dtype and
    device.
 
@@ -25,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -86,6 +88,10 @@ class EstimatorOptions:
             are starts beside the scan's.
         relative: readings of a precurved rod are the change of curvature from the unloaded shape, u - u*, not the
             total curvature u a fibre that is straight when unstrained reads (no effect on a straight rod).
+        time_budget: [s] per reading, None: no limit. A call on B readings stops searching ``B * time_budget``
+            after it began; the readings whose search it cut get the best fit found so far and the status
+            ``timeout`` (:mod:`.status`). For real time, where an answer late is worth less than an answer
+            less sure; the check comes between solver steps, so a call can overrun by one step of its batch.
     """
 
     max_forces: int = 3
@@ -107,6 +113,7 @@ class EstimatorOptions:
     backend: str = "auto"
     trust_guesses: bool = False
     relative: bool = False
+    time_budget: float | None = None
 
     def __post_init__(self) -> None:
         def integer(name: str, low: int) -> None:
@@ -125,6 +132,8 @@ class EstimatorOptions:
             integer("num_forces", 0)
         if self.noise is not None:
             number("noise", lambda v: v >= 0.0, "None or a finite sigma >= 0 [1/m]")
+        if self.time_budget is not None:
+            number("time_budget", lambda v: v >= 0.0, "None or a finite time >= 0 [s]")
         number("max_noise", lambda v: v > 0.0, "a positive sigma [1/m]")
         if self.selection not in RULES:
             raise ValueError(f"selection must be one of {RULES}, got {self.selection!r}")
@@ -160,7 +169,8 @@ class EstimateResult:
             rod.location_bias [m], f body-frame (f_x, f_y) [N].
         num_forces: (B,) long, the chosen count (0: no contact).
         status: (B,) long, the verdict, an index into :data:`torchrod.estimate.status.STATUSES` (``ok``,
-            ``misfit``, ``unconverged``, ``poorly_determined``; :mod:`.status` says what each means and what to do).
+            ``misfit``, ``unconverged``, ``poorly_determined``, ``timeout``; :mod:`.status` says what each means
+            and what to do).
         p_value: (B,) the chi-square p-value of the chosen fit's loss (the chance that a correct fit is this bad or
             worse; NaN with no degree of freedom left).
         loss: (B,) loss of the chosen fit: sum over present gratings of squared residuals [1/m^2].
@@ -401,6 +411,7 @@ class Estimator:
             :class:`EstimateResult` in ``curvature``'s dtype and device (computed in float64). A reading that the
             numerics fail on is reported with a status, never raised.
         """
+        began = time.perf_counter()
         opts = dataclasses.replace(self.options, **overrides) if overrides else self.options
         curvature, mask = self._check(curvature, mask)
         device, out_dtype = curvature.device, curvature.dtype
@@ -430,13 +441,14 @@ class Estimator:
         top = max(counts)
         guesses = self._guesses(problem, curvature, mask, opts, extra_starts, top)
         # A reading the numerics fail on (an overflow, a singular matrix) gets a status, not a warning or an error.
+        deadline = None if opts.time_budget is None else began + B * opts.time_budget
         with np.errstate(all="ignore"):
-            return self._solve(problem, opts, guesses, counts, top, mask, out_dtype, device)
+            return self._solve(problem, opts, guesses, counts, top, mask, out_dtype, device, deadline)
 
-    def _solve(self, problem, opts, guesses, counts, top, mask, out_dtype, device) -> EstimateResult:
+    def _solve(self, problem, opts, guesses, counts, top, mask, out_dtype, device, deadline) -> EstimateResult:
         found = search.fit_counts(
             problem,
-            search.Solver(opts.lm, opts.lbfgs),
+            search.Solver(opts.lm, opts.lbfgs, deadline),
             opts.search,
             self._rules(problem, opts),
             top_count=top,
@@ -626,7 +638,7 @@ class Estimator:
         finite = xp.isfinite(loss)
         p_value = xp.where(finite, p_value, 0.0)  # a loss that is not finite explains nothing
         converged = converged & finite
-        status = verdict(xp, p_value, converged, unc.poorly_determined, opts.misfit_level)
+        status = verdict(xp, p_value, converged, unc.poorly_determined, opts.misfit_level, found.cut)
 
         # Reported form: sorted by location, the location bias added, in the input's dtype and device.
         def to(x):

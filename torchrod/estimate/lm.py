@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -358,13 +359,15 @@ def _step(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
     return analyse(problem, policy, new)
 
 
-def solve(problem: Problem, policy: LMPolicy, fits: Fits | LMState) -> LMState:
-    """Fit every row of ``fits`` (or continue the solves of a state) until each is done (module docstring)."""
+def solve(problem: Problem, policy: LMPolicy, fits: Fits | LMState, deadline: float | None = None) -> LMState:
+    """Fit every row of ``fits`` (or continue the solves of a state) until each is done (module docstring), or
+    until ``time.perf_counter()`` passes ``deadline``: the rows still going are then returned as they are, with
+    ``done`` False (a later call may continue them)."""
     xp = problem.xp
     state = start(problem, policy, fits) if isinstance(fits, Fits) else fits
     while True:
         idx = xp.nonzero(~state.done)
-        if idx.shape[0] == 0:
+        if idx.shape[0] == 0 or (deadline is not None and time.perf_counter() > deadline):
             return state
         if idx.shape[0] == state.done.shape[0]:  # every row still going: no need to gather and scatter
             state = _step(problem, policy, state)

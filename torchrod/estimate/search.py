@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,14 +43,20 @@ __all__ = ["SearchOptions", "best_of", "exchange", "scan"]
 class Solver:
     """How a set of starts is fitted: the Levenberg-Marquardt policy (:mod:`.lm`) on every start, then, for the
     best fit of each reading, L-BFGS (:mod:`.finish`) where the LM left it open (None: not) and the exact-model
-    steps."""
+    steps. ``deadline`` (a ``time.perf_counter()`` value, None: none) cuts the work short: LM solves stop where
+    they are, and :func:`fit_counts` skips what is left and says which readings it cut."""
 
     policy: lm.LMPolicy
     lbfgs: LBFGSOptions | None = None
+    deadline: float | None = None
+
+    def late(self) -> bool:
+        """Whether ``time.perf_counter()`` has passed the deadline (never without one)."""
+        return self.deadline is not None and time.perf_counter() > self.deadline
 
     def solve(self, problem: Problem, fits: Fits | lm.LMState) -> lm.LMState:
-        """Levenberg-Marquardt on every row."""
-        return lm.solve(problem, self.policy, fits)
+        """Levenberg-Marquardt on every row; past the deadline the rows still going stop, ``done`` False."""
+        return lm.solve(problem, self.policy, fits, self.deadline)
 
     def finish(self, problem: Problem, best: lm.LMState) -> lm.LMState:
         """The fits kept (the best of each reading): the exact-model steps (:func:`.lm.finish`)."""
@@ -322,15 +329,20 @@ def exchange(
         best: one fit of h >= 1 forces per row (rows of distinct readings, any order).
         suspect: the limits of :func:`suspicious` ((R,), (R,)) [1/m^2].
     Returns:
-        ``best`` with every improved row replaced, and (R,) the forward evaluations spent on each row.
+        ``best`` with every improved row replaced, (R,) the forward evaluations spent on each row, and (R,) whether
+        the solver's deadline cut the row's exchange short.
     """
     xp = problem.xp
     R, h = best.fits.s.shape
     spent = xp.zeros((R,), "int")
+    cut = xp.zeros((R,), "bool")
     for _ in range(options.rounds):
         rows = xp.nonzero(suspicious(problem, best, suspect))
         n = rows.shape[0]
         if n == 0:
+            break
+        if solver.late():
+            cut = xp.put(cut, rows, xp.ones((n,), "bool"))
             break
         cur = best.take(xp, rows)
         # Base fits: each row without force i, i = 0..h-1 (blocks of n).
@@ -350,15 +362,16 @@ def exchange(
         E = min(options.exchange_top, T * h)
         pick_rows = xp.argsort_desc(-pred.reshape(T * h, n).T)[:, :E].T * n + xp.arange(n)[None, :]  # (E, n)
         starts = [sc.starts.take(pick_rows[e]) for e in range(E)]
-        found, work = _explore(problem, solver, options, starts, cur.loss)
+        found, work, short = _explore(problem, solver, options, starts, cur.loss)
         spent = xp.add_at(spent, rows, work + h)
+        cut = xp.put(cut, rows, cut[rows] | short)
         margin = 10.0 * solver.policy.tolerance * cur.noise2
         better = found.loss < cur.loss - margin
         if not bool(xp.any(better)):
             break
         at = xp.nonzero(better)
         best = best.put(xp, rows[at], found.take(xp, at))
-    return best, spent
+    return best, spent, cut
 
 
 @dataclass(frozen=True)
@@ -370,11 +383,13 @@ class CountFits:
             NaN loss.
         fitted: index h: (B,) bool, the readings whose count h was fitted.
         evaluations: (B,) forward-model evaluations spent on each reading (one row marched once each).
+        cut: (B,) bool, the solver's deadline cut the reading's search short: its fits are the best found so far.
     """
 
     states: list[lm.LMState]
     fitted: list[Any]
     evaluations: Any
+    cut: Any
 
 
 def _blank(xp: Any, B: int, h: int, G: int) -> lm.LMState:
@@ -494,10 +509,15 @@ def fit_counts(
     fitted = [xp.ones((B,), "bool")]
     scans: list[Any] = [None]
     evaluations = xp.zeros((B,), "int")
+    cut = xp.zeros((B,), "bool")
     open_ = xp.arange(B)
     for h in range(1, top_count + 1):
         n = open_.shape[0]
         sc = None
+        if n and solver.late():  # out of time: the open readings keep the counts fitted so far
+            cut = xp.put(cut, open_, xp.ones((n,), "bool"))
+            open_ = open_[:0]
+            n = 0
         if n and (starts > 0 or rules.settled is not None):
             base = states[h - 1].take(xp, open_)
             sc = scan(
@@ -524,8 +544,9 @@ def fit_counts(
             raise ValueError(f"no start for h = {h}: starts=0 needs a warm start or extra_starts for every count")
         done_here = xp.zeros((B,), "bool")
         if first:
-            best, spent = _first_fits(problem, solver, first)
+            best, spent, short = _first_fits(problem, solver, first)
             evaluations = xp.add_at(evaluations, open_, spent)
+            cut = xp.put(cut, open_, cut[open_] | short)
             state = state.put(xp, open_, best)
             done_here = xp.put(done_here, open_, xp.ones((n,), "bool"))
         states.append(state)
@@ -562,6 +583,9 @@ def fit_counts(
             readings = xp.nonzero(cand)
             if readings.shape[0] == 0:
                 continue
+            if solver.late():
+                cut = xp.put(cut, readings, xp.ones((readings.shape[0],), "bool"))
+                continue
             scanned, sc = scans[h]
             cur = states[h].take(xp, readings)
             limit = rules.suspect(h, readings)
@@ -572,8 +596,9 @@ def fit_counts(
             if sc is not None and starts > 1:
                 pos = xp.put(xp.zeros((B,), "int") - 1, scanned, xp.arange(scanned.shape[0]))[readings]
                 more = [sc.starts.take(t * scanned.shape[0] + pos) for t in range(1, starts)]
-                found, spent = _explore(problem, solver, options, more, cur.loss)
+                found, spent, short = _explore(problem, solver, options, more, cur.loss)
                 evaluations = xp.add_at(evaluations, readings, spent)
+                cut = xp.put(cut, readings, cut[readings] | short)
                 better = found.loss < cur.loss - 10.0 * solver.policy.tolerance * cur.noise2
                 if bool(xp.any(better)):
                     at = xp.nonzero(better)
@@ -581,29 +606,34 @@ def fit_counts(
             # If still suspicious: the exchange re-places every force.
             mine = xp.nonzero(wide[readings] & suspicious(problem, cur, limit))
             if h >= 2 and mine.shape[0]:
-                best, spent = exchange(problem, solver, cur.take(xp, mine), (limit[0][mine], limit[1][mine]), options)
+                best, spent, short = exchange(
+                    problem, solver, cur.take(xp, mine), (limit[0][mine], limit[1][mine]), options
+                )
                 evaluations = xp.add_at(evaluations, readings[mine], spent)
+                cut = xp.put(cut, readings[mine], cut[readings[mine]] | short)
                 cur = cur.put(xp, mine, best)
             states[h] = states[h].put(xp, readings, cur)
     # L-BFGS for the chosen fits the Levenberg-Marquardt budget left open.
     chosen = rules.choose(xp.stack([s.loss for s in states], 1))
     for h in range(1, top_count + 1):
         mine = xp.nonzero(fitted[h] & (chosen == h))
-        if mine.shape[0]:
+        if mine.shape[0] and solver.late():  # no time to refine: the fits the LM left open stay open
+            cut = xp.put(cut, mine, cut[mine] | ~states[h].converged[mine])
+        elif mine.shape[0]:
             before = states[h].take(xp, mine)
             after = solver.refine(problem, before)
             evaluations = xp.add_at(evaluations, mine, after.steps - before.steps)
             states[h] = states[h].put(xp, mine, after)
-    return CountFits(states=states, fitted=fitted, evaluations=evaluations)
+    return CountFits(states=states, fitted=fitted, evaluations=evaluations, cut=cut)
 
 
 def _explore(
     problem: Problem, solver: Solver, options: SearchOptions, starts: list[Fits], current: Any
-) -> tuple[lm.LMState, Any]:
+) -> tuple[lm.LMState, Any, Any]:
     """The best of ``starts`` (blocks of n rows) per reading, fitted only while promising: each row takes at most
     ``options.explore`` steps, and only the rows whose loss, or the loss a Gauss-Newton step promises from it,
     has fallen below ``current`` (n,), the reading's loss to beat, are fitted to the end. Returns the best rows (n),
-    finished on the exact model, and the evaluations spent per reading."""
+    finished on the exact model, the evaluations spent per reading and (n,) whether the deadline cut it short."""
     xp = problem.xp
     n = starts[0].rows
     rows = _rows(starts)
@@ -613,6 +643,7 @@ def _explore(
         lbfgs=None,
     )
     st = short.solve(problem, rows)
+    cut = _cut(xp, st, n)
     goal = xp.concat([current] * len(starts))
     # Promising: the loss, or what a Gauss-Newton step promises from it, is below the loss to beat.
     finite = xp.isfinite(st.decrement)
@@ -622,16 +653,23 @@ def _explore(
         part = st.take(xp, going)
         part = dataclasses.replace(part, done=part.steps >= solver.policy.iterations)
         st = st.put(xp, going, solver.solve(problem, part))
+        cut = cut | _cut(xp, st, n)
     spent = (1 + st.steps).reshape(-1, n).sum(0) + 1 + solver.policy.exact_steps
     slack = 10.0 * solver.policy.tolerance * st.noise2[:n]
-    return solver.finish(problem, st.take(xp, best_of(xp, st, n, slack))), spent
+    return solver.finish(problem, st.take(xp, best_of(xp, st, n, slack))), spent, cut
 
 
-def _first_fits(problem: Problem, solver: Solver, first: list[Fits]) -> tuple[lm.LMState, Any]:
-    """The best of the ``first`` starts (blocks of n rows) per reading, finished on the exact model."""
+def _first_fits(problem: Problem, solver: Solver, first: list[Fits]) -> tuple[lm.LMState, Any, Any]:
+    """The best of the ``first`` starts (blocks of n rows) per reading, finished on the exact model; the
+    evaluations spent and (n,) whether the deadline cut a start short, per reading."""
     xp = problem.xp
     n = first[0].rows
     st = solver.solve(problem, _rows(first))
     spent = (1 + st.steps).reshape(-1, n).sum(0) + 1 + solver.policy.exact_steps
     slack = 10.0 * solver.policy.tolerance * st.noise2[:n]
-    return solver.finish(problem, st.take(xp, best_of(xp, st, n, slack))), spent
+    return solver.finish(problem, st.take(xp, best_of(xp, st, n, slack))), spent, _cut(xp, st, n)
+
+
+def _cut(xp: Any, state: lm.LMState, n: int) -> Any:
+    """(n,) bool: a row of the reading (rows in blocks of n) that its solve left going (the deadline cut it)."""
+    return xp.any(~state.done.reshape(-1, n), 0)

@@ -2,6 +2,13 @@
 
 Each reading's result carries one status; when several apply, the first in this order wins:
 
+``"timeout"``
+    The reading's time budget (``EstimatorOptions.time_budget``) ran out before its search was done: the answer
+    is the best fit found so far, and the larger counts, other starts or refinement it would still have tried
+    were skipped. Its p-value, ``converged`` and ``poorly_determined`` are those of that fit, so a timeout
+    with a small p-value may be a misfit that more time would have fixed, or not. Use it with care (or hold
+    the last good answer); if many readings time out, give a larger budget, fewer ``max_forces``, or more
+    workers.
 ``"misfit"``
     The chosen fit is worse than the noise explains: its loss exceeds the ``1 - misfit_level`` quantile of the
     chi-square law of a correct fit's loss, ``loss / sigma^2 ~ chi2(n - 3h)``, at the given noise (with the floor)
@@ -28,19 +35,23 @@ from typing import Any
 
 __all__ = ["MISFIT_LEVEL", "STATUSES", "verdict"]
 
-STATUSES = ("ok", "misfit", "unconverged", "poorly_determined")
+STATUSES = ("ok", "misfit", "unconverged", "poorly_determined", "timeout")
 """The status names, by code: ``STATUSES[code]``."""
 
 MISFIT_LEVEL = 1e-3
 """Default significance of the misfit test: the chance that a correct fit is called a misfit."""
 
-OK, MISFIT, UNCONVERGED, POORLY_DETERMINED = range(4)
+OK, MISFIT, UNCONVERGED, POORLY_DETERMINED, TIMEOUT = range(5)
 
 
-def verdict(xp: Any, p_value: Any, converged: Any, poorly_determined: Any, level: float) -> Any:
-    """(B,) int status codes (indices into :data:`STATUSES`): misfit where ``p_value < level`` (or not finite with
-    a fit that could be tested), then unconverged, then poorly determined, else ok."""
+def verdict(xp: Any, p_value: Any, converged: Any, poorly_determined: Any, level: float, timeout: Any = None) -> Any:
+    """(B,) int status codes (indices into :data:`STATUSES`): timeout where ``timeout`` (B,) bool, then misfit
+    where ``p_value < level`` (or not finite with a fit that could be tested), then unconverged, then poorly
+    determined, else ok."""
     misfit = p_value < level
     code = xp.where(poorly_determined, POORLY_DETERMINED, OK)
     code = xp.where(~converged, UNCONVERGED, code)
-    return xp.astype(xp.where(misfit, MISFIT, code), "int")
+    code = xp.where(misfit, MISFIT, code)
+    if timeout is not None:
+        code = xp.where(timeout, TIMEOUT, code)
+    return xp.astype(code, "int")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-__all__ = ["add_sensor_options", "check_estimation_options", "sensor_noise"]
+__all__ = ["add_sensor_options", "add_time_budget_option", "check_estimation_options", "sensor_noise", "time_budget"]
 
 
 def check_estimation_options(args: argparse.Namespace) -> None:
@@ -18,10 +18,32 @@ def check_estimation_options(args: argparse.Namespace) -> None:
         raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
     if args.noise is not None and not args.noise >= 0.0:
         raise ValueError(f"--noise must be >= 0, got {args.noise}")
+    budget = getattr(args, "time_budget_ms", None)
+    if budget is not None and not 0.0 <= budget < float("inf"):
+        raise ValueError(f"--time-budget-ms must be >= 0, got {budget}")
     if args.threads is not None:
         if args.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
+
+
+def add_time_budget_option(parser: argparse.ArgumentParser, default_ms: float | None) -> None:
+    """``--time-budget-ms``: the per-reading time budget (``EstimatorOptions.time_budget``, in ms at this edge)."""
+    shown = "none" if default_ms is None else f"{default_ms:g}"
+    parser.add_argument(
+        "--time-budget-ms",
+        type=float,
+        default=default_ms,
+        metavar="MS",
+        help="time budget per reading: a batch of B readings stops searching after B x MS, and the readings it "
+        f"cut are answered with the best fit so far and status timeout (default {shown})",
+    )
+
+
+def time_budget(args: argparse.Namespace) -> float | None:
+    """``--time-budget-ms`` in seconds (SI inside), None for no budget."""
+    budget = getattr(args, "time_budget_ms", None)
+    return None if budget is None else budget / 1e3
 
 
 def add_sensor_options(parser: argparse.ArgumentParser) -> None:

@@ -1,0 +1,102 @@
+"""The per-reading time budget: a cut search says ``timeout``, and a reading it did not cut keeps its answer."""
+
+from __future__ import annotations
+
+import types
+
+import pytest
+import torch
+
+import torchrod as tr
+from torchrod.estimate import estimator as estimator_module
+from torchrod.estimate import lm, search
+from torchrod.estimate.estimator import Estimator, EstimatorOptions
+from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
+
+
+class _Clock:
+    """A stand-in for the ``time`` module whose ``perf_counter`` advances ``tick`` seconds per call: the budget's
+    checks then cut the search at the same place on every machine."""
+
+    def __init__(self, tick: float) -> None:
+        self.now, self.tick = 0.0, tick
+
+    def perf_counter(self) -> float:
+        self.now += self.tick
+        return self.now
+
+
+@pytest.fixture
+def clock(monkeypatch):
+    fake = _Clock(1e-3)
+    module = types.SimpleNamespace(perf_counter=fake.perf_counter)
+    for mod in (estimator_module, search, lm):
+        monkeypatch.setattr(mod, "time", module)
+    return fake
+
+
+@pytest.fixture(scope="module")
+def cases():
+    rod = tr.presets.nitinol290()
+    data = [
+        generate(rod, 6, sampler=LoadSampler(min_forces=k, max_forces=k), sensor=SensorModel(noise=0.1), seed=40 + k)
+        for k in (1, 2, 3)
+    ]
+    return rod, torch.cat([d.curvature for d in data])
+
+
+def _same(a, b) -> bool:
+    """The same answer (to the 1e-9 that batching the rows differently leaves, tests/test_estimator.py) from the
+    same work."""
+    return (
+        torch.equal(a.evaluations, b.evaluations)
+        and torch.equal(a.num_forces, b.num_forces)
+        and torch.equal(a.status, b.status)
+        and torch.allclose(a.forces.s, b.forces.s, rtol=0, atol=1e-9)
+        and torch.allclose(a.forces.f, b.forces.f, rtol=0, atol=1e-9)
+    )
+
+
+def test_a_budget_of_nothing_times_every_reading_out(cases):
+    rod, u = cases
+    result = Estimator(rod, EstimatorOptions(noise=0.1, time_budget=0.0)).estimate(u)
+    assert result.statuses == ["timeout"] * u.shape[0]
+    # the best answer so far: no force fitted yet, reported as such, with finite numbers
+    assert result.num_forces.eq(0).all() and torch.isfinite(result.loss).all()
+    assert [r["status"] for r in result.to_records()] == ["timeout"] * u.shape[0]
+
+
+def test_an_ample_budget_changes_nothing(cases):
+    rod, u = cases
+    est = Estimator(rod, EstimatorOptions(noise=0.1))
+    assert _same(est.estimate(u), est.estimate(u, time_budget=60.0))
+
+
+@pytest.mark.parametrize("batch", [1, 18])
+def test_only_the_readings_the_budget_cut_change(cases, clock, batch):
+    """With a clock that ticks per check, budgets from tight to ample cut some readings and not others; every
+    reading not called ``timeout`` has exactly its unbounded answer, and every ``timeout`` is a reading whose
+    search was really cut (a shorter budget never yields more work)."""
+    rod, u = cases
+    est = Estimator(rod, EstimatorOptions(noise=0.1))
+    free = [est.estimate(u[i : i + batch]) for i in range(0, u.shape[0], batch)]
+    seen = set()
+    for budget in (0.002, 0.01, 0.03, 0.1):
+        for i in range(0, u.shape[0], batch):
+            got = est.estimate(u[i : i + batch], time_budget=budget)
+            ref = free[i // batch]
+            for k in range(got.batch_size):
+                out = got.statuses[k] == "timeout"
+                seen.add(out)
+                if not out:
+                    assert _same(got[k], ref[k]), (budget, i + k)
+                else:
+                    assert int(got.evaluations[k]) <= int(ref.evaluations[k]), (budget, i + k)
+    assert seen == {True, False}, "the budgets should cut some readings and not others"
+
+
+def test_the_budget_is_checked(cases):
+    rod, _ = cases
+    for bad in (-1.0, float("nan"), float("inf"), True):
+        with pytest.raises(ValueError, match="time_budget"):
+            EstimatorOptions(time_budget=bad)
