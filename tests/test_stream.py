@@ -736,13 +736,14 @@ def test_bench_stream_runs_and_reports_every_way(capsys):
         "static, batched (B=64)",
         "static, one at a time",
         "stream, backlog (B<=64)",
+        "stream, backlog, 2 processes",
         "stream, backlog, noise learned",
         "stream, backlog, noise per reading",
         "stream, paced 400 Hz",
         "stream, one at a time",
     ]
     readings = [int(r.split("|")[1].split()[0]) for r in rows]
-    assert readings == [40, 3, 40, 40, 40, 20, 3]
+    assert readings == [40, 3, 40, 40, 40, 40, 20, 3]
     # the stream over the same readings as the static batches agrees with them on the count
     static, backlog = (float(rows[k].split("|")[4].split()[0].rstrip("%")) for k in (0, 2))
     assert abs(static - backlog) <= 10.0

@@ -4,10 +4,11 @@ An FBG interrogator sends curvature readings at 100 Hz or more while the robot m
 iterable of readings and yields one result per reading, in input order, as soon as its batch is solved:
 
 - a reader thread pulls the input into a bounded queue, so a slow source never holds a batch back;
-- readings are gathered into batches, closed when ``batch_size`` readings are pending or when the oldest pending
-  reading has waited ``max_latency`` seconds (by default 0: a reading that finds the estimator idle is solved at
-  once); readings that queued up while a batch was being solved all join the next one (up to ``batch_size``), so
-  under load batches form by themselves and grow instead of falling behind;
+- readings are gathered into batches, closed when ``batch_size`` readings (times ``workers``) are pending or when
+  the oldest pending reading has waited ``max_latency`` seconds (by default 0: a reading that finds the estimator
+  idle is solved at once); readings that queued up while a batch was being solved all join the next one (up to a
+  full batch), so under load batches form by themselves and grow instead of falling behind; with ``workers`` > 1
+  a batch is spread over that many processes (:mod:`torchrod.estimate.workers`);
 - each reading starts from the warm-start network's guess (when the estimator has one), from the grid scan
   (unless the estimator's ``starts=0``), and, in batches of at most ``track_limit`` readings, from the forces of
   the last solved reading (loads change slowly between frames: the count it chose, and that count less its
@@ -18,7 +19,7 @@ iterable of readings and yields one result per reading, in input order, as soon 
   grating count, no grating present, an id JSON cannot echo) yields an error result in its place and the stream
   goes on; missing gratings are masked; should the estimator fail on a reading, that reading alone gets an error
   result;
-- memory stays bounded: at most ``batch_size`` pending readings plus ``read_ahead`` queued ones (and one held by the
+- memory stays bounded: at most a batch of pending readings plus ``read_ahead`` queued ones (and one held by the
   reader thread);
 - a ``KeyboardInterrupt`` (Ctrl-C, or SIGTERM as :class:`torchrod.io.jsonl.Terminated` in the CLI) raised while
   the stream waits or solves, or thrown into the generator at a ``yield``, first flushes: the reader thread stops
@@ -92,12 +93,14 @@ class StreamOptions:
     """Batching of a stream.
 
     Attributes:
-        batch_size: the most readings solved together.
+        batch_size: the most readings solved together by one process (with ``workers`` W, a batch holds up to
+            W x batch_size readings, spread over the W processes: each solves a batch as large as it would alone,
+            which is where the estimator is efficient).
         max_latency: [s] the longest the oldest pending reading waits for more readings before its batch is
             solved (0, the default: solve whatever is available at once; a wait lets a fast source fill larger
             batches at the cost of latency).
         read_ahead: bound on readings taken from the source and queued beyond the pending batch; None: twice
-            ``batch_size`` (with less, a backlog cannot fill whole batches: a batch takes what is queued).
+            the batch (with less, a backlog cannot fill whole batches: a batch takes what is queued).
         track: start the readings of a batch from the last solved reading's forces too, when the batch holds
             at most ``track_limit`` readings. A larger batch (a backlog) spans too many frames for one previous
             solution to be near most of its readings, and the extra starts cost there: measured with
@@ -109,6 +112,10 @@ class StreamOptions:
             sigma from the stream's own fits (:mod:`torchrod.estimate.noise`) and, once learned, solve every
             reading with it as a known noise: faster (counts settle early) and as accurate as with the true sigma.
             None: every reading estimates its own noise.
+        workers: processes a batch is spread over (:class:`torchrod.estimate.workers.ParallelEstimator`; 1: the
+            calling process alone). A batch is split into chunks of at least 8 readings, so this speeds up
+            backlogs (a file, a source faster than the solver), not the small batches of a source the solver keeps
+            up with. The workers start with the stream (they take seconds to start) and stop when it ends.
     """
 
     batch_size: int = 64
@@ -118,11 +125,12 @@ class StreamOptions:
     track_limit: int = 16
     device: str | torch.device = "cpu"
     learn_noise: NoiseLearning | None = NoiseLearning()
+    workers: int = 1
 
     def __post_init__(self) -> None:
         if self.learn_noise is not None and not isinstance(self.learn_noise, NoiseLearning):
             raise TypeError(f"learn_noise must be NoiseLearning or None, got {type(self.learn_noise).__name__}")
-        for name in ("batch_size", "read_ahead", "track_limit"):
+        for name in ("batch_size", "read_ahead", "track_limit", "workers"):
             v = getattr(self, name)
             if v is None and name == "read_ahead":
                 continue
@@ -195,7 +203,8 @@ class _Stream:
         self.G = estimator.rod.num_gratings
         self.fibre = estimator.rod.fibre
         self.device = torch.device(options.device)
-        read_ahead = options.read_ahead if options.read_ahead is not None else 2 * options.batch_size
+        self.batch_size = options.batch_size * options.workers  # the most readings of one batch, all processes
+        read_ahead = options.read_ahead if options.read_ahead is not None else 2 * self.batch_size
         self.q: queue.Queue = queue.Queue(maxsize=read_ahead)
         self.stop = threading.Event()
         self.halt = threading.Event()
@@ -214,6 +223,12 @@ class _Stream:
         # Started by the first ``next``: a stream that is never iterated takes nothing from its source.
         self.thread = threading.Thread(target=_reader, args=(self, readings), daemon=True)
         self.source = readings
+        # The batches' solver: the estimator, or the estimator spread over worker processes (closed with the stream).
+        self.solver = estimator
+        if options.workers > 1:
+            from ..estimate.workers import ParallelEstimator
+
+            self.solver = ParallelEstimator(estimator, options.workers)
 
     def _take(self, entry: Any) -> None:
         if entry is _END or entry is _HALTED:
@@ -225,10 +240,10 @@ class _Stream:
             self.pending.append(entry)
 
     def fill(self) -> None:
-        """Take readings until a batch is due: ``batch_size`` pending, the oldest pending waited ``max_latency``
-        (everything already queued still joins, up to ``batch_size``), or the source ended."""
+        """Take readings until a batch is due: a full batch pending, the oldest pending waited ``max_latency``
+        (everything already queued still joins, up to a full batch), or the source ended."""
         opts = self.options
-        while len(self.pending) < opts.batch_size and not self.finished:
+        while len(self.pending) < self.batch_size and not self.finished:
             if self.pending:
                 wait = opts.max_latency - (time.perf_counter() - self.pending[0].arrived)
                 try:
@@ -302,9 +317,7 @@ class _Stream:
         if learned is not None:
             overrides = {**overrides, "noise": learned}
         try:
-            result = self.estimator.estimate(
-                curvature, mask, extra_starts=self._tracking_starts(len(good)), **overrides
-            )
+            result = self.solver.estimate(curvature, mask, extra_starts=self._tracking_starts(len(good)), **overrides)
         except Exception as exc:  # noqa: BLE001 - a reading that breaks the solver must not stop the stream
             if len(good) == 1:
                 return [(None, 0, None, f"estimation failed: {_exception_text(exc)}")]
@@ -352,6 +365,8 @@ class _Stream:
             pass
         if self.thread.is_alive():
             self.thread.join(timeout=2 * _POLL)
+        if self.solver is not self.estimator:
+            self.solver.close()
 
 
 def _exception_text(exc: BaseException) -> str:
@@ -407,6 +422,8 @@ def stream(
 
 def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
     state.thread.start()
+    if state.solver is not state.estimator:
+        state.solver.warm()  # the worker processes start (seconds) while the first readings come in
     try:
         interrupted: KeyboardInterrupt | None = None
         while True:
@@ -415,7 +432,7 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
                     state.fill()
                 if not state.pending:  # fill returns with nothing pending only at the end of the input
                     break
-                batch = state.pending[: options.batch_size]
+                batch = state.pending[: state.batch_size]
                 results = state.solve(batch)
             except KeyboardInterrupt as exc:
                 interrupted = exc
@@ -435,7 +452,7 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
             # Flush: everything already taken from the source (a second interrupt is not caught).
             state.drain()
             while state.pending:
-                batch = state.pending[: options.batch_size]
+                batch = state.pending[: state.batch_size]
                 results = state.solve(batch)
                 del state.pending[: len(batch)]
                 yield from results

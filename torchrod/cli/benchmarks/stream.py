@@ -12,6 +12,10 @@ the same readings five ways, in one run:
   the trajectory, one call each (latency: the call's wall time);
 * ``stream, backlog``: :func:`torchrod.stream.stream` over all readings available at once (throughput; latency is
   then mostly the wait in the read-ahead queue);
+* ``stream, backlog, P processes``: the same backlog over ``--workers`` P processes, as ``StreamOptions(workers=P)``
+  solves it (batches of up to P x ``--batch-size``, each process a chunk of up to ``--batch-size``;
+  :mod:`torchrod.estimate.workers`); the workers started and warmed up before the timing, their CPU time in its
+  cpu ms: how throughput scales from one core to P;
 * ``stream, backlog, no network`` (when a network is used): the same backlog without it;
 * ``stream, backlog, noise learned`` and ``noise per reading``: the same backlog with an estimator told no noise,
   which the stream learns from its fits (:mod:`torchrod.estimate.noise`, the default) or, as before that existed,
@@ -49,6 +53,7 @@ from typing import Any
 import torch
 
 from ...estimate.estimator import Estimator, EstimatorOptions
+from ...estimate.workers import ParallelEstimator
 from ...io.stream import Reading, StreamOptions, StreamResult, StreamStats, stream, warm_up
 from ...presets import load as load_rod
 from . import SUITES
@@ -84,6 +89,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="an EstimatorOptions field for every way (repeatable; e.g. starts=1, lbfgs.max_iter=10)",
     )
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=2,
+        metavar="P",
+        help="processes of the parallel backlog row (default 2; 1: no such row)",
+    )
     parser.add_argument("--profile", action="store_true", help="where the time goes (a separate profiled pass)")
     parser.add_argument("--quick", action="store_true", help="a smoke run: 300 readings, 100 paced, 20 one at a time")
 
@@ -124,14 +136,30 @@ class _Row:
         )
 
 
-def _timed(row: _Row, results: Iterable[StreamResult], truth: list[list[tuple[float, float, float]]]) -> None:
-    """Drain ``results`` into ``row``; ids are trajectory frame indices."""
-    w0, c0 = time.perf_counter(), time.process_time()
+def _timed(
+    row: _Row, results: Iterable[StreamResult], truth: list[list[tuple[float, float, float]]], pids: Iterable[int] = ()
+) -> None:
+    """Drain ``results`` into ``row``; ids are trajectory frame indices; ``pids``: worker processes whose CPU time
+    counts too."""
+    w0, c0 = time.perf_counter(), time.process_time() + _cpu_of(pids)
     for r in results:
         row.stats.add(r, truth[r.id])
         if r._result is not None:  # (the batch's result: slicing it per reading would cost inside the timing)
             row.evaluations += int(r._result.evaluations[r._index])
-    row.wall, row.cpu = time.perf_counter() - w0, time.process_time() - c0
+    row.wall, row.cpu = time.perf_counter() - w0, time.process_time() + _cpu_of(pids) - c0
+
+
+def _cpu_of(pids: Iterable[int]) -> float:
+    """CPU time [s] the live processes ``pids`` have used (from Linux's /proc; 0 for one that cannot be read)."""
+    total = 0.0
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat") as fh:
+                fields = fh.read().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime, in ticks
+        except (OSError, ValueError, IndexError):
+            continue
+    return total
 
 
 def _static_batched(
@@ -256,6 +284,8 @@ def run(args: argparse.Namespace) -> int:
     count, single, paced = (300, 20, 100) if args.quick else (args.count, args.single, args.paced)
     if min(count, single, paced, args.batch_size, args.threads) < 1:
         raise ValueError("--count, --single, --paced, --batch-size and --threads must be >= 1")
+    if args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
     pace = args.rate if args.pace is None else args.pace
     if not (pace > 0 and args.rate > 0 and args.max_latency_ms >= 0):
         raise ValueError("--pace and --rate must be positive, --max-latency-ms >= 0")
@@ -306,6 +336,15 @@ def run(args: argparse.Namespace) -> int:
     row = _Row(f"stream, backlog (B<={B})")
     _timed(row, stream(estimator, items, options), truth)
     rows.append(row)
+
+    if args.workers > 1:
+        # The same backlog over P processes (started and warmed up first: the timing is the solving's).
+        with ParallelEstimator(estimator, args.workers) as parallel:
+            parallel.warm(wait=True)
+            row = _Row(f"stream, backlog, {args.workers} processes")
+            wide = dataclasses.replace(options, batch_size=B * args.workers)  # the batches of workers=P
+            _timed(row, stream(parallel, items, wide), truth, parallel.worker_pids())
+        rows.append(row)
 
     if network is not None:
         # The same backlog without the network: what its guesses save (or cost).

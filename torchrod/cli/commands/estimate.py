@@ -47,7 +47,8 @@ answered.
 
 Lines are estimated in batches of ``--batch-size`` (one batched call per batch; should it fail, each reading
 alone), answers in input order; a progress bar on stderr counts readings when stderr is a terminal (not with
-``--quiet``). ``--out FILE`` writes the answers to FILE instead of standard output.
+``--quiet``). ``--out FILE`` writes the answers to FILE instead of standard output. ``--workers N`` spreads each
+batch over N processes (default 1; 0: one per CPU core): two use both cores of a 2-core machine on a file.
 """
 
 from __future__ import annotations
@@ -107,6 +108,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=int, default=256, metavar="B", help="readings per batch (default 256)")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    add_workers_option(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -117,6 +119,27 @@ def check_counts(args: argparse.Namespace) -> None:
         value = getattr(args, option, None)
         if value is not None and value < 0:
             raise ValueError(f"--{option.replace('_', '-')} must be >= 0, got {value}")
+
+
+def add_workers_option(parser: argparse.ArgumentParser) -> None:
+    """``--workers N``: processes a batch is spread over (:mod:`torchrod.estimate.workers`)."""
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        metavar="N",
+        help="spread each batch over N processes, to use every core on a file or a backlog (2 on a 2-core machine; "
+        "0: one per CPU core; default 1)",
+    )
+
+
+def check_workers(args: argparse.Namespace) -> int:
+    """The process count ``--workers`` asks for (0: one per CPU core); ``ValueError`` below 0."""
+    from ...estimate.workers import resolve_processes
+
+    if args.workers < 0:
+        raise ValueError(f"--workers must be >= 1, or 0 for one per CPU core, got {args.workers}")
+    return resolve_processes(args.workers)
 
 
 def options_from_args(args: argparse.Namespace) -> EstimatorOptions:
@@ -169,12 +192,18 @@ def _run(args: argparse.Namespace) -> int:
     check_estimation_options(args)
     sensor_noise(args, rod)
     check_counts(args)
+    processes = check_workers(args)
     if args.starts is not None and args.starts < 0:
         raise ValueError(f"--starts must be >= 0, got {args.starts}")
     check_input(args.readings, "READINGS")
     network = load_network(args.checkpoint, rod)
     estimator = Estimator(rod, options_from_args(args), warm_start=network)
     device = torch.device(args.device)
+    from ...estimate.workers import ParallelEstimator
+
+    solver = ParallelEstimator(estimator, processes)
+    if device.type == "cpu":
+        solver.warm()  # the workers start while the first batch is read
     readings = ReadingSource(
         args.readings, rod.num_gratings, rod.gratings, args.format, quantity=args.csv_quantity, fibre=rod.fibre
     )
@@ -189,13 +218,14 @@ def _run(args: argparse.Namespace) -> int:
             dynamic_ncols=True,
             leave=False,
         )
-        answers = _Answers(estimator, writer, device, bar)
+        answers = _Answers(solver, writer, device, bar)
         try:
             answers.run(readings, args.batch_size)
         except BrokenPipeError:  # the reader went away (| head): stop quietly
             return 141
         finally:
             bar.close()
+            solver.close()
     return 1 if writer.errors else 0
 
 

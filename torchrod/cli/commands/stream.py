@@ -37,7 +37,10 @@ Output: one JSON line per input line, in input order, each written and flushed a
 (the fields of ``torchrod estimate``; ``t`` echoed when given; ``latency_ms`` from the moment the line was read to
 its answer). Readings are solved in batches of up to ``--batch-size``: a line that finds the estimator idle is
 solved at once, and lines that arrive while a batch is solved form the next batch (``--max-latency-ms`` MS makes a
-batch wait up to MS for more lines). Each reading starts from the scan of the estimator, the warm-start network's
+batch wait up to MS for more lines; ``--workers N``, default 1, 0: one per CPU core, solves batches of up to N x
+``--batch-size`` over N processes in chunks of 8 or more, so that a backlog or a file uses every core, e.g. 2 on a
+2-core machine).
+Each reading starts from the scan of the estimator, the warm-start network's
 guess and the previous reading's solution (as in ``Estimator.from_checkpoint``, a network adds starts, never
 replaces the scan); the number of forces is chosen among 0..``--max-forces`` (``--noise``: the sensor's sigma
 [1/m]). Without ``--noise`` the stream learns the sigma from its own fits (the median of each fit's loss over its
@@ -95,7 +98,7 @@ from ...io.stream import StreamOptions, StreamResult, StreamStats, stream, warm_
 from ...presets import load as load_rod
 from ...rod import Rod
 from . import add_sensor_options, check_estimation_options, sensor_noise
-from .estimate import check_counts, load_network
+from .estimate import add_workers_option, check_counts, check_workers, load_network
 
 HELP = "amortised estimation on a stream of readings"
 
@@ -153,6 +156,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="most Levenberg-Marquardt steps per fit before L-BFGS takes over (default %(default)s)",
     )
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    add_workers_option(parser)
     parser.add_argument("--summary", action="store_true", help="a short summary on stderr at the end")
     parser.add_argument("--truth", metavar="FILE", help="true forces per id, for --summary's accuracy")
 
@@ -219,6 +223,7 @@ def _run(args: argparse.Namespace) -> int:
     check_estimation_options(args)
     sensor_noise(args, rod)
     check_counts(args)
+    processes = check_workers(args)
     if args.topic is not None and args.input == "-":
         raise ValueError("--topic reads a ROS bag: give its path with --input")
     if args.output_bag is not None:
@@ -249,6 +254,7 @@ def _run(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         max_latency=args.max_latency_ms / 1e3,
         learn_noise=None if args.per_reading_noise else NoiseLearning(),
+        workers=processes,
     )
     # Warm-up before the first reading: per-rod caches and first-call costs would otherwise land on its latency.
     warm_up(estimator)

@@ -1,0 +1,378 @@
+"""Batches spread over worker processes (:mod:`torchrod.estimate.workers`): the same answers as one process, extra
+starts split with their rows, no reading lost when a worker dies, estimator errors raised as themselves, the stream
+and the CLI with ``--workers``, and the flush after Ctrl-C with workers running."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import multiprocessing
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import time
+import warnings
+
+import pytest
+import torch
+
+import torchrod as tr
+from torchrod.cli import main
+from torchrod.estimate.workers import ParallelEstimator, concat_results, resolve_processes
+from torchrod.io.stream import Reading, StreamOptions, stream
+from torchrod.learn.synthetic import SensorModel, generate_trajectory
+
+NOISE = 0.1
+
+
+def _trajectory(count: int, seed: int = 1) -> tuple[torch.Tensor, torch.Tensor, list[list[tuple[float, ...]]]]:
+    """(T, G, 2) curvature [1/m], (T, G) mask (5% of gratings missing) and the true forces of a synthetic stream."""
+    rod = tr.presets.nitinol290()
+    sensor = SensorModel(noise=NOISE, missing_prob=0.05)
+    traj = generate_trajectory(rod, count, rate=100.0, sensor=sensor, seed=seed)
+    truth = [[(f["s"], f["fx"], f["fy"]) for f in t["forces"]] for t in traj.truth]
+    return traj.curvature, traj.mask, truth
+
+
+def _json_rows(u: torch.Tensor, m: torch.Tensor) -> list[list]:
+    """Readings as JSON lists: [ux, uy] per grating, None for a missing one."""
+    return [
+        [pair if ok else None for pair, ok in zip(r, k, strict=True)]
+        for r, k in zip(u.tolist(), m.tolist(), strict=True)
+    ]
+
+
+def _assert_identical(a: tr.EstimateResult, b: tr.EstimateResult) -> None:
+    """Every field equal bit for bit (NaN where the other has NaN)."""
+    for field in dataclasses.fields(a):
+        x, y = getattr(a, field.name), getattr(b, field.name)
+        pairs = [(x.s, y.s), (x.f, y.f), (x.active, y.active)] if field.name == "forces" else [(x, y)]
+        for p, q in pairs:
+            assert p.dtype == q.dtype and p.shape == q.shape, field.name
+            assert (
+                torch.equal(p, q) or torch.equal(p.isnan(), q.isnan()) and torch.equal(p.nan_to_num(), q.nan_to_num())
+            )
+
+
+def _assert_close(a: tr.EstimateResult, b: tr.EstimateResult) -> None:
+    """The same counts and verdicts; a converged fit's numbers equal to rounding, an unconverged one's loss to 1e-6
+    (a reading's answer depends on its batch: module docstring of torchrod.estimate.workers)."""
+    assert torch.equal(a.num_forces, b.num_forces) and torch.equal(a.status, b.status)
+    assert torch.equal(a.forces.active, b.forces.active) and torch.equal(a.converged, b.converged)
+    c = a.converged
+    torch.testing.assert_close(a.forces.s[c], b.forces.s[c], rtol=0, atol=1e-9)
+    torch.testing.assert_close(a.forces.f[c], b.forces.f[c], rtol=1e-7, atol=1e-8)
+    torch.testing.assert_close(a.loss[c], b.loss[c], rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(a.loss, b.loss, rtol=1e-6, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def estimator() -> tr.Estimator:
+    return tr.Estimator(tr.presets.nitinol290(), tr.EstimatorOptions(noise=NOISE))
+
+
+@pytest.fixture(scope="module")
+def parallel(estimator):
+    """Two processes, started once for the module's tests that leave the pool whole."""
+    with ParallelEstimator(estimator, 2) as par:
+        par.warm(wait=True)
+        yield par
+
+
+# ---------------------------------------------------------------------------------------------------- the API
+def test_two_processes_give_the_in_process_answers(estimator, parallel):
+    u, m, _ = _trajectory(24)
+    got = parallel.estimate(u, m)
+    assert parallel.worker_pids() and parallel.restarts == 0
+    # The same chunks (rows 0-11 and 12-23) in this process: bit for bit.
+    _assert_identical(got, concat_results([estimator.estimate(u[:12], m[:12]), estimator.estimate(u[12:], m[12:])]))
+    # The whole batch in one call: the same to rounding.
+    _assert_close(got, estimator.estimate(u, m))
+    # Overrides reach the workers; float32 readings come back as float32.
+    got = parallel.estimate(u.float(), m, max_forces=1)
+    assert got.loss.dtype == torch.float32 and int(got.num_forces.max()) <= 1
+    _assert_identical(
+        got, concat_results([estimator.estimate(u[a:b].float(), m[a:b], max_forces=1) for a, b in ((0, 12), (12, 24))])
+    )
+
+
+def test_small_batches_stay_in_process(estimator):
+    u, m, _ = _trajectory(15)
+    par = ParallelEstimator(estimator, 2)
+    _assert_identical(par.estimate(u, m), estimator.estimate(u, m))
+    assert par._pool is None  # 15 readings: no chunk of 8 for a second process, so no pool was started
+    assert par._plan(16) == [(0, 8), (8, 16)] and par._plan(101) == [(0, 50), (50, 101)]
+    assert ParallelEstimator(estimator, 3)._plan(24) == [(0, 8), (8, 16), (16, 24)]
+
+
+def test_extra_starts_are_split_with_their_rows(estimator, parallel):
+    """One force fitted with no scan (starts=0): the fit starts only from the extra start, each reading's own
+    strongest true force, distinct per row. A chunk given another chunk's starts would fit other answers."""
+    u, m, truth = _trajectory(24, seed=2)
+    strongest = [max(t, key=lambda x: math.hypot(x[1], x[2])) if t else (0.1, 0.0, 0.0) for t in truth]
+    s = torch.tensor([[x[0]] for x in strongest], dtype=u.dtype)
+    f = torch.tensor([[[x[1], x[2]]] for x in strongest], dtype=u.dtype)
+    fixed = dict(num_forces=1, starts=0)
+    got = parallel.estimate(u, m, extra_starts={1: tr.PointForces(s, f)}, **fixed)
+    chunks = [
+        estimator.estimate(u[a:b], m[a:b], extra_starts={1: tr.PointForces(s[a:b], f[a:b])}, **fixed)
+        for a, b in ((0, 12), (12, 24))
+    ]
+    _assert_identical(got, concat_results(chunks))
+    _assert_close(got, estimator.estimate(u, m, extra_starts={1: tr.PointForces(s, f)}, **fixed))
+    # Starts of the wrong batch size are the estimator's to refuse, with its own message.
+    with pytest.raises(ValueError, match="shape"):
+        parallel.estimate(u, m, extra_starts={1: tr.PointForces(s[:5], f[:5])})
+
+
+def test_an_estimator_with_the_shipped_network_pickles_and_splits():
+    from torchrod.learn.warm_start import SHIPPED_CHECKPOINT, WarmStart
+
+    if not os.path.exists(SHIPPED_CHECKPOINT):
+        pytest.skip("no shipped checkpoint")
+    rod = tr.presets.nitinol290()
+    est = tr.Estimator(rod, tr.EstimatorOptions(noise=NOISE), warm_start=WarmStart.load(SHIPPED_CHECKPOINT, rod))
+    again = pickle.loads(pickle.dumps(est))
+    u, m, _ = _trajectory(16, seed=3)
+    assert torch.equal(again.warm_start.guess(u, m).forces[2].s, est.warm_start.guess(u, m).forces[2].s)
+    with ParallelEstimator(est, 2) as par:
+        got = par.estimate(u, m)
+        assert par.restarts == 0
+    _assert_identical(got, concat_results([est.estimate(u[:8], m[:8]), est.estimate(u[8:], m[8:])]))
+
+
+class _InWorker:
+    """A picklable warm start that, in a worker process and on a batch of 8 or more, exits the process (``"exit"``)
+    or raises (``"raise"``); elsewhere it guesses nothing."""
+
+    def __init__(self, how: str) -> None:
+        self.how = how
+
+    def __call__(self, curvature: torch.Tensor, mask: torch.Tensor) -> dict:
+        if multiprocessing.parent_process() is not None and curvature.shape[0] >= 8:
+            if self.how == "exit":
+                os._exit(7)
+            raise FloatingPointError("boom in a worker")
+        return {}
+
+
+def test_a_killed_worker_loses_no_reading(estimator):
+    u, m, _ = _trajectory(24)
+    expected = concat_results([estimator.estimate(u[:12], m[:12]), estimator.estimate(u[12:], m[12:])])
+    with ParallelEstimator(estimator, 2) as par:
+        par.warm(wait=True)
+        (pid,) = par.worker_pids()
+        os.kill(pid, signal.SIGKILL)  # the idle worker dies: found when the batch is handed out, or when it is due
+        _assert_identical(par.estimate(u, m), expected)
+        assert par.restarts == 1
+        _assert_identical(par.estimate(u, m), expected)  # a new pool
+        assert par.restarts == 1 and par.worker_pids() and par.worker_pids() != [pid]
+
+
+def test_a_worker_that_dies_mid_batch_loses_no_reading():
+    rod = tr.presets.nitinol290()
+    est = tr.Estimator(rod, tr.EstimatorOptions(noise=NOISE, max_forces=2), warm_start=_InWorker("exit"))
+    u, m, _ = _trajectory(16)
+    expected = concat_results([est.estimate(u[:8], m[:8]), est.estimate(u[8:], m[8:])])
+    with ParallelEstimator(est, 2, max_restarts=1) as par:
+        for restarts in (1, 2):  # every pool dies on its first chunk; its chunk is solved here
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                _assert_identical(par.estimate(u, m), expected)
+            assert par.restarts == restarts
+            assert [str(w.message) for w in caught] == (
+                [] if restarts == 1 else ["the worker processes failed 2 times; solving in one process from now on"]
+            )
+        assert not par.parallel  # restarts used up: from now on the whole batch in this process, with no pool
+        _assert_identical(par.estimate(u, m), est.estimate(u, m))
+        assert par._pool is None
+
+
+def test_an_estimator_exception_in_a_worker_is_raised_as_itself():
+    rod = tr.presets.nitinol290()
+    est = tr.Estimator(rod, tr.EstimatorOptions(noise=NOISE, max_forces=2), warm_start=_InWorker("raise"))
+    u, m, _ = _trajectory(16)
+    with ParallelEstimator(est, 2) as par:
+        with pytest.raises(FloatingPointError, match="boom in a worker"):
+            par.estimate(u, m)
+        assert par.restarts == 0  # an estimator error does not break the pool
+        # The stream answers such a batch reading by reading (in this process, where the warm start does not fail).
+        items = [Reading(k, torch.where(m[k].unsqueeze(-1), u[k], math.nan)) for k in range(16)]
+        out = list(stream(par, items, StreamOptions(batch_size=16, max_latency=60.0)))
+    assert [r.id for r in out] == list(range(16)) and all(r.ok for r in out)
+    assert [r.record["num_forces"] for r in out] == est.estimate(u, m).num_forces.tolist()
+
+
+def test_options_are_checked(estimator):
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="workers"):
+            StreamOptions(workers=bad)
+    for bad in (-1, 2.0, None):
+        with pytest.raises(ValueError, match="processes"):
+            ParallelEstimator(estimator, bad)
+    with pytest.raises(ValueError, match="min_chunk"):
+        ParallelEstimator(estimator, 2, min_chunk=0)
+    assert resolve_processes(0) == (os.cpu_count() or 1) and resolve_processes(3) == 3
+    unpicklable = tr.Estimator(estimator.rod, estimator.options, warm_start=lambda u, m: {})
+    with pytest.raises(TypeError, match="pickle"):
+        ParallelEstimator(unpicklable, 2)
+    one = ParallelEstimator(unpicklable, 1)  # one process needs no pickling and no pool
+    u, m, _ = _trajectory(20)
+    _assert_identical(one.estimate(u, m), estimator.estimate(u, m))
+    assert one.worker_pids() == [] and one._pool is None
+
+
+def test_stream_with_workers_flushes_on_an_interrupt_and_stops_its_workers(estimator, tmp_path):
+    """Ctrl-C at the first answer: every line the file source already read is answered (batches of 16 over two
+    processes), the interrupt is raised again, and the stream's workers are gone."""
+    from torchrod.io.readings import ReadingSource
+
+    u, m, _ = _trajectory(40)
+    path = tmp_path / "in.jsonl"
+    path.write_text("".join(json.dumps({"id": k, "curvature": r}) + "\n" for k, r in enumerate(_json_rows(u, m))))
+    before = set(multiprocessing.active_children())
+    source = ReadingSource(str(path), 14, tr.presets.nitinol290().gratings)
+    results = stream(estimator, source, StreamOptions(batch_size=16, read_ahead=2, workers=2))
+    got = [next(results)]
+    got.append(results.throw(KeyboardInterrupt()))
+    with pytest.raises(KeyboardInterrupt):
+        got.extend(results)
+    assert [r.id for r in got] == list(range(40)) and all(r.ok for r in got)
+    assert max(r.batch for r in got) >= 16  # a batch (of up to 2 x 16) was split
+    assert set(multiprocessing.active_children()) <= before
+
+
+# ---------------------------------------------------------------------------------------------------- the CLI
+def _lines(path, count: int = 32) -> None:
+    u, m, _ = _trajectory(count, seed=4)
+    text = "".join(
+        json.dumps({"id": f"r{k}", "t": 0.01 * k, "curvature": r}) + "\n" for k, r in enumerate(_json_rows(u, m))
+    )
+    path.write_text(text)
+
+
+def _answers(capsys, drop: str) -> list[dict]:
+    out = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    for o in out:
+        o.pop(drop, None)
+    return out
+
+
+def test_cli_estimate_with_two_workers_answers_as_one(tmp_path, capsys):
+    path = tmp_path / "in.jsonl"
+    _lines(path, 24)
+    base = ["estimate", "--rod", "nitinol290", "--noise", str(NOISE), "--quiet", str(path)]
+    assert main([*base, "--workers", "2", "--batch-size", "24"]) == 0
+    two = _answers(capsys, "time_ms")
+    # One process on the same chunks (batches of 12): the same lines.
+    assert main([*base, "--workers", "1", "--batch-size", "12"]) == 0
+    assert two == _answers(capsys, "time_ms") and len(two) == 24
+    assert main([*base, "--workers", "-1"]) == 2
+    assert "--workers must be >= 1" in capsys.readouterr().err
+
+
+def _has_option(command: str, option: str) -> bool:
+    import importlib
+
+    parser = argparse.ArgumentParser()
+    importlib.import_module(f"torchrod.cli.commands.{command}").configure(parser)
+    return option in parser._option_string_actions
+
+
+def test_cli_stream_with_two_workers_answers_as_one(tmp_path, capsys):
+    """Batches of 16 (closed by size: the latency bound is a minute), tracking starts included: --batch-size 16
+    with one process, 8 per process with two (each batch solved as two chunks of 8, so the numbers agree to
+    rounding)."""
+    path = tmp_path / "in.jsonl"
+    _lines(path, 32)
+    base = ["stream", "--rod", "nitinol290", "--checkpoint", "none", "--noise", str(NOISE), "--input", str(path)]
+    base += ["--max-latency-ms", "60000"]
+    if _has_option("stream", "--time-budget-ms"):
+        base += ["--time-budget-ms", "1e9"]  # no timeouts: the answers must not depend on the machine's load
+    assert main([*base, "--workers", "1", "--batch-size", "16"]) == 0
+    one = _answers(capsys, "latency_ms")
+    assert main([*base, "--workers", "2", "--batch-size", "8"]) == 0
+    two = _answers(capsys, "latency_ms")
+    assert [o["id"] for o in two] == [f"r{k}" for k in range(32)]
+    numbers = ("forces", "loss", "p_value", "iterations")  # an unconverged fit's can differ (module docstring)
+    for a, b in zip(one, two, strict=True):
+        assert {k: v for k, v in a.items() if k not in numbers} == {k: v for k, v in b.items() if k not in numbers}
+        assert a["loss"] == pytest.approx(b["loss"], rel=1e-6)
+        if a["converged"]:
+            assert a["loss"] == pytest.approx(b["loss"], rel=1e-9)
+            for fa, fb in zip(a["forces"], b["forces"], strict=True):
+                assert fa == pytest.approx(fb, rel=1e-6, abs=1e-8)
+
+
+def _unread(pipe) -> int:
+    """Bytes written to ``pipe`` that its reader has not read yet."""
+    import array
+    import fcntl
+    import termios
+
+    buf = array.array("i", [0])
+    fcntl.ioctl(pipe.fileno(), termios.FIONREAD, buf)
+    return buf[0]
+
+
+def test_cli_stream_with_workers_flushes_on_ctrl_c(tmp_path):
+    """40 readings pending (a batch of 100 and a minute's latency bound), then Ctrl-C: all answered (over two
+    processes), exit status 130, and no process of the command is left."""
+    path = tmp_path / "in.jsonl"
+    _lines(path, 40)
+    cmd = [sys.executable, "-m", "torchrod", "stream", "--rod", "nitinol290", "--noise", str(NOISE)]
+    cmd += ["--max-forces", "2", "--checkpoint", "none", "--threads", "1", "--workers", "2"]
+    cmd += ["--batch-size", "100", "--max-latency-ms", "60000"]
+
+    def interruptible() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+    proc = subprocess.Popen(
+        cmd,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group: the workers' too, so that leftovers can be found
+        preexec_fn=interruptible,
+    )
+    try:
+        proc.stdin.write(path.read_text())
+        proc.stdin.flush()
+        deadline = time.monotonic() + 60
+        while _unread(proc.stdin) and time.monotonic() < deadline:  # until the command has read them
+            time.sleep(0.05)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)  # to the command alone, as the existing stream tests do
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert [json.loads(x)["id"] for x in out.splitlines()] == [f"r{k}" for k in range(40)]
+    assert "Traceback" not in err
+    deadline = time.monotonic() + 10
+    while _group(proc.pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert _group(proc.pid) == []  # no process of the command's group is left (its workers stopped)
+
+
+def _group(pgid: int) -> list[str]:
+    """The processes of group ``pgid`` that still run (not zombies: an orphan's exit status may wait for a reaper
+    that a container's init does not provide), as "pid state command" (Linux /proc)."""
+    found = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{pid}/stat") as fh:
+                stat = fh.read()
+        except OSError:
+            continue
+        name, rest = stat[stat.index("(") + 1 : stat.rindex(")")], stat[stat.rindex(")") + 2 :].split()
+        if int(rest[2]) == pgid and rest[0] != "Z":
+            found.append(f"{pid} {rest[0]} {name}")
+    return found

@@ -1,0 +1,388 @@
+"""Every core for a batch: an :class:`~torchrod.estimate.estimator.Estimator` spread over worker processes.
+
+The estimator runs on NumPy and spends most of its time in Python (a few hundred small array operations per
+reading), so torch's intra-op threads do not speed it up and Python threads would share one interpreter lock;
+processes do. :class:`ParallelEstimator` splits a batch of B readings into up to N contiguous chunks, solves N - 1
+of them in worker processes and one in the calling process at the same time, and joins the answers in order.
+
+- Small batches are not split (a chunk holds at least ``min_chunk`` readings): a single reading, or the small
+  batches of a live stream, would pay the transfer and gain nothing.
+- Workers are started with ``spawn`` (the callers run threads, with which ``fork`` is unsafe), lazily on the first
+  batch big enough to split (:meth:`ParallelEstimator.warm` starts them early). Each receives the pickled estimator
+  once (its warm-start network included), runs torch on one thread, ignores SIGINT (the caller handles Ctrl-C and
+  flushes; a worker must keep solving for it) and estimates two readings to fill its first-call caches.
+- Nothing is lost: a chunk whose worker dies (or whose pool breaks) is solved in the calling process, and the pool
+  is started afresh for the next batch (at most ``max_restarts`` times; then every batch runs in the calling
+  process). An exception the estimator raises in a worker reaches the caller as the same exception type.
+- A reading's answer depends on the batch it is solved in. A converged fit differs at the level of rounding (the
+  batched search's shared steps: about 1e-12 relative in the loss and 1e-12 m in a location over 192 readings, with
+  and without missing gratings); a fit that did not converge (status ``unconverged``) stops where its budget ran out,
+  and rounding differences grow along its flat direction (1.2 um and 4e-8 relative in the loss, in one reading of
+  24); ``evaluations`` counts batched steps and may differ too. A split batch therefore
+  equals the in-process estimate of the same chunks bit for bit, and the whole batch's estimate to that level (the
+  counts and verdicts agreed in every test; a reading at a near tie of two counts could differ).
+
+Use it as the estimator it wraps (``estimate``; ``rod``, ``options`` and ``warm_start`` pass through, so
+:func:`torchrod.io.stream.stream` takes it too), and close it (``close()`` or ``with``). A script that uses it must
+guard its top level with ``if __name__ == "__main__":`` (``spawn`` imports the main module in each worker).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import multiprocessing
+import os
+import pickle
+import signal
+import warnings
+from collections.abc import Mapping, Sequence
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..loads import PointForces
+from .estimator import EstimateResult
+
+__all__ = ["MIN_CHUNK", "ParallelEstimator", "concat_results", "resolve_processes"]
+
+MIN_CHUNK = 8
+"""The fewest readings a chunk holds: a batch of fewer than 2 * MIN_CHUNK readings is solved in one process."""
+
+
+def resolve_processes(processes: int) -> int:
+    """The number of processes that ``processes`` asks for: itself if >= 1, one per CPU core (``os.cpu_count()``)
+    for 0; ``ValueError`` for anything else."""
+    if not isinstance(processes, int) or isinstance(processes, bool) or processes < 0:
+        raise ValueError(f"processes must be an integer >= 1, or 0 for one per CPU core, got {processes!r}")
+    return processes if processes else max(1, os.cpu_count() or 1)
+
+
+def concat_results(results: Sequence[EstimateResult]) -> EstimateResult:
+    """The results of consecutive batches as one, along the batch dimension (all with the same width W)."""
+    if not results:
+        raise ValueError("concat_results needs at least one result, got none")
+    if len(results) == 1:
+        return results[0]
+    fields: dict[str, Any] = {}
+    for f in dataclasses.fields(EstimateResult):
+        if f.name == "forces":
+            parts = [r.forces for r in results]
+            masks = None if all(p.mask is None for p in parts) else torch.cat([p.active for p in parts])
+            fields["forces"] = PointForces(torch.cat([p.s for p in parts]), torch.cat([p.f for p in parts]), masks)
+        else:
+            fields[f.name] = torch.cat([getattr(r, f.name) for r in results])
+    return EstimateResult(**fields)
+
+
+# ---------------------------------------------------------------------------------------------------- transfer
+# Tensors cross the process boundary as NumPy arrays: pickled by value (torch's own reduction would put every
+# small tensor in a shared-memory file of its own), and converted back bit for bit.
+def _array(x: torch.Tensor | None) -> np.ndarray | None:
+    return None if x is None else x.detach().cpu().numpy()
+
+
+def _tensor(x: np.ndarray | None) -> torch.Tensor | None:
+    return None if x is None else torch.from_numpy(x)
+
+
+def _pack_forces(pf: PointForces) -> tuple[Any, Any, Any]:
+    return _array(pf.s), _array(pf.f), _array(pf.mask)
+
+
+def _unpack_forces(packed: tuple[Any, Any, Any]) -> PointForces:
+    s, f, mask = packed
+    return PointForces(_tensor(s), _tensor(f), _tensor(mask))
+
+
+def _pack_result(result: EstimateResult) -> dict[str, Any]:
+    return {
+        f.name: _pack_forces(result.forces) if f.name == "forces" else _array(getattr(result, f.name))
+        for f in dataclasses.fields(EstimateResult)
+    }
+
+
+def _unpack_result(packed: Mapping[str, Any]) -> EstimateResult:
+    return EstimateResult(
+        **{k: _unpack_forces(v) if k == "forces" else _tensor(v) for k, v in packed.items()},
+    )
+
+
+# ---------------------------------------------------------------------------------------------------- the worker
+_ESTIMATOR: Any = None  # in a worker: the estimator it was given
+
+
+def _init_worker(payload: bytes, warm: bool) -> None:
+    """A worker's start: one torch thread, SIGINT ignored (the caller handles Ctrl-C), the estimator, a warm-up."""
+    global _ESTIMATOR
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    torch.set_num_threads(1)
+    _ESTIMATOR = pickle.loads(payload)
+    if warm:
+        from ..io.stream import warm_up
+
+        warm_up(_ESTIMATOR)
+
+
+def _ready() -> int:
+    return os.getpid()
+
+
+def _solve_chunk(
+    curvature: np.ndarray, mask: np.ndarray | None, starts: dict[int, Any] | None, overrides: dict[str, Any]
+) -> dict[str, Any]:
+    extra = None if starts is None else {h: _unpack_forces(p) for h, p in starts.items()}
+    result = _ESTIMATOR.estimate(_tensor(curvature), _tensor(mask), extra_starts=extra, **overrides)
+    return _pack_result(result)
+
+
+# ---------------------------------------------------------------------------------------------------- the wrapper
+class ParallelEstimator:
+    """An estimator whose batches are solved in ``processes`` processes at once (module docstring).
+
+    Args:
+        estimator: the :class:`~torchrod.estimate.estimator.Estimator` (picklable: its rod, options and warm-start
+            network are; a warm start that is a local function or lambda is not).
+        processes: N >= 1, the processes a batch is spread over, the calling one included (N - 1 workers); 1 runs
+            every batch in the calling process, with no pool; 0: one per CPU core.
+        min_chunk: the fewest readings per chunk.
+        max_restarts: how often a broken pool is started afresh before every batch stays in the calling process.
+        warm_workers: each worker estimates two simulated readings when it starts.
+    Raises:
+        ValueError: for a bad ``processes``, ``min_chunk`` or ``max_restarts``.
+        TypeError: if ``processes`` > 1 and the estimator cannot be pickled.
+    """
+
+    def __init__(
+        self,
+        estimator: Any,
+        processes: int = 2,
+        *,
+        min_chunk: int = MIN_CHUNK,
+        max_restarts: int = 3,
+        warm_workers: bool = True,
+    ) -> None:
+        self.processes = resolve_processes(processes)
+        for name, value, low in (("min_chunk", min_chunk, 1), ("max_restarts", max_restarts, 0)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+        if not callable(getattr(estimator, "estimate", None)):
+            raise TypeError(f"estimator must have an estimate() method, got {type(estimator).__name__}")
+        self.estimator = estimator
+        self.min_chunk = min_chunk
+        self.max_restarts = max_restarts
+        self.restarts = 0  # pools found broken so far
+        self._warm_workers = warm_workers
+        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+        self._starting: list[concurrent.futures.Future] = []
+        self._payload = b""
+        if self.processes > 1:
+            try:
+                self._payload = pickle.dumps(estimator)
+            except Exception as exc:  # noqa: BLE001 - whatever pickling raises, the cause is the same
+                raise TypeError(
+                    f"the estimator cannot be sent to worker processes ({type(exc).__name__}: {exc}); use "
+                    "processes=1, or a warm start that can be pickled (not a local function or lambda)"
+                ) from exc
+
+    # The wrapped estimator's attributes, so that the stream and warm_up take this object as an estimator.
+    @property
+    def rod(self) -> Any:
+        return self.estimator.rod
+
+    @property
+    def options(self) -> Any:
+        return self.estimator.options
+
+    @property
+    def warm_start(self) -> Any:
+        return getattr(self.estimator, "warm_start", None)
+
+    # ------------------------------------------------------------------ the pool
+    @property
+    def parallel(self) -> bool:
+        """True while batches may go to workers (processes > 1 and the restarts not used up)."""
+        return self.processes > 1 and self.restarts <= self.max_restarts
+
+    def _ensure_pool(self) -> concurrent.futures.ProcessPoolExecutor:
+        if self._pool is None:
+            self._pool = concurrent.futures.ProcessPoolExecutor(
+                max_workers=self.processes - 1,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_init_worker,
+                initargs=(self._payload, self._warm_workers),
+            )
+            # One task per worker makes the pool start them all now (it starts one per task while none is idle).
+            self._starting = [self._pool.submit(_ready) for _ in range(self.processes - 1)]
+        return self._pool
+
+    def warm(self, wait: bool = False) -> None:
+        """Start the workers now instead of on the first batch big enough to split; ``wait``: until they are ready
+        (each has imported torch, unpickled the estimator and warmed up: seconds). No effect with one process."""
+        if not self.parallel:
+            return
+        try:
+            self._ensure_pool()
+            if wait:
+                for future in self._starting:
+                    future.result()
+        except BrokenProcessPool:
+            self._broken()
+
+    def worker_pids(self) -> list[int]:
+        """The process ids of the running workers ([] before the pool starts)."""
+        processes = getattr(self._pool, "_processes", None) or {}
+        return [p.pid for p in list(processes.values()) if p.is_alive()]
+
+    def _broken(self) -> None:
+        """Drop a broken pool (its chunks are solved here); the next batch starts a new one."""
+        self.restarts += 1
+        pool, self._pool, self._starting = self._pool, None, []
+        if pool is not None:
+            self._stop(pool)
+        if self.restarts > self.max_restarts:
+            warnings.warn(
+                f"the worker processes failed {self.restarts} times; solving in one process from now on",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+
+    @staticmethod
+    def _stop(pool: concurrent.futures.ProcessPoolExecutor, timeout: float = 1.0) -> None:
+        """Shut ``pool`` down: idle workers exit at once, a worker still busy on an abandoned chunk (after an
+        interrupt) is given ``timeout`` seconds, then terminated."""
+        processes = list((getattr(pool, "_processes", None) or {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for p in processes:
+            p.join(timeout)
+            if p.is_alive():
+                p.terminate()
+                p.join(timeout)
+
+    def close(self) -> None:
+        """Stop the workers (the object still estimates afterwards, starting a new pool if needed)."""
+        pool, self._pool, self._starting = self._pool, None, []
+        if pool is not None:
+            self._stop(pool)
+
+    def __enter__(self) -> ParallelEstimator:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ estimation
+    def _plan(self, B: int) -> list[tuple[int, int]]:
+        """Contiguous [start, end) row ranges, as even as can be, each at least ``min_chunk`` rows."""
+        n = max(1, min(self.processes, B // self.min_chunk))
+        bounds = [k * B // n for k in range(n + 1)]
+        return list(zip(bounds[:-1], bounds[1:], strict=True))
+
+    def estimate(
+        self,
+        curvature: torch.Tensor,
+        mask: torch.Tensor | None = None,
+        *,
+        extra_starts: Mapping[int, PointForces] | None = None,
+        **overrides: Any,
+    ) -> EstimateResult:
+        """:meth:`Estimator.estimate <torchrod.estimate.estimator.Estimator.estimate>` (same arguments: curvature
+        (B, G, 2) [1/m], mask (B, G) bool or None, extra_starts {h: PointForces (B, h)} in reported coordinates,
+        EstimatorOptions overrides), the B rows spread over the processes in contiguous chunks.
+
+        Returns:
+            the :class:`EstimateResult` of the B readings, in order (the chunks' results joined).
+        Raises:
+            what the estimator raises, the same type whether it was raised here or in a worker (the first chunk's
+            in row order, after every chunk is done). A batch the estimator would refuse as a whole (a bad shape,
+            a reading with no grating) is passed to it whole, so it raises as it would in one process.
+        """
+        chunks = self._chunks(curvature, mask, extra_starts)
+        if chunks is None:
+            return self.estimator.estimate(curvature, mask, extra_starts=extra_starts, **overrides)
+        futures: list[concurrent.futures.Future | None] = []
+        try:
+            try:
+                pool = self._ensure_pool()
+                for chunk in chunks[1:]:
+                    futures.append(pool.submit(_solve_chunk, *self._packed(chunk), overrides))
+            except BrokenProcessPool:  # a worker died while idle: this batch's chunks are solved here
+                self._broken()
+                futures += [None] * (len(chunks) - 1 - len(futures))
+            results: list[EstimateResult | None] = [None] * len(chunks)
+            errors: list[BaseException | None] = [None] * len(chunks)
+            results[0], errors[0] = self._here(chunks[0], overrides)
+            broken = False
+            for k, future in enumerate(futures, start=1):
+                if future is not None:
+                    try:
+                        results[k] = _unpack_result(future.result())
+                        continue
+                    except BrokenProcessPool:
+                        broken = True
+                    except Exception as exc:  # noqa: BLE001 - raised below, in row order
+                        errors[k] = exc
+                        continue
+                results[k], errors[k] = self._here(chunks[k], overrides)
+            if broken:
+                self._broken()
+        except BaseException:  # an interrupt: what the workers still have to do is not wanted any more
+            for future in futures:
+                if future is not None:
+                    future.cancel()
+            raise
+        for error in errors:
+            if error is not None:
+                raise error
+        return concat_results(results)  # type: ignore[arg-type]
+
+    def _chunks(self, curvature: Any, mask: Any, extra_starts: Any) -> list[tuple[Any, Any, Any]] | None:
+        """The batch's chunks as (curvature, mask, extra_starts) each, or None to solve it whole here: one process,
+        too few readings, a device other than the CPU, or anything the estimator should judge whole."""
+        if not self.parallel or not isinstance(curvature, torch.Tensor) or curvature.dim() != 3:
+            return None
+        B = curvature.shape[0]
+        plan = self._plan(B)
+        if len(plan) < 2 or curvature.device.type != "cpu":
+            return None
+        if mask is not None:
+            if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool or mask.shape != curvature.shape[:2]:
+                return None
+            if not bool(mask.any(dim=1).all()):  # a reading with no grating: the estimator's error names its row
+                return None
+        elif bool(torch.isnan(curvature).all(-1).all(-1).any()):
+            return None
+        starts = dict(extra_starts) if extra_starts else {}
+        for pf in starts.values():
+            if not isinstance(pf, PointForces) or pf.s.shape[0] != B or pf.device.type != "cpu":
+                return None
+        return [
+            (
+                curvature[a:b],
+                None if mask is None else mask[a:b],
+                {
+                    h: PointForces(pf.s[a:b], pf.f[a:b], None if pf.mask is None else pf.mask[a:b])
+                    for h, pf in starts.items()
+                }
+                or None,
+            )
+            for a, b in plan
+        ]
+
+    @staticmethod
+    def _packed(chunk: tuple[Any, Any, Any]) -> tuple[Any, Any, Any]:
+        curvature, mask, starts = chunk
+        packed = None if starts is None else {h: _pack_forces(pf) for h, pf in starts.items()}
+        return _array(curvature), _array(mask), packed
+
+    def _here(
+        self, chunk: tuple[Any, Any, Any], overrides: dict[str, Any]
+    ) -> tuple[EstimateResult | None, Exception | None]:
+        """Solve a chunk in the calling process: (result, None), or (None, the exception)."""
+        curvature, mask, starts = chunk
+        try:
+            return self.estimator.estimate(curvature, mask, extra_starts=starts, **overrides), None
+        except Exception as exc:  # noqa: BLE001 - raised by estimate(), in row order
+            return None, exc
