@@ -25,3 +25,13 @@ def gen() -> torch.Generator:
 def rng() -> np.random.Generator:
     """A seeded numpy generator."""
     return np.random.default_rng(1234)
+
+
+@pytest.fixture(autouse=True)
+def _no_stream_time_budget(monkeypatch):
+    """``torchrod stream`` without its default time budget: with it, which readings time out depends on the
+    machine's speed and load, and tests that compare answers need them to be the same on every run
+    (tests/test_budget.py tests the budget itself)."""
+    from torchrod.cli.commands import stream
+
+    monkeypatch.setattr(stream, "DEFAULT_TIME_BUDGET_MS", None)

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
 import types
 
 import pytest
 import torch
 
 import torchrod as tr
+from torchrod.cli import main
 from torchrod.estimate import estimator as estimator_module
 from torchrod.estimate import lm, search
 from torchrod.estimate.estimator import Estimator, EstimatorOptions
@@ -100,3 +102,27 @@ def test_the_budget_is_checked(cases):
     for bad in (-1.0, float("nan"), float("inf"), True):
         with pytest.raises(ValueError, match="time_budget"):
             EstimatorOptions(time_budget=bad)
+
+
+def _lines(rod, tmp_path):
+    cases = [[(0.2, 0.3, 0.0)], [(0.12, -0.9, 1.1), (0.25, 0.6, -0.4)]]
+    u = tr.simulate(rod, tr.PointForces.from_lists(cases, max_forces=2)).grating_curvature.tolist()
+    path = tmp_path / "readings.jsonl"
+    path.write_text("".join(json.dumps({"id": f"r{b}", "curvature": u[b]}) + "\n" for b in range(2)))
+    return path
+
+
+@pytest.mark.parametrize("command", ["estimate", "stream"])
+def test_the_commands_take_a_budget(command, tmp_path, capsys):
+    rod = tr.presets.nitinol290()
+    path = _lines(rod, tmp_path)
+    where = [str(path)] if command == "estimate" else ["--input", str(path), "--checkpoint", "none"]
+    base = [command, "--rod", "nitinol290", "--noise", "0.01", *where]
+    assert main([*base, "--time-budget-ms", "0"]) == 0
+    out = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert [(o["id"], o["status"], o["num_forces"]) for o in out] == [("r0", "timeout", 0), ("r1", "timeout", 0)]
+    assert main([*base, "--time-budget-ms", "60000"]) == 0
+    out = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert [(o["status"], o["num_forces"]) for o in out] == [("ok", 1), ("ok", 2)]
+    assert main([*base, "--time-budget-ms", "-1"]) == 2
+    assert "--time-budget-ms must be >= 0, got -1" in capsys.readouterr().err

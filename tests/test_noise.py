@@ -138,3 +138,17 @@ def test_cli_stream_learns_the_noise_unless_told(tmp_path, capsys):
         cap = capsys.readouterr()
         assert not any("noise" in json.loads(line) for line in cap.out.splitlines())
         assert "noise learned" not in cap.err
+
+
+def test_fits_cut_by_the_time_budget_teach_nothing():
+    """A fit the time budget cut is not a converged fit: its loss says nothing about the noise. With a budget of 0
+    every reading of pure noise (0.1 1/m) times out with no force fitted; those losses would teach sigma ~0.1, so
+    a stream that learned from them would answer with a ``"noise"`` field."""
+    rod = tr.presets.nitinol290()
+    gen = torch.Generator().manual_seed(3)
+    u = 0.1 * torch.randn(60, rod.num_gratings, 2, dtype=torch.float64, generator=gen)
+    est = tr.Estimator(rod, tr.EstimatorOptions(max_forces=1))
+    readings = [{"id": k, "curvature": u[k]} for k in range(60)]
+    out = list(stream(est, readings, StreamOptions(batch_size=8), time_budget=0.0))
+    assert [r.record["status"] for r in out] == ["timeout"] * 60
+    assert not any("noise" in r.record for r in out)

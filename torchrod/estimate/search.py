@@ -50,17 +50,22 @@ class Solver:
     lbfgs: LBFGSOptions | None = None
     deadline: float | None = None
 
-    def late(self) -> bool:
-        """Whether ``time.perf_counter()`` has passed the deadline (never without one)."""
-        return self.deadline is not None and time.perf_counter() > self.deadline
+    def late(self, need: float = 0.0) -> bool:
+        """Whether ``time.perf_counter()`` has passed the deadline, or will have after ``need`` more seconds
+        (never without a deadline)."""
+        return self.deadline is not None and time.perf_counter() + need > self.deadline
 
     def solve(self, problem: Problem, fits: Fits | lm.LMState) -> lm.LMState:
         """Levenberg-Marquardt on every row; past the deadline the rows still going stop, ``done`` False."""
         return lm.solve(problem, self.policy, fits, self.deadline)
 
-    def finish(self, problem: Problem, best: lm.LMState) -> lm.LMState:
-        """The fits kept (the best of each reading): the exact-model steps (:func:`.lm.finish`)."""
-        return lm.finish(problem, self.policy, best)
+    def finish(self, problem: Problem, best: lm.LMState) -> tuple[lm.LMState, bool]:
+        """The fits kept (the best of each reading): the exact-model steps (:func:`.lm.finish`); past the deadline
+        only the exact model's residual (the fits stay at the fitting model's optimum, ~1e-4 off) and True: the
+        rows were cut short."""
+        if self.late():
+            return lm.finish(problem, dataclasses.replace(self.policy, exact_steps=0), best), True
+        return lm.finish(problem, self.policy, best), False
 
     def refine(self, problem: Problem, chosen: lm.LMState) -> lm.LMState:
         """The fits the answer is made of: L-BFGS where the LM budget left them open (:mod:`.finish`), then the
@@ -511,10 +516,12 @@ def fit_counts(
     evaluations = xp.zeros((B,), "int")
     cut = xp.zeros((B,), "bool")
     open_ = xp.arange(B)
+    last = 0.0  # [s] what the count before took: the next one, with one force more, takes at least as long
     for h in range(1, top_count + 1):
         n = open_.shape[0]
         sc = None
-        if n and solver.late():  # out of time: the open readings keep the counts fitted so far
+        began = time.perf_counter()
+        if n and solver.late(last):  # out of time: the open readings keep the counts fitted so far
             cut = xp.put(cut, open_, xp.ones((n,), "bool"))
             open_ = open_[:0]
             n = 0
@@ -552,6 +559,7 @@ def fit_counts(
         states.append(state)
         fitted.append(done_here)
         scans.append((open_, sc))
+        last = time.perf_counter() - began
     if rules.suspect is not None:
         # Search further where it matters.
         chosen = rules.choose(xp.stack([s.loss for s in states], 1))
@@ -656,7 +664,8 @@ def _explore(
         cut = cut | _cut(xp, st, n)
     spent = (1 + st.steps).reshape(-1, n).sum(0) + 1 + solver.policy.exact_steps
     slack = 10.0 * solver.policy.tolerance * st.noise2[:n]
-    return solver.finish(problem, st.take(xp, best_of(xp, st, n, slack))), spent, cut
+    best, late = solver.finish(problem, st.take(xp, best_of(xp, st, n, slack)))
+    return best, spent, cut | late
 
 
 def _first_fits(problem: Problem, solver: Solver, first: list[Fits]) -> tuple[lm.LMState, Any, Any]:
@@ -667,7 +676,8 @@ def _first_fits(problem: Problem, solver: Solver, first: list[Fits]) -> tuple[lm
     st = solver.solve(problem, _rows(first))
     spent = (1 + st.steps).reshape(-1, n).sum(0) + 1 + solver.policy.exact_steps
     slack = 10.0 * solver.policy.tolerance * st.noise2[:n]
-    return solver.finish(problem, st.take(xp, best_of(xp, st, n, slack))), spent, _cut(xp, st, n)
+    best, late = solver.finish(problem, st.take(xp, best_of(xp, st, n, slack)))
+    return best, spent, _cut(xp, st, n) | late
 
 
 def _cut(xp: Any, state: lm.LMState, n: int) -> Any:

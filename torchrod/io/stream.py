@@ -327,7 +327,9 @@ class _Stream:
             for rec in records:
                 rec["noise"] = learned
         if self.noise is not None:
-            use = result.status != STATUSES.index("unconverged")
+            # fits that stopped early (unconverged, or cut by the time budget) overstate the noise
+            # fits that stopped early (unconverged, or cut by the time budget) overstate the noise
+            use = (result.status != STATUSES.index("unconverged")) & (result.status != STATUSES.index("timeout"))
             dof = 2 * mask.sum(1) - 3 * result.num_forces.to(mask.device)
             self.noise.add(result.loss[use].tolist(), dof[use].tolist())
         if self.options.track:
@@ -533,6 +535,7 @@ class StreamStats:
         self._location = _Quantiles(1e-9, 1e2)
         self.learned_noise: float | None = None  # the last sigma learned from the stream [1/m]
         self.learned_from: int | None = None  # the first reading (1-based) solved with a learned sigma
+        self.statuses: dict[str, int] = {}  # readings per status (ok, misfit, ..., timeout)
 
     def add(self, result: StreamResult, truth: Sequence[tuple[float, float, float]] | None = None) -> None:
         """Count ``result``; ``truth``: the reading's true forces as (s [m], fx [N], fy [N]), any order."""
@@ -540,6 +543,9 @@ class StreamStats:
         if not result.ok:
             self.errors += 1
             return
+        status = result.record.get("status")
+        if status is not None:
+            self.statuses[status] = self.statuses.get(status, 0) + 1
         if "noise" in result.record:
             self.learned_noise = result.record["noise"]
             if self.learned_from is None:
@@ -597,6 +603,10 @@ class StreamStats:
                     "estimation, and a source no faster than the solver sees about a small batch's solve time plus "
                     "the batching wait"
                 )
+        if self.statuses:
+            lines.append(
+                "statuses: " + ", ".join(f"{name} {self.statuses[name]}" for name in STATUSES if name in self.statuses)
+            )
         if self.learned_noise is not None:
             lines.append(
                 f"noise learned from the stream: sigma {self.learned_noise:.4g} 1/m (last value), used from reading "

@@ -26,8 +26,10 @@ Each output line answers the input line in the same position::
      "std_fy"}, ...], "p_value", "loss", "converged", "iterations", "poorly_determined", "time_ms"}
 
 ``status`` is the verdict on the answer: ``ok``; ``misfit`` (no set of forces of the counts considered explains the
-reading at the noise: check the sensor and the rod file, do not act on the forces); ``unconverged``; or
-``poorly_determined`` (the data cannot tell this answer from others; use the standard deviations). ``p_value`` is
+reading at the noise: check the sensor and the rod file, do not act on the forces); ``unconverged``;
+``poorly_determined`` (the data cannot tell this answer from others; use the standard deviations); or ``timeout``
+(``--time-budget-ms`` MS, none by default: a batch of B lines stops searching after B x MS and the lines it cut
+short get the best fit found so far). ``p_value`` is
 the chi-square p-value of the fit. ``num_forces`` 0 with ``forces`` [] means no contact. ``forces`` sorted by s [m]
 (reported location: model location + the rod's location_bias), body-frame components [N], their Gauss-Newton
 standard deviations; ``loss`` the sum of squared curvature residuals [1/m^2]; ``time_ms`` the estimation time of the
@@ -67,7 +69,7 @@ from ...io.jsonl import LineWriter, check_input, open_output, until_interrupted
 from ...io.readings import FORMATS, Reading, ReadingSource, stack_readings
 from ...presets import load as load_rod
 from ...rod import Rod
-from . import add_sensor_options, check_estimation_options, sensor_noise
+from . import add_sensor_options, add_time_budget_option, check_estimation_options, sensor_noise, time_budget
 
 HELP = "forces from FBG curvature readings (JSON lines in, JSON lines out)"
 
@@ -106,6 +108,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     add_sensor_options(parser)
     parser.add_argument("--out", metavar="FILE", help="write the answers to FILE (default: standard output)")
     parser.add_argument("--batch-size", type=int, default=256, metavar="B", help="readings per batch (default 256)")
+    add_time_budget_option(parser, None)
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     add_workers_option(parser)
@@ -153,6 +156,7 @@ def options_from_args(args: argparse.Namespace) -> EstimatorOptions:
         threshold=args.threshold,
         starts=EstimatorOptions.starts if args.starts is None else args.starts,
         relative=getattr(args, "relative", False),
+        time_budget=time_budget(args),
     )
 
 

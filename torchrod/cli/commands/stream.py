@@ -46,9 +46,11 @@ replaces the scan); the number of forces is chosen among 0..``--max-forces`` (``
 [1/m]). Without ``--noise`` the stream learns the sigma from its own fits (the median of each fit's loss over its
 chi-square median, torchrod.estimate.noise): the first 32 fits estimate the noise per reading, every later batch
 uses the learned sigma as a known noise and its answers carry it as ``"noise"`` [1/m]; ``--per-reading-noise`` keeps
-estimating it per reading instead. ``--checkpoint`` defaults to the shipped ``checkpoints/nitinol290.pt`` when the
-rod's grating layout matches it, else the stream runs without a network (said once on stderr); ``--checkpoint none``
-turns the network off. ``--out FILE`` writes the answers to FILE.
+estimating it per reading instead. Each reading has a time budget, ``--time-budget-ms`` (default 50; 0 answers
+at once with no fit): a batch of B readings stops searching B times it after it began, and the readings it cut
+short are answered with the best fit found so far and ``"status": "timeout"``. ``--checkpoint`` defaults to the
+shipped ``checkpoints/nitinol290.pt`` when the rod's grating layout matches it, else the stream runs without a
+network (said once on stderr); ``--checkpoint none`` turns the network off. ``--out FILE`` writes the answers to FILE.
 
 Every non-blank input line gets exactly one output line (a CSV header excepted). A line that cannot be used (bad
 JSON or CSV, a wrong number of gratings, NaN, a value out of bounds, all gratings missing) gives
@@ -97,10 +99,14 @@ from ...io.readings import ReadingSource
 from ...io.stream import StreamOptions, StreamResult, StreamStats, stream, warm_up
 from ...presets import load as load_rod
 from ...rod import Rod
-from . import add_sensor_options, check_estimation_options, sensor_noise
+from . import add_sensor_options, add_time_budget_option, check_estimation_options, sensor_noise, time_budget
 from .estimate import add_workers_option, check_counts, check_workers, load_network
 
 HELP = "amortised estimation on a stream of readings"
+
+DEFAULT_TIME_BUDGET_MS = 50.0
+"""The stream's default time budget per reading [ms] (``--time-budget-ms``): docs/results.md has how it was
+chosen, from what shorter budgets cost in count accuracy on this project's machine."""
 
 __all__ = ["HELP", "configure", "load_truth", "read_stream", "run"]
 
@@ -139,6 +145,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="MS",
         help="longest wait for more lines before a batch is solved (default 0)",
     )
+    add_time_budget_option(parser, DEFAULT_TIME_BUDGET_MS)
     parser.add_argument("--max-forces", type=int, default=3, metavar="H", help="choose the count in 0..H (3)")
     parser.add_argument(
         "--noise", type=float, metavar="SIGMA", help="sensor noise sigma [1/m]; default: learned from the stream"
@@ -248,6 +255,7 @@ def _run(args: argparse.Namespace) -> int:
         noise=args.noise,
         lm=LMPolicy(iterations=args.iterations),
         relative=args.relative,
+        time_budget=time_budget(args),
     )
     estimator = Estimator(rod, options, warm_start=network)
     options = StreamOptions(
