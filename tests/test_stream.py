@@ -595,6 +595,10 @@ def test_cli_truth_summary(tmp_path, capsys):
     assert status == 0 and len(cap.out.splitlines()) == 30
     assert "against the truth (30 readings): count accuracy" in cap.err
     assert "median force error" in cap.err
+    # every answer's status, tallied
+    tally = next(line for line in cap.err.splitlines() if "statuses: " in line)
+    counts = [int(part.split()[-1]) for part in tally.split("statuses: ")[1].split(", ")]
+    assert sum(counts) == 30
 
 
 def test_cli_default_checkpoint_is_refused_for_another_layout(tmp_path, capsys):
@@ -729,7 +733,8 @@ def test_cli_flushes_pending_readings(rod, how):
 
 def test_bench_stream_runs_and_reports_every_way(capsys):
     args = ["bench", "stream", "--count", "40", "--single", "3", "--paced", "20", "--pace", "400"]
-    assert main([*args, "--checkpoint", "none", "--set", "max_forces=2", "--profile"]) == 0
+    external = ["--external", "400", "--external-budgets", "default,0"]
+    assert main([*args, "--checkpoint", "none", "--set", "max_forces=2", "--profile", *external]) == 0
     out = capsys.readouterr().out
     rows = [line for line in out.splitlines() if "|" in line and not line.startswith("way")]
     assert [r.split("|")[0].strip() for r in rows] == [
@@ -740,10 +745,14 @@ def test_bench_stream_runs_and_reports_every_way(capsys):
         "stream, backlog, noise learned",
         "stream, backlog, noise per reading",
         "stream, paced 400 Hz",
+        "CLI, 400 Hz from outside",
+        "CLI, 400 Hz from outside, budget 0 ms",
         "stream, one at a time",
     ]
     readings = [int(r.split("|")[1].split()[0]) for r in rows]
-    assert readings == [40, 3, 40, 40, 40, 40, 20, 3]
+    assert readings == [40, 3, 40, 40, 40, 40, 20, 20, 20, 3]
+    # the process paced from outside answers every line; with no time at all, every answer says so
+    assert "# CLI, 400 Hz from outside, budget 0 ms: latency median" in out and "statuses: timeout 20" in out
     # the stream over the same readings as the static batches agrees with them on the count
     static, backlog = (float(rows[k].split("|")[4].split()[0].rstrip("%")) for k in (0, 2))
     assert abs(static - backlog) <= 10.0

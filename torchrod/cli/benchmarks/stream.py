@@ -5,7 +5,7 @@ Readings: a synthetic trajectory (:func:`torchrod.synthetic.generate_trajectory`
 estimator (default options, count chosen among 0..3, told the noise; the warm-start network of ``--checkpoint``
 when it fits the rod, loaded as :meth:`Estimator.from_checkpoint` does: its guesses are starts beside the scan's
 unless its recorded quality says it can be trusted; ``--set`` changes any option) runs
-the same readings five ways, in one run:
+the same readings several ways, in one run:
 
 * ``static, batched``: :meth:`Estimator.estimate` on consecutive batches of ``--batch-size`` (no tracking);
 * ``static, one at a time``: :meth:`Estimator.estimate` on ``--single`` consecutive readings from the middle of
@@ -25,6 +25,14 @@ the same readings five ways, in one run:
   closed by ``--max-latency-ms``;
 * ``stream, one at a time``: batches of one on the same readings as ``static, one at a time``, each released when
   the previous answer is out (latency: release to answer; previous-solution starts always one frame old).
+* ``CLI, R Hz from outside`` (``--external``, default 100 and 1000 Hz): a ``torchrod stream`` process (the
+  command's own options, with this run's ``--noise``, network, ``--batch-size`` and ``--threads``; ``--set`` does
+  not reach it) fed the first ``--paced`` readings as JSON lines through a pipe at R Hz by a writer thread
+  (:mod:`.pacer`), the latency measured by the writing process from writing a line to reading its answer; at the
+  first rate once per ``--external-budgets`` entry (default: the command's own time budget, and 10 ms). A note per
+  row gives the median latency over the first and the last tenth of the run (a stream that cannot keep up falls
+  behind: its latency grows) and the answers' statuses (``timeout``: cut by the time budget). cpu ms is the
+  child's; readings per batch and evaluations are not reported (the answers do not carry them).
 
 Per way: readings per second (wall), process CPU time per reading, latency median and 99th percentile, readings
 per batch, the accuracy against the truth (count accuracy, and over the readings whose count is right the median
@@ -57,6 +65,7 @@ from ...estimate.workers import ParallelEstimator
 from ...io.stream import Reading, StreamOptions, StreamResult, StreamStats, stream, warm_up
 from ...presets import load as load_rod
 from . import SUITES
+from .pacer import ExternalStream, cpu_time, reading_line
 
 HELP = SUITES["stream"]
 
@@ -96,6 +105,19 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="P",
         help="processes of the parallel backlog row (default 2; 1: no such row)",
     )
+    parser.add_argument(
+        "--external",
+        default="100,1000",
+        metavar="HZ,...",
+        help="rates of the externally paced `torchrod stream` rows (default 100,1000; 'none': no such rows)",
+    )
+    parser.add_argument(
+        "--external-budgets",
+        default="default,10",
+        metavar="MS,...",
+        help="--time-budget-ms of the externally paced rows at the first rate ('default': the command's own; "
+        "default 'default,10'); the other rates run with the default",
+    )
     parser.add_argument("--profile", action="store_true", help="where the time goes (a separate profiled pass)")
     parser.add_argument("--quick", action="store_true", help="a smoke run: 300 readings, 100 paced, 20 one at a time")
 
@@ -122,17 +144,19 @@ class _Row:
         self.stats = StreamStats()
         self.wall = self.cpu = 0.0
         self.evaluations = 0  # forward-model evaluations (residuals, with or without Jacobian) of solved readings
+        self.external = False  # answers read from a `torchrod stream` process: no batch sizes or evaluations
 
     def line(self) -> str:
         s = self.stats
         n = s.readings
         solved = n - s.errors
-        per_batch = solved / s.batches if s.batches else math.nan
+        per_batch = solved / s.batches if s.batches and not self.external else math.nan
+        evals = self.evaluations / max(solved, 1) if not self.external else math.nan
         ferr, serr = (s.force_error(), 1e3 * s.location_error()) if s.right else (math.nan, math.nan)
         return (
             f"{self.name:<34} | {n:>6} {n / self.wall:>7.0f} {1e3 * self.cpu / n:>7.2f} | "
             f"{1e3 * s.latency(0.5):>7.1f} {1e3 * s.latency(0.99):>7.1f} | {per_batch:>6.1f} | "
-            f"{100 * s.count_accuracy:>6.1f}% {ferr:>8.4f} {serr:>7.2f} | {self.evaluations / max(solved, 1):>6.1f}"
+            f"{100 * s.count_accuracy:>6.1f}% {ferr:>8.4f} {serr:>7.2f} | {evals:>6.1f}"
         )
 
 
@@ -141,25 +165,61 @@ def _timed(
 ) -> None:
     """Drain ``results`` into ``row``; ids are trajectory frame indices; ``pids``: worker processes whose CPU time
     counts too."""
-    w0, c0 = time.perf_counter(), time.process_time() + _cpu_of(pids)
+    w0, c0 = time.perf_counter(), time.process_time() + cpu_time(pids)
     for r in results:
         row.stats.add(r, truth[r.id])
         if r._result is not None:  # (the batch's result: slicing it per reading would cost inside the timing)
             row.evaluations += int(r._result.evaluations[r._index])
-    row.wall, row.cpu = time.perf_counter() - w0, time.process_time() + _cpu_of(pids) - c0
+    row.wall, row.cpu = time.perf_counter() - w0, time.process_time() + cpu_time(pids) - c0
 
 
-def _cpu_of(pids: Iterable[int]) -> float:
-    """CPU time [s] the live processes ``pids`` have used (from Linux's /proc; 0 for one that cannot be read)."""
-    total = 0.0
-    for pid in pids:
-        try:
-            with open(f"/proc/{pid}/stat") as fh:
-                fields = fh.read().rsplit(")", 1)[1].split()
-            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime, in ticks
-        except (OSError, ValueError, IndexError):
-            continue
-    return total
+def _external_rows(
+    args: argparse.Namespace, rows: list[_Row], trajectory: Any, paced: int, truth: list, network: str
+) -> list[str]:
+    """The rows of ``torchrod stream`` processes fed from outside (:mod:`.pacer`), and a note per row: how the
+    latency moved over the run (growing: the stream fell behind) and the answers' statuses."""
+    spec = args.external.strip().lower()
+    if spec == "none":
+        return []
+    try:
+        rates = [float(x) for x in spec.split(",")]
+        budgets = [None if x.strip() == "default" else float(x) for x in args.external_budgets.split(",")]
+    except ValueError:
+        raise ValueError(
+            f"--external takes rates in Hz and --external-budgets ms or 'default', got {args.external!r} and "
+            f"{args.external_budgets!r}"
+        ) from None
+    if not all(r > 0 and math.isfinite(r) for r in rates) or not all(b is None or b >= 0 for b in budgets):
+        raise ValueError(f"--external rates must be positive and budgets >= 0, got {args.external!r}")
+    checkpoint = "none" if network.startswith("none") else network
+    base = ["--rod", args.rod, "--noise", f"{args.noise:g}", "--checkpoint", checkpoint]
+    base += ["--batch-size", str(args.batch_size), "--threads", str(args.threads)]
+    u = torch.where(trajectory.mask.unsqueeze(-1), trajectory.curvature, math.nan).tolist()
+    lines = [reading_line(k, float(trajectory.t[k]), u[k]) for k in range(paced)]
+    warm = [reading_line(f"warm-up {k}", None, u[k]) for k in range(min(5, paced))]
+    runs = [(rates[0], b) for b in budgets] + [(r, None) for r in rates[1:]]
+    notes = []
+    for rate, budget in runs:
+        extra = [] if budget is None else ["--time-budget-ms", f"{budget:g}"]
+        name = f"CLI, {rate:g} Hz from outside" + ("" if budget is None else f", budget {budget:g} ms")
+        row = _Row(name)
+        row.external = True
+        pacer = ExternalStream(base + extra, warm).start()
+        latencies = []
+        w0 = time.perf_counter()
+        for r in pacer.run(lines, list(range(paced)), rate):
+            row.stats.add(r, truth[r.id])
+            latencies.append(r.latency)
+        row.wall, row.cpu = time.perf_counter() - w0, pacer.cpu
+        rows.append(row)
+        tenth = max(1, len(latencies) // 10)
+        first, last = sorted(latencies[:tenth]), sorted(latencies[-tenth:])
+        statuses = ", ".join(f"{k} {v}" for k, v in row.stats.statuses.items())
+        notes.append(
+            f"# {name}: latency median over the first tenth {1e3 * first[len(first) // 2]:.1f} ms, over the last "
+            f"tenth {1e3 * last[len(last) // 2]:.1f} ms; statuses: {statuses}"
+        )
+    return notes
 
 
 def _static_batched(
@@ -364,6 +424,8 @@ def run(args: argparse.Namespace) -> int:
     _timed(row, stream(estimator, _paced(items[:paced], pace), options), truth)
     rows.append(row)
 
+    notes = _external_rows(args, rows, trajectory, paced, truth, network_name)
+
     lock = _LockStep([items[k] for k in window])
     row = _Row("stream, one at a time")
     _timed(row, lock.answered(stream(estimator, lock, StreamOptions(batch_size=1, max_latency=0.0))), truth)
@@ -375,6 +437,8 @@ def run(args: argparse.Namespace) -> int:
     )
     for row in rows:
         print(row.line())
+    for note in notes:
+        print(note)
     if args.profile:
         # A separate pass, so that the profiler's overhead stays out of the table.
         profiled = _Row("profiled")

@@ -1,0 +1,129 @@
+"""An external pacer for ``torchrod bench stream``: a ``torchrod stream`` process fed JSON lines at a fixed rate
+through a pipe, as an interrogator would feed it, with every latency measured by the process that writes the lines
+(from writing a line to reading its answer), so the numbers include what a user's process sees: the pipe, parsing,
+the stream's batching and the answer's JSON.
+
+The child is started and warmed up first (``warm`` readings sent one at a time, each after the previous answer),
+then the paced lines go out on a writer thread at ``rate`` Hz, each on its own schedule (a line the writer could
+not send on time goes out at once, never in a burst to catch up) while the calling thread reads the answers.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterable, Iterator, Sequence
+from typing import Any
+
+from ...io.stream import StreamResult
+
+__all__ = ["ExternalStream", "cpu_time", "reading_line"]
+
+
+def reading_line(ident: Any, t: float | None, curvature: Sequence[Sequence[float]]) -> str:
+    """One input line of ``torchrod stream``: ``{"id", "t", "curvature"}``, a missing (NaN) grating as null."""
+    cells = [None if any(math.isnan(v) for v in pair) else [float(pair[0]), float(pair[1])] for pair in curvature]
+    record: dict[str, Any] = {"id": ident, "curvature": cells}
+    if t is not None:
+        record["t"] = t
+    return json.dumps(record)
+
+
+class ExternalStream:
+    """A ``torchrod stream`` child process and the pipe that paces it.
+
+    Args:
+        arguments: the options after ``torchrod stream`` (``--rod`` and the rest; input and output are the pipes).
+        warm: lines (``reading_line`` text) sent one at a time before any timing, answers discarded.
+    """
+
+    def __init__(self, arguments: Sequence[str], warm: Sequence[str] = ()) -> None:
+        self.arguments = list(arguments)
+        self.warm = list(warm)
+        self.cpu = math.nan  # [s] the child's CPU time (user + system) during the run (Linux /proc)
+        self.process: subprocess.Popen | None = None
+
+    def start(self) -> ExternalStream:
+        """Start the child and warm it up (its start-up and first calls stay out of the timed run)."""
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "torchrod", "stream", *self.arguments],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+            bufsize=1,
+        )
+        for line in self.warm:
+            self._send(line)
+            if not self.process.stdout.readline():
+                raise RuntimeError(f"torchrod stream {' '.join(self.arguments)} ended during its warm-up")
+        return self
+
+    def _send(self, line: str) -> None:
+        assert self.process is not None and self.process.stdin is not None
+        self.process.stdin.write(line + "\n")
+        self.process.stdin.flush()
+
+    def run(self, lines: Sequence[str], ids: Sequence[Any], rate: float) -> Iterator[StreamResult]:
+        """Send ``lines`` (ids ``ids``, in order) at ``rate`` Hz and yield each answer as a
+        :class:`StreamResult` whose latency is the writer's (the child's own ``latency_ms`` stays in the record);
+        the child ends with its input, and :attr:`cpu` then holds its CPU time."""
+        if self.process is None:
+            self.start()
+        proc = self.process
+        cpu0 = cpu_time([proc.pid])
+        sent: dict[str, float] = {}
+        failed: list[BaseException] = []
+
+        def write() -> None:
+            try:
+                t0 = time.perf_counter()
+                for k, (ident, line) in enumerate(zip(ids, lines, strict=True)):
+                    wait = t0 + k / rate - time.perf_counter()
+                    if wait > 0:
+                        time.sleep(wait)
+                    sent[json.dumps(ident)] = time.perf_counter()
+                    self._send(line)
+                proc.stdin.close()
+            except BaseException as exc:  # noqa: BLE001 - reported by the reading thread
+                failed.append(exc)
+
+        writer = threading.Thread(target=write, daemon=True)
+        writer.start()
+        got = 0
+        cpu1 = math.nan
+        for text in proc.stdout:
+            now = time.perf_counter()
+            record = json.loads(text)
+            key = json.dumps(record.get("id"))
+            latency = now - sent.get(key, now)
+            got += 1
+            if got == len(lines):
+                cpu1 = cpu_time([proc.pid])
+            yield StreamResult(record.get("id"), record.get("t"), record, latency=latency, error=record.get("error"))
+        writer.join()
+        proc.wait()
+        self.cpu = cpu1 - cpu0
+        if failed:
+            raise RuntimeError(f"the pacer could not write to torchrod stream: {failed[0]}")
+        if got != len(lines):
+            raise RuntimeError(f"torchrod stream answered {got} of {len(lines)} lines (exit status {proc.returncode})")
+
+
+def cpu_time(pids: Iterable[int]) -> float:
+    """CPU time [s] (user + system) the live processes ``pids`` have used so far (Linux's /proc; 0 for one that
+    cannot be read)."""
+    total = 0.0
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat") as fh:
+                fields = fh.read().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime, in ticks
+        except (OSError, ValueError, IndexError):
+            continue
+    return total
