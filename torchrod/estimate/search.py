@@ -50,10 +50,9 @@ class Solver:
     lbfgs: LBFGSOptions | None = None
     deadline: float | None = None
 
-    def late(self, need: float = 0.0) -> bool:
-        """Whether ``time.perf_counter()`` has passed the deadline, or will have after ``need`` more seconds
-        (never without a deadline)."""
-        return self.deadline is not None and time.perf_counter() + need > self.deadline
+    def late(self) -> bool:
+        """Whether ``time.perf_counter()`` has passed the deadline (never without one)."""
+        return self.deadline is not None and time.perf_counter() > self.deadline
 
     def solve(self, problem: Problem, fits: Fits | lm.LMState) -> lm.LMState:
         """Levenberg-Marquardt on every row; past the deadline the rows still going stop, ``done`` False."""
@@ -516,12 +515,10 @@ def fit_counts(
     evaluations = xp.zeros((B,), "int")
     cut = xp.zeros((B,), "bool")
     open_ = xp.arange(B)
-    last = 0.0  # [s] what the count before took: the next one, with one force more, takes at least as long
     for h in range(1, top_count + 1):
         n = open_.shape[0]
         sc = None
-        began = time.perf_counter()
-        if n and solver.late(last):  # out of time: the open readings keep the counts fitted so far
+        if n and solver.late():  # out of time: the open readings keep the counts fitted so far
             cut = xp.put(cut, open_, xp.ones((n,), "bool"))
             open_ = open_[:0]
             n = 0
@@ -559,7 +556,6 @@ def fit_counts(
         states.append(state)
         fitted.append(done_here)
         scans.append((open_, sc))
-        last = time.perf_counter() - began
     if rules.suspect is not None:
         # Search further where it matters.
         chosen = rules.choose(xp.stack([s.loss for s in states], 1))

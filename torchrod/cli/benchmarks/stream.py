@@ -29,7 +29,8 @@ the same readings several ways, in one run:
   command's own options, with this run's ``--noise``, network, ``--batch-size`` and ``--threads``; ``--set`` does
   not reach it) fed the first ``--paced`` readings as JSON lines through a pipe at R Hz by a writer thread
   (:mod:`.pacer`), the latency measured by the writing process from writing a line to reading its answer; at the
-  first rate once per ``--external-budgets`` entry (default: the command's own time budget, and 10 ms). A note per
+  first rate once per ``--external-budgets`` entry (default: the command's own time budget, and 10 ms), all with
+  ``--external-workers`` processes (the command's ``--workers``, default 1). A note per
   row gives the median latency over the first and the last tenth of the run (a stream that cannot keep up falls
   behind: its latency grows) and the answers' statuses (``timeout``: cut by the time budget). cpu ms is the
   child's; readings per batch and evaluations are not reported (the answers do not carry them).
@@ -118,6 +119,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="--time-budget-ms of the externally paced rows at the first rate ('default': the command's own; "
         "default 'default,10'); the other rates run with the default",
     )
+    parser.add_argument(
+        "--external-workers",
+        type=int,
+        default=1,
+        metavar="N",
+        help="--workers of the externally paced rows (default 1)",
+    )
     parser.add_argument("--profile", action="store_true", help="where the time goes (a separate profiled pass)")
     parser.add_argument("--quick", action="store_true", help="a smoke run: 300 readings, 100 paced, 20 one at a time")
 
@@ -146,7 +154,7 @@ class _Row:
         self.evaluations = 0  # forward-model evaluations (residuals, with or without Jacobian) of solved readings
         self.external = False  # answers read from a `torchrod stream` process: no batch sizes or evaluations
 
-    def line(self) -> str:
+    def line(self, width: int = 34) -> str:
         s = self.stats
         n = s.readings
         solved = n - s.errors
@@ -154,7 +162,7 @@ class _Row:
         evals = self.evaluations / max(solved, 1) if not self.external else math.nan
         ferr, serr = (s.force_error(), 1e3 * s.location_error()) if s.right else (math.nan, math.nan)
         return (
-            f"{self.name:<34} | {n:>6} {n / self.wall:>7.0f} {1e3 * self.cpu / n:>7.2f} | "
+            f"{self.name:<{width}} | {n:>6} {n / self.wall:>7.0f} {1e3 * self.cpu / n:>7.2f} | "
             f"{1e3 * s.latency(0.5):>7.1f} {1e3 * s.latency(0.99):>7.1f} | {per_batch:>6.1f} | "
             f"{100 * s.count_accuracy:>6.1f}% {ferr:>8.4f} {serr:>7.2f} | {evals:>6.1f}"
         )
@@ -191,9 +199,13 @@ def _external_rows(
         ) from None
     if not all(r > 0 and math.isfinite(r) for r in rates) or not all(b is None or b >= 0 for b in budgets):
         raise ValueError(f"--external rates must be positive and budgets >= 0, got {args.external!r}")
+    if args.external_workers < 0:
+        raise ValueError(f"--external-workers must be >= 0, got {args.external_workers}")
     checkpoint = "none" if network.startswith("none") else network
     base = ["--rod", args.rod, "--noise", f"{args.noise:g}", "--checkpoint", checkpoint]
     base += ["--batch-size", str(args.batch_size), "--threads", str(args.threads)]
+    if args.external_workers != 1:
+        base += ["--workers", str(args.external_workers)]
     u = torch.where(trajectory.mask.unsqueeze(-1), trajectory.curvature, math.nan).tolist()
     lines = [reading_line(k, float(trajectory.t[k]), u[k]) for k in range(paced)]
     warm = [reading_line(f"warm-up {k}", None, u[k]) for k in range(min(5, paced))]
@@ -202,6 +214,8 @@ def _external_rows(
     for rate, budget in runs:
         extra = [] if budget is None else ["--time-budget-ms", f"{budget:g}"]
         name = f"CLI, {rate:g} Hz from outside" + ("" if budget is None else f", budget {budget:g} ms")
+        if args.external_workers != 1:
+            name += f", {args.external_workers} proc."
         row = _Row(name)
         row.external = True
         pacer = ExternalStream(base + extra, warm).start()
@@ -431,12 +445,13 @@ def run(args: argparse.Namespace) -> int:
     _timed(row, lock.answered(stream(estimator, lock, StreamOptions(batch_size=1, max_latency=0.0))), truth)
     rows.append(row)
 
+    width = max(len(row.name) for row in rows)
     print(
-        f"{'way':<34} | {'rd':>6} {'rd/s':>7} {'cpu ms':>7} | {'lat ms':>7} {'p99':>7} | {'rd/bt':>6} | "
+        f"{'way':<{width}} | {'rd':>6} {'rd/s':>7} {'cpu ms':>7} | {'lat ms':>7} {'p99':>7} | {'rd/bt':>6} | "
         f"{'count':>7} {'f err N':>8} {'s err mm':>7} | {'evals':>6}"
     )
     for row in rows:
-        print(row.line())
+        print(row.line(width))
     for note in notes:
         print(note)
     if args.profile:
