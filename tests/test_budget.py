@@ -59,9 +59,10 @@ def _same(a, b) -> bool:
     )
 
 
-def test_a_budget_of_nothing_times_every_reading_out(cases):
+@pytest.mark.parametrize("backend", ["numpy", "torch"])
+def test_a_budget_of_nothing_times_every_reading_out(cases, backend):
     rod, u = cases
-    result = Estimator(rod, EstimatorOptions(noise=0.1, time_budget=0.0)).estimate(u)
+    result = Estimator(rod, EstimatorOptions(noise=0.1, time_budget=0.0, backend=backend)).estimate(u)
     assert result.statuses == ["timeout"] * u.shape[0]
     # the best answer so far: no force fitted yet, reported as such, with finite numbers
     assert result.num_forces.eq(0).all() and torch.isfinite(result.loss).all()
@@ -74,13 +75,13 @@ def test_an_ample_budget_changes_nothing(cases):
     assert _same(est.estimate(u), est.estimate(u, time_budget=60.0))
 
 
-@pytest.mark.parametrize("batch", [1, 18])
-def test_only_the_readings_the_budget_cut_change(cases, clock, batch):
+@pytest.mark.parametrize(("batch", "backend"), [(1, "numpy"), (18, "numpy"), (18, "torch")])
+def test_only_the_readings_the_budget_cut_change(cases, clock, batch, backend):
     """With a clock that ticks per check, budgets from tight to ample cut some readings and not others; every
     reading not called ``timeout`` has exactly its unbounded answer, and every ``timeout`` is a reading whose
     search was really cut (a shorter budget never yields more work)."""
     rod, u = cases
-    est = Estimator(rod, EstimatorOptions(noise=0.1))
+    est = Estimator(rod, EstimatorOptions(noise=0.1, backend=backend))
     free = [est.estimate(u[i : i + batch]) for i in range(0, u.shape[0], batch)]
     seen = set()
     for budget in (0.002, 0.01, 0.03, 0.1):
