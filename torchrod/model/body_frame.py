@@ -403,20 +403,27 @@ def grating_curvature(
     if rod.precurved:
         if method is not None:
             raise ValueError("a precurved rod is simulated by torchrod.model.precurved's RK4: no method")
-        from .precurved import simulate_torch
-
-        if scheme == "exact":
-            return simulate_torch(rod, loads, query, bending_stiffness=ei)[0][..., :2]
-        # The paper's node scheme: the forces spread onto the nodes, a distributed load linear between them.
-        grid = torch.linspace(0.0, rod.length, nodes, dtype=loads.dtype, device=loads.device)
-        w = spread_to_nodes(loads, grid)
-        none = PointForces(loads.s[:, :0], loads.f[:, :0])
-        return simulate_torch(rod, none, query, bending_stiffness=ei, load=w)[0][..., :2]
+        return _precurved(rod, loads, query, scheme, nodes, ei)[0][..., :2]
     if scheme == "exact":
         return integrate_curvature(
             query, loads, rod.length, ei, max_step_angle=max_step_angle, method=method, adjoint=adjoint
         )[0]
     return integrate_curvature_nodes(query, loads, rod.length, ei, nodes, method=method, adjoint=adjoint)[0]
+
+
+def _precurved(
+    rod: Rod, loads: PointForces, query: torch.Tensor, scheme: Scheme, nodes: int, ei: Any
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """u (B, Q, 3) and n (B, Q, 3) of a precurved rod at ``query`` by :mod:`.precurved`'s RK4 march; with the
+    paper's node scheme the forces are first spread onto ``nodes`` uniform nodes, a distributed load linear between
+    them."""
+    from .precurved import simulate_torch
+
+    if scheme == "exact":
+        return simulate_torch(rod, loads, query, bending_stiffness=ei)
+    grid = torch.linspace(0.0, rod.length, nodes, dtype=loads.dtype, device=loads.device)
+    none = PointForces(loads.s[:, :0], loads.f[:, :0])
+    return simulate_torch(rod, none, query, bending_stiffness=ei, load=spread_to_nodes(loads, grid))
 
 
 def simulate(
@@ -454,8 +461,9 @@ def simulate(
         :class:`Simulation`; dtype and device follow ``loads``.
 
     A precurved rod (``rod.intrinsic_curvature``) is simulated by :func:`torchrod.model.precurved.march` (RK4,
-    autograd; ``scheme``, ``steps``, ``method``, ``max_step_angle`` and ``adjoint`` are the straight rod's); its
-    curvature is the total body-frame curvature u, which a fibre that is straight when unstrained reads.
+    autograd; ``scheme`` and ``nodes`` apply, ``steps``, ``method``, ``max_step_angle`` and ``adjoint`` are the
+    straight rod's); its curvature is the total body-frame curvature u, which a fibre that is straight when
+    unstrained reads.
     """
     _check_loads(rod, loads)
     if scheme not in ("exact", "nodes"):
@@ -479,15 +487,12 @@ def simulate(
     ei = rod.bending_stiffness if bending_stiffness is None else bending_stiffness
     if rod.precurved:
         # Intrinsic curvature: the general march (:mod:`.precurved`); the straight rod keeps the fast path below.
-        if scheme != "exact" or steps is not None or method is not None:
+        if steps is not None or method is not None:
             raise ValueError(
                 "a precurved rod (intrinsic_curvature) is simulated by the RK4 march of torchrod.model.precurved: "
-                f"scheme must be 'exact' and steps and method unset, got scheme={scheme!r}, steps={steps!r}, "
-                f"method={method!r}"
+                f"steps and method must be unset, got steps={steps!r}, method={method!r}"
             )
-        from .precurved import simulate_torch
-
-        curv, force = simulate_torch(rod, loads, query, bending_stiffness=ei)
+        curv, force = _precurved(rod, loads, query, scheme, nodes, ei)
     elif scheme == "exact":
         curv, force = integrate_curvature(
             query,
