@@ -258,6 +258,11 @@ def test_cli_simulate_on_the_preset(tmp_path, capsys):
     assert out["curvature"][-1] == [12.0, 0.0]  # distal to the force the tube keeps its shape
     assert main(["simulate", "--rod", "ctr250", "--tip-angle", str(path)]) == 2
     assert "precurved" in capsys.readouterr().err
+    # the paper's node scheme runs on it, as the library's does
+    assert main(["simulate", "--rod", "ctr250", "--scheme", "nodes", "--nodes", "400", str(path)]) == 0
+    nodes = json.loads(capsys.readouterr().out)["curvature"]
+    model = body_frame.grating_curvature(tr.presets.ctr250(), _loads([[(0.2, 0.5, 0.3)]]), scheme="nodes", nodes=400)
+    assert np.allclose(nodes, model[0].numpy(), rtol=1e-9, atol=1e-9)
 
 
 def test_cli_estimate_on_the_preset_total_and_relative(tmp_path, capsys):

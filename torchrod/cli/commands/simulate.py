@@ -182,8 +182,8 @@ def simulate_cases(
 
 def run(args: argparse.Namespace) -> int:
     rod = load_rod(args.rod)
-    if rod.precurved and (args.tip_angle or args.scheme != "exact"):
-        raise ValueError(f"--rod {args.rod} is precurved: --tip-angle and --scheme nodes are for straight rods")
+    if rod.precurved and args.tip_angle:
+        raise ValueError(f"--rod {args.rod} is precurved: --tip-angle is for straight rods (it ignores twist)")
     if args.samples < 0:
         raise ValueError(f"--samples must be >= 0, got {args.samples}")
     if args.batch_size < 1:
