@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -256,9 +257,19 @@ def test_cli_simulate_on_the_preset(tmp_path, capsys):
     expected = P.grating_curvature(tr.presets.ctr250(), _loads([[(0.2, 0.5, 0.3)]]))[0]
     assert np.allclose(out["curvature"], expected.numpy(), rtol=1e-9, atol=1e-9)
     assert out["curvature"][-1] == [12.0, 0.0]  # distal to the force the tube keeps its shape
-    assert main(["simulate", "--rod", "ctr250", "--tip-angle", str(path)]) == 2
-    assert "precurved" in capsys.readouterr().err
+    # The tip angle, with the twist: unloaded, the curved 100 mm turn it by 12 1/m x 0.1 m; under out-of-plane
+    # forces, as the global-frame shooting's frames give it.
+    case = [(0.12, -0.9, 1.1), (0.22, 0.6, -0.4)]
+    forces = [{"s": s, "fx": fx, "fy": fy} for s, fx, fy in case]
+    lines = [{"id": "free", "forces": []}, {"id": "loaded", "forces": forces}]
+    path.write_text("".join(json.dumps(x) + "\n" for x in lines))
+    assert main(["simulate", "--rod", "ctr250", "--tip-angle", str(path)]) == 0
+    free, loaded = (json.loads(x)["tip_angle"] for x in capsys.readouterr().out.splitlines())
+    assert abs(free - 1.2) < 1e-6
+    tip = solve_reference(tr.presets.ctr250(), case, at=[0.25]).R[-1][:, 2]
+    assert abs(loaded - math.atan2(math.hypot(tip[0], tip[1]), tip[2])) < 1e-5, loaded
     # the paper's node scheme runs on it, as the library's does
+    path.write_text(json.dumps({"id": "a", "forces": [{"s": 0.2, "fx": 0.5, "fy": 0.3}]}) + "\n")
     assert main(["simulate", "--rod", "ctr250", "--scheme", "nodes", "--nodes", "400", str(path)]) == 0
     nodes = json.loads(capsys.readouterr().out)["curvature"]
     model = body_frame.grating_curvature(tr.presets.ctr250(), _loads([[(0.2, 0.5, 0.3)]]), scheme="nodes", nodes=400)

@@ -21,7 +21,7 @@ Each output line answers the input line in the same position::
 ``--samples N`` adds ``"profile": {"s": [...], "curvature": [[ux, uy], ...]}`` at N uniform positions over [0, L].
 ``--tip-angle`` adds ``"tip_angle"``, the angle between the base and tip tangents [rad], from the frames (4th-order
 Magnus over 128 intervals: within 1e-5 rad); it samples the curvature at 256 more points, which costs several times
-the gratings alone.
+the gratings alone. For a precurved rod, which twists, the angle comes from its shape (2001 samples, twist included).
 
 A line that cannot be used (bad JSON, a missing or unknown key, a non-numeric, NaN or infinite value, a location off
 the rod) gives ``{"id": ... or null, "error": "line N: ..."}`` and the other lines go on; the exit status is 1 if
@@ -58,6 +58,7 @@ from ...io.jsonl import (
 )
 from ...loads import PointForces
 from ...model.body_frame import simulate
+from ...model.shape import bending_angle, shape
 from ...presets import load as load_rod
 from ...rod import Rod
 
@@ -68,6 +69,10 @@ __all__ = ["HELP", "configure", "parse_case", "run", "simulate_cases", "tip_angl
 TIP_INTERVALS = 128
 """Intervals of the Magnus integration of the frames behind ``tip_angle`` (measured error <= 1e-5 rad at
 bending up to 180 degrees on the paper's tube)."""
+
+PRECURVED_TIP_SAMPLES = 2001
+"""Samples of the shape (:func:`torchrod.model.shape.shape`, second order, twist included) behind a precurved
+rod's ``tip_angle`` (tests/test_precurved.py holds it to the global-frame shooting's frames)."""
 
 Force = tuple[float, float, float]
 
@@ -145,20 +150,22 @@ def simulate_cases(
         dicts with ``curvature`` (G x [ux, uy]) [1/m] and ``gratings`` [m], plus ``tip_angle`` [rad] and ``profile``
         when asked for. A case whose result is not finite gets ``{"error": ...}`` instead.
     """
-    if with_tip_angle and rod.precurved:
-        # The tip angle integrates the frames from (u_x, u_y) alone; a precurved rod also twists (u_z).
-        raise ValueError("--tip-angle is not available for a precurved rod (intrinsic_curvature) yet")
     dtype = torch.float64
     loads = PointForces.from_lists(cases, dtype=dtype, device=device)
     L = rod.length
-    gauss = _gauss_points(L, TIP_INTERVALS if with_tip_angle else 0, dtype, loads.device)
+    # A precurved rod twists (u_z), which the Magnus step below leaves out: its angle comes from the shape instead.
+    magnus = with_tip_angle and not rod.precurved
+    gauss = _gauss_points(L, TIP_INTERVALS if magnus else 0, dtype, loads.device)
     profile_s = torch.linspace(0.0, L, samples, dtype=dtype, device=loads.device)
     with torch.no_grad():
         sim = simulate(rod, loads, at=torch.cat((profile_s, gauss)), scheme=scheme, nodes=nodes)
         u_profile = sim.curvature[:, torch.searchsorted(sim.s, profile_s)]
         checks = [sim.grating_curvature.flatten(1), u_profile.flatten(1)]
-        if with_tip_angle:
+        if magnus:
             angle = tip_angle(sim.curvature[:, torch.searchsorted(sim.s, gauss)], L / TIP_INTERVALS)
+        elif with_tip_angle:
+            angle = bending_angle(shape(rod, loads, samples=PRECURVED_TIP_SAMPLES, scheme=scheme, nodes=nodes))
+        if with_tip_angle:
             checks.append(angle.unsqueeze(1))
     finite = torch.cat(checks, dim=1).isfinite().all(dim=1).tolist()
     gratings = list(rod.gratings)
@@ -182,8 +189,6 @@ def simulate_cases(
 
 def run(args: argparse.Namespace) -> int:
     rod = load_rod(args.rod)
-    if rod.precurved and args.tip_angle:
-        raise ValueError(f"--rod {args.rod} is precurved: --tip-angle is for straight rods (it ignores twist)")
     if args.samples < 0:
         raise ValueError(f"--samples must be >= 0, got {args.samples}")
     if args.batch_size < 1:
