@@ -67,6 +67,11 @@ def test_a_budget_of_nothing_times_every_reading_out(cases, backend):
     # the best answer so far: no force fitted yet, reported as such, with finite numbers
     assert result.num_forces.eq(0).all() and torch.isfinite(result.loss).all()
     assert [r["status"] for r in result.to_records()] == ["timeout"] * u.shape[0]
+    # a fixed count the budget left unfitted is not reported as a fit: the answer is the largest count fitted
+    fixed = Estimator(rod, EstimatorOptions(noise=0.1, num_forces=2, backend=backend))
+    cut = fixed.estimate(u, time_budget=0.0)
+    assert cut.statuses == ["timeout"] * u.shape[0] and cut.num_forces.eq(0).all()
+    assert all(r["forces"] == [] for r in cut.to_records())
 
 
 def test_an_ample_budget_changes_nothing(cases):
@@ -75,13 +80,15 @@ def test_an_ample_budget_changes_nothing(cases):
     assert _same(est.estimate(u), est.estimate(u, time_budget=60.0))
 
 
-@pytest.mark.parametrize(("batch", "backend"), [(1, "numpy"), (18, "numpy"), (18, "torch")])
-def test_only_the_readings_the_budget_cut_change(cases, clock, batch, backend):
+@pytest.mark.parametrize(
+    ("batch", "backend", "fixed"), [(1, "numpy", None), (18, "numpy", None), (18, "torch", None), (18, "numpy", 3)]
+)
+def test_only_the_readings_the_budget_cut_change(cases, clock, batch, backend, fixed):
     """With a clock that ticks per check, budgets from tight to ample cut some readings and not others; every
     reading not called ``timeout`` has exactly its unbounded answer, and every ``timeout`` is a reading whose
     search was really cut (a shorter budget never yields more work)."""
     rod, u = cases
-    est = Estimator(rod, EstimatorOptions(noise=0.1, backend=backend))
+    est = Estimator(rod, EstimatorOptions(noise=0.1, backend=backend, num_forces=fixed))
     free = [est.estimate(u[i : i + batch]) for i in range(0, u.shape[0], batch)]
     seen = set()
     for budget in (0.002, 0.01, 0.03, 0.1):
@@ -95,6 +102,7 @@ def test_only_the_readings_the_budget_cut_change(cases, clock, batch, backend):
                     assert _same(got[k], ref[k]), (budget, i + k)
                 else:
                     assert int(got.evaluations[k]) <= int(ref.evaluations[k]), (budget, i + k)
+                    assert int(got.num_forces[k]) <= int(ref.num_forces[k]) or fixed is None
     assert seen == {True, False}, "the budgets should cut some readings and not others"
 
 

@@ -595,13 +595,13 @@ class Estimator:
                 num_gratings=G,
             )
         else:
-            h = counts[0]
-            chosen = xp.full((B,), h, "int")
+            # The fixed count, or where the time budget cut the search before it, the largest count fitted (the
+            # best answer so far: never a fit that was not made).
+            chosen = xp.zeros((B,), "int")
+            for h in range(counts[0] + 1):
+                chosen = xp.where(found.fitted[h], h, chosen)
             if opts.noise is not None:
                 sigma = xp.full((B,), math.sqrt(float(opts.noise) ** 2 + problem.floor2))
-            else:
-                dof = xp.clip(xp.astype(problem.residuals - 3 * h, "float"), lo=1.0)
-                sigma = xp.lib.sqrt(xp.clip(losses[:, 0] / dof, lo=0.0) + problem.floor2)
         # The chosen fits, padded to W forces.
         s = xp.zeros((B, W))
         f = xp.zeros((B, W, 2))
@@ -621,6 +621,9 @@ class Estimator:
             loss[at] = st.loss
             converged[at] = st.converged
             steps[at] = st.steps
+        if len(counts) == 1 and opts.noise is None:  # the noise from the fit's own loss
+            dof = xp.clip(xp.astype(problem.residuals - 3 * chosen, "float"), lo=1.0)
+            sigma = xp.lib.sqrt(xp.clip(loss / dof, lo=0.0) + problem.floor2)
         active = xp.arange(W)[None, :] < chosen[:, None]
         unc = fit_uncertainty(
             problem,
