@@ -28,7 +28,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from ..backend import Backend
-from ..model.sensitivity import march
+from ..model.sensitivity import march, march_propagator
 
 __all__ = [
     "Fits",
@@ -198,33 +198,36 @@ def interval_of(problem: Problem, reading: Any, s: Any) -> tuple[Any, Any]:
     return j, xp.clip(s, fits_lo, fits_hi)
 
 
-def evaluate(problem: Problem, fits: Fits, jacobian: bool = True) -> tuple[Any, Any]:
-    """Residuals r (R, 2G) [1/m] (zero at missing gratings) and their Jacobian (R, 2G, 3h) w.r.t. the scaled
-    unknowns (s / L, f / F) of each force, in the march's convention at ties (distal one-sided; see
-    :func:`sided`); None for the Jacobian with ``jacobian=False``."""
+def march_fits(
+    problem: Problem, query: Any, s: Any, f: Any, *, jacobian: bool, seeds: bool = False
+) -> tuple[Any, Any, Any]:
+    """The fitting model's march of R force sets (s (R, h) [m], f (R, h, 2) [N]) at ``query`` (Q,) or (R, Q), on the
+    problem's rod (straight: :mod:`torchrod.model.sensitivity`; precurved: :mod:`torchrod.model.precurved` at
+    ``FIT_MAX_STEP``): curvature (R, Q, 2) [1/m], its Jacobian (R, Q, 2, h, 3) or None, and with ``seeds`` the
+    propagator of the linearised equations from the tip (straight (R, Q, 4, 4), precurved (R, Q, 6, 6)), else None."""
     xp = problem.xp
-    R, h = fits.s.shape
-    G = problem.query.shape[0]
     if problem.precurved is not None:
         from ..model.precurved import FIT_MAX_STEP
         from ..model.precurved import march as march_precurved
 
-        u3, _, jac, _ = march_precurved(
-            xp, problem.query, fits.s, fits.f, problem.precurved, max_step=FIT_MAX_STEP, jacobian=jacobian
+        u3, _, jac, phi = march_precurved(
+            xp, query, s, f, problem.precurved, max_step=FIT_MAX_STEP, jacobian=jacobian, seeds=seeds
         )
-        u = u3[..., :2]
-    else:
-        u, jac = march(
-            xp,
-            problem.query,
-            fits.s,
-            fits.f,
-            problem.length,
-            problem.stiffness,
-            jacobian=jacobian,
-            step_angle=problem.step_angle,
-            max_steps=problem.max_steps,
-        )
+        return u3[..., :2], jac, phi
+    options = dict(jacobian=jacobian, step_angle=problem.step_angle, max_steps=problem.max_steps)
+    if seeds:
+        return march_propagator(xp, query, s, f, problem.length, problem.stiffness, **options)
+    u, jac = march(xp, query, s, f, problem.length, problem.stiffness, **options)
+    return u, jac, None
+
+
+def evaluate(problem: Problem, fits: Fits, jacobian: bool = True) -> tuple[Any, Any]:
+    """Residuals r (R, 2G) [1/m] (zero at missing gratings) and their Jacobian (R, 2G, 3h) w.r.t. the scaled
+    unknowns (s / L, f / F) of each force, in the march's convention at ties (distal one-sided; see
+    :func:`sided`); None for the Jacobian with ``jacobian=False``."""
+    R, h = fits.s.shape
+    G = problem.query.shape[0]
+    u, jac, _ = march_fits(problem, problem.query, fits.s, fits.f, jacobian=jacobian)
     w = problem.weight[fits.reading]
     r = (u.reshape(R, 2 * G) - problem.u[fits.reading]) * w
     if not jacobian:

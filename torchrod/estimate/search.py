@@ -33,7 +33,7 @@ from typing import Any
 
 from . import lm
 from .finish import refine_open
-from .problem import Fits, Problem, interval_of, near_kink, sided
+from .problem import Fits, Problem, interval_of, march_fits, near_kink, sided
 from .refine import LBFGSOptions
 
 __all__ = ["SearchOptions", "best_of", "exchange", "scan"]
@@ -196,30 +196,12 @@ def _propagator(problem: Problem, base: Fits, query: Any, *, jacobian: bool) -> 
     as real pairs (S = 4; :func:`torchrod.model.sensitivity.march_propagator`), a precurved rod's (n, m) (S = 6;
     :mod:`torchrod.model.precurved`)."""
     xp = problem.xp
+    u, jac, phi = march_fits(problem, query, base.s, base.f, jacobian=jacobian, seeds=True)
     if problem.precurved is not None:
-        from ..model.precurved import FIT_MAX_STEP
-        from ..model.precurved import march as march_precurved
-
-        u3, _, jac, phi = march_precurved(
-            xp, query, base.s, base.f, problem.precurved, max_step=FIT_MAX_STEP, jacobian=jacobian, seeds=True
-        )
         rhs = xp.zeros((6, 2))
         rhs[0, 0] = 1.0  # a unit f_x: n jumps by e_x
         rhs[1, 1] = 1.0
-        return u3[..., :2], jac, phi[:, :, :2], phi[:, :, 2:], rhs
-    from ..model.sensitivity import march_propagator
-
-    u, jac, phi = march_propagator(
-        xp,
-        query,
-        base.s,
-        base.f,
-        problem.length,
-        problem.stiffness,
-        jacobian=jacobian,
-        step_angle=problem.step_angle,
-        max_steps=problem.max_steps,
-    )
+        return u, jac, phi[:, :, :2], phi[:, :, 2:], rhs
     inv_ei = 1.0 / problem.stiffness
     jumps = xp.asarray([[0.0, -inv_ei], [inv_ei, 0.0]])  # slope jumps (Re dW, Im dW) x (f_x, f_y)
     return u, jac, phi[:, :, :2], phi, xp.concat([xp.zeros((2, 2)), jumps], 0)
