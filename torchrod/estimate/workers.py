@@ -252,7 +252,8 @@ class ParallelEstimator:
     @staticmethod
     def _stop(pool: concurrent.futures.ProcessPoolExecutor, timeout: float = 1.0) -> None:
         """Shut ``pool`` down: idle workers exit at once, a worker still busy on an abandoned chunk (after an
-        interrupt) is given ``timeout`` seconds, then terminated."""
+        interrupt) is given ``timeout`` seconds, then terminated (SIGTERM), and killed (SIGKILL) if it is still
+        there ``timeout`` seconds later: when this returns, no worker of ``pool`` is left running."""
         processes = list((getattr(pool, "_processes", None) or {}).values())
         pool.shutdown(wait=False, cancel_futures=True)
         for p in processes:
@@ -260,6 +261,9 @@ class ParallelEstimator:
             if p.is_alive():
                 p.terminate()
                 p.join(timeout)
+            if p.is_alive():
+                p.kill()
+                p.join()
 
     def close(self) -> None:
         """Stop the workers (the object still estimates afterwards, starting a new pool if needed)."""
