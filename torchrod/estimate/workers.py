@@ -138,6 +138,16 @@ def _solve_chunk(
     return _pack_result(result)
 
 
+def _end(p: Any, timeout: float = 1.0) -> None:
+    """End a worker process that is still running: SIGTERM, then SIGKILL ``timeout`` seconds later; reaped."""
+    if p.is_alive():
+        p.terminate()
+        p.join(timeout)
+    if p.is_alive():
+        p.kill()
+        p.join()
+
+
 # ---------------------------------------------------------------------------------------------------- the wrapper
 class ParallelEstimator:
     """An estimator whose batches are solved in ``processes`` processes at once (module docstring).
@@ -177,6 +187,7 @@ class ParallelEstimator:
         self._warm_workers = warm_workers
         self._pool: concurrent.futures.ProcessPoolExecutor | None = None
         self._starting: list[concurrent.futures.Future] = []
+        self._spawned: dict[int, Any] = {}  # every worker process a pool of this object started, by pid
         self._payload = b""
         if self.processes > 1:
             try:
@@ -216,6 +227,7 @@ class ParallelEstimator:
             )
             # One task per worker makes the pool start them all now (it starts one per task while none is idle).
             self._starting = [self._pool.submit(_ready) for _ in range(self.processes - 1)]
+            self._spawned.update(getattr(self._pool, "_processes", None) or {})
         return self._pool
 
     def warm(self, wait: bool = False) -> None:
@@ -258,18 +270,17 @@ class ParallelEstimator:
         pool.shutdown(wait=False, cancel_futures=True)
         for p in processes:
             p.join(timeout)
-            if p.is_alive():
-                p.terminate()
-                p.join(timeout)
-            if p.is_alive():
-                p.kill()
-                p.join()
+            _end(p, timeout)
 
     def close(self) -> None:
-        """Stop the workers (the object still estimates afterwards, starting a new pool if needed)."""
+        """Stop the workers (the object still estimates afterwards, starting a new pool if needed): the current
+        pool's, and any worker of an earlier pool still running."""
         pool, self._pool, self._starting = self._pool, None, []
         if pool is not None:
             self._stop(pool)
+        spawned, self._spawned = list(self._spawned.values()), {}
+        for p in spawned:
+            _end(p)
 
     def __enter__(self) -> ParallelEstimator:
         return self
@@ -312,6 +323,7 @@ class ParallelEstimator:
                 pool = self._ensure_pool()
                 for chunk in chunks[1:]:
                     futures.append(pool.submit(_solve_chunk, *self._packed(chunk), overrides))
+                self._spawned.update(getattr(pool, "_processes", None) or {})  # (a pool may start more on demand)
             except BrokenProcessPool:  # a worker died while idle: this batch's chunks are solved here
                 self._broken()
                 futures += [None] * (len(chunks) - 1 - len(futures))
