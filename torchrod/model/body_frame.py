@@ -258,6 +258,10 @@ def march_curvature(
     fmag = xp.lib.sqrt((f * f).sum(-1)) / ei
     steps = schedule.step_counts(xp, s, fmag, pos, seg, step_angle=max_step_angle, max_steps=64, rule="bound")
     jump = xp.complex(-f[..., 1], f[..., 0]) / ei  # (B, h) slope jumps
+    # Distal to the most distal force the state is zero and stays zero: no steps for the events there (their
+    # curvature is zero).
+    forces = xp.lib.cumsum(order < h, 1) if xp.name == "numpy" else (order < h).cumsum(1)
+    steps = xp.where(forces > 0, steps, 0 * steps)
     if xp.name == "numpy" and B <= SCALAR_MAX_BATCH:
         import numpy as np
 
@@ -266,14 +270,15 @@ def march_curvature(
         for b in range(B):
             hs, kicks, ends = [], [], []
             for e, idx in enumerate(orders[b]):
-                n = counts[b][e]
-                hs += [segs[b][e] / n] * n
-                kicks += [None] * (n - 1) + [jumps[b][idx] if idx < h and jumps[b][idx] != 0 else None]
+                n = counts[b][e]  # 0 only for queries distal to every force
+                if n:
+                    hs += [segs[b][e] / n] * n
+                    kicks += [None] * (n - 1) + [jumps[b][idx] if idx < h and jumps[b][idx] != 0 else None]
                 ends.append(len(hs) - 1)
             Us, _, _ = _forward_generic(tab, 0j, hs, [x * x for x in hs], kicks, None, _sq_complex, False)
-            at = [0] * Q
+            at = [0j] * Q
             for e, idx in enumerate(orders[b]):
-                if idx >= h:
+                if idx >= h and ends[e] >= 0:
                     at[idx - h] = Us[ends[e]]
             z = np.asarray(at)
             out[b, :, 0], out[b, :, 1] = z.real, z.imag
@@ -288,20 +293,20 @@ def march_curvature(
         segment_of_step = np.stack([np.searchsorted(last[b], grid[b], side="right") for b in range(B)])
     else:
         segment_of_step = torch.searchsorted(last, grid.contiguous(), right=True)
-    ends = last - 1
-    hstep = xp.take(xp.concat([seg / steps, xp.zeros((B, 1))], 1), segment_of_step, 1)  # (B, K)
-    jump_e = xp.take(xp.concat([jump, xp.zeros((B, Q), "complex")], 1), order, 1)  # (B, E)
-    kick = xp.zeros((B, K), "complex")
-    rows = xp.expand(xp.arange(B)[:, None], ends.shape)
-    kick[rows, ends] = jump_e
+    hstep = xp.where(steps > 0, seg / xp.clip(steps, lo=1), 0.0 * seg)
+    hstep = xp.take(xp.concat([hstep, xp.zeros((B, 1))], 1), segment_of_step, 1)  # (B, K)
+    # Slot j: the state after j steps (0: the zero state before any); event e of row b ends in slot last[b, e].
+    position = xp.argsort_desc(-xp.astype(order, "float"))  # (B, E): the event of force i / query q - h
+    slot = xp.take(last, position, 1)
+    at = xp.astype(slot[:, :h, None] - 1 == xp.arange(K)[None, None, :], "complex")  # (B, h, K): forces' steps
+    kick = (at * jump[:, :, None]).sum(1)  # (B, K), the slope jumps after each step
     kick2 = xp.stack([kick.real, kick.imag], 1)  # (B, 2, K)
     hs = xp.mT(hstep)
     kicks = kick2.transpose(2, 1, 0) if xp.name == "numpy" else kick2.permute(2, 1, 0)
     Z, _ = _forward_array(tab, hs + 0.0, kicks + 0.0, None, False)  # (K, 4, B)
-    inverse = xp.argsort_desc(-xp.astype(order, "float"))[:, h:]  # events of the queries, in query order
-    step_of_query = xp.take(ends, inverse, 1)  # (B, Q)
     Zb = Z.transpose(2, 0, 1) if xp.name == "numpy" else Z.permute(2, 0, 1)  # (B, K, 4)
-    return Zb[xp.expand(xp.arange(B)[:, None], (B, Q)), step_of_query][..., :2]
+    Zb = xp.concat([xp.zeros((B, 1, 4)), Zb], 1)
+    return Zb[xp.expand(xp.arange(B)[:, None], (B, Q)), slot[:, h:]][..., :2]
 
 
 def _internal_force(state: torch.Tensor, ei: torch.Tensor) -> torch.Tensor:

@@ -49,12 +49,13 @@ __all__ = [
     "march_propagator",
 ]
 
-SCALAR_WORK = 48
-"""Batches on the NumPy backend with rows x (4 + tangent columns) at most this are marched one row at a time on
-Python complex numbers (no per-operation overhead), larger ones on arrays. The cost of the first grows with the
-rows times the columns carried, the second's is mostly fixed per operation at small batch: this puts the switch
-near the measured crossover (about 12 rows with one force's Jacobian, 4 with three forces', 3 with the Jacobian
-and the propagator; ``python -m torchrod bench forward`` measures the paths)."""
+SCALAR_WORK = 64
+"""Batches on the NumPy backend with rows x (4 + tangent columns) at most this (the propagator's seeds weigh 1.5x:
+they are carried from the tip) are marched one row at a time on Python complex numbers (no per-operation
+overhead), larger ones on arrays. The cost of the first grows with the rows times the columns carried, the
+second's is mostly fixed per operation at small batch: this puts the switch near the measured crossover (about 9
+rows with one force's Jacobian, 5 with three forces', 4 with a Jacobian and the propagator; ``python -m torchrod
+bench forward`` measures the paths)."""
 
 CHUNK = 384
 """Rows marched together (larger batches are split: the working set stays in cache, and each part gets step
@@ -127,7 +128,7 @@ def march_propagator(
 def _march(xp, query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps):
     B = s.shape[0]
     columns = (3 * s.shape[1] if jacobian else 0) + (4 if seeds else 0)
-    if xp.name == "numpy" and B * (4 + columns) <= SCALAR_WORK:
+    if xp.name == "numpy" and B * (4 + columns) * (1.5 if seeds else 1.0) <= SCALAR_WORK:
         return _march_rows(query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps)
     if B > CHUNK:
         parts = [
@@ -167,14 +168,13 @@ def _schedule(xp, query, s, jump, length, step_angle, max_steps):
 
 
 def _g(xp: Backend, y: Any) -> Any:
-    """Column 0: 3 |y0|^2 y0 (three times g); columns 1..P: the tangent 2 |y0|^2 y_p + y0^2 conj(y_p).
-
-    y: (B, 1 + P) complex. The factor 1/3 of column 0 is folded into the RKN coefficients by the caller.
-    """
+    """Column 0: g = |y0|^2 y0; columns 1..P: its tangent 2 |y0|^2 y_p + y0^2 conj(y_p). y: (B, 1 + P) complex."""
     cy = xp.conj(y)
     y0 = y[:, :1]
     a = y0 * cy[:, :1]  # |y0|^2, complex-typed so that no operation below converts dtypes
-    return (y0 * y0) * cy + (2.0 * a) * y
+    g = (y0 * y0) * cy + (a + a) * y  # column 0: 3 g (D g[y0] = 3 g)
+    g[:, :1] *= 1.0 / 3.0
+    return g
 
 
 def _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps):
@@ -185,68 +185,85 @@ def _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_ang
     (:func:`march_propagator`)."""
     B, h = s.shape
     Q = query.shape[-1]
-    E = Q + h
     ei = float(ei)
     jump_f = _jumps(xp, f, active, ei)  # (B, h)
     pos, order, seg, steps_be = _schedule(xp, query, s, jump_f, length, step_angle, max_steps)
 
-    # Jumps per event: column 0 the primal slope jump, then the force tangents' jumps (dW for f, dU for s), then
-    # the seeds' (none).
     F = 3 * h if jacobian else 0
     S = 4 if seeds else 0
     P = F + S
-    jump_w0 = xp.take(xp.concat([jump_f, xp.zeros((B, Q), "complex")], 1), order, 1)  # (B, E)
-    cols_w, cols_u = [jump_w0[:, :, None]], [xp.zeros((B, E, 1), "complex")]
-    if jacobian:
-        is_force = xp.astype(order[:, :, None] == xp.arange(h)[None, None, :], "float")  # (B, E, h)
-        if active is not None:
-            is_force = is_force * xp.astype(active, "float")[:, None, :]
-        zero = xp.zeros((B, E, h), "complex")
-        cols_w.append(xp.stack([zero, is_force * (1j / ei), is_force * (-1.0 / ei)], 3).reshape(B, E, F))
-        cols_u.append(xp.stack([is_force * jump_f[:, None, :], zero, zero], 3).reshape(B, E, F))
-    if seeds:
-        cols_w.append(xp.zeros((B, E, S), "complex"))
-        cols_u.append(xp.zeros((B, E, S), "complex"))
-    jump_w = xp.concat(cols_w, 2)  # (B, E, 1 + P)
-    jump_u = xp.concat(cols_u, 2)
+    C = 1 + P
+    if not seeds:
+        # Distal to the most distal force the state is zero and stays zero: no steps for the events there (their
+        # records are the zero state of slot 0, taken before any jump).
+        forces = xp.lib.cumsum(order < h, 1) if xp.name == "numpy" else (order < h).cumsum(1)
+        steps_be = xp.where(forces > 0, steps_be, 0 * steps_be)
 
-    # Each row's steps in sequence: step k of row b belongs to event segment_of_step[b, k] (E: past the end).
+    # Slots: slot j holds the state after j steps and the jumps of the events that end there; each row takes its
+    # events' steps one after the other, so event e of row b ends in slot last[b, e] (0: before any step).
     last = xp.lib.cumsum(steps_be, 1) if xp.name == "numpy" else steps_be.cumsum(1)  # (B, E)
     K = int(xp.amax(last[:, -1], 0)) if B else 0
-    ks = xp.arange(K)
-    segment_of_step = xp.astype(ks[None, :, None] >= last[:, None, :], "int").sum(2)  # (B, K)
-    ends = last - 1  # the step after which each event happens (its jump, or its record)
-    hstep = xp.concat([seg / steps_be, xp.zeros((B, 1))], 1)
-    hstep = xp.astype(xp.take(hstep, segment_of_step, 1), "complex")  # (B, K)
-    rows = xp.expand(xp.arange(B)[:, None], (B, E))
-    kick_w = xp.zeros((B, K, 1 + P), "complex")
-    kick_u = xp.zeros((B, K, 1 + P), "complex")
-    kick_w[rows, ends] = jump_w
-    kick_u[rows, ends] = jump_u
-    weight = xp.asarray([1.0 / 3.0] + [1.0] * P, "complex")  # _g returns 3 g in column 0
+    segment_of_step = xp.astype(xp.arange(K)[None, :, None] >= last[:, None, :], "int").sum(2)  # (B, K)
+    hstep = xp.where(steps_be > 0, seg / xp.clip(steps_be, lo=1), 0.0 * seg)
+    hstep = xp.astype(xp.take(xp.concat([hstep, xp.zeros((B, 1))], 1), segment_of_step, 1), "complex")  # (B, K)
+    # The RKN coefficients of every step (K, B, 1): hs, hs/2, -hs^2/16, -hs^2/4, -hs^2/12, -hs/12.
+    hs_k = xp.mT(hstep)[:, :, None]
+    h2_k = hs_k * hs_k
+    ch_k, k16_k, k4_k, k12_k, kw_k = (
+        0.5 * hs_k,
+        (-1.0 / 16.0) * h2_k,
+        -0.25 * h2_k,
+        (-1.0 / 12.0) * h2_k,
+        (-1.0 / 12.0) * hs_k,
+    )
+
+    # The jumps of each force (B, h, C): column 0 the primal slope jump, then its own tangents' (dW for f_x, f_y,
+    # dU for s), placed in the slot that ends its event.
+    position = xp.argsort_desc(-xp.astype(order, "float"))  # (B, E): event index of force i / query q - h
+    slot = xp.take(last, position, 1)  # (B, E) in force-then-query order
+    jump_w = xp.zeros((B, h, C), "complex")
+    jump_u = xp.zeros((B, h, C), "complex")
+    jump_w[:, :, 0] = jump_f
+    if jacobian:
+        on = xp.ones((B,), "complex") if active is None else None
+        for i in range(h):
+            a_i = on if active is None else xp.astype(active[:, i], "complex")
+            jump_u[:, i, 1 + 3 * i] = jump_f[:, i]
+            jump_w[:, i, 2 + 3 * i] = a_i * (1j / ei)
+            jump_w[:, i, 3 + 3 * i] = a_i * (-1.0 / ei)
+    at = xp.astype(slot[:, :h, None] == xp.arange(K + 1)[None, None, :], "complex")  # (B, h, K + 1)
+    kick_w = xp.mT(at) @ jump_w  # (B, K + 1, C)
+    kick_u = xp.mT(at) @ jump_u
+    kicked = xp.tolist(xp.any(xp.any(slot[:, :h, None] == xp.arange(K + 1)[None, None, :], 1), 0))
 
     Z = xp.zeros((B, 1 + P), "complex")  # U and its tangents
     Zw = xp.zeros((B, 1 + P), "complex")  # W = U_t and its tangents
     if seeds:
         Z = Z + xp.asarray([0.0] * (1 + F) + [1.0, 1j, 0.0, 0.0], "complex")
         Zw = Zw + xp.asarray([0.0] * (1 + F) + [0.0, 0.0, 1.0, 1j], "complex")
-    recorded, recorded_w = [], []
+    if kicked[0]:
+        Z = Z + kick_u[:, 0]
+        Zw = Zw + kick_w[:, 0]
+    recorded, recorded_w = [Z], [Zw]
     for k in range(K):
-        # RKN4 (the classical three-stage method), the g-weights folded into the coefficients.
-        hs = hstep[:, k : k + 1]
-        h2w = (hs * hs) * weight
+        # RKN4 (the classical three-stage method).
+        hs = hs_k[k]
         g1 = _g(xp, Z)
-        g2 = _g(xp, Z + (0.5 * hs) * Zw + (-1.0 / 16.0) * h2w * g1)
+        g2 = _g(xp, Z + ch_k[k] * Zw + k16_k[k] * g1)
         p = Z + hs * Zw
-        g3 = _g(xp, p - 0.25 * h2w * g2)
-        Z = p - (1.0 / 12.0) * h2w * (g1 + 2.0 * g2) + kick_u[:, k]
-        Zw = Zw - (1.0 / 12.0) * (hs * weight) * (g1 + 4.0 * g2 + g3) + kick_w[:, k]
+        g3 = _g(xp, p + k4_k[k] * g2)
+        two = g2 + g2
+        t = g1 + two
+        Z = p + k12_k[k] * t
+        Zw = Zw + kw_k[k] * (t + two + g3)
+        if kicked[k + 1]:
+            Z = Z + kick_u[:, k + 1]
+            Zw = Zw + kick_w[:, k + 1]
         recorded.append(Z)
         if seeds:
             recorded_w.append(Zw)
-    # Each query's record: the step that ends its event, in query order.
-    inverse = xp.argsort_desc(-xp.astype(order, "float"))[:, h:]  # argsort ascending of order
-    at_step = xp.take(ends, inverse, 1)  # (B, Q)
+    # Each query's record: the slot that ends its event, in query order.
+    at_step = slot[:, h:]  # (B, Q)
     qrows = xp.expand(xp.arange(B)[:, None], (B, Q))
     at_query = xp.stack(recorded, 1)[qrows, at_step]  # (B, Q, 1 + P)
     curvature = xp.real_pairs(at_query[..., 0])
