@@ -33,6 +33,26 @@ def test_bench_forward_quick_prints_both_tables(capsys):
     assert acc["nodes q=250"] < acc["nodes q=90"]
 
 
+def test_bench_forward_paths_times_both_marches_side_by_side(capsys):
+    assert main(["bench", "forward", "--quick", "--paths", "--batch-sizes", "1", "--cases", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "switch at work 64" in out
+    rows = re.findall(r"^\s+(\d)\s+(yes|no)\s+(\d+) \|(.*)\|(.*)$", out, re.MULTILINE)
+    assert {(h, seeds) for h, seeds, *_ in rows} == {
+        ("0", "yes"),
+        ("1", "no"),
+        ("2", "no"),
+        ("3", "no"),
+        ("1", "yes"),
+        ("2", "yes"),
+        ("3", "yes"),
+    }, out
+    for h, seeds, cols, cells, _ in rows:
+        assert int(cols) == 3 * int(h) + (4 if seeds == "yes" else 0)
+        pairs = re.findall(r"(\d+\.\d+)/\s*(\d+\.\d+)", cells)
+        assert len(pairs) == 10 and all(float(a) > 0 and float(b) > 0 for a, b in pairs), cells
+
+
 def test_bench_rejects_unknown_and_reports_missing_suites(capsys, monkeypatch):
     assert main(["bench", "nosuch"]) == 2
     assert "unknown suite" in capsys.readouterr().err

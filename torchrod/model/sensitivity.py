@@ -50,12 +50,11 @@ __all__ = [
 ]
 
 SCALAR_WORK = 64
-"""Batches on the NumPy backend with rows x (4 + tangent columns) at most this (the propagator's seeds weigh 1.5x:
-they are carried from the tip) are marched one row at a time on Python complex numbers (no per-operation
-overhead), larger ones on arrays. The cost of the first grows with the rows times the columns carried, the
-second's is mostly fixed per operation at small batch: this puts the switch near the measured crossover (about 9
-rows with one force's Jacobian, 5 with three forces', 4 with a Jacobian and the propagator; ``python -m torchrod
-bench forward`` measures the paths)."""
+"""Batches on the NumPy backend whose work is at most this are marched one row at a time on Python complex numbers
+(no per-operation overhead), larger ones on arrays. The work is rows x (4 + Jacobian columns), or rows x 12 with
+the propagator's seeds (carried from the tip, they cost the rows path the same at any count of forces). The first
+path's cost grows with that work, the second's is mostly fixed per operation at small batch: this puts the switch
+at the crossover ``torchrod bench forward --paths`` measures (docs/results.md)."""
 
 CHUNK = 384
 """Rows marched together (larger batches are split: the working set stays in cache, and each part gets step
@@ -128,7 +127,7 @@ def march_propagator(
 def _march(xp, query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps):
     B = s.shape[0]
     columns = (3 * s.shape[1] if jacobian else 0) + (4 if seeds else 0)
-    if xp.name == "numpy" and B * (4 + columns) * (1.5 if seeds else 1.0) <= SCALAR_WORK:
+    if xp.name == "numpy" and B * (12 if seeds else 4 + columns) <= SCALAR_WORK:
         return _march_rows(query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps)
     if B > CHUNK:
         parts = [
