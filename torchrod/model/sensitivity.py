@@ -362,9 +362,12 @@ def _row(order, seg, steps, jumps, active, Q, h, F, seeds, ei):
             yc, yd = hs + k12 * 2.0 * t2c, k12 * 2.0 * t2d
             wa, wb = kw * (t1a + 4.0 * t2a + t3a), kw * (t1b + 4.0 * t2b + t3b)
             wc, wd = 1.0 + kw * (4.0 * t2c + t3c), kw * (4.0 * t2d + t3d)
-            pairs = [(y, y.conjugate(), w, w.conjugate()) for y, w in zip(du, dw, strict=True)]
-            du = [ya * y + yb * yy + yc * w + yd * ww for y, yy, w, ww in pairs]
-            dw = [wa * y + wb * yy + wc * w + wd * ww for y, yy, w, ww in pairs]
+            du_next, dw_next = [], []
+            for y, w in zip(du, dw, strict=True):
+                yy, ww = y.conjugate(), w.conjugate()
+                du_next.append(ya * y + yb * yy + yc * w + yd * ww)
+                dw_next.append(wa * y + wb * yy + wc * w + wd * ww)
+            du, dw = du_next, dw_next
         if idx < h:
             started = True
             w0 += jumps[idx]
