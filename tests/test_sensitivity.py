@@ -78,6 +78,36 @@ def test_three_implementations_of_the_march_agree(rod, gen, monkeypatch, h):
                 assert J1.shape == Jx.shape and (J1 - Jx).abs().max() <= 1e-12 * Jx.abs().max()
 
 
+@pytest.mark.parametrize("h", [0, 1, 3])
+def test_three_implementations_of_the_propagator_march_agree(rod, gen, monkeypatch, h):
+    """The propagator's march (seeds carried from the tip; the Jacobian march skips the zero state distal to the
+    most distal force, this one cannot) on Python rows, NumPy arrays and torch tensors, with two forces tied at one
+    location and forces distal to every grating."""
+    B = 5
+    q = rod.grating_positions().numpy()
+    s = 0.03 + 0.26 * torch.rand(B, h, dtype=F64, generator=gen).numpy()
+    f = 1.2 * torch.randn(B, h, 2, dtype=F64, generator=gen).numpy()
+    if h >= 2:
+        s[0, 1] = s[0, 0]
+    if h:
+        s[1, :] = rod.length - 1e-3 * np.arange(h)  # every force distal to the last grating
+    args = (q, s, f, rod.length, rod.bending_stiffness)
+    monkeypatch.setattr(sens, "SCALAR_WORK", 10**6)
+    rows = march_propagator(NUMPY, *args)
+    monkeypatch.setattr(sens, "SCALAR_WORK", 0)
+    arrays = march_propagator(NUMPY, *args)
+    xp = torch_backend()
+    tensors = march_propagator(xp, *(torch.as_tensor(a) for a in args[:3]), *args[3:])
+    for a, b, c in zip(rows, arrays, tensors, strict=True):
+        if a is None:
+            assert b is None and c is None
+            continue
+        assert a.shape == b.shape == tuple(c.shape)
+        if a.size:
+            scale = max(1.0, float(np.abs(a).max()))
+            assert np.abs(a - b).max() <= 1e-12 * scale and np.abs(a - c.numpy()).max() <= 1e-12 * scale
+
+
 def test_a_grating_at_a_force_gives_the_distal_one_sided_derivative(rod):
     """The schedule's tie-break (forces first): a grating exactly at a force sees it with zero lever, so its
     derivative in s is the slope jump i (f_x + i f_y) / EI; the curvature itself does not depend on the order."""

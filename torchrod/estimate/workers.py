@@ -161,9 +161,8 @@ def _end(processes: Sequence[Any], timeout: float = 1.0, grace: float = 0.0) -> 
 
     Their exits are awaited on the processes' sentinels, never by joining them: the pool's manager thread joins
     (reaps) its workers itself, and two threads reaping one child race, the loser's ``multiprocessing`` then seeing
-    the dead worker as running until the winner records its exit code. (Joining here left a test's stream worker
-    "alive" right after ``close()`` in about 1 run of 12.) :meth:`ParallelEstimator.close` then waits for the
-    manager threads."""
+    the dead worker as running until the winner records its exit code. :meth:`ParallelEstimator.close` then waits
+    for the manager threads."""
     left = _running(processes, grace)
     for p in left:
         p.terminate()

@@ -224,16 +224,16 @@ def _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_ang
     jump_u = xp.zeros((B, h, C), "complex")
     jump_w[:, :, 0] = jump_f
     if jacobian:
-        on = xp.ones((B,), "complex") if active is None else None
+        real = xp.ones((B, h), "complex") if active is None else xp.astype(active, "complex")
         for i in range(h):
-            a_i = on if active is None else xp.astype(active[:, i], "complex")
             jump_u[:, i, 1 + 3 * i] = jump_f[:, i]
-            jump_w[:, i, 2 + 3 * i] = a_i * (1j / ei)
-            jump_w[:, i, 3 + 3 * i] = a_i * (-1.0 / ei)
-    at = xp.astype(slot[:, :h, None] == xp.arange(K + 1)[None, None, :], "complex")  # (B, h, K + 1)
-    kick_w = xp.mT(at) @ jump_w  # (B, K + 1, C)
-    kick_u = xp.mT(at) @ jump_u
-    kicked = xp.tolist(xp.any(xp.any(slot[:, :h, None] == xp.arange(K + 1)[None, None, :], 1), 0))
+            jump_w[:, i, 2 + 3 * i] = real[:, i] * (1j / ei)
+            jump_w[:, i, 3 + 3 * i] = real[:, i] * (-1.0 / ei)
+    at = slot[:, :h, None] == xp.arange(K + 1)[None, None, :]  # (B, h, K + 1): force i ends in slot j
+    kicked = xp.tolist(xp.any(xp.any(at, 1), 0))
+    at = xp.mT(xp.astype(at, "complex"))
+    kick_w = at @ jump_w  # (B, K + 1, C)
+    kick_u = at @ jump_u
 
     Z = xp.zeros((B, 1 + P), "complex")  # U and its tangents
     Zw = xp.zeros((B, 1 + P), "complex")  # W = U_t and its tangents
