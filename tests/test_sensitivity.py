@@ -162,7 +162,12 @@ def test_one_schedule_for_every_march(rod, gen):
     assert not torch.equal(est, bound)  # two rules on one set of events
     with pytest.raises(ValueError, match="rule"):
         schedule.rates(xp, s, jump, pos, "guess")
-    ref = tr.simulate(rod, loads).grating_curvature.numpy()
+    # The marches that start from the zero state skip the events distal to every force, and only those.
+    skipped = schedule.skip_unloaded(xp, order, bound, 3)
+    first = (order < 3).int().argmax(1)  # each row's most distal force, as an event index
+    distal = torch.arange(order.shape[1])[None, :] < first[:, None]
+    assert torch.equal(skipped, torch.where(distal, 0, bound)) and bool(distal.any())
+    ref = tr.simulate(rod, loads).grating_curvature.numpy()  # steps every event
     rows = march_curvature(NUMPY, q.numpy(), s.numpy(), f.numpy(), rod.length, rod.bending_stiffness)
     arrays = march_curvature(xp, q, s, f, rod.length, rod.bending_stiffness).numpy()
     assert np.abs(rows - ref).max() < 1e-12 and np.abs(arrays - ref).max() < 1e-12

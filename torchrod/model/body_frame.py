@@ -258,10 +258,7 @@ def march_curvature(
     fmag = xp.lib.sqrt((f * f).sum(-1)) / ei
     steps = schedule.step_counts(xp, s, fmag, pos, seg, step_angle=max_step_angle, max_steps=64, rule="bound")
     jump = xp.complex(-f[..., 1], f[..., 0]) / ei  # (B, h) slope jumps
-    # Distal to the most distal force the state is zero and stays zero: no steps for the events there (their
-    # curvature is zero).
-    forces = xp.lib.cumsum(order < h, 1) if xp.name == "numpy" else (order < h).cumsum(1)
-    steps = xp.where(forces > 0, steps, 0 * steps)
+    steps = schedule.skip_unloaded(xp, order, steps, h)  # the zero state distal to every force: no steps
     if xp.name == "numpy" and B <= SCALAR_MAX_BATCH:
         import numpy as np
 

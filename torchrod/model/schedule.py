@@ -23,6 +23,10 @@ points) and the force locations. This module fixes, for all of them:
     forces cancel. It is the small-deflection solution's own rate, a quarter fewer steps for the same accuracy
     over the synthetic envelope.
 
+* the unloaded events (:func:`skip_unloaded`): distal to the most distal force the state of a march that starts
+  from the zero state at the tip is zero and stays zero, so those events take no steps (the force's own segment
+  keeps its steps). Marches that carry perturbations from the tip (the propagator's seeds) step them all.
+
 A non-finite rate gives 1 step (NaN) or ``max_steps`` (inf). Every sample gets its own counts: a sample's result
 does not depend on the samples batched with it.
 
@@ -36,7 +40,7 @@ from typing import Any
 
 from ..backend import Backend
 
-__all__ = ["RULES", "events", "rates", "step_counts"]
+__all__ = ["RULES", "events", "rates", "skip_unloaded", "step_counts"]
 
 RULES = ("bound", "estimate")
 
@@ -97,3 +101,11 @@ def step_counts(
     need = rates(xp, s, jump, pos, rule) * seg / step_angle
     need = xp.where(need != need, 1.0, xp.clip(need, hi=float(max_steps)))  # NaN -> 1, inf -> max_steps
     return xp.astype(xp.clip(lib.ceil(need), lo=1.0), "int")
+
+
+def skip_unloaded(xp: Backend, order: Any, steps: Any, h: int) -> Any:
+    """``steps`` (B, E) with zero steps for the events distal to every force (``order`` (B, E) from :func:`events`,
+    h forces). The most distal force's own segment keeps its steps: a march that records each event in the slot
+    after its steps then takes the force's jump after the records distal to it."""
+    forces = xp.lib.cumsum(order < h, 1) if xp.name == "numpy" else (order < h).cumsum(1)
+    return xp.where(forces > 0, steps, 0 * steps)

@@ -38,7 +38,7 @@ from typing import Any
 import torch
 
 from ..backend import NUMPY, Backend, TorchBackend
-from .schedule import events, step_counts
+from .schedule import events, skip_unloaded, step_counts
 
 __all__ = [
     "CHUNK",
@@ -160,9 +160,11 @@ def _jumps(xp: Backend, f: Any, active: Any, ei: float) -> Any:
     return jump if active is None else xp.where(active, jump, 0.0 * jump)
 
 
-def _schedule(xp, query, s, jump, length, step_angle, max_steps):
+def _schedule(xp, query, s, jump, length, step_angle, max_steps, seeds):
     pos, order, seg = events(xp, query, s, length)
     steps = step_counts(xp, s, jump, pos, seg, step_angle=step_angle, max_steps=max_steps, rule="estimate")
+    if not seeds:  # the seeds move from the tip on: every event steps
+        steps = skip_unloaded(xp, order, steps, s.shape[1])
     return pos, order, seg, steps
 
 
@@ -186,17 +188,12 @@ def _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_ang
     Q = query.shape[-1]
     ei = float(ei)
     jump_f = _jumps(xp, f, active, ei)  # (B, h)
-    pos, order, seg, steps_be = _schedule(xp, query, s, jump_f, length, step_angle, max_steps)
+    pos, order, seg, steps_be = _schedule(xp, query, s, jump_f, length, step_angle, max_steps, seeds)
 
     F = 3 * h if jacobian else 0
     S = 4 if seeds else 0
     P = F + S
     C = 1 + P
-    if not seeds:
-        # Distal to the most distal force the state is zero and stays zero: no steps for the events there (their
-        # records are the zero state of slot 0, taken before any jump).
-        forces = xp.lib.cumsum(order < h, 1) if xp.name == "numpy" else (order < h).cumsum(1)
-        steps_be = xp.where(forces > 0, steps_be, 0 * steps_be)
 
     # Slots: slot j holds the state after j steps and the jumps of the events that end there; each row takes its
     # events' steps one after the other, so event e of row b ends in slot last[b, e] (0: before any step).
@@ -285,7 +282,7 @@ def _march_rows(query, s, f, length, ei, active, jacobian, seeds, step_angle, ma
     Q = query.shape[-1]
     ei = float(ei)
     jump_f = _jumps(NUMPY, f, active, ei)
-    pos, order, seg, steps = _schedule(NUMPY, query, s, jump_f, length, step_angle, max_steps)
+    pos, order, seg, steps = _schedule(NUMPY, query, s, jump_f, length, step_angle, max_steps, seeds)
     F = 3 * h if jacobian else 0
     curv = np.empty((B, Q, 2))
     jac = np.empty((B, Q, 2, F)) if jacobian else None
@@ -322,10 +319,8 @@ def _row(order, seg, steps, jumps, active, Q, h, F, seeds, ei):
     out_j: list[list[complex]] = [[]] * Q
     out_w: list[list[complex]] = [[]] * Q
     d_fx, d_fy = 1j / ei, -1.0 / ei
-    # Before the most distal force the state is zero and stays zero: nothing to step (unless seeds move there).
-    started = seeds
     for e, idx in enumerate(order):
-        n = steps[e] if started else 0
+        n = steps[e]  # 0 distal to every force without seeds (schedule.skip_unloaded)
         hs = seg[e] / n if n else 0.0
         ch, k16, k4, k12, kw = 0.5 * hs, -hs * hs / 16.0, -hs * hs / 4.0, -hs * hs / 12.0, -hs / 12.0
         for _ in range(n):
@@ -369,7 +364,6 @@ def _row(order, seg, steps, jumps, active, Q, h, F, seeds, ei):
                 dw_next.append(wa * y + wb * yy + wc * w + wd * ww)
             du, dw = du_next, dw_next
         if idx < h:
-            started = True
             w0 += jumps[idx]
             if F and active[idx]:
                 # From here on the force's columns: d/ds (dU gains the jump), d/df_x, d/df_y (dW gains i/EI, -1/EI).
