@@ -24,8 +24,10 @@ points) and the force locations. This module fixes, for all of them:
     over the synthetic envelope.
 
 * the unloaded events (:func:`skip_unloaded`): distal to the most distal force the state of a march that starts
-  from the zero state at the tip is zero and stays zero, so those events take no steps (the force's own segment
-  keeps its steps). Marches that carry perturbations from the tip (the propagator's seeds) step them all.
+  from the zero state at the tip is zero and stays zero. The estimator's marches (the sensitivity march, the exact
+  model's ``march_curvature``) give those events no steps (the force's own segment keeps its steps); the
+  propagator's seeds, carried from the tip, and the simulator's differentiable march step them all (the zero
+  steps change no value).
 
 A non-finite rate gives 1 step (NaN) or ``max_steps`` (inf). Every sample gets its own counts: a sample's result
 does not depend on the samples batched with it.
