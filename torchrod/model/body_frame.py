@@ -280,21 +280,10 @@ def march_curvature(
             z = np.asarray(at)
             out[b, :, 0], out[b, :, 1] = z.real, z.imag
         return out
-    # Arrays: every row runs K steps, its own step lengths then zero-length steps (as integrate_curvature).
-    last = xp.lib.cumsum(steps, 1) if xp.name == "numpy" else steps.cumsum(1)
-    K = int(xp.amax(last[:, -1], 0)) if B else 0
-    grid = xp.expand(xp.arange(K)[None, :], (B, K))
-    if xp.name == "numpy":
-        import numpy as np
-
-        segment_of_step = np.stack([np.searchsorted(last[b], grid[b], side="right") for b in range(B)])
-    else:
-        segment_of_step = torch.searchsorted(last, grid.contiguous(), right=True)
-    hstep = xp.where(steps > 0, seg / xp.clip(steps, lo=1), 0.0 * seg)
-    hstep = xp.take(xp.concat([hstep, xp.zeros((B, 1))], 1), segment_of_step, 1)  # (B, K)
-    # Slot j: the state after j steps (0: the zero state before any); event e of row b ends in slot last[b, e].
-    position = xp.argsort_desc(-xp.astype(order, "float"))  # (B, E): the event of force i / query q - h
-    slot = xp.take(last, position, 1)
+    # Arrays: every row runs K steps, its own step lengths then zero-length steps (as integrate_curvature). Slot j:
+    # the state after j steps (0: the zero state before any).
+    hstep, slot = schedule.sequence(xp, order, seg, steps)  # (B, K), (B, E)
+    K = hstep.shape[1]
     at = xp.astype(slot[:, :h, None] - 1 == xp.arange(K)[None, None, :], "complex")  # (B, h, K): forces' steps
     kick = (at * jump[:, :, None]).sum(1)  # (B, K), the slope jumps after each step
     kick2 = xp.stack([kick.real, kick.imag], 1)  # (B, 2, K)

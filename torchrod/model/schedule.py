@@ -29,6 +29,10 @@ points) and the force locations. This module fixes, for all of them:
   propagator's seeds, carried from the tip, and the simulator's differentiable march step them all (the zero
   steps change no value).
 
+* the steps in sequence (:func:`sequence`): a batched march takes each row's steps one after the other, so a
+  batch costs its largest row's count, not the sum over events of the largest counts; a row past its last step
+  steps by zero, which leaves its state unchanged.
+
 A non-finite rate gives 1 step (NaN) or ``max_steps`` (inf). Every sample gets its own counts: a sample's result
 does not depend on the samples batched with it.
 
@@ -42,7 +46,7 @@ from typing import Any
 
 from ..backend import Backend
 
-__all__ = ["RULES", "events", "rates", "skip_unloaded", "step_counts"]
+__all__ = ["RULES", "events", "rates", "sequence", "skip_unloaded", "step_counts"]
 
 RULES = ("bound", "estimate")
 
@@ -111,3 +115,26 @@ def skip_unloaded(xp: Backend, order: Any, steps: Any, h: int) -> Any:
     after its steps then takes the force's jump after the records distal to it."""
     forces = xp.lib.cumsum(order < h, 1) if xp.name == "numpy" else (order < h).cumsum(1)
     return xp.where(forces > 0, steps, 0 * steps)
+
+
+def sequence(xp: Backend, order: Any, seg: Any, steps: Any) -> tuple[Any, Any]:
+    """Each row's steps one after the other (module docstring).
+
+    Args:
+        order, seg: (B, E) from :func:`events`; steps: (B, E) integer steps per segment (0 allowed).
+    Returns:
+        hstep (B, K) step lengths [m], K the largest row's count of steps, zero past a row's last step; and slot
+        (B, E), the steps taken when each force's and each query's event is reached (0: none), forces first, then
+        the queries, in their input order.
+    """
+    B = steps.shape[0]
+    last = xp.lib.cumsum(steps, 1) if xp.name == "numpy" else steps.cumsum(1)  # (B, E)
+    K = int(xp.amax(last[:, -1], 0)) if B else 0
+    if xp.name == "numpy":
+        event = xp.astype(xp.arange(K)[None, :, None] >= last[:, None, :], "int").sum(2)  # (B, K): each step's event
+    else:
+        event = xp.lib.searchsorted(last, xp.expand(xp.arange(K)[None, :], (B, K)).contiguous(), right=True)
+    h = xp.where(steps > 0, seg / xp.clip(steps, lo=1), 0.0 * seg)
+    hstep = xp.take(xp.concat([h, xp.zeros((B, 1))], 1), event, 1)  # past the last event: zero
+    slot = xp.take(last, xp.argsort_desc(-xp.astype(order, "float")), 1)
+    return hstep, slot

@@ -38,7 +38,7 @@ from typing import Any
 import torch
 
 from ..backend import NUMPY, Backend, TorchBackend
-from .schedule import events, skip_unloaded, step_counts
+from .schedule import events, sequence, skip_unloaded, step_counts
 
 __all__ = [
     "CHUNK",
@@ -195,13 +195,11 @@ def _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_ang
     P = F + S
     C = 1 + P
 
-    # Slots: slot j holds the state after j steps and the jumps of the events that end there; each row takes its
-    # events' steps one after the other, so event e of row b ends in slot last[b, e] (0: before any step).
-    last = xp.lib.cumsum(steps_be, 1) if xp.name == "numpy" else steps_be.cumsum(1)  # (B, E)
-    K = int(xp.amax(last[:, -1], 0)) if B else 0
-    segment_of_step = xp.astype(xp.arange(K)[None, :, None] >= last[:, None, :], "int").sum(2)  # (B, K)
-    hstep = xp.where(steps_be > 0, seg / xp.clip(steps_be, lo=1), 0.0 * seg)
-    hstep = xp.astype(xp.take(xp.concat([hstep, xp.zeros((B, 1))], 1), segment_of_step, 1), "complex")  # (B, K)
+    # Slots: slot j holds the state after j steps and the jumps of the events that end there (schedule.sequence:
+    # each row takes its events' steps one after the other; slot 0 is before any step).
+    hstep, slot = sequence(xp, order, seg, steps_be)  # (B, K), (B, E) in force-then-query order
+    K = hstep.shape[1]
+    hstep = xp.astype(hstep, "complex")
     # The RKN coefficients of every step (K, B, 1): hs, hs/2, -hs^2/16, -hs^2/4, -hs^2/12, -hs/12.
     hs_k = xp.mT(hstep)[:, :, None]
     h2_k = hs_k * hs_k
@@ -215,8 +213,6 @@ def _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_ang
 
     # The jumps of each force (B, h, C): column 0 the primal slope jump, then its own tangents' (dW for f_x, f_y,
     # dU for s), placed in the slot that ends its event.
-    position = xp.argsort_desc(-xp.astype(order, "float"))  # (B, E): event index of force i / query q - h
-    slot = xp.take(last, position, 1)  # (B, E) in force-then-query order
     jump_w = xp.zeros((B, h, C), "complex")
     jump_u = xp.zeros((B, h, C), "complex")
     jump_w[:, :, 0] = jump_f

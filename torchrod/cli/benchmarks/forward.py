@@ -208,7 +208,6 @@ def _paths(rod: Rod, seed: int, min_time: float, repeats: int) -> None:
             s = np.ascontiguousarray(s_all[:B, :h])
             f = np.ascontiguousarray(f_all[:B, :h])
             args = (query, s, f, rod.length, rod.bending_stiffness, None, h > 0, seeds, step, 64)
-            step = sensitivity.ESTIMATION_STEP_ANGLE
             arrays, _ = time_call(
                 lambda a=args: sensitivity._march_arrays(NUMPY, *a), min_time=min_time, repeats=repeats
             )
