@@ -167,6 +167,21 @@ def test_one_schedule_for_every_march(rod, gen):
     first = (order < 3).int().argmax(1)  # each row's most distal force, as an event index
     distal = torch.arange(order.shape[1])[None, :] < first[:, None]
     assert torch.equal(skipped, torch.where(distal, 0, bound)) and bool(distal.any())
+    # Each row's steps end to end: the lengths cover its stepped segments, zero past its end; an event's slot is
+    # the steps taken up to and including it.
+    for backend, args in ((xp, (order, seg, skipped)), (NUMPY, (order.numpy(), seg.numpy(), skipped.numpy()))):
+        hstep, slot = schedule.sequence(backend, *args)
+        hstep, slot = torch.as_tensor(hstep), torch.as_tensor(slot)
+        assert hstep.shape == (8, int(skipped.sum(1).max())) and slot.shape == order.shape
+        for b in range(8):
+            n = skipped[b].tolist()
+            want = [seg[b, e].item() / n[e] for e in range(len(n)) for _ in range(n[e])]
+            assert (
+                torch.equal(hstep[b, : len(want)], torch.tensor(want, dtype=F64))
+                and hstep[b, len(want) :].abs().sum() == 0
+            )
+            for e, idx in enumerate(order[b].tolist()):
+                assert slot[b, idx] == sum(n[: e + 1])
     ref = tr.simulate(rod, loads).grating_curvature.numpy()  # steps every event
     rows = march_curvature(NUMPY, q.numpy(), s.numpy(), f.numpy(), rod.length, rod.bending_stiffness)
     arrays = march_curvature(xp, q, s, f, rod.length, rod.bending_stiffness).numpy()
