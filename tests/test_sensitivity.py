@@ -80,9 +80,9 @@ def test_three_implementations_of_the_march_agree(rod, gen, monkeypatch, h):
 
 @pytest.mark.parametrize("h", [0, 1, 3])
 def test_three_implementations_of_the_propagator_march_agree(rod, gen, monkeypatch, h):
-    """The propagator's march (seeds carried from the tip; the Jacobian march skips the zero state distal to the
-    most distal force, this one cannot) on Python rows, NumPy arrays and torch tensors, with two forces tied at one
-    location and forces distal to every grating."""
+    """The propagator's march (seeds carried from the tip: across the zero state distal to the most distal force
+    the rows advance them by the exact linear map, the arrays step them) on Python rows, NumPy arrays and torch
+    tensors, with two forces tied at one location and forces distal to every grating."""
     B = 5
     q = rod.grating_positions().numpy()
     s = 0.03 + 0.26 * torch.rand(B, h, dtype=F64, generator=gen).numpy()

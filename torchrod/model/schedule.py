@@ -25,9 +25,11 @@ points) and the force locations. This module fixes, for all of them:
 
 * the unloaded events (:func:`skip_unloaded`): distal to the most distal force the state of a march that starts
   from the zero state at the tip is zero and stays zero. The estimator's marches (the sensitivity march, the exact
-  model's ``march_curvature``) give those events no steps (the force's own segment keeps its steps); the
-  propagator's seeds, carried from the tip, and the simulator's differentiable march step them all (the zero
-  steps change no value).
+  model's ``march_curvature``) give those events no steps (the force's own segment keeps its steps). The
+  propagator's seeds are carried from the tip: on the zero state their tangent map is exactly linear, dU += seg
+  dW, which the one-row march applies once per skipped event and the array march by stepping those events (a step
+  of the scheme is that map). The simulator's differentiable march steps them all (the zero steps change no
+  value).
 
 * the steps in sequence (:func:`sequence`): a batched march takes each row's steps one after the other, so a
   batch costs its largest row's count, not the sum over events of the largest counts; a row past its last step

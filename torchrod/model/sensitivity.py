@@ -160,10 +160,11 @@ def _jumps(xp: Backend, f: Any, active: Any, ei: float) -> Any:
     return jump if active is None else xp.where(active, jump, 0.0 * jump)
 
 
-def _schedule(xp, query, s, jump, length, step_angle, max_steps, seeds):
+def _schedule(xp, query, s, jump, length, step_angle, max_steps, skip):
+    """The events and step counts of :mod:`.schedule`; ``skip``: the unloaded events get no steps."""
     pos, order, seg = events(xp, query, s, length)
     steps = step_counts(xp, s, jump, pos, seg, step_angle=step_angle, max_steps=max_steps, rule="estimate")
-    if not seeds:  # the seeds move from the tip on: every event steps
+    if skip:
         steps = skip_unloaded(xp, order, steps, s.shape[1])
     return pos, order, seg, steps
 
@@ -188,7 +189,9 @@ def _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_ang
     Q = query.shape[-1]
     ei = float(ei)
     jump_f = _jumps(xp, f, active, ei)  # (B, h)
-    pos, order, seg, steps_be = _schedule(xp, query, s, jump_f, length, step_angle, max_steps, seeds)
+    # The seeds move from the tip on, so with them every event steps (a step of the zero state advances them by
+    # the linear map exactly).
+    pos, order, seg, steps_be = _schedule(xp, query, s, jump_f, length, step_angle, max_steps, not seeds)
 
     F = 3 * h if jacobian else 0
     S = 4 if seeds else 0
@@ -278,7 +281,7 @@ def _march_rows(query, s, f, length, ei, active, jacobian, seeds, step_angle, ma
     Q = query.shape[-1]
     ei = float(ei)
     jump_f = _jumps(NUMPY, f, active, ei)
-    pos, order, seg, steps = _schedule(NUMPY, query, s, jump_f, length, step_angle, max_steps, seeds)
+    pos, order, seg, steps = _schedule(NUMPY, query, s, jump_f, length, step_angle, max_steps, True)
     F = 3 * h if jacobian else 0
     curv = np.empty((B, Q, 2))
     jac = np.empty((B, Q, 2, F)) if jacobian else None
@@ -316,7 +319,11 @@ def _row(order, seg, steps, jumps, active, Q, h, F, seeds, ei):
     out_w: list[list[complex]] = [[]] * Q
     d_fx, d_fy = 1j / ei, -1.0 / ei
     for e, idx in enumerate(order):
-        n = steps[e]  # 0 distal to every force without seeds (schedule.skip_unloaded)
+        n = steps[e]  # 0 distal to every force (schedule.skip_unloaded): the state is zero there
+        if not n and du:
+            # The zero state's tangent map over the segment is exactly linear (g's derivative vanishes at U = 0):
+            # the seeds advance in one move, dU += seg dW, where a step of the scheme would give the same.
+            du = [y + seg[e] * w for y, w in zip(du, dw, strict=True)]
         hs = seg[e] / n if n else 0.0
         ch, k16, k4, k12, kw = 0.5 * hs, -hs * hs / 16.0, -hs * hs / 4.0, -hs * hs / 12.0, -hs / 12.0
         for _ in range(n):
