@@ -186,3 +186,44 @@ def test_one_schedule_for_every_march(rod, gen):
     rows = march_curvature(NUMPY, q.numpy(), s.numpy(), f.numpy(), rod.length, rod.bending_stiffness)
     arrays = march_curvature(xp, q, s, f, rod.length, rod.bending_stiffness).numpy()
     assert np.abs(rows - ref).max() < 1e-12 and np.abs(arrays - ref).max() < 1e-12
+
+
+def test_the_one_row_schedule_is_the_array_schedule(rod):
+    """``schedule.row`` (Python numbers, for the marches that run a row at a time) gives the same order, segments and
+    step counts as ``events``, ``step_counts`` and ``skip_unloaded`` on arrays, for both rules, with and without the
+    skip: random forces of 0 to 3, ties between forces, forces on gratings and at the tip, loads from 0.1 to 100 N
+    (up to the step cap), and queries beside the gratings."""
+    rng = np.random.default_rng(7)
+    q = rod.grating_positions().numpy()
+    xp = NUMPY
+    checked = capped = 0
+    for _ in range(400):
+        h = int(rng.integers(0, 4))
+        s = rng.uniform(0.0, rod.length, (1, h))
+        if h >= 2 and rng.random() < 0.3:
+            s[0, 1] = s[0, 0]
+        if h and rng.random() < 0.3:
+            s[0, 0] = q[rng.integers(q.shape[0])]
+        if h and rng.random() < 0.1:
+            s[0, -1] = rod.length
+        f = rng.normal(0.0, rng.choice([0.1, 1.0, 10.0, 100.0]), (1, h, 2))
+        query = q if rng.random() < 0.5 else np.concatenate([q, rng.uniform(0.0, rod.length, 10)])
+        jumps = {
+            "estimate": xp.complex(-f[..., 1], f[..., 0]) / rod.bending_stiffness,
+            "bound": np.sqrt((f * f).sum(-1)) / rod.bending_stiffness,
+        }
+        pos, order, seg = schedule.events(xp, query, s, rod.length)
+        for rule, jump in jumps.items():
+            steps = schedule.step_counts(xp, s, jump, pos, seg, step_angle=0.3, max_steps=64, rule=rule)
+            for skip in (False, True):
+                want = schedule.skip_unloaded(xp, order, steps, h) if skip else steps
+                got = schedule.row(
+                    query.tolist(), s[0].tolist(), jump[0].tolist(), rod.length,
+                    step_angle=0.3, max_steps=64, rule=rule, skip=skip,
+                )  # fmt: skip
+                assert got == (order[0].tolist(), seg[0].tolist(), want[0].tolist())
+                checked += 1
+                capped += int(want.max(initial=0) == 64)
+    assert checked == 1600 and capped > 0
+    with pytest.raises(ValueError, match="rule"):
+        schedule.row([0.1], [0.2], [1j], rod.length, step_angle=0.3, max_steps=64, rule="guess", skip=False)

@@ -37,6 +37,7 @@ erratum 3) and integrates the distributed load, interpolated linearly between no
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -254,32 +255,37 @@ def march_curvature(
     B, h = s.shape
     Q = query.shape[0]
     ei = float(bending_stiffness)
-    pos, order, seg = schedule.events(xp, query, s, length)
-    fmag = xp.lib.sqrt((f * f).sum(-1)) / ei
-    steps = schedule.step_counts(xp, s, fmag, pos, seg, step_angle=max_step_angle, max_steps=64, rule="bound")
-    jump = xp.complex(-f[..., 1], f[..., 0]) / ei  # (B, h) slope jumps
-    steps = schedule.skip_unloaded(xp, order, steps, h)  # the zero state distal to every force: no steps
     if xp.name == "numpy" and B <= SCALAR_MAX_BATCH:
         import numpy as np
 
         out = np.empty((B, Q, 2))
-        orders, segs, counts, jumps = order.tolist(), seg.tolist(), steps.tolist(), jump.tolist()
+        queries, positions, forces = query.tolist(), s.tolist(), f.tolist()
         for b in range(B):
+            jumps = [complex(-fy, fx) / ei for fx, fy in forces[b]]  # the slope jumps
+            fmag = [math.sqrt(fx * fx + fy * fy) / ei for fx, fy in forces[b]]
+            order, seg, counts = schedule.row(
+                queries, positions[b], fmag, length, step_angle=max_step_angle, max_steps=64, rule="bound", skip=True
+            )
             hs, kicks, ends = [], [], []
-            for e, idx in enumerate(orders[b]):
-                n = counts[b][e]  # 0 only for queries distal to every force
+            for e, idx in enumerate(order):
+                n = counts[e]  # 0 only for queries distal to every force
                 if n:
-                    hs += [segs[b][e] / n] * n
-                    kicks += [None] * (n - 1) + [jumps[b][idx] if idx < h and jumps[b][idx] != 0 else None]
+                    hs += [seg[e] / n] * n
+                    kicks += [None] * (n - 1) + [jumps[idx] if idx < h and jumps[idx] != 0 else None]
                 ends.append(len(hs) - 1)
             Us, _, _ = _forward_generic(tab, 0j, hs, [x * x for x in hs], kicks, None, _sq_complex, False)
             at = [0j] * Q
-            for e, idx in enumerate(orders[b]):
+            for e, idx in enumerate(order):
                 if idx >= h and ends[e] >= 0:
                     at[idx - h] = Us[ends[e]]
             z = np.asarray(at)
             out[b, :, 0], out[b, :, 1] = z.real, z.imag
         return out
+    pos, order, seg = schedule.events(xp, query, s, length)
+    fmag = xp.lib.sqrt((f * f).sum(-1)) / ei
+    steps = schedule.step_counts(xp, s, fmag, pos, seg, step_angle=max_step_angle, max_steps=64, rule="bound")
+    jump = xp.complex(-f[..., 1], f[..., 0]) / ei  # (B, h) slope jumps
+    steps = schedule.skip_unloaded(xp, order, steps, h)  # the zero state distal to every force: no steps
     # Arrays: every row runs K steps, its own step lengths then zero-length steps (as integrate_curvature). Slot j:
     # the state after j steps (0: the zero state before any).
     hstep, slot = schedule.sequence(xp, order, seg, steps)  # (B, K), (B, E)

@@ -39,16 +39,20 @@ A non-finite rate gives 1 step (NaN) or ``max_steps`` (inf). Every sample gets i
 does not depend on the samples batched with it.
 
 The functions run on NumPy arrays and torch tensors alike (:mod:`torchrod.backend`); on tensors, the sorted
-positions and segments keep their autograd history (the step lengths are differentiable in s).
+positions and segments keep their autograd history (the step lengths are differentiable in s). :func:`row` is the
+same schedule for one row on Python numbers, for the marches that run a row at a time (a few dozen NumPy operations
+on arrays of one row cost more than the march itself); a test holds it to the array functions.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from typing import Any
 
 from ..backend import Backend
 
-__all__ = ["RULES", "events", "rates", "sequence", "skip_unloaded", "step_counts"]
+__all__ = ["RULES", "events", "rates", "row", "sequence", "skip_unloaded", "step_counts"]
 
 RULES = ("bound", "estimate")
 
@@ -140,3 +144,73 @@ def sequence(xp: Backend, order: Any, seg: Any, steps: Any) -> tuple[Any, Any]:
     hstep = xp.take(xp.concat([h, xp.zeros((B, 1))], 1), event, 1)  # past the last event: zero
     slot = xp.take(last, xp.argsort_desc(-xp.astype(order, "float")), 1)
     return hstep, slot
+
+
+def _nanmax(a: float, b: float) -> float:
+    return a if a != a or a >= b else b  # NaN propagates, as NumPy's maximum
+
+
+def _nanmin(a: float, b: float) -> float:
+    return a if a != a or a <= b else b
+
+
+def row(
+    query: Sequence[float],
+    s: Sequence[float],
+    jump: Sequence[Any],
+    length: float,
+    *,
+    step_angle: float,
+    max_steps: int,
+    rule: str,
+    skip: bool,
+) -> tuple[list[int], list[float], list[int]]:
+    """:func:`events`, :func:`step_counts` and (``skip``) :func:`skip_unloaded` for one row, on Python numbers.
+
+    Args:
+        query: Q positions [m]; s: h force locations [m]; jump: h jumps as :func:`rates` takes them (complex for
+            ``"estimate"``, magnitudes for ``"bound"``).
+    Returns:
+        order (E,), seg (E,) [m] and steps (E,), as the array functions' rows.
+    """
+    if rule not in RULES:
+        raise ValueError(f"rule must be one of {RULES}, got {rule!r}")
+    h = len(s)
+    bound = rule == "bound"
+    pos = list(s) + list(query)
+    order = sorted(range(len(pos)), key=pos.__getitem__, reverse=True)  # stable: forces first at ties
+    seg: list[float] = []
+    steps: list[int] = []
+    start = float(length)
+    passed = [False] * h  # the forces reached so far: only they can be distal
+    reached = False
+    for idx in order:
+        p = pos[idx]
+        d = start - p
+        d = d if d != d or d >= 0.0 else 0.0
+        seg.append(d)
+        start = p
+        if not reached:  # no force distal: rate 0, one step (none for the unloaded events where they are skipped)
+            if idx < h:
+                reached = passed[idx] = True
+            steps.append(1 if reached or not skip else 0)
+            continue
+        # The sums over the distal forces in index order (the other terms are exact zeros in the arrays' sums).
+        a = m = 0.0 if bound else 0j
+        for i in range(h):
+            if passed[i]:
+                x = s[i] - p
+                if x > 0.0:
+                    a += jump[i] * x
+                    m += jump[i]
+                elif x != x:
+                    a = x
+        if bound:
+            rate = _nanmax(_nanmin(a, math.sqrt(2.0 * m)), math.sqrt(m))
+        else:
+            rate = _nanmax(abs(a), math.sqrt(abs(m)))
+        need = rate * d / step_angle
+        steps.append(1 if need != need else max(math.ceil(min(need, float(max_steps))), 1))
+        if idx < h:
+            passed[idx] = True
+    return order, seg, steps

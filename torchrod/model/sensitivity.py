@@ -39,6 +39,7 @@ import torch
 
 from ..backend import NUMPY, Backend, TorchBackend
 from .schedule import events, sequence, skip_unloaded, step_counts
+from .schedule import row as row_schedule
 
 __all__ = [
     "CHUNK",
@@ -273,23 +274,32 @@ def _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_ang
 
 
 def _march_rows(query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps):
-    """:func:`march` on NumPy arrays for a few rows: the schedule from :mod:`.schedule` (NumPy), then each row on
-    Python complex numbers (:func:`_row`)."""
+    """:func:`march` on NumPy arrays for a few rows, each on Python numbers: its schedule (:func:`.schedule.row`),
+    then its march on complex numbers (:func:`_row`)."""
     import numpy as np
 
     B, h = s.shape
     Q = query.shape[-1]
     ei = float(ei)
-    jump_f = _jumps(NUMPY, f, active, ei)
-    pos, order, seg, steps = _schedule(NUMPY, query, s, jump_f, length, step_angle, max_steps, True)
     F = 3 * h if jacobian else 0
     curv = np.empty((B, Q, 2))
     jac = np.empty((B, Q, 2, F)) if jacobian else None
     phi = np.empty((B, Q, 4, 4)) if seeds else None
-    jumps = jump_f.tolist()
     on = [[True] * h] * B if active is None else active.tolist()
+    positions, forces, queries = s.tolist(), f.tolist(), query.tolist()
     for b in range(B):
-        u, du, dw = _row(order[b].tolist(), seg[b].tolist(), steps[b].tolist(), jumps[b], on[b], Q, h, F, seeds, ei)
+        jumps = [complex(-fy, fx) / ei if a else 0j for (fx, fy), a in zip(forces[b], on[b], strict=True)]  # _jumps
+        order, seg, steps = row_schedule(
+            queries if query.ndim == 1 else queries[b],
+            positions[b],
+            jumps,
+            length,
+            step_angle=step_angle,
+            max_steps=max_steps,
+            rule="estimate",
+            skip=True,
+        )
+        u, du, dw = _row(order, seg, steps, jumps, on[b], Q, h, F, seeds, ei)
         z = np.asarray(u)
         curv[b, :, 0], curv[b, :, 1] = z.real, z.imag
         d = np.asarray(du).reshape(Q, F + 4 * seeds)
