@@ -249,36 +249,31 @@ def scan(problem: Problem, base: Fits | lm.LMState, *, per_interval: int, top: i
     gain = xp.amax(dec_g, 1)
     gain = xp.where(xp.isfinite(gain), xp.clip(gain, lo=0.0), 0.0)
     base_loss = (r * r).sum(1)
-    blocks, predicted = [], []
-    for t in range(top):
-        j = order[:, t]  # (R0,) interval
-        c = j * K + xp.take(best_k, j[:, None], 1)[:, 0]  # (R0,) candidate index
-        ok = xp.isfinite(xp.take(dec, c[:, None], 1)[:, 0])
-        # A base row with fewer intervals than `top` repeats its best start.
-        c0 = order[:, 0] * K + xp.take(best_k, order[:, :1], 1)[:, 0]
-        c = xp.where(ok, c, c0)
-        predicted.append(xp.where(ok, base_loss - xp.take(dec, c[:, None], 1)[:, 0], math.inf))
-        st = xp.take(step, xp.expand(c[:, None, None], (R0, 1, Pb + 2)), 1)[:, 0]  # (R0, Pb + 2)
-        big = xp.clip(xp.amax(abs(st), 1) / trust, lo=1.0)[:, None]
-        st = st / big
-        s_new = xp.take(cand, c[:, None], 1)  # (R0, 1)
-        int_new = xp.take(cint, c[:, None], 1)
-        f_new = st[:, None, Pb:] * problem.force_unit  # (R0, 1, 2)
-        d = st[:, :Pb].reshape(R0, h0, 3)
-        s_old = base.s + d[..., 0] * problem.length
-        f_old = base.f + d[..., 1:] * problem.force_unit
-        # A base force the step moves past a grating starts in the interval it moves into.
-        int_old, s_old = interval_of(problem, base.reading, s_old)
-        blocks.append(
-            Fits(
-                base.reading,
-                xp.concat([s_old, s_new], 1),
-                xp.concat([f_old, f_new], 1),
-                xp.concat([int_old, int_new], 1),
-            )
-        )
-    starts = Fits(*(xp.concat([getattr(b, k) for b in blocks]) for k in ("reading", "s", "f", "interval")))
-    return Scan(starts=starts, gain=gain, predicted=xp.stack(predicted, 0))
+    # The `top` starts of every base row at once, in blocks (row t R0 + i: base row i's t-th best interval).
+    c = order * K + xp.take(best_k, order, 1)  # (R0, top) candidate indices
+    dec_c = xp.take(dec, c, 1)
+    ok = xp.isfinite(dec_c)
+    # A base row with fewer intervals than `top` repeats its best start.
+    c = xp.where(ok, c, c[:, :1])
+    predicted = xp.mT(xp.where(ok, base_loss[:, None] - xp.take(dec, c, 1), math.inf))  # (top, R0)
+    c = xp.mT(c).reshape(-1)  # (top R0,) block order
+    i = xp.concat([xp.arange(R0)] * top)
+    st = step[i, c]  # (top R0, Pb + 2)
+    big = xp.clip(xp.amax(abs(st), 1) / trust, lo=1.0)[:, None]
+    st = st / big
+    d = st[:, :Pb].reshape(top * R0, h0, 3)
+    reading = base.reading[i]
+    s_old = base.s[i] + d[..., 0] * problem.length
+    f_old = base.f[i] + d[..., 1:] * problem.force_unit
+    # A base force the step moves past a grating starts in the interval it moves into.
+    int_old, s_old = interval_of(problem, reading, s_old)
+    starts = Fits(
+        reading,
+        xp.concat([s_old, cand[i, c][:, None]], 1),
+        xp.concat([f_old, st[:, None, Pb:] * problem.force_unit], 1),
+        xp.concat([int_old, cint[i, c][:, None]], 1),
+    )
+    return Scan(starts=starts, gain=gain, predicted=predicted)
 
 
 def _solve(xp: Any, A: Any, g: Any) -> tuple[Any, Any]:
