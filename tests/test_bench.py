@@ -8,6 +8,7 @@ import torch
 
 from torchrod.cli import main
 from torchrod.cli.commands import bench
+from torchrod.model import sensitivity
 
 
 def test_bench_forward_quick_prints_both_tables(capsys):
@@ -36,7 +37,7 @@ def test_bench_forward_quick_prints_both_tables(capsys):
 def test_bench_forward_paths_times_both_marches_side_by_side(capsys):
     assert main(["bench", "forward", "--quick", "--paths", "--batch-sizes", "1", "--cases", "1"]) == 0
     out = capsys.readouterr().out
-    assert "switch at work 64" in out
+    assert f"switch at work {sensitivity.SCALAR_WORK}" in out
     rows = re.findall(r"^\s+(\d)\s+(yes|no)\s+(\d+) \|(.*)\|(.*)$", out, re.MULTILINE)
     assert {(h, seeds) for h, seeds, *_ in rows} == {
         ("0", "yes"),

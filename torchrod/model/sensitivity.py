@@ -48,14 +48,21 @@ __all__ = [
     "curvature_and_jacobian",
     "march",
     "march_propagator",
+    "march_work",
 ]
 
-SCALAR_WORK = 64
-"""Batches on the NumPy backend whose work is at most this are marched one row at a time on Python complex numbers
-(no per-operation overhead), larger ones on arrays. The work is rows x (4 + Jacobian columns), or rows x 12 with
-the propagator's seeds (carried from the tip, they cost the rows path the same at any count of forces). The first
-path's cost grows with that work, the second's is mostly fixed per operation at small batch: this puts the switch
-at the crossover ``torchrod bench forward --paths`` measures (docs/results.md)."""
+SCALAR_WORK = 80
+"""Batches on the NumPy backend whose work (:func:`march_work`) is at most this are marched one row at a time on
+Python complex numbers (no per-operation overhead), larger ones on arrays. The first path's cost grows with that
+work, the second's is mostly fixed per operation at small batch: this puts the switch at the crossover
+``torchrod bench forward --paths`` measures (docs/results.md)."""
+
+
+def march_work(rows: int, columns: int) -> int:
+    """The work of a march of ``rows`` rows carrying ``columns`` tangent columns (3 per force with the Jacobian, 4
+    with the propagator's seeds): rows x (4 + columns), the measure :data:`SCALAR_WORK` is set against."""
+    return rows * (4 + columns)
+
 
 CHUNK = 384
 """Rows marched together (larger batches are split: the working set stays in cache, and each part gets step
@@ -128,7 +135,7 @@ def march_propagator(
 def _march(xp, query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps):
     B = s.shape[0]
     columns = (3 * s.shape[1] if jacobian else 0) + (4 if seeds else 0)
-    if xp.name == "numpy" and B * (12 if seeds else 4 + columns) <= SCALAR_WORK:
+    if xp.name == "numpy" and march_work(B, columns) <= SCALAR_WORK:
         return _march_rows(query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps)
     if B > CHUNK:
         parts = [

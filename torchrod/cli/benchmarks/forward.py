@@ -181,8 +181,8 @@ def _paths(rod: Rod, seed: int, min_time: float, repeats: int) -> None:
     """The estimator's march (:mod:`torchrod.model.sensitivity`) on NumPy arrays and one row at a time on Python
     numbers, side by side, on readings of ``torchrod bench estimate`` (the estimator's envelope): h = 1..3 forces
     with the Jacobian, with the Jacobian and the propagator's seeds, and the seeds alone (h = 0), at growing batch
-    sizes. Prints the smallest batch where the arrays win and its work (``rows x (4 + columns)``, with seeds
-    ``rows x 12``), against which the switch SCALAR_WORK is set."""
+    sizes. Prints the smallest batch where the arrays win and its work (:func:`.sensitivity.march_work`), against
+    which the switch SCALAR_WORK is set."""
     from ...backend import NUMPY
     from ...model import sensitivity
     from .estimate import readings
@@ -215,7 +215,7 @@ def _paths(rod: Rod, seed: int, min_time: float, repeats: int) -> None:
             cells.append(f"{1e3 * arrays:5.2f}/{1e3 * rows:5.2f}")
             if win is None and arrays < rows:
                 win = B
-        work = "-" if win is None else f"B={win}, work {win * (12 if seeds else 4 + cols)}"
+        work = "-" if win is None else f"B={win}, work {sensitivity.march_work(win, cols)}"
         print(
             f"{h:6d} {'yes' if seeds else 'no':>5s} {cols:4d} | " + " ".join(f"{c:>11s}" for c in cells) + f" | {work}"
         )
