@@ -47,7 +47,7 @@ from ..backend import torch_backend
 from ..loads import PointForces, spread_to_nodes
 from ..rod import Rod
 from . import schedule
-from .nystrom import METHODS, SCALAR_MAX_BATCH, Tableau, _forward_array, _forward_generic, _sq_complex, march
+from .nystrom import METHODS, Tableau, _forward_array, _forward_generic, _sq_complex, march
 
 __all__ = [
     "DEFAULT_STEP_ANGLE",
@@ -237,6 +237,12 @@ def integrate_curvature(
     return curvature, force
 
 
+ROWS_MAX_BATCH = 12
+""":func:`march_curvature` runs batches up to this size one row at a time on Python numbers. Measured against the
+arrays on 1-3 forces of ``bench estimate``'s envelope (docs/results.md, "The two forward-sensitivity marches"): the
+rows win up to 16 rows for one or two forces and up to 12 for three."""
+
+
 def march_curvature(
     xp: Any,
     query: Any,
@@ -250,12 +256,13 @@ def march_curvature(
 ) -> Any:
     """:func:`integrate_curvature` without autograd on a backend's arrays (:mod:`torchrod.backend`): curvature
     (B, Q, 2) [1/m] at ``query`` (Q,) for forces s (B, h) [m], f (B, h, 2) [N]. The same schedule and method; a few
-    rows on NumPy run one at a time on Python complex numbers (no per-operation overhead), the rest as arrays."""
+    rows on NumPy (at most :data:`ROWS_MAX_BATCH`) run one at a time on Python numbers (no per-operation overhead),
+    the rest as arrays."""
     tab = _method(method, "exact")
     B, h = s.shape
     Q = query.shape[0]
     ei = float(bending_stiffness)
-    if xp.name == "numpy" and B <= SCALAR_MAX_BATCH:
+    if xp.name == "numpy" and B <= ROWS_MAX_BATCH:
         import numpy as np
 
         out = np.empty((B, Q, 2))
