@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -211,6 +212,24 @@ def test_poorly_determined_flags(rod):
     assert pair.statuses == ["poorly_determined"]
     fine = est.estimate(u[3:], num_forces=1)
     assert fine.statuses == ["ok", "ok"] and not bool(fine.poorly_determined.any())
+
+
+def test_a_rod_with_fewer_gratings_than_starts(rod):
+    """A rod with one or two gratings (fewer intervals than the scan's three starts) is estimated, not crashed on:
+    with two gratings a clean force beyond them is recovered, flagged ``poorly_determined`` (4 residuals, 3
+    unknowns: nothing left to test a count with); one grating (2 residuals) cannot locate a force, and says so."""
+    s, f = torch.tensor([[0.28]], dtype=F64), torch.tensor([[[0.5, 0.2]]], dtype=F64)
+    for G in (1, 2):
+        few = dataclasses.replace(rod, gratings=rod.gratings[-G:])
+        u = tr.simulate(few, tr.PointForces(s, f)).grating_curvature
+        for noise in (0.1, None):
+            for B in (1, 20):  # one reading per call and a batch (the array marches)
+                result = Estimator(few, EstimatorOptions(noise=noise)).estimate(u.expand(B, -1, -1).clone())
+                assert result.statuses == ["poorly_determined"] * B
+                if G == 2:
+                    assert result.num_forces.tolist() == [1] * B
+                    assert (result.forces.s[:, 0] - 0.28).abs().max() < 1e-5
+                    assert (result.forces.f[:, 0] - f[0, 0]).abs().max() < 1e-4
 
 
 def test_input_checks_and_dtype(rod):

@@ -246,6 +246,8 @@ def scan(problem: Problem, base: Fits | lm.LMState, *, per_interval: int, top: i
     best_k = xp.argmin(-dec_i, 2)  # (R0, G)
     dec_g = xp.take(dec_i, best_k[:, :, None], 2)[:, :, 0]  # (R0, G)
     order = xp.argsort_desc(dec_g)[:, :top]  # (R0, top) intervals
+    if order.shape[1] < top:  # fewer gratings than starts: the best interval fills the rest (repeated below too)
+        order = xp.concat([order] + [order[:, :1]] * (top - order.shape[1]), 1)
     gain = xp.amax(dec_g, 1)
     gain = xp.where(xp.isfinite(gain), xp.clip(gain, lo=0.0), 0.0)
     base_loss = (r * r).sum(1)
