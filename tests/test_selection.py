@@ -57,6 +57,30 @@ def test_selection_rules_on_given_losses(xp):
 
 
 @pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)
+def test_when_no_count_is_accepted_the_fewest_forces_no_larger_count_improves_on(xp):
+    """A reading no count explains (every loss far above the misfit guard) reports the fewest forces that no larger
+    count improves on beyond noise, not the largest count; the same where no count has degrees of freedom left (one
+    present grating: 2 residuals, so a single force already fits exactly). Nothing passes: the largest count."""
+    counts, sigma = [0, 1, 2, 3], 0.1
+    c1 = chi2_quantile(1.0 - 0.05 / 14, 3) * sigma**2
+    losses = xp.asarray(
+        [
+            [50.0, 30.0, 20.0, 20.0 - 0.5 * c1],  # misfit at every count; the third force adds nothing: 2
+            [50.0, 30.0, 20.0, 10.0],  # misfit, every force helps: 3
+            [5.0, 1e-12, 1e-13, 1e-14],  # 2 residuals: one force fits exactly: 1
+        ]
+    )
+    n = xp.asarray([28, 28, 2], "int")
+    for noise in (sigma, None):
+        chosen, _ = select_count(
+            xp, losses, counts, n, noise=noise, significance=0.05, num_gratings=14, floor=1e-3
+        )  # the estimator's floor: with the noise unknown and no degrees of freedom, sigma is the floor
+        assert xp.tolist(chosen)[2] == 1
+        if noise is not None:
+            assert xp.tolist(chosen)[:2] == [2, 3]
+
+
+@pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)
 def test_a_count_is_settled_only_when_one_more_force_cannot_change_it(xp):
     n = xp.asarray([28, 28, 28], "int")
     sigma = 0.1

@@ -17,7 +17,9 @@ The loss of a fit with h forces is ``loss_h = sum over present gratings of |u_mo
         loss_h - loss_h' <= sigma^2 chi2_{1 - alpha / G}(3 (h' - h)),
 
     and (a guard against gross misfit, when every fit is poor) ``loss_h <= sigma^2 chi2_{1 - alpha_fit}(n - 3h)``
-    with ``alpha_fit = alpha / MISFIT_FACTOR``. The smallest accepted h wins; if none is, the largest fitted count.
+    with ``alpha_fit = alpha / MISFIT_FACTOR``. The smallest accepted h wins. If none is (a reading no count
+    explains, or too few residuals for any test), the smallest h that passes the drop tests alone wins: the fewest
+    forces that no larger count improves on beyond noise; failing that, the largest fitted count.
     h = 0 is tested like any other count: a reading of pure noise is "no contact". With sigma unknown it is
     estimated from the largest fit, ``sigma^2 = loss_H / (n - 3 H)``, and the drop is tested with the F law:
     ``((loss_h - loss_h') / (3 (h' - h))) / sigma^2 <= F_{1 - alpha / G}(3 (h' - h), n - 3H)`` (no misfit guard:
@@ -27,7 +29,7 @@ A one-force reading is therefore not split in two (a second force lowers the los
 forces are kept apart whenever merging them raises the loss beyond what noise explains. sigma^2 is floored by
 ``floor^2`` (added in quadrature): the forward model is exact only to the integrator's accuracy, so a noise-free
 reading must not demand a loss of exactly zero. Counts without degrees of freedom left (``3 h >= n``) are never
-accepted by a test and only chosen as the last resort.
+accepted by a test and only chosen when no count is.
 
 :func:`settled` tells, with the noise known, whether a count is decided before the next count is fitted, from the
 scan's promise of what one more force could gain (:mod:`.search`).
@@ -187,7 +189,13 @@ def select_count(
         diff = losses[:, :, None] - losses[:, None, :]  # (B, C, C): loss_h - loss_h'
         pair_ok = ~(diff > drop * s2)  # NaN (unfitted h') passes
         ok = fitted & xp.all(pair_ok, 2) & (losses <= misfit * sigma2[:, None]) & (dof > 0)
-    first = xp.where(xp.any(ok, 1), xp.argmin(-xp.astype(ok, "int"), 1), last)
+    fallback = last
+    if rule != "threshold":
+        # No count accepted (every fit worse than the noise explains, or none with degrees of freedom left): the
+        # fewest forces that no larger count improves on beyond noise, else the largest fitted.
+        fewest = fitted & xp.all(pair_ok, 2)
+        fallback = xp.where(xp.any(fewest, 1), xp.argmin(-xp.astype(fewest, "int"), 1), last)
+    first = xp.where(xp.any(ok, 1), xp.argmin(-xp.astype(ok, "int"), 1), fallback)
     chosen = xp.astype(h[first], "int")
     if sigma2 is None:
         lc = xp.take(losses, first[:, None], 1)[:, 0]
