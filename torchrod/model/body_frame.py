@@ -37,7 +37,6 @@ erratum 3) and integrates the distributed load, interpolated linearly between no
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -262,16 +261,24 @@ def march_curvature(
     B, h = s.shape
     Q = query.shape[0]
     ei = float(bending_stiffness)
+    fmag = xp.lib.sqrt((f * f).sum(-1)) / ei
+    jump = xp.complex(-f[..., 1], f[..., 0]) / ei  # (B, h) slope jumps
     if xp.name == "numpy" and B <= ROWS_MAX_BATCH:
         import numpy as np
 
         out = np.empty((B, Q, 2))
-        queries, positions, forces = query.tolist(), s.tolist(), f.tolist()
+        queries, positions, magnitudes, slopes = query.tolist(), s.tolist(), fmag.tolist(), jump.tolist()
         for b in range(B):
-            jumps = [complex(-fy, fx) / ei for fx, fy in forces[b]]  # the slope jumps
-            fmag = [math.sqrt(fx * fx + fy * fy) / ei for fx, fy in forces[b]]
+            jumps = slopes[b]
             order, seg, counts = schedule.row(
-                queries, positions[b], fmag, length, step_angle=max_step_angle, max_steps=64, rule="bound", skip=True
+                queries,
+                positions[b],
+                magnitudes[b],
+                length,
+                step_angle=max_step_angle,
+                max_steps=64,
+                rule="bound",
+                skip=True,
             )
             hs, kicks, ends = [], [], []
             for e, idx in enumerate(order):
@@ -289,9 +296,7 @@ def march_curvature(
             out[b, :, 0], out[b, :, 1] = z.real, z.imag
         return out
     pos, order, seg = schedule.events(xp, query, s, length)
-    fmag = xp.lib.sqrt((f * f).sum(-1)) / ei
     steps = schedule.step_counts(xp, s, fmag, pos, seg, step_angle=max_step_angle, max_steps=64, rule="bound")
-    jump = xp.complex(-f[..., 1], f[..., 0]) / ei  # (B, h) slope jumps
     steps = schedule.skip_unloaded(xp, order, steps, h)  # the zero state distal to every force: no steps
     # Arrays: every row runs K steps, its own step lengths then zero-length steps (as integrate_curvature). Slot j:
     # the state after j steps (0: the zero state before any).

@@ -293,20 +293,19 @@ def _march_rows(query, s, f, length, ei, active, jacobian, seeds, step_angle, ma
     jac = np.empty((B, Q, 2, F)) if jacobian else None
     phi = np.empty((B, Q, 4, 4)) if seeds else None
     on = [[True] * h] * B if active is None else active.tolist()
-    positions, forces, queries = s.tolist(), f.tolist(), query.tolist()
+    positions, jumps, queries = s.tolist(), _jumps(NUMPY, f, active, ei).tolist(), query.tolist()
     for b in range(B):
-        jumps = [complex(-fy, fx) / ei if a else 0j for (fx, fy), a in zip(forces[b], on[b], strict=True)]  # _jumps
         order, seg, steps = row_schedule(
             queries if query.ndim == 1 else queries[b],
             positions[b],
-            jumps,
+            jumps[b],
             length,
             step_angle=step_angle,
             max_steps=max_steps,
             rule="estimate",
             skip=True,
         )
-        u, du, dw = _row(order, seg, steps, jumps, on[b], Q, h, F, seeds, ei)
+        u, du, dw = _row(order, seg, steps, jumps[b], on[b], Q, h, F, seeds, ei)
         z = np.asarray(u)
         curv[b, :, 0], curv[b, :, 1] = z.real, z.imag
         d = np.asarray(du).reshape(Q, F + 4 * seeds)
