@@ -48,8 +48,11 @@ def test_bench_forward_paths_times_both_marches_side_by_side(capsys):
         ("2", "yes"),
         ("3", "yes"),
     }, out
-    for h, seeds, cols, cells, _ in rows:
+    for h, seeds, cols, cells, win in rows:
         assert int(cols) == 3 * int(h) + (4 if seeds == "yes" else 0)
+        if win.strip() != "-":  # the work the switch is set against: rows x (4 + columns)
+            b, work = map(int, re.fullmatch(r"\s*B=(\d+), work (\d+)\s*", win).groups())
+            assert work == b * (4 + int(cols)) == sensitivity.march_work(b, int(cols))
         pairs = re.findall(r"(\d+\.\d+)/\s*(\d+\.\d+)", cells)
         assert len(pairs) == 10 and all(float(a) > 0 and float(b) > 0 for a, b in pairs), cells
 
