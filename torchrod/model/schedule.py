@@ -85,16 +85,25 @@ def rates(xp: Backend, s: Any, jump: Any, pos: Any, rule: str) -> Any:
             their magnitudes |f_i| / EI.
     """
     lib = xp.lib
-    lever = xp.clip(s[:, None, :] - pos[:, :, None], lo=0.0)  # (B, E, h) [m]
-    distal = lever > 0
+    if rule not in RULES:
+        raise ValueError(f"rule must be one of {RULES}, got {rule!r}")
+    # The sums over the forces, force by force in index order (an axis of length h would cost NumPy a loop per
+    # element); "estimate" sums the real and imaginary parts of the jumps apart.
+    parts = [jump] if rule == "bound" else [jump.real, jump.imag]
+    levered = [0.0 * pos for _ in parts]  # sum_i J_i (s_i - s)^+
+    distal = [0.0 * pos for _ in parts]  # sum_i J_i [s_i > s]
+    for i in range(s.shape[1]):
+        lever = xp.clip(s[:, i : i + 1] - pos, lo=0.0)  # (B, E) [m]
+        beyond = xp.astype(lever > 0, "float")
+        for k, part in enumerate(parts):
+            j = part[:, i : i + 1]
+            levered[k] = j * lever if i == 0 else levered[k] + j * lever
+            distal[k] = j * beyond if i == 0 else distal[k] + j * beyond
     if rule == "bound":
-        m = (jump[:, None, :] * distal).sum(-1)  # |m| <= M [1/m^2]
-        u = lib.minimum((jump[:, None, :] * lever).sum(-1), lib.sqrt(2.0 * m))
+        m = distal[0]  # |m| <= M [1/m^2]
+        u = lib.minimum(levered[0], lib.sqrt(2.0 * m))
         return lib.maximum(u, lib.sqrt(m))
-    if rule == "estimate":
-        j = jump[:, None, :]
-        return lib.maximum(abs((j * lever).sum(-1)), lib.sqrt(abs((j * distal).sum(-1))))
-    raise ValueError(f"rule must be one of {RULES}, got {rule!r}")
+    return lib.maximum(lib.hypot(*levered), lib.sqrt(lib.hypot(*distal)))
 
 
 def step_counts(
@@ -136,13 +145,22 @@ def sequence(xp: Backend, order: Any, seg: Any, steps: Any) -> tuple[Any, Any]:
     B = steps.shape[0]
     last = xp.lib.cumsum(steps, 1) if xp.name == "numpy" else steps.cumsum(1)  # (B, E)
     K = int(xp.amax(last[:, -1], 0)) if B else 0
+    E = steps.shape[1]
+    # (B, K) each step's event: how many events end at or before it.
     if xp.name == "numpy":
-        event = xp.astype(xp.arange(K)[None, :, None] >= last[:, None, :], "int").sum(2)  # (B, K): each step's event
+        # One search over all rows: row b's ends shifted by b (K + 1) keep the rows apart and in order.
+        lib = xp.lib
+        shift = (lib.arange(B) * (K + 1))[:, None]
+        event = lib.searchsorted((last + shift).ravel(), (lib.arange(K)[None, :] + shift).ravel(), side="right")
+        event = event.reshape(B, K) - lib.arange(B)[:, None] * E
     else:
         event = xp.lib.searchsorted(last, xp.expand(xp.arange(K)[None, :], (B, K)).contiguous(), right=True)
     h = xp.where(steps > 0, seg / xp.clip(steps, lo=1), 0.0 * seg)
     hstep = xp.take(xp.concat([h, xp.zeros((B, 1))], 1), event, 1)  # past the last event: zero
-    slot = xp.take(last, xp.argsort_desc(-xp.astype(order, "float")), 1)
+    # Each force's and query's slot: ``last`` through the inverse of the event order.
+    inverse = xp.zeros((B, E), "int")
+    inverse[xp.arange(B)[:, None], order] = xp.expand(xp.arange(E)[None, :], (B, E))
+    slot = xp.take(last, inverse, 1)
     return hstep, slot
 
 

@@ -191,8 +191,10 @@ def _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_ang
     """:func:`march` on arrays: all rows at once, each on its own schedule. Iteration k takes every row's k-th
     step (its events' steps one after the other; a row whose schedule is done steps by zero, which leaves its
     state unchanged), so a batch costs the largest row's step count, not the sum over events of the largest
-    counts. With ``seeds``, four more tangent columns start at the tip from the unit perturbations of (U, W)
-    (:func:`march_propagator`)."""
+    counts. The rows are taken in decreasing order of their step counts, so the rows that still step at
+    iteration k are a leading slice (a view) and the finished ones cost nothing (a batch's rows differ in their
+    counts by a third on average). With ``seeds``, four more tangent columns start at the tip from the unit
+    perturbations of (U, W) (:func:`march_propagator`)."""
     B, h = s.shape
     Q = query.shape[-1]
     ei = float(ei)
@@ -210,6 +212,14 @@ def _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_ang
     # each row takes its events' steps one after the other; slot 0 is before any step).
     hstep, slot = sequence(xp, order, seg, steps_be)  # (B, K), (B, E) in force-then-query order
     K = hstep.shape[1]
+    # Rows by decreasing step count (perm), and live[k]: how many of them take a k-th step (k = 0..K-1).
+    total = xp.amax(slot, 1)
+    perm = xp.argsort_desc(total)
+    rank = xp.put(xp.zeros((B,), "int"), perm, xp.arange(B))  # row b's place in that order
+    live = xp.tolist(B - xp.lib.cumsum(xp.lib.bincount(total, minlength=K + 1), 0)[:K])
+    at_step = slot[:, h:]  # (B, Q) each query's record: the slot that ends its event, in input order
+    hstep, slot, jump_f = hstep[perm], slot[perm], jump_f[perm]
+    active = None if active is None else active[perm]
     hstep = xp.astype(hstep, "complex")
     # The RKN coefficients of every step (K, B, 1): hs, hs/2, -hs^2/16, -hs^2/4, -hs^2/12, -hs/12.
     hs_k = xp.mT(hstep)[:, :, None]
@@ -233,48 +243,61 @@ def _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_ang
             jump_u[:, i, 1 + 3 * i] = jump_f[:, i]
             jump_w[:, i, 2 + 3 * i] = real[:, i] * (1j / ei)
             jump_w[:, i, 3 + 3 * i] = real[:, i] * (-1.0 / ei)
-    at = slot[:, :h, None] == xp.arange(K + 1)[None, None, :]  # (B, h, K + 1): force i ends in slot j
-    kicked = xp.tolist(xp.any(xp.any(at, 1), 0))
-    at = xp.mT(xp.astype(at, "complex"))
-    kick_w = at @ jump_w  # (B, K + 1, C)
-    kick_u = at @ jump_u
+    # The kicks of each slot: the (row, force) pairs whose event ends there, grouped by slot. A force's event
+    # always takes a step of its own (step_counts gives every segment one), so a row has at most one pair per slot.
+    pair_slot = slot[:, :h].reshape(B * h)
+    by_slot = xp.argsort_desc(-xp.astype(pair_slot, "float")[None, :])[0]  # pairs in increasing slot order
+    ends = [0] + xp.tolist(xp.lib.cumsum(xp.lib.bincount(pair_slot, minlength=K + 1), 0))  # slot j: ends[j:j + 2]
+    kick_rows = by_slot // h if h > 1 else by_slot
+    kick_u, kick_w = jump_u.reshape(B * h, C)[by_slot], jump_w.reshape(B * h, C)[by_slot]
+
+    def kick(Z, Zw, j):
+        a, b = ends[j], ends[j + 1]
+        if a == b:
+            return Z, Zw
+        rows = kick_rows[a:b]
+        if xp.name == "numpy":  # in place: Z and Zw are this step's own arrays
+            Z[rows] += kick_u[a:b]
+            Zw[rows] += kick_w[a:b]
+            return Z, Zw
+        return Z.index_add(0, rows, kick_u[a:b]), Zw.index_add(0, rows, kick_w[a:b])
 
     Z = xp.zeros((B, 1 + P), "complex")  # U and its tangents
     Zw = xp.zeros((B, 1 + P), "complex")  # W = U_t and its tangents
     if seeds:
         Z = Z + xp.asarray([0.0] * (1 + F) + [1.0, 1j, 0.0, 0.0], "complex")
         Zw = Zw + xp.asarray([0.0] * (1 + F) + [0.0, 0.0, 1.0, 1j], "complex")
-    if kicked[0]:
-        Z = Z + kick_u[:, 0]
-        Zw = Zw + kick_w[:, 0]
+    Z, Zw = kick(Z, Zw, 0)
+    # The state after each step (slot k + 1) for the rows that take that step (the others' later slots are never
+    # read), one after the other: slot j's rows start at offset[j].
     recorded, recorded_w = [Z], [Zw]
+    offset = [0, B]
     for k in range(K):
+        m = live[k]
+        Z, Zw = Z[:m], Zw[:m]
         # RKN4 (the classical three-stage method).
-        hs = hs_k[k]
+        hs = hs_k[k, :m]
         g1 = _g(xp, Z)
-        g2 = _g(xp, Z + ch_k[k] * Zw + k16_k[k] * g1)
+        g2 = _g(xp, Z + ch_k[k, :m] * Zw + k16_k[k, :m] * g1)
         p = Z + hs * Zw
-        g3 = _g(xp, p + k4_k[k] * g2)
+        g3 = _g(xp, p + k4_k[k, :m] * g2)
         two = g2 + g2
         t = g1 + two
-        Z = p + k12_k[k] * t
-        Zw = Zw + kw_k[k] * (t + two + g3)
-        if kicked[k + 1]:
-            Z = Z + kick_u[:, k + 1]
-            Zw = Zw + kick_w[:, k + 1]
+        Z = p + k12_k[k, :m] * t
+        Zw = Zw + kw_k[k, :m] * (t + two + g3)
+        Z, Zw = kick(Z, Zw, k + 1)
         recorded.append(Z)
         if seeds:
             recorded_w.append(Zw)
-    # Each query's record: the slot that ends its event, in query order.
-    at_step = slot[:, h:]  # (B, Q)
-    qrows = xp.expand(xp.arange(B)[:, None], (B, Q))
-    at_query = xp.stack(recorded, 1)[qrows, at_step]  # (B, Q, 1 + P)
+        offset.append(offset[-1] + m)
+    at = xp.asarray(offset, "int")[at_step] + rank[:, None]  # (B, Q) each query's record, rows in input order
+    at_query = xp.concat(recorded)[at]  # (B, Q, 1 + P)
     curvature = xp.real_pairs(at_query[..., 0])
     jac = phi = None
     if jacobian:
         jac = xp.mT(xp.real_pairs(at_query[..., 1 : 1 + F])).reshape(B, Q, 2, h, 3)  # (B, Q, F, 2) -> ...
     if seeds:
-        w_query = xp.stack(recorded_w, 1)[qrows, at_step]
+        w_query = xp.concat(recorded_w)[at]
         du, dw = xp.real_pairs(at_query[..., 1 + F :]), xp.real_pairs(w_query[..., 1 + F :])  # (B, Q, 4, 2)
         phi = xp.mT(xp.concat([du, dw], 3))  # (B, Q, 4 rows, 4 seeds)
     return curvature, jac, phi
