@@ -10,7 +10,7 @@ import torch
 from scipy import stats
 
 from torchrod.backend import NUMPY, torch_backend
-from torchrod.estimate.selection import chi2_quantile, chi2_survival, f_quantile, select_count, settled
+from torchrod.estimate.selection import ceilings, chi2_quantile, chi2_survival, f_quantile, select_count, settled
 from torchrod.estimate.status import STATUSES, verdict
 from torchrod.estimate.uncertainty import gauss_newton_covariance
 
@@ -78,6 +78,40 @@ def test_when_no_count_is_accepted_the_fewest_forces_no_larger_count_improves_on
         assert xp.tolist(chosen)[2] == 1
         if noise is not None:
             assert xp.tolist(chosen)[:2] == [2, 3]
+
+
+@pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)
+def test_a_count_is_chosen_just_below_its_ceiling_and_not_just_above(xp):
+    """ceilings() is the largest loss at which select_count accepts a count: on random losses (counts 0..3 or
+    0..2 fitted, 12 or 28 residuals, noise given and unknown, the largest count's fit acceptable), a count whose
+    loss is set 1e-9 below its ceiling is chosen (the smaller counts made hopeless), and 1e-9 above it is not."""
+    rng = np.random.default_rng(7)
+    counts = [0, 1, 2, 3]
+    kw = dict(rule="noise", significance=0.05, num_gratings=14, floor=1e-3)
+    checked = 0
+    for noise in (0.1, None):
+        for _ in range(40):
+            n, top = int(rng.choice([12, 28])), int(rng.choice([2, 3]))
+            losses = np.full(4, np.nan)
+            losses[: top + 1] = rng.uniform(0.0, 3.0, top + 1)
+            losses[top] = rng.uniform(0.0, 0.01 * (n - 3 * top))  # about what noise of 0.1 leaves
+            res = xp.asarray([n], "int")
+            for h in range(top):
+                trial = losses.copy()
+                trial[:h] = 1e6  # beyond every misfit and drop limit: never accepted
+                c = xp.tolist(ceilings(xp, xp.asarray(trial[None]), counts, res, noise=noise, **kw))[0][h]
+                if c <= 1e-6:  # a ceiling below the loss scale the test can resolve
+                    continue
+                for delta, chosen in ((-1e-9, True), (1e-9, False)):
+                    trial[h] = c + delta
+                    got, _ = select_count(xp, xp.asarray(trial[None]), counts, res, noise=noise, **kw)
+                    assert (xp.tolist(got)[0] == h) == chosen, (noise, n, trial.tolist(), h, c)
+                checked += 1
+    assert checked > 100
+    with_threshold = ceilings(
+        xp, xp.asarray([[1.0, 0.5]]), [0, 1], xp.asarray([28], "int"), rule="threshold", threshold=2.0
+    )
+    assert xp.tolist(with_threshold) == [[2.0, 2.0]]
 
 
 @pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)

@@ -44,7 +44,7 @@ from ..rod import Rod
 from . import lm, search
 from .problem import Fits, interval_of, make_problem, sided
 from .refine import LBFGSOptions
-from .selection import MISFIT_FACTOR, RULES, chi2_quantile, chi2_survival, select_count, settled
+from .selection import MISFIT_FACTOR, RULES, ceilings, chi2_quantile, chi2_survival, select_count, settled
 from .status import MISFIT_LEVEL, STATUSES, verdict
 from .uncertainty import CONDITION_LIMIT, fit_uncertainty
 
@@ -536,8 +536,12 @@ class Estimator:
         def suspect(h: int, readings: Any) -> tuple[Any, Any]:
             return quantile(opts.search.suspect, h, readings), quantile(opts.search.kink_suspect, h, readings)
 
-        def plausible(h: int, readings: Any) -> Any:
-            return opts.search.hopeless * quantile(1.0 - opts.significance / MISFIT_FACTOR, h, readings)
+        def plausible(h: int, readings: Any, losses: Any) -> Any:
+            # Within `hopeless` times the loss the count needs to be chosen (its ceiling, given the larger counts'
+            # fits), and of the misfit guard's quantile at the noise (given, or unknown: the floor).
+            ceiling = ceilings(xp, losses, list(range(losses.shape[1])), problem.residuals[readings], **tests)[:, h]
+            guard = quantile(1.0 - opts.significance / MISFIT_FACTOR, h, readings)
+            return opts.search.hopeless * xp.lib.minimum(guard, ceiling)
 
         def doubtful(state: Any) -> Any:
             n, h = state.fits.s.shape

@@ -47,6 +47,7 @@ from typing import Any
 __all__ = [
     "MISFIT_FACTOR",
     "RULES",
+    "ceilings",
     "chi2_quantile",
     "chi2_survival",
     "f_quantile",
@@ -127,6 +128,68 @@ def _limits(xp: Any, counts: list[int], residuals: Any, significance: float, num
     return drop_arr, misfit
 
 
+def _dof_last(xp: Any, losses: Any, counts: list[int], residuals: Any) -> tuple[Any, Any]:
+    """The degrees of freedom n - 3h (B, C) and (B,) the column of the largest fitted count."""
+    h = xp.asarray([float(c) for c in counts])
+    dof = xp.astype(residuals, "float")[:, None] - 3.0 * h
+    fitted = xp.astype(losses == losses, "int")
+    return dof, xp.argmin(-(fitted * (xp.arange(len(counts)) + 1)), 1)
+
+
+def _noise_tests(
+    xp: Any,
+    losses: Any,
+    counts: list[int],
+    residuals: Any,
+    noise: float | None,
+    significance: float,
+    floor: float,
+    num_gratings: int,
+) -> tuple[Any, ...]:
+    """The ``"noise"`` rule's sigma^2 (B,) [1/m^2] (given, or from the largest fit), its drop (B, C, C) and
+    misfit (B, C) limits in units of sigma^2 (module docstring), the degrees of freedom (B, C) and the largest
+    fitted count's column (B,)."""
+    dof, last = _dof_last(xp, losses, counts, residuals)
+    floor2 = float(floor) ** 2
+    if noise is not None:
+        sigma2 = xp.full((losses.shape[0],), float(noise) ** 2 + floor2)
+        drop, misfit = _limits(xp, counts, residuals, significance, num_gratings, None)
+    else:
+        loss_H = xp.take(losses, last[:, None], 1)[:, 0]
+        dof_H = xp.take(dof, last[:, None], 1)[:, 0]
+        sigma2 = xp.where(dof_H > 0, loss_H / xp.clip(dof_H, lo=1.0), 0.0) + floor2
+        drop, misfit = _limits(xp, counts, residuals, significance, num_gratings, xp.clip(dof_H, lo=1.0))
+    return sigma2, drop, misfit, dof, last
+
+
+def ceilings(
+    xp: Any,
+    losses: Any,
+    counts: list[int],
+    residuals: Any,
+    *,
+    rule: str = "noise",
+    noise: float | None = None,
+    threshold: float = 3.0,
+    significance: float = 0.05,
+    floor: float = 0.0,
+    num_gratings: int = 1,
+) -> Any:
+    """(B, C) the largest loss [1/m^2] at which each count passes the tests of :func:`select_count`, the other
+    counts' losses as they are: for ``"noise"``, the misfit limit and, for every larger fitted count h', its loss
+    plus the drop limit (a negative value where the count has no degrees of freedom left); for ``"threshold"``, the
+    threshold. A fit of h forces that no better local minimum could bring below its ceiling cannot be chosen, so
+    the search need not look for one (:mod:`.search`). Arguments as :func:`select_count`."""
+    B, C = losses.shape
+    if rule == "threshold":
+        return xp.full((B, C), float(threshold))
+    sigma2, drop, misfit, _, _ = _noise_tests(xp, losses, counts, residuals, noise, significance, floor, num_gratings)
+    s2 = sigma2[:, None, None]
+    beaten = losses[:, None, :] + drop * s2  # (B, C, C): h' fitted, larger: loss_h' + drop; else inf or NaN
+    beaten = xp.where(beaten == beaten, beaten, math.inf)
+    return xp.lib.minimum(xp.amin(beaten, 2), misfit * sigma2[:, None])
+
+
 def select_count(
     xp: Any,
     losses: Any,
@@ -167,24 +230,16 @@ def select_count(
         raise ValueError(f"counts must be increasing, >= 0 and match losses' {C} columns, got {counts}")
     lib = xp.lib
     h = xp.asarray([float(c) for c in counts])  # (C,)
-    n = xp.astype(residuals, "float")[:, None]  # (B, 1)
-    dof = n - 3.0 * h  # (B, C)
     fitted = losses == losses
     floor2 = float(floor) ** 2
-    col = xp.arange(C)
-    last = xp.argmin(-(xp.astype(fitted, "int") * (col + 1)), 1)  # (B,) the largest fitted count's column
     if rule == "threshold":
         ok = fitted & (losses < threshold)
         sigma2 = None if noise is None else xp.full((B,), float(noise) ** 2 + floor2)
+        dof, last = _dof_last(xp, losses, counts, residuals)
     else:
-        if noise is not None:
-            sigma2 = xp.full((B,), float(noise) ** 2 + floor2)
-            drop, misfit = _limits(xp, counts, residuals, significance, num_gratings, None)
-        else:
-            loss_H = xp.take(losses, last[:, None], 1)[:, 0]
-            dof_H = xp.take(dof, last[:, None], 1)[:, 0]
-            sigma2 = xp.where(dof_H > 0, loss_H / xp.clip(dof_H, lo=1.0), 0.0) + floor2
-            drop, misfit = _limits(xp, counts, residuals, significance, num_gratings, xp.clip(dof_H, lo=1.0))
+        sigma2, drop, misfit, dof, last = _noise_tests(
+            xp, losses, counts, residuals, noise, significance, floor, num_gratings
+        )
         s2 = sigma2[:, None, None]
         diff = losses[:, :, None] - losses[:, None, :]  # (B, C, C): loss_h - loss_h'
         pair_ok = ~(diff > drop * s2)  # NaN (unfitted h') passes
