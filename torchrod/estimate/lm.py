@@ -285,10 +285,11 @@ def _step(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
     R, h = fits.s.shape
     lo, hi = bounds(problem, fits)
 
-    def moved(dx: Any) -> Fits:
-        d = dx.reshape(R, h, 3)
-        s = xp.clip(fits.s + d[..., 0] * problem.length, lo, hi)
-        return Fits(fits.reading, s, fits.f + d[..., 1:] * problem.force_unit, fits.interval)
+    def moved(dx: Any, rows: Any = None) -> Fits:  # the fits moved by dx (of every row, or of ``rows``)
+        at, low, high = (fits, lo, hi) if rows is None else (fits.take(rows), lo[rows], hi[rows])
+        d = dx.reshape(dx.shape[0], h, 3)
+        s = xp.clip(at.s + d[..., 0] * problem.length, low, high)
+        return Fits(at.reading, s, at.f + d[..., 1:] * problem.force_unit, at.interval)
 
     def shortened(dx: Any) -> Any:  # the trust region on the force components
         f_part = dx.reshape(R, h, 3)[..., 1:].reshape(R, 2 * h)
@@ -309,28 +310,29 @@ def _step(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
     dx = v
     curved = state.ratio < policy.acceleration if policy.acceleration is not None else None
     if curved is not None and h and bool(xp.any(curved)):
-        # Geodesic acceleration: the residual's second derivative along v by a finite difference, and the
-        # correction it asks for, taken when small against v.
-        probe = moved(policy.probe * v)
+        # Geodesic acceleration, for the rows whose last step curved: the residual's second derivative along v by
+        # a finite difference, and the correction it asks for, taken when small against v.
+        rows = xp.nonzero(curved)
+        n, v_c, here = rows.shape[0], v[rows], fits.take(rows)
+        probe = moved(policy.probe * v_c, rows)
         r_p, _ = evaluate(problem, probe, jacobian=False)
         actual = (
             xp.concat(
-                [((probe.s - fits.s) / problem.length)[..., None], (probe.f - fits.f) / problem.force_unit], 2
-            ).reshape(R, 3 * h)
+                [((probe.s - here.s) / problem.length)[..., None], (probe.f - here.f) / problem.force_unit], 2
+            ).reshape(n, 3 * h)
             / policy.probe
         )
-        free = _free(held, xp)
-        Jf = sided(problem, fits, state.J) * free[:, None, :]
-        r_vv = (2.0 / policy.probe) * ((r_p - state.r) / policy.probe - xp.einsum("rkp,rp->rk", Jf, actual))
-        x_a, ok_a = xp.spd_solve(_damped(xp, A, free, state.damping), xp.einsum("rkp,rk->rp", Jf, r_vv))
+        free = _free(held[rows], xp)
+        Jf = sided(problem, here, state.J[rows]) * free[:, None, :]
+        r_vv = (2.0 / policy.probe) * ((r_p - state.r[rows]) / policy.probe - xp.einsum("rkp,rp->rk", Jf, actual))
+        x_a, ok_a = xp.spd_solve(_damped(xp, A[rows], free, state.damping[rows]), xp.einsum("rkp,rk->rp", Jf, r_vv))
         a = -x_a
 
         def norm(x):
             return xp.lib.sqrt((x * x).sum(1))
 
-        use = ok_a & xp.all(xp.isfinite(r_vv), 1) & (2.0 * norm(a) <= policy.acceleration_limit * norm(v))
-        use = use & curved
-        dx = shortened(v + xp.where(use[:, None], 0.5 * a, 0.0))
+        use = ok_a & xp.all(xp.isfinite(r_vv), 1) & (2.0 * norm(a) <= policy.acceleration_limit * norm(v_c))
+        dx = shortened(v + xp.put(xp.zeros((R, 3 * h)), rows, xp.where(use[:, None], 0.5 * a, 0.0)))
     trial = moved(dx)
     r_t, J_t = evaluate(problem, trial)
     loss_t = (r_t * r_t).sum(1)
