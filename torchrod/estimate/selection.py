@@ -97,35 +97,38 @@ def misfit_limit(residuals: int, h: int, significance: float) -> float:
     return q if math.isfinite(q) else -1.0
 
 
-def _limits(xp: Any, counts: list[int], residuals: Any, significance: float, num_gratings: int, dof_ref: Any):
-    """drop (B, C, C) in units of sigma^2 (inf where h' <= h) and misfit (B, C) limits (module docstring)."""
-    B, C = residuals.shape[0], len(counts)
+@functools.lru_cache(maxsize=4096)
+def _limit_row(
+    counts: tuple[int, ...], residuals: int, significance: float, num_gratings: int, dof_ref: int | None
+) -> tuple[tuple[tuple[float, ...], ...], tuple[float, ...]]:
+    """One reading's drop (C x C) and misfit (C) limits in units of sigma^2 (module docstring): chi-square with
+    the noise given (``dof_ref`` None), else F with ``dof_ref`` degrees of freedom in the largest fit."""
     a = significance / max(1, num_gratings)
-    n_list = xp.tolist(residuals)
-    drop = [[math.inf] * C for _ in range(C)]
-    for i, h in enumerate(counts):
-        for j, h2 in enumerate(counts):
-            if h2 > h and dof_ref is None:
-                drop[i][j] = chi2_quantile(1.0 - a, 3 * (h2 - h))
-    drop_arr = xp.expand(xp.asarray(drop)[None], (B, C, C))
-    if dof_ref is not None:
-        ref = xp.tolist(dof_ref)
-        rows = []
-        for b in range(B):
-            rows.append(
-                [
-                    [
-                        3 * (h2 - h) * f_quantile(1.0 - a, 3 * (h2 - h), int(ref[b])) if h2 > h else math.inf
-                        for h2 in counts
-                    ]
-                    for h in counts
-                ]
-            )
-        drop_arr = xp.asarray(rows)
-        misfit = xp.asarray([[math.inf if n - 3 * h > 0 else -1.0 for h in counts] for n in n_list])
-    else:
-        misfit = xp.asarray([[misfit_limit(int(n), h, significance) for h in counts] for n in n_list])
-    return drop_arr, misfit
+    if dof_ref is None:
+        drop = tuple(
+            tuple(chi2_quantile(1.0 - a, 3 * (h2 - h)) if h2 > h else math.inf for h2 in counts) for h in counts
+        )
+        return drop, tuple(misfit_limit(residuals, h, significance) for h in counts)
+    drop = tuple(
+        tuple(3 * (h2 - h) * f_quantile(1.0 - a, 3 * (h2 - h), dof_ref) if h2 > h else math.inf for h2 in counts)
+        for h in counts
+    )
+    return drop, tuple(math.inf if residuals - 3 * h > 0 else -1.0 for h in counts)
+
+
+def _limits(xp: Any, counts: list[int], residuals: Any, significance: float, num_gratings: int, dof_ref: Any):
+    """drop (B, C, C) in units of sigma^2 (inf where h' <= h) and misfit (B, C) limits (module docstring), per
+    reading (:func:`_limit_row`, cached: a stream's readings share a few rows)."""
+    B, C = residuals.shape[0], len(counts)
+    if B == 0:
+        return xp.zeros((0, C, C)), xp.zeros((0, C))
+    refs = [None] * B if dof_ref is None else [int(r) for r in xp.tolist(dof_ref)]
+    keys = list(zip((int(n) for n in xp.tolist(residuals)), refs, strict=True))
+    if len(set(keys)) == 1:
+        drop, misfit = _limit_row(tuple(counts), keys[0][0], significance, num_gratings, keys[0][1])
+        return xp.expand(xp.asarray(drop)[None], (B, C, C)), xp.expand(xp.asarray(misfit)[None], (B, C))
+    rows = [_limit_row(tuple(counts), n, significance, num_gratings, ref) for n, ref in keys]
+    return xp.asarray([d for d, _ in rows]), xp.asarray([m for _, m in rows])
 
 
 def _dof_last(xp: Any, losses: Any, counts: list[int], residuals: Any) -> tuple[Any, Any]:
