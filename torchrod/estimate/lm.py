@@ -121,6 +121,16 @@ class LMState:
     proposal: Any = None
     ratio: Any = None
 
+    def replace(self, **changes: Any) -> LMState:
+        """A copy with ``changes``: :func:`dataclasses.replace` without its per-call introspection (the solver
+        makes a few per step)."""
+        if not changes.keys() <= _STATE_FIELDS:
+            raise TypeError(f"LMState has no fields {sorted(changes.keys() - _STATE_FIELDS)}")
+        new = object.__new__(LMState)
+        new.__dict__.update(self.__dict__)
+        new.__dict__.update(changes)
+        return new
+
     def take(self, xp: Any, idx: Any) -> LMState:
         def pick(name: str) -> Any:
             if name == "fits":
@@ -128,7 +138,7 @@ class LMState:
             x = getattr(self, name)
             return None if x is None else x[idx]
 
-        return LMState(**{f.name: pick(f.name) for f in dataclasses.fields(self)})
+        return self.replace(**{name: pick(name) for name in _STATE_FIELDS})
 
     def put(self, xp: Any, idx: Any, part: LMState) -> LMState:
         def merge(name: str) -> Any:
@@ -138,7 +148,10 @@ class LMState:
         fits = Fits(
             *(xp.put(getattr(self.fits, k), idx, getattr(part.fits, k)) for k in ("reading", "s", "f", "interval"))
         )
-        return LMState(**{f.name: (fits if f.name == "fits" else merge(f.name)) for f in dataclasses.fields(self)})
+        return self.replace(**{name: (fits if name == "fits" else merge(name)) for name in _STATE_FIELDS})
+
+
+_STATE_FIELDS = frozenset(f.name for f in dataclasses.fields(LMState))
 
 
 def _damped(xp: Any, A: Any, free: Any, damping: Any, repeat: int = 1) -> Any:
@@ -152,11 +165,11 @@ def _damped(xp: Any, A: Any, free: Any, damping: Any, repeat: int = 1) -> Any:
     scale = xp.clip(xp.amax(d, 1), lo=1e-300)[:, None]
     base = 1e-12 * scale + (1.0 - free) * scale
     if repeat > 1:
-        A, d, base = xp.concat([A] * repeat), xp.concat([d] * repeat), xp.concat([base] * repeat)
-    out = xp.copy(A)
-    diag = xp.diagonal(out)
+        out, d, base = xp.concat([A] * repeat), xp.concat([d] * repeat), xp.concat([base] * repeat)
+    else:
+        out = xp.copy(A)
     idx = xp.arange(P)
-    out[:, idx, idx] = diag + damping[:, None] * d + base
+    out[:, idx, idx] = d + damping[:, None] * d + base
     return out
 
 
@@ -221,7 +234,7 @@ def analyse(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
                 r_m, J_m = evaluate(problem, fits.take(moved))
                 r, J_raw = xp.put(r, moved, r_m), xp.put(state.J, moved, J_m)
                 loss = xp.put(state.loss, moved, (r_m * r_m).sum(1))
-                state = dataclasses.replace(state, fits=fits, r=r, J=J_raw, loss=loss)
+                state = state.replace(fits=fits, r=r, J=J_raw, loss=loss)
             lo, hi = bounds(problem, fits)
             at_lo, at_hi = fits.s == lo, fits.s == hi
             J = sided(problem, fits, state.J)
@@ -239,8 +252,7 @@ def analyse(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
     noise2 = sigma2(problem, fits, state.loss)
     converged = dec <= policy.tolerance * noise2
     done = converged | (state.steps >= policy.iterations) | (state.damping >= policy.max_damping)
-    return dataclasses.replace(
-        state,
+    return state.replace(
         fits=fits,
         held=held,
         decrement=dec,
@@ -344,8 +356,7 @@ def _step(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
     promised = -(2.0 * (g * taken).sum(1) + (taken * (A @ taken[:, :, None])[..., 0]).sum(1))
     ratio = xp.where(better & (promised > 0), (state.loss - loss_t) / xp.where(promised > 0, promised, 1.0), 0.0)
     b1, b2 = better[:, None], better[:, None, None]
-    new = dataclasses.replace(
-        state,
+    new = state.replace(
         fits=Fits(fits.reading, xp.where(b1, trial.s, fits.s), xp.where(b2, trial.f, fits.f), fits.interval),
         r=xp.where(b1, r_t, state.r),
         J=xp.where(b2, J_t, state.J),
@@ -386,7 +397,7 @@ def finish(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
     r = exact_residual(problem, fits)
     loss = (r * r).sum(1)
     if h == 0:
-        return dataclasses.replace(state, r=r, loss=loss)
+        return state.replace(r=r, loss=loss)
     J = sided(problem, fits, state.J)
     free = _free(state.held, xp)
     for _ in range(policy.exact_steps):
@@ -417,4 +428,4 @@ def finish(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
         r = xp.where(better[:, None], r_t, r)
         loss = xp.where(better, loss_t, loss)
     loss = xp.where(xp.isfinite(loss), loss, math.inf)
-    return dataclasses.replace(state, fits=fits, r=r, loss=loss)
+    return state.replace(fits=fits, r=r, loss=loss)

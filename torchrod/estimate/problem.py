@@ -353,8 +353,10 @@ def kink_slopes(problem: Problem, fits: Fits, r: Any) -> tuple[Any, Any]:
     jc = _jump_column(problem, fits)  # (R, h, 2)
     rr = r.reshape(R, G, 2)
 
+    row = xp.arange(R)[:, None]
+
     def at(k):
-        return xp.take(rr, xp.expand(xp.clip(k, lo=0)[:, :, None], (R, h, 2)), 1)  # (R, h, 2)
+        return rr[row, xp.clip(k, lo=0)]  # (R, h, 2)
 
     c_lo = xp.where(near_lo & (lo_k >= 0), (at(lo_k) * jc).sum(2), 0.0)
     c_hi = xp.where(near_hi & (hi_k >= 0), (at(hi_k) * jc).sum(2), 0.0)

@@ -401,7 +401,7 @@ def no_force(problem: Problem) -> lm.LMState:
     G = problem.query.shape[0]
     state = _blank(xp, B, 0, G)
     r = -problem.u
-    return dataclasses.replace(state, r=r, loss=(r * r).sum(1), converged=xp.ones((B,), "bool"))
+    return state.replace(r=r, loss=(r * r).sum(1), converged=xp.ones((B,), "bool"))
 
 
 def _rows(blocks: list[Fits]) -> Fits:
@@ -637,7 +637,7 @@ def _explore(
     going = xp.nonzero(~st.converged & (promise < goal) & (st.damping < solver.policy.max_damping))
     if going.shape[0]:
         part = st.take(xp, going)
-        part = dataclasses.replace(part, done=part.steps >= solver.policy.iterations)
+        part = part.replace(done=part.steps >= solver.policy.iterations)
         st = st.put(xp, going, solver.solve(problem, part))
         cut = cut | _cut(xp, st, n)
     spent = (1 + st.steps).reshape(-1, n).sum(0) + 1 + solver.policy.exact_steps

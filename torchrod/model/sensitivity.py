@@ -413,9 +413,12 @@ def _row(order, seg, steps, jumps, active, Q, h, F, seeds, ei):
                 du += [jumps[idx], 0j, 0j]
                 dw += [0j, d_fx, d_fy]
         else:
-            full = list(zeros)
-            for c, v in zip(cols, du, strict=False):
-                full[c] = v
+            if F:
+                full = list(zeros)
+                for c, v in zip(cols, du, strict=False):
+                    full[c] = v
+            else:  # only the seeds, in their order (du is never changed in place without force columns)
+                full = du
             out_u[idx - h] = u0
             out_j[idx - h] = full
             if seeds:
