@@ -16,8 +16,8 @@ minimum of each count from the one below it, with work linear in the number of g
   above the ``suspect`` quantile of the chi-square law; noise unknown: always), or that holds a force on a grating
   (a kink of the loss, where the loss rises on both sides: true forces seldom sit exactly on a grating, wrong local
   minima often do), may hold one force in a wrong interval. For each of its forces in turn, the force is removed and the
-  scan re-places it among all intervals; the best re-placement that lowers the loss replaces the fit. Repeated while it
-  helps (at most ``rounds``).
+  scan re-places it among all intervals; the best re-placement that lowers the loss replaces the fit. Repeated on the
+  fits it changed, while it helps (at most ``rounds``).
 
 Rows are laid out in blocks of B (one row per reading), so the best row of each reading is a minimum over the
 block axis (:func:`best_of`).
@@ -320,8 +320,11 @@ def exchange(
     R, h = best.fits.s.shape
     spent = xp.zeros((R,), "int")
     cut = xp.zeros((R,), "bool")
+    # A fit a round left unchanged would meet the same scan and starts again: later rounds take only the fits the
+    # last one changed.
+    fresh = xp.ones((R,), "bool")
     for _ in range(options.rounds):
-        rows = xp.nonzero(suspicious(problem, best, suspect))
+        rows = xp.nonzero(suspicious(problem, best, suspect) & fresh)
         n = rows.shape[0]
         if n == 0:
             break
@@ -351,6 +354,7 @@ def exchange(
         cut = xp.put(cut, rows, cut[rows] | short)
         margin = 10.0 * solver.policy.tolerance * cur.noise2
         better = found.loss < cur.loss - margin
+        fresh = xp.put(fresh, rows, better)
         if not bool(xp.any(better)):
             break
         at = xp.nonzero(better)
