@@ -112,6 +112,8 @@ def test_a_count_is_chosen_just_below_its_ceiling_and_not_just_above(xp):
         xp, xp.asarray([[1.0, 0.5]]), [0, 1], xp.asarray([28], "int"), rule="threshold", threshold=2.0
     )
     assert xp.tolist(with_threshold) == [[2.0, 2.0]]
+    with pytest.raises(ValueError, match="rule"):
+        ceilings(xp, xp.asarray([[1.0, 0.5]]), [0, 1], xp.asarray([28], "int"), rule="paper")
 
 
 @pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)

@@ -183,6 +183,8 @@ def ceilings(
     plus the drop limit (a negative value where the count has no degrees of freedom left); for ``"threshold"``, the
     threshold. A fit of h forces that no better local minimum could bring below its ceiling cannot be chosen, so
     the search need not look for one (:mod:`.search`). Arguments as :func:`select_count`."""
+    if rule not in RULES:
+        raise ValueError(f"selection rule must be one of {RULES}, got {rule!r}")
     B, C = losses.shape
     if rule == "threshold":
         return xp.full((B, C), float(threshold))
