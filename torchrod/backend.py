@@ -268,6 +268,19 @@ class NumpyBackend(Backend):
         y = np.linalg.solve(C, b[..., None])
         return np.linalg.solve(np.swapaxes(C, -1, -2), y)[..., 0]
 
+    def solve(self, A: Any, b: Any) -> tuple[Any, Any]:
+        P = A.shape[-1]
+        flat = A.reshape(-1, P, P)
+        if np.isfinite(flat).all():  # the common case, with fewer checks
+            try:
+                x = np.linalg.solve(flat, b.reshape(flat.shape[0], P, -1))
+            except np.linalg.LinAlgError:
+                pass
+            else:
+                if np.isfinite(x).all():
+                    return x.reshape(b.shape), np.ones(A.shape[:-2], dtype=bool)
+        return super().solve(A, b)
+
     def spd_solve(self, A: Any, b: Any) -> tuple[Any, Any]:
         n, P = A.shape[0], A.shape[-1]
         vector = b.ndim == 2
