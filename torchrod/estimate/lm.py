@@ -52,7 +52,7 @@ class LMPolicy:
         tolerance: converged when the Gauss-Newton decrement is at most ``tolerance`` x max(sigma^2, loss / (n - 3h)).
         iterations: at most this many steps (evaluations after the first) per fit.
         exact_steps: Gauss-Newton steps on the exact model's residual after convergence (:func:`finish`), each
-            taken only where it promises more than ``exact_tolerance`` x max(sigma^2, loss / (n - 3h)).
+            taken only where it promises more than ``exact_tolerance`` x sigma^2.
         acceleration: add the geodesic acceleration to a step when the previous one lowered the loss by less than
             this fraction of what its Gauss-Newton model promised (the residual curves: the linear model misled;
             None: never); probe: its finite-difference step, a fraction of the step; acceleration_limit: the
@@ -197,15 +197,6 @@ def gauss_newton(xp: Any, J: Any, r: Any, free: Any, damping: Any) -> tuple[Any,
     return step, dec
 
 
-def _gain_scale(problem: Problem, fits: Fits, loss: Any) -> Any:
-    """(R,) the scale [1/m^2] against which what is left to gain is judged (the stopping rule, the exact-model
-    steps): sigma^2, or a misfit's own residual variance loss / (n - 3h) when larger. The count tests compare a
-    misfit's loss on the scale of sigma^2 x quantiles, so a sliver of its own variance decides nothing."""
-    xp = problem.xp
-    dof = xp.clip(xp.astype(problem.residuals[fits.reading] - 3 * fits.h, "float"), lo=1.0)
-    return xp.lib.maximum(sigma2(problem, fits, loss), loss / dof)
-
-
 def _free(held: Any, xp: Any) -> Any:
     """(R, 3h) float: 1.0 for every unknown except the held locations (0.0)."""
     R, h = held.shape
@@ -260,7 +251,10 @@ def analyse(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
     dec = xp.where(ok[:R], (g * x[:R]).sum(1), math.inf)
     proposal = -x[R:]
     noise2 = sigma2(problem, fits, state.loss)
-    converged = dec <= policy.tolerance * _gain_scale(problem, fits, state.loss)
+    # The scale of what is left to gain: sigma^2, or a misfit's own residual variance when larger (the count tests
+    # compare its loss on the scale of sigma^2 x quantiles, so a relative 1e-3 of it decides nothing).
+    dof = xp.clip(xp.astype(problem.residuals[fits.reading] - 3 * h, "float"), lo=1.0)
+    converged = dec <= policy.tolerance * xp.lib.maximum(noise2, state.loss / dof)
     done = converged | (state.steps >= policy.iterations) | (state.damping >= policy.max_damping)
     return state.replace(
         fits=fits,
@@ -413,7 +407,7 @@ def finish(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
     for _ in range(policy.exact_steps):
         dx, dec = gauss_newton(xp, J, r, free, 1e-9)
         # A step whose promise is far below the noise moves the fit by a sliver of its standard deviation: skip.
-        worth = ~(dec <= policy.exact_tolerance * _gain_scale(problem, fits, loss))
+        worth = ~(dec <= policy.exact_tolerance * sigma2(problem, fits, loss))
         if not bool(xp.any(worth)):
             break
         dx = xp.where(worth[:, None], dx, 0.0).reshape(R, h, 3)
