@@ -11,9 +11,8 @@ One iteration, per row (a fit of h forces to one reading, :mod:`.problem`):
    one-sided derivative). A force held where the loss rises on both sides sits on a kink of the loss (a local
    minimum that smooth descent cannot leave; the search decides whether a better one exists elsewhere).
 2. Stop when the Gauss-Newton decrement (the loss decrease a Gauss-Newton step promises, held locations fixed) is
-   at most ``tolerance`` x sigma^2, or for a fit worse than the noise explains ``tolerance`` x its own residual
-   variance loss / (n - 3h): what is left to gain is far below what the count tests can tell (converged). Also stop
-   after ``iterations`` steps or when the damping reaches its ceiling (a step that lowers the loss cannot be found).
+   at most ``tolerance`` x sigma^2: what is left to gain is far below the noise (converged). Also stop after
+   ``iterations`` steps or when the damping reaches its ceiling (a step that lowers the loss cannot be found).
 3. Step: the damped Gauss-Newton step ``(A + lambda diag A) dx = -g`` (Marquardt's scaling, A = J^T J, g = J^T r,
    in the scaled unknowns of :mod:`.problem`), shortened so that no force changes by more than
    ``max_force_step`` (units EI / L^2), and each location clipped to its interval.
@@ -49,7 +48,7 @@ class LMPolicy:
             after an accepted one, and kept in [``min_damping``, ``max_damping``]; at ``max_damping`` the fit
             stops (stalled).
         max_force_step: the largest change of a force component per step [EI / L^2].
-        tolerance: converged when the Gauss-Newton decrement is at most ``tolerance`` x max(sigma^2, loss / (n - 3h)).
+        tolerance: converged when the Gauss-Newton decrement is at most ``tolerance`` x sigma^2.
         iterations: at most this many steps (evaluations after the first) per fit.
         exact_steps: Gauss-Newton steps on the exact model's residual after convergence (:func:`finish`), each
             taken only where it promises more than ``exact_tolerance`` x sigma^2.
@@ -251,10 +250,7 @@ def analyse(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
     dec = xp.where(ok[:R], (g * x[:R]).sum(1), math.inf)
     proposal = -x[R:]
     noise2 = sigma2(problem, fits, state.loss)
-    # The scale of what is left to gain: sigma^2, or a misfit's own residual variance when larger (the count tests
-    # compare its loss on the scale of sigma^2 x quantiles, so a relative 1e-3 of it decides nothing).
-    dof = xp.clip(xp.astype(problem.residuals[fits.reading] - 3 * h, "float"), lo=1.0)
-    converged = dec <= policy.tolerance * xp.lib.maximum(noise2, state.loss / dof)
+    converged = dec <= policy.tolerance * noise2
     done = converged | (state.steps >= policy.iterations) | (state.damping >= policy.max_damping)
     return state.replace(
         fits=fits,
