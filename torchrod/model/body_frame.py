@@ -219,18 +219,14 @@ def integrate_curvature(
             counts = _step_counts(s, f, ei, pos_sorted, seg, max_step_angle, max_steps)
         else:
             counts = torch.full((B, E), int(steps), dtype=torch.int64, device=s.device)
-        last = counts.cumsum(1)  # (B, E): one past the step that ends each event's segment
-        K = int(last[:, -1].max()) if B else 0
-        segment_of_step = torch.searchsorted(
-            last, torch.arange(K, device=s.device).expand(B, K).contiguous(), right=True
-        )
-        last = last - 1
-    # Every sample runs K steps: its own step lengths, then zero-length steps once its events are done.
-    hstep = torch.cat((seg / counts, seg.new_zeros(B, 1)), dim=1).gather(1, segment_of_step)  # (B, K) [m]
-    kick = jump.new_zeros(B, K, 2).scatter(1, last.unsqueeze(-1).expand(-1, -1, 2), jump)  # (B, K, 2)
+    # Every sample runs K steps: its own step lengths, then zero-length steps once its events are done
+    # (schedule.sequence). ends: the step that ends each event (forces, then queries, in input order).
+    hstep, slot = schedule.sequence(torch_backend(s.device), order, seg, counts)  # (B, K) [m], (B, E)
+    K, ends = hstep.shape[1], slot - 1
+    kick_at = ends.gather(1, order).unsqueeze(-1).expand(-1, -1, 2)  # in event order, as ``jump``
+    kick = jump.new_zeros(B, K, 2).scatter(1, kick_at, jump)  # (B, K, 2)
     Z = march(hstep, tab, kick=kick, adjoint=adjoint)  # (B, K, 4)
-    inverse = order.argsort(dim=1)[:, h:]  # sorted index of each query
-    at_query = Z.gather(1, last.gather(1, inverse).unsqueeze(-1).expand(-1, -1, 4))  # (B, Q, 4)
+    at_query = Z.gather(1, ends[:, h:].unsqueeze(-1).expand(-1, -1, 4))  # (B, Q, 4)
     curvature = at_query[..., :2]
     force = _internal_force(at_query, ei) if return_force else None
     return curvature, force

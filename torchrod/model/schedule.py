@@ -156,7 +156,7 @@ def sequence(xp: Backend, order: Any, seg: Any, steps: Any) -> tuple[Any, Any]:
     else:
         event = xp.lib.searchsorted(last, xp.expand(xp.arange(K)[None, :], (B, K)).contiguous(), right=True)
     h = xp.where(steps > 0, seg / xp.clip(steps, lo=1), 0.0 * seg)
-    hstep = xp.take(xp.concat([h, xp.zeros((B, 1))], 1), event, 1)  # past the last event: zero
+    hstep = xp.take(xp.concat([h, 0.0 * seg[:, :1]], 1), event, 1)  # past the last event: zero (in seg's dtype)
     # Each force's and query's slot: ``last`` through the inverse of the event order.
     inverse = xp.zeros((B, E), "int")
     inverse[xp.arange(B)[:, None], order] = xp.expand(xp.arange(E)[None, :], (B, E))
