@@ -97,8 +97,8 @@ def rates(xp: Backend, s: Any, jump: Any, pos: Any, rule: str) -> Any:
         beyond = xp.astype(lever > 0, "float")
         for k, part in enumerate(parts):
             j = part[:, i : i + 1]
-            levered[k] = j * lever if i == 0 else levered[k] + j * lever
-            distal[k] = j * beyond if i == 0 else distal[k] + j * beyond
+            levered[k] = levered[k] + j * lever
+            distal[k] = distal[k] + j * beyond
     if rule == "bound":
         m = distal[0]  # |m| <= M [1/m^2]
         u = lib.minimum(levered[0], lib.sqrt(2.0 * m))
