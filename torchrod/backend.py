@@ -268,31 +268,33 @@ class NumpyBackend(Backend):
         y = np.linalg.solve(C, b[..., None])
         return np.linalg.solve(np.swapaxes(C, -1, -2), y)[..., 0]
 
+    @staticmethod
+    def _solve_finite(A: Any, rhs: Any) -> Any:
+        """``np.linalg.solve(A, rhs)`` where A, rhs and the solution are all finite and no system is singular (the
+        common case, checked with whole-array reductions); None otherwise (the caller's per-row path then)."""
+        if not (np.isfinite(A).all() and np.isfinite(rhs).all()):
+            return None
+        try:
+            x = np.linalg.solve(A, rhs)
+        except np.linalg.LinAlgError:
+            return None
+        return x if np.isfinite(x).all() else None
+
     def solve(self, A: Any, b: Any) -> tuple[Any, Any]:
         P = A.shape[-1]
         flat = A.reshape(-1, P, P)
-        if np.isfinite(flat).all():  # the common case, with fewer checks
-            try:
-                x = np.linalg.solve(flat, b.reshape(flat.shape[0], P, -1))
-            except np.linalg.LinAlgError:
-                pass
-            else:
-                if np.isfinite(x).all():
-                    return x.reshape(b.shape), np.ones(A.shape[:-2], dtype=bool)
+        x = self._solve_finite(flat, b.reshape(flat.shape[0], P, -1))
+        if x is not None:
+            return x.reshape(b.shape), np.ones(A.shape[:-2], dtype=bool)
         return super().solve(A, b)
 
     def spd_solve(self, A: Any, b: Any) -> tuple[Any, Any]:
         n, P = A.shape[0], A.shape[-1]
         vector = b.ndim == 2
         rhs = b[..., None] if vector else b
-        if np.isfinite(A).all() and np.isfinite(rhs).all():  # the common case, with fewer checks
-            try:
-                x = np.linalg.solve(A, rhs)
-            except np.linalg.LinAlgError:
-                pass
-            else:
-                if np.isfinite(x).all():
-                    return (x[..., 0] if vector else x), np.ones((n,), dtype=bool)
+        x = self._solve_finite(A, rhs)
+        if x is not None:
+            return (x[..., 0] if vector else x), np.ones((n,), dtype=bool)
         ok = np.isfinite(A.reshape(n, -1)).all(1) & np.isfinite(rhs.reshape(n, -1)).all(1)
         good = bool(ok.all())
         if not good:  # solve the others; the broken rows get the identity and a zero right-hand side
