@@ -536,11 +536,13 @@ class Estimator:
         def suspect(h: int, readings: Any) -> tuple[Any, Any]:
             return quantile(opts.search.suspect, h, readings), quantile(opts.search.kink_suspect, h, readings)
 
-        def plausible(h: int, readings: Any, losses: Any) -> Any:
-            # Within `hopeless` times the loss the count needs to be chosen (its ceiling, given the larger counts'
+        def plausible(readings: Any, losses: Any) -> Any:
+            # Within `hopeless` times the loss each count needs to be chosen (its ceiling, given the larger counts'
             # fits), and of the misfit guard's quantile at the noise (given, or unknown: the floor).
-            ceiling = ceilings(xp, losses, list(range(losses.shape[1])), problem.residuals[readings], **tests)[:, h]
-            guard = quantile(1.0 - opts.significance / MISFIT_FACTOR, h, readings)
+            counts = list(range(losses.shape[1]))
+            ceiling = ceilings(xp, losses, counts, problem.residuals[readings], **tests)
+            level = 1.0 - opts.significance / MISFIT_FACTOR
+            guard = xp.stack([quantile(level, h, readings) for h in counts], 1)
             return opts.search.hopeless * xp.lib.minimum(guard, ceiling)
 
         def doubtful(state: Any) -> Any:

@@ -446,9 +446,9 @@ class Rules:
             the scan's promised gain (n,) of one more force, whether the count is decided already; None: never.
         suspect: ``suspect(h, readings) -> ((n,), (n,))``: the losses above which a fit of h forces is searched
             further, in general and with a force on a grating (:func:`suspicious`); None: never searched further.
-        plausible: ``plausible(h, readings, losses) -> (n,)``: with the losses (n, top + 1) of counts 0..top (NaN:
-            not fitted), the loss above which a count below the chosen one is hopeless (no better local minimum
-            would make it acceptable), so not searched further.
+        plausible: ``plausible(readings, losses) -> (n, top + 1)``: with the losses (n, top + 1) of counts
+            0..top (NaN: not fitted), the loss of each count above which, if it is below the chosen one, it is
+            hopeless (no better local minimum would make it acceptable), so not searched further.
         doubtful: ``doubtful(state) -> (n,) bool``: the fits of ``state`` (n rows of one count, row i reading i of
             ``state.fits.reading``) are poorly determined (:mod:`.uncertainty`); the count below such a chosen fit
             is searched further (a poorly determined fit often holds one force too many for a local minimum of
@@ -545,6 +545,7 @@ def fit_counts(
         # Search further where it matters.
         losses = xp.stack([s.loss for s in states], 1)
         chosen = rules.choose(losses)
+        near_limit = None if rules.plausible is None else rules.plausible(xp.arange(B), losses)  # (B, top + 1)
         doubt = xp.zeros((B,), "bool")
         if rules.doubtful is not None:
             for h in range(2, top_count + 1):
@@ -558,7 +559,7 @@ def fit_counts(
                 # A smaller count is worth more search where a better local minimum could make it acceptable: its
                 # loss within a few misfit limits, or far below the count under it (it explains most of what that
                 # one leaves: a wrong local minimum of the true count looks like this on a clean reading).
-                near = states[h].loss <= rules.plausible(h, every, losses)
+                near = states[h].loss <= near_limit[:, h]
                 most = states[h].loss <= options.explained * states[h - 1].loss
                 # Under a poorly determined chosen fit, the count below is searched further even if its fit looks
                 # acceptable: a wrong local minimum of it can pass the noise test yet lose the count test to a fit
