@@ -184,3 +184,15 @@ def test_the_scan_finds_where_a_force_is_missing(rod, xp):
     new_s = float(xp.tolist(sc.starts.s[0, -1]))
     assert 0.23 <= new_s <= 0.25 or 0.11 <= new_s <= 0.13
     assert float(xp.tolist(sc.gain)[0]) > 0.5 * float(xp.tolist(one.loss)[0])
+
+
+def test_state_replace_copies_with_changes_and_refuses_unknown_fields(rod):
+    xp = NUMPY
+    problem = problem_for(xp, rod, clean(rod, [[0.2]], [[[0.3, 0.1]]]))
+    state = lm.start(problem, lm.LMPolicy(), fits_at(xp, problem, [[0.18]], [[[0.2, 0.0]]]))
+    copy = state.replace(loss=state.loss + 1.0, steps=state.steps + 2)
+    assert xp.tolist(copy.loss)[0] == xp.tolist(state.loss)[0] + 1.0 and xp.tolist(copy.steps) == [2]
+    assert xp.tolist(state.steps) == [0] and copy.fits is state.fits and copy.J is state.J
+    assert dataclasses.replace(state, loss=copy.loss, steps=copy.steps).__dict__.keys() == copy.__dict__.keys()
+    with pytest.raises(TypeError, match="nope"):
+        state.replace(nope=1)
