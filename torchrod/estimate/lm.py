@@ -164,12 +164,10 @@ def _damped(xp: Any, A: Any, free: Any, damping: Any, repeat: int = 1) -> Any:
     d = xp.diagonal(A)
     scale = xp.clip(xp.amax(d, 1), lo=1e-300)[:, None]
     base = 1e-12 * scale + (1.0 - free) * scale
-    if repeat > 1:
-        out, d, base = xp.concat([A] * repeat), xp.concat([d] * repeat), xp.concat([base] * repeat)
-    else:
-        out = xp.copy(A)
+    out = xp.concat([A] * repeat) if repeat > 1 else xp.copy(A)
     idx = xp.arange(P)
-    out[:, idx, idx] = d + damping[:, None] * d + base
+    # (k, R, P) -> (k R, P): the k dampings of each system against its one diagonal, broadcast
+    out[:, idx, idx] = (d + damping.reshape(repeat, R, 1) * d + base).reshape(repeat * R, P)
     return out
 
 
@@ -211,15 +209,14 @@ def analyse(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
     xp = problem.xp
     fits, r = state.fits, state.r
     R, h = fits.s.shape
-    J = sided(problem, fits, state.J)
-    g = xp.einsum("rkp,rk->rp", J, r)
     lo, hi = bounds(problem, fits)
-    at_lo, at_hi = fits.s == lo, fits.s == hi
-    held = at_lo & at_hi  # all False, the right shape
-    near_lo, near_hi = near_bounds(problem, fits)
+    J = sided(problem, fits, state.J, hi)
+    g = xp.einsum("rkp,rk->rp", J, r)
+    near_lo, near_hi = near_bounds(problem, fits, (lo, hi))
     if bool(xp.any(near_lo | near_hi)):
+        at_lo, at_hi = fits.s == lo, fits.s == hi
         g_s = g[:, 0::3]
-        c_lo, c_hi = kink_slopes(problem, fits, r)
+        c_lo, c_hi = kink_slopes(problem, fits, r, (lo, hi))
         m = problem.intervals[fits.reading][:, None]
         # Leave the interval where the loss falls on both sides of the bound's grating (from on or near it: the
         # interval's own optimum may sit micrometres inside, the better one beyond the grating).
@@ -237,14 +234,17 @@ def analyse(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
                 state = state.replace(fits=fits, r=r, J=J_raw, loss=loss)
             lo, hi = bounds(problem, fits)
             at_lo, at_hi = fits.s == lo, fits.s == hi
-            J = sided(problem, fits, state.J)
+            J = sided(problem, fits, state.J, hi)
             g = xp.einsum("rkp,rk->rp", J, r)
         g_s = g[:, 0::3]
         held = (at_lo & (g_s >= 0.0)) | (at_hi & (g_s <= 0.0))
-    free = _free(held, xp)
-    Jf = J * free[:, None, :]
-    A = xp.mT(Jf) @ Jf
-    g = g * free
+        free = _free(held, xp)
+        J = J * free[:, None, :]
+        g = g * free
+    else:  # no force near a bound: none held (what the masking above would give, without its operations)
+        held = xp.zeros((R, h), "bool")
+        free = xp.ones((R, 3 * h))
+    A = xp.mT(J) @ J
     both = _damped(xp, A, free, xp.concat([1e-9 + 0.0 * state.damping, state.damping]), repeat=2)
     x, ok = xp.spd_solve(both, xp.concat([g, g]))
     dec = xp.where(ok[:R], (g * x[:R]).sum(1), math.inf)

@@ -270,14 +270,16 @@ def _jump_column(problem: Problem, fits: Fits) -> Any:
     return xp.stack([-fits.f[..., 1] * scale, fits.f[..., 0] * scale], 2)
 
 
-def sided(problem: Problem, fits: Fits, J: Any) -> Any:
+def sided(problem: Problem, fits: Fits, J: Any, hi: Any = None) -> Any:
     """The Jacobian with each force's own one-sided derivative at a bound of its interval. A force on its upper
     bound (the grating that closes its interval distally) lies proximal to that grating, which does not see it
-    move: the s-entries of that grating's residuals are zero (the march gives the distal value there)."""
+    move: the s-entries of that grating's residuals are zero (the march gives the distal value there). ``hi``:
+    the upper bounds of :func:`bounds`, if the caller has them."""
     xp = problem.xp
     R, h = fits.s.shape
     G = problem.query.shape[0]
-    _, hi = bounds(problem, fits)
+    if hi is None:
+        _, hi = bounds(problem, fits)
     hi_k = problem.hi_k[fits.reading[:, None], fits.interval]  # (R, h)
     on_hi = (fits.s == hi) & (hi_k >= 0)  # (R, h)
     if not bool(xp.any(on_hi)):
@@ -330,23 +332,24 @@ cross the grating there (:func:`near_bounds`): an interval's own optimum a few m
 the loss falling on the far side, must not hide the better interval next to it."""
 
 
-def near_bounds(problem: Problem, fits: Fits) -> tuple[Any, Any]:
-    """(R, h) bool each: a force within :data:`SNAP` of its interval's lower / upper bound (or on it)."""
-    lo, hi = bounds(problem, fits)
+def near_bounds(problem: Problem, fits: Fits, lo_hi: tuple[Any, Any] | None = None) -> tuple[Any, Any]:
+    """(R, h) bool each: a force within :data:`SNAP` of its interval's lower / upper bound (or on it). ``lo_hi``:
+    :func:`bounds`, if the caller has them."""
+    lo, hi = bounds(problem, fits) if lo_hi is None else lo_hi
     tol = SNAP * (hi - lo)
     return fits.s - lo <= tol, hi - fits.s <= tol
 
 
-def kink_slopes(problem: Problem, fits: Fits, r: Any) -> tuple[Any, Any]:
+def kink_slopes(problem: Problem, fits: Fits, r: Any, lo_hi: tuple[Any, Any] | None = None) -> tuple[Any, Any]:
     """(R, h) each: the contribution to d(loss/2)/d(s/L) of the grating at a force's lower bound (its distal
     one-sided term, zero unless the force is near that bound, :func:`near_bounds`) and of the grating at its upper
     bound (the term it would gain by crossing it, zero unless near it). With g the sided gradient, the slope just
     proximal to a force on its lower bound is g - the first, just distal to a force on its upper bound g + the
-    second."""
+    second. ``lo_hi``: :func:`bounds`, if the caller has them."""
     xp = problem.xp
     R, h = fits.s.shape
     G = problem.query.shape[0]
-    near_lo, near_hi = near_bounds(problem, fits)
+    near_lo, near_hi = near_bounds(problem, fits, lo_hi)
     rows = fits.reading[:, None]
     lo_k = problem.lo_k[rows, fits.interval]
     hi_k = problem.hi_k[rows, fits.interval]

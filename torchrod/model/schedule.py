@@ -202,6 +202,7 @@ def row(
     start = float(length)
     passed = [False] * h  # the forces reached so far: only they can be distal
     reached = False
+    cap, top = float(max_steps), max(max_steps, 1)
     for idx in order:
         p = pos[idx]
         d = start - p
@@ -225,10 +226,12 @@ def row(
                     a = x
         if bound:
             rate = _nanmax(_nanmin(a, math.sqrt(2.0 * m)), math.sqrt(m))
-        else:
-            rate = _nanmax(abs(a), math.sqrt(abs(m)))
+        else:  # _nanmax(|a|, sqrt|m|), inline (the hot path of the one-row marches)
+            ra, rm = abs(a), math.sqrt(abs(m))
+            rate = ra if ra != ra or ra >= rm else rm
         need = rate * d / step_angle
-        steps.append(1 if need != need else max(math.ceil(min(need, float(max_steps))), 1))
+        # max(ceil(min(need, max_steps)), 1), NaN: 1
+        steps.append(1 if need != need else top if need >= cap else max(math.ceil(need), 1))
         if idx < h:
             passed[idx] = True
     return order, seg, steps

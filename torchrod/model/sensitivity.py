@@ -363,8 +363,9 @@ def _row(order, seg, steps, jumps, active, Q, h, F, seeds, ei):
             # The zero state's tangent map over the segment is exactly linear (g's derivative vanishes at U = 0):
             # the seeds advance in one move, dU += seg dW, where a step of the scheme would give the same.
             du = [y + seg[e] * w for y, w in zip(du, dw, strict=True)]
-        hs = seg[e] / n if n else 0.0
-        ch, k16, k4, k12, kw = 0.5 * hs, -hs * hs / 16.0, -hs * hs / 4.0, -hs * hs / 12.0, -hs / 12.0
+        if n:
+            hs = seg[e] / n
+            ch, k16, k4, k12, kw = 0.5 * hs, -hs * hs / 16.0, -hs * hs / 4.0, -hs * hs / 12.0, -hs / 12.0
         for _ in range(n):
             # The primal stages, g(U) = |U|^2 U at each.
             a1 = u0.real * u0.real + u0.imag * u0.imag
@@ -400,10 +401,11 @@ def _row(order, seg, steps, jumps, active, Q, h, F, seeds, ei):
             wa, wb = kw * (t1a + 4.0 * t2a + t3a), kw * (t1b + 4.0 * t2b + t3b)
             wc, wd = 1.0 + kw * (4.0 * t2c + t3c), kw * (4.0 * t2d + t3d)
             du_next, dw_next = [], []
+            add_u, add_w = du_next.append, dw_next.append
             for y, w in zip(du, dw, strict=True):
                 yy, ww = y.conjugate(), w.conjugate()
-                du_next.append(ya * y + yb * yy + yc * w + yd * ww)
-                dw_next.append(wa * y + wb * yy + wc * w + wd * ww)
+                add_u(ya * y + yb * yy + yc * w + yd * ww)
+                add_w(wa * y + wb * yy + wc * w + wd * ww)
             du, dw = du_next, dw_next
         if idx < h:
             w0 += jumps[idx]
