@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -372,10 +373,17 @@ def _step(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
     return analyse(problem, policy, new)
 
 
-def solve(problem: Problem, policy: LMPolicy, fits: Fits | LMState, deadline: float | None = None) -> LMState:
+def solve(
+    problem: Problem,
+    policy: LMPolicy,
+    fits: Fits | LMState,
+    deadline: float | None = None,
+    stop: Callable[[LMState], Any] | None = None,
+) -> LMState:
     """Fit every row of ``fits`` (or continue the solves of a state) until each is done (module docstring), or
     until ``time.perf_counter()`` passes ``deadline``: the rows still going are then returned as they are, with
-    ``done`` False (a later call may continue them)."""
+    ``done`` False (a later call may continue them). ``stop(state) -> (R,) bool``, checked on all rows after each
+    step: the rows where it holds are done (the caller knows where they lead)."""
     xp = problem.xp
     state = start(problem, policy, fits) if isinstance(fits, Fits) else fits
     while True:
@@ -386,6 +394,8 @@ def solve(problem: Problem, policy: LMPolicy, fits: Fits | LMState, deadline: fl
             state = _step(problem, policy, state)
         else:
             state = state.put(xp, idx, _step(problem, policy, state.take(xp, idx)))
+        if stop is not None:
+            state = state.replace(done=state.done | stop(state))
 
 
 def finish(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:

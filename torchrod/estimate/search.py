@@ -54,9 +54,10 @@ class Solver:
         """Whether ``time.perf_counter()`` has passed the deadline (never without one)."""
         return self.deadline is not None and time.perf_counter() > self.deadline
 
-    def solve(self, problem: Problem, fits: Fits | lm.LMState) -> lm.LMState:
-        """Levenberg-Marquardt on every row; past the deadline the rows still going stop, ``done`` False."""
-        return lm.solve(problem, self.policy, fits, self.deadline)
+    def solve(self, problem: Problem, fits: Fits | lm.LMState, stop: Any = None) -> lm.LMState:
+        """Levenberg-Marquardt on every row; past the deadline the rows still going stop, ``done`` False.
+        ``stop``: as :func:`.lm.solve`'s."""
+        return lm.solve(problem, self.policy, fits, self.deadline, stop)
 
     def finish(self, problem: Problem, best: lm.LMState) -> tuple[lm.LMState, bool]:
         """The fits kept (the best of each reading): the exact-model steps (:func:`.lm.finish`); past the deadline
@@ -587,7 +588,9 @@ def fit_counts(
             if sc is not None and starts > 1:
                 pos = xp.put(xp.zeros((B,), "int") - 1, scanned, xp.arange(scanned.shape[0]))[readings]
                 more = [sc.starts.take(t * scanned.shape[0] + pos) for t in range(1, starts)]
-                found, spent, short = _explore(problem, solver, options, more, cur.loss)
+                # One force: a start that reaches the current fit's interval stops there (:func:`_explore`).
+                within = cur.fits.interval[:, 0] if h == 1 else None
+                found, spent, short = _explore(problem, solver, options, more, cur.loss, within)
                 evaluations = xp.add_at(evaluations, readings, spent)
                 cut = xp.put(cut, readings, cut[readings] | short)
                 better = found.loss < cur.loss - 10.0 * solver.policy.tolerance * cur.noise2
@@ -619,12 +622,24 @@ def fit_counts(
 
 
 def _explore(
-    problem: Problem, solver: Solver, options: SearchOptions, starts: list[Fits], current: Any
+    problem: Problem,
+    solver: Solver,
+    options: SearchOptions,
+    starts: list[Fits],
+    current: Any,
+    within: Any = None,
 ) -> tuple[lm.LMState, Any, Any]:
     """The best of ``starts`` (blocks of n rows) per reading, fitted only while promising: each row takes at most
     ``options.explore`` steps, and only the rows whose loss, or the loss a Gauss-Newton step promises from it,
     has fallen below ``current`` (n,), the reading's loss to beat, are fitted to the end. Returns the best rows (n),
-    finished on the exact model, the evaluations spent per reading and (n,) whether the deadline cut it short."""
+    finished on the exact model, the evaluations spent per reading and (n,) whether the deadline cut it short.
+
+    ``within`` (n,) (one force only): the interval of the reading's current fit. The loss of one force has one
+    local minimum within an interval (for small deflections the best force at a location is linear least squares,
+    and the loss left is a ratio of two quadratic forms of a plane direction set by the location: one minimum per
+    half-turn; ``test_one_force_has_one_minimum_per_interval`` checks it on misfits), so a row that enters the
+    current fit's interval without a lower loss descends to that fit: it is dropped there. A reading whose rows are
+    all dropped has nothing better: its row gets an infinite loss and skips the exact-model steps."""
     xp = problem.xp
     n = starts[0].rows
     rows = _rows(starts)
@@ -633,13 +648,21 @@ def _explore(
         policy=dataclasses.replace(solver.policy, iterations=min(options.explore, solver.policy.iterations)),
         lbfgs=None,
     )
-    st = short.solve(problem, rows)
-    cut = _cut(xp, st, n)
     goal = xp.concat([current] * len(starts))
+    stop = None
+    if within is not None:
+        home = xp.concat([within] * len(starts))
+
+        def stop(state: lm.LMState) -> Any:
+            return (state.fits.interval[:, 0] == home) & (state.loss >= goal)
+
+    st = short.solve(problem, rows, stop)
+    cut = _cut(xp, st, n)
+    dropped = xp.zeros((rows.rows,), "bool") if stop is None else stop(st) & ~st.converged
     # Promising: the loss, or what a Gauss-Newton step promises from it, is below the loss to beat.
     finite = xp.isfinite(st.decrement)
     promise = xp.where(finite, st.loss - xp.where(finite, st.decrement, 0.0), st.loss)
-    going = xp.nonzero(~st.converged & (promise < goal) & (st.damping < solver.policy.max_damping))
+    going = xp.nonzero(~st.converged & ~dropped & (promise < goal) & (st.damping < solver.policy.max_damping))
     if going.shape[0]:
         part = st.take(xp, going)
         part = part.replace(done=part.steps >= solver.policy.iterations)
@@ -647,7 +670,18 @@ def _explore(
         cut = cut | _cut(xp, st, n)
     spent = (1 + st.steps).reshape(-1, n).sum(0) + 1 + solver.policy.exact_steps
     slack = 10.0 * solver.policy.tolerance * st.noise2[:n]
-    best, late = solver.finish(problem, st.take(xp, best_of(xp, st, n, slack)))
+    pick = st.take(xp, best_of(xp, st, n, slack))
+    live = ~xp.all(dropped.reshape(-1, n), 0)  # (n,) a reading with a row not dropped
+    if bool(xp.all(live)):
+        best, late = solver.finish(problem, pick)
+        return best, spent, cut | late
+    spent = spent - xp.astype(~live, "int") * (1 + solver.policy.exact_steps)  # no exact-model steps there
+    best = pick.replace(loss=xp.where(live, pick.loss, math.inf))
+    at = xp.nonzero(live)
+    late = False
+    if at.shape[0]:
+        done, late = solver.finish(problem, pick.take(xp, at))
+        best = best.put(xp, at, done)
     return best, spent, cut | late
 
 
