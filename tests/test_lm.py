@@ -198,19 +198,23 @@ def test_state_replace_copies_with_changes_and_refuses_unknown_fields(rod):
         state.replace(nope=1)
 
 
+def noisy_two_force_problem(rod, n, seed):
+    """The NumPy problem of n readings of two random forces (0.05-0.29 m, components ~ N(0, 0.8^2) N) with noise
+    0.1 1/m: their one-force fits are misfits, where local minima hide."""
+    gen = torch.Generator().manual_seed(seed)
+    s = 0.05 + 0.24 * torch.rand(n, 2, dtype=F64, generator=gen)
+    f = torch.randn(n, 2, 2, dtype=F64, generator=gen) * 0.8
+    u = tr.simulate(rod, tr.PointForces(s, f)).grating_curvature
+    return problem_for(NUMPY, rod, u + 0.1 * torch.randn(u.shape, dtype=F64, generator=gen), noise=0.1)
+
+
 def test_one_force_has_one_minimum_per_interval(rod):
     """What the search's one-force shortcut rests on (:func:`torchrod.estimate.search._explore`): within one interval
     the loss of one force has one local minimum, so every start that ends in an interval ends at the same fit. Checked
     where it is least obvious: one-force fits of noisy two-force readings (misfits), from three starts in every
     interval, two of them with the force reversed."""
-    gen = torch.Generator().manual_seed(11)
     n = 16
-    s = 0.05 + 0.24 * torch.rand(n, 2, dtype=F64, generator=gen)
-    f = torch.randn(n, 2, 2, dtype=F64, generator=gen) * 0.8
-    u = tr.simulate(rod, tr.PointForces(s, f)).grating_curvature
-    u = u + 0.1 * torch.randn(u.shape, dtype=F64, generator=gen)
-    xp = NUMPY
-    problem = problem_for(xp, rod, u, noise=0.1)
+    problem = noisy_two_force_problem(rod, n, seed=11)
     m = int(problem.intervals[0])
     lo, hi = problem.lo[0, :m], problem.hi[0, :m]
     starts = [(a, sign) for a in (0.15, 0.5, 0.85) for sign in ((1.0,) if a == 0.5 else (1.0, -1.0))]
@@ -242,14 +246,8 @@ def test_the_one_force_shortcut_finds_what_the_full_search_finds(rod):
     (:func:`torchrod.estimate.search._explore`). Against the same search without the shortcut, on noisy two-force
     readings, from each reading's worst converged one-force fit (a local minimum where there are several): the same
     readings improve, to the same fits, for fewer evaluations."""
-    gen = torch.Generator().manual_seed(5)
-    n = 48
-    s = 0.05 + 0.24 * torch.rand(n, 2, dtype=F64, generator=gen)
-    f = torch.randn(n, 2, 2, dtype=F64, generator=gen) * 0.8
-    u = tr.simulate(rod, tr.PointForces(s, f)).grating_curvature
-    u = u + 0.1 * torch.randn(u.shape, dtype=F64, generator=gen)
-    xp = NUMPY
-    problem = problem_for(xp, rod, u, noise=0.1)
+    n, xp = 48, NUMPY
+    problem = noisy_two_force_problem(rod, n, seed=5)
     policy = lm.LMPolicy()
     solver = search.Solver(policy)
     options = search.SearchOptions()
