@@ -12,6 +12,9 @@ minimum of each count from the one below it, with work linear in the number of g
   linear solve per candidate: O(G) candidates, each O(G). The best candidate of each interval is ranked by its
   decrement, and the ``top`` best intervals become starts: the fit moved by the Gauss-Newton step with the new
   force at c.
+* **Other starts** (:func:`_explore`). A suspicious fit (below) is also fitted from the scan's other intervals
+  for its last force, each start kept only while it promises to beat the fit. One force has one local minimum per
+  interval, so a one-force start that enters the interval of the fit it is to beat, without a lower loss, stops.
 * **Exchange** (:func:`exchange`). A fit whose loss is worse than a correct fit's typically is (noise known:
   above the ``suspect`` quantile of the chi-square law; noise unknown: always), or that holds a force on a grating
   (a kink of the loss, where the loss rises on both sides: true forces seldom sit exactly on a grating, wrong local
