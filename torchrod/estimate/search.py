@@ -70,6 +70,11 @@ class Solver:
             return lm.finish(problem, dataclasses.replace(self.policy, exact_steps=0), best), True
         return lm.finish(problem, self.policy, best), False
 
+    def finish_cost(self, late: bool) -> int:
+        """The evaluations :meth:`finish` counts per row: the exact residual and, unless ``late``, each exact-model
+        step it may take."""
+        return 1 if late else 1 + self.policy.exact_steps
+
     def refine(self, problem: Problem, chosen: lm.LMState) -> lm.LMState:
         """The fits the answer is made of: L-BFGS where the LM budget left them open (:mod:`.finish`), then the
         exact-model steps again; the others unchanged."""
@@ -671,21 +676,20 @@ def _explore(
         part = part.replace(done=part.steps >= solver.policy.iterations)
         st = st.put(xp, going, solver.solve(problem, part))
         cut = cut | _cut(xp, st, n)
-    spent = (1 + st.steps).reshape(-1, n).sum(0) + 1 + solver.policy.exact_steps
+    spent = (1 + st.steps).reshape(-1, n).sum(0)
     slack = 10.0 * solver.policy.tolerance * st.noise2[:n]
     pick = st.take(xp, best_of(xp, st, n, slack))
     live = ~xp.all(dropped.reshape(-1, n), 0)  # (n,) a reading with a row not dropped
     if bool(xp.all(live)):
         best, late = solver.finish(problem, pick)
-        return best, spent, cut | late
-    spent = spent - xp.astype(~live, "int") * (1 + solver.policy.exact_steps)  # no exact-model steps there
+        return best, spent + solver.finish_cost(late), cut | late
     best = pick.replace(loss=xp.where(live, pick.loss, math.inf))
     at = xp.nonzero(live)
     late = False
     if at.shape[0]:
         done, late = solver.finish(problem, pick.take(xp, at))
         best = best.put(xp, at, done)
-    return best, spent, cut | late
+    return best, spent + xp.astype(live, "int") * solver.finish_cost(late), cut | late
 
 
 def _first_fits(problem: Problem, solver: Solver, first: list[Fits]) -> tuple[lm.LMState, Any, Any]:
@@ -694,10 +698,10 @@ def _first_fits(problem: Problem, solver: Solver, first: list[Fits]) -> tuple[lm
     xp = problem.xp
     n = first[0].rows
     st = solver.solve(problem, _rows(first))
-    spent = (1 + st.steps).reshape(-1, n).sum(0) + 1 + solver.policy.exact_steps
+    spent = (1 + st.steps).reshape(-1, n).sum(0)
     slack = 10.0 * solver.policy.tolerance * st.noise2[:n]
     best, late = solver.finish(problem, st.take(xp, best_of(xp, st, n, slack)))
-    return best, spent, _cut(xp, st, n) | late
+    return best, spent + solver.finish_cost(late), _cut(xp, st, n) | late
 
 
 def _cut(xp: Any, state: lm.LMState, n: int) -> Any:
