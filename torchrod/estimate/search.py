@@ -647,7 +647,8 @@ def _explore(
     and the loss left is a ratio of two quadratic forms of a plane direction set by the location: one minimum per
     half-turn; ``test_one_force_has_one_minimum_per_interval`` checks it on misfits), so a row that enters the
     current fit's interval without a lower loss descends to that fit: it is dropped there. A reading whose rows are
-    all dropped has nothing better: its row gets an infinite loss and skips the exact-model steps."""
+    all dropped has nothing better: its row gets an infinite loss and skips the exact-model steps (so the
+    deadline cannot cut it there)."""
     xp = problem.xp
     n = starts[0].rows
     rows = _rows(starts)
@@ -689,7 +690,7 @@ def _explore(
     if at.shape[0]:
         done, late = solver.finish(problem, pick.take(xp, at))
         best = best.put(xp, at, done)
-    return best, spent + xp.astype(live, "int") * solver.finish_cost(late), cut | late
+    return best, spent + xp.astype(live, "int") * solver.finish_cost(late), cut | (live & late)
 
 
 def _first_fits(problem: Problem, solver: Solver, first: list[Fits]) -> tuple[lm.LMState, Any, Any]:
