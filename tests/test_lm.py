@@ -198,6 +198,34 @@ def test_state_replace_copies_with_changes_and_refuses_unknown_fields(rod):
         state.replace(nope=1)
 
 
+@pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)
+def test_state_take_and_put_of_every_row_in_order_are_the_general_ones(rod, xp):
+    """take and put of rows 0..R-1 (a shortcut: the state itself, the part itself) give what a permutation and its
+    inverse give through the general gather and scatter, None fields included."""
+    u = clean(rod, [[0.2], [0.12], [0.25]], [[[0.3, 0.1]], [[-0.2, 0.4]], [[0.1, -0.1]]])
+    problem = problem_for(xp, rod, u)
+    state = lm.start(problem, lm.LMPolicy(), fits_at(xp, problem, [[0.18], [0.1], [0.27]], [[[0.2, 0.0]]] * 3))
+    part = lm.solve(problem, lm.LMPolicy(), state).replace(proposal=None)
+    every, perm = xp.arange(3), xp.asarray([2, 0, 1], "int")
+    inverse = xp.asarray([1, 2, 0], "int")
+
+    def same(a, b):
+        for name in lm._STATE_FIELDS:
+            x, y = getattr(a, name), getattr(b, name)
+            if name == "fits":
+                x, y = (x.reading, x.s, x.f, x.interval), (y.reading, y.s, y.f, y.interval)
+            else:
+                x, y = (x,), (y,)
+            for p, q in zip(x, y, strict=True):
+                assert (p is None) == (q is None), name
+                if p is not None:
+                    assert xp.tolist(p) == xp.tolist(q), name
+
+    same(state.take(xp, every), state.take(xp, perm).take(xp, inverse))
+    same(state.put(xp, every, part), state.put(xp, perm, part.take(xp, perm)))
+    same(part.put(xp, every, state), part.put(xp, perm, state.take(xp, perm)))  # None where the target has None
+
+
 def noisy_two_force_problem(rod, n, seed):
     """The NumPy problem of n readings of two random forces (0.05-0.29 m, components ~ N(0, 0.8^2) N) with noise
     0.1 1/m: their one-force fits are misfits, where local minima hide."""

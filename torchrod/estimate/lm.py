@@ -133,6 +133,9 @@ class LMState:
         return new
 
     def take(self, xp: Any, idx: Any) -> LMState:
+        if _every_row(xp, idx, self.fits.rows):  # the state itself (states are never changed in place)
+            return self
+
         def pick(name: str) -> Any:
             if name == "fits":
                 return self.fits.take(idx)
@@ -142,6 +145,9 @@ class LMState:
         return self.replace(**{name: pick(name) for name in _STATE_FIELDS})
 
     def put(self, xp: Any, idx: Any, part: LMState) -> LMState:
+        if _every_row(xp, idx, self.fits.rows):  # every row replaced, in order: ``part``, and None where self has
+            return part.replace(**{name: None for name in _STATE_FIELDS if getattr(self, name) is None})
+
         def merge(name: str) -> Any:
             a, b = getattr(self, name), getattr(part, name)
             return None if a is None or b is None else xp.put(a, idx, b)
@@ -153,6 +159,11 @@ class LMState:
 
 
 _STATE_FIELDS = frozenset(f.name for f in dataclasses.fields(LMState))
+
+
+def _every_row(xp: Any, idx: Any, rows: int) -> bool:
+    """Whether the row indices ``idx`` are 0, 1, ..., rows - 1: every row, in order."""
+    return idx.shape[0] == rows and (rows == 0 or bool(xp.all(idx == xp.arange(rows))))
 
 
 def _damped(xp: Any, A: Any, free: Any, damping: Any, repeat: int = 1) -> Any:
