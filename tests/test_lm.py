@@ -239,8 +239,8 @@ def noisy_two_force_problem(rod, n, seed):
 def test_one_force_has_one_minimum_per_interval(rod):
     """What the search's one-force shortcut rests on (:func:`torchrod.estimate.search._explore`): within one interval
     the loss of one force has one local minimum, so every start that ends in an interval ends at the same fit. Checked
-    where it is least obvious: one-force fits of noisy two-force readings (misfits), from three starts in every
-    interval, two of them with the force reversed."""
+    where it is least obvious: one-force fits of noisy two-force readings (misfits), from five starts in every
+    interval (three locations, two of them also with the force reversed)."""
     n = 16
     problem = noisy_two_force_problem(rod, n, seed=11)
     m = int(problem.intervals[0])
