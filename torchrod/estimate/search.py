@@ -681,9 +681,6 @@ def _explore(
     slack = 10.0 * solver.policy.tolerance * st.noise2[:n]
     pick = st.take(xp, best_of(xp, st, n, slack))
     live = ~xp.all(dropped.reshape(-1, n), 0)  # (n,) a reading with a row not dropped
-    if bool(xp.all(live)):
-        best, late = solver.finish(problem, pick)
-        return best, spent + solver.finish_cost(late), cut | late
     best = pick.replace(loss=xp.where(live, pick.loss, math.inf))
     at = xp.nonzero(live)
     late = False
