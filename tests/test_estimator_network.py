@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import warnings
 from pathlib import Path
@@ -167,3 +168,59 @@ def test_bench_network_runs_and_prints_its_table(capsys):
     for k in (1, 2, 3):
         for name in ("network", "estimator", "estimator+network"):
             assert any(line.split()[:2] == [str(k), name] for line in out.splitlines()), (k, name)
+
+
+class _FixedGuess:
+    """A warm start that returns the same guesses and count probabilities whatever the readings."""
+
+    def __init__(self, probs, forces):
+        self.probs, self.forces = probs, forces
+
+    def guess(self, curvature, mask):
+        from torchrod.learn.warm_start import WarmStartGuess
+
+        return WarmStartGuess(self.probs, self.forces)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "torch"])
+@pytest.mark.parametrize("trust", [False, True])
+def test_a_network_guess_starts_only_the_readings_that_find_its_count_likely(backend, trust):
+    """With ``guess_probability`` p, a network guess of h forces is a start only for the readings whose count
+    probabilities give h at least p: a batch answers as if each reading had been estimated alone with a network
+    that gives no guess for its unlikely counts (same counts, statuses, fits and evaluations), trusted or not (a
+    trusted network's skipped readings start from the scan)."""
+    rod = tr.presets.nitinol290()
+    cases = [
+        [(0.1, -0.5, 0.4), (0.22, 0.2, 0.3)],
+        [(0.08, 0.3, 0.2), (0.2, -0.4, 0.1)],
+        [(0.15, 0.6, -0.2)],
+        [(0.06, 0.2, 0.5), (0.16, -0.3, 0.1), (0.26, 0.3, 0.2)],
+    ]
+    kappa, _ = _readings(rod, cases)
+    kappa = kappa + 0.05 * torch.randn(kappa.shape, generator=torch.Generator().manual_seed(5), dtype=kappa.dtype)
+    probs = torch.tensor(
+        [[0.0, 1.0, 0.0], [0.5, 0.5, 0.0], [1 / 3, 1 / 3, 1 / 3], [0.005, 0.99, 0.005]], dtype=torch.float64
+    )
+    # Guesses off the truth (a network is not exact), the same for every reading.
+    forces = {
+        h: tr.PointForces.from_lists([[(0.04 + 0.09 * i, 0.1, -0.1) for i in range(h)]] * len(cases)) for h in (1, 2, 3)
+    }
+    opts = EstimatorOptions(noise=0.05, backend=backend, trust_guesses=trust)
+    batch = Estimator(rod, opts, warm_start=_FixedGuess(probs, forces)).estimate(kappa)
+    for b in range(len(cases)):
+        likely = [h for h in forces if probs[b, h - 1] >= 0.01]
+        kept = {h: tr.PointForces(forces[h].s[b : b + 1], forces[h].f[b : b + 1]) for h in likely}
+        alone = Estimator(rod, opts, warm_start=_FixedGuess(torch.ones(1, 3), kept)).estimate(kappa[b : b + 1])
+        assert batch.statuses[b] == alone.statuses[0], b
+        assert int(batch.num_forces[b]) == int(alone.num_forces[0]), b
+        assert torch.allclose(batch.forces.s[b], alone.forces.s[0], atol=1e-7, equal_nan=True), b
+        assert int(batch.evaluations[b]) == int(alone.evaluations[0]), b
+    # Every guess used (p = 0) is another search, with more evaluations.
+    every = Estimator(rod, dataclasses.replace(opts, guess_probability=0.0), warm_start=_FixedGuess(probs, forces))
+    assert int(every.estimate(kappa).evaluations.sum()) > int(batch.evaluations.sum())
+
+
+def test_guess_probability_is_a_probability():
+    for bad in (-0.1, 1.0, float("nan"), True):
+        with pytest.raises(ValueError, match="guess_probability"):
+            EstimatorOptions(guess_probability=bad)

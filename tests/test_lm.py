@@ -226,6 +226,37 @@ def test_state_take_and_put_of_every_row_in_order_are_the_general_ones(rod, xp):
     same(part.put(xp, every, state), part.put(xp, perm, state.take(xp, perm)))  # None where the target has None
 
 
+@pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)
+def test_best_of_blocks_that_hold_some_readings(xp):
+    """``best_of`` with a layout (blocks that hold only some readings) picks, for each reading, its lowest-loss row
+    among the rows it has (a converged row within the slack preferred, NaN last); with every row present it is
+    the dense choice."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(3)
+    B, blocks = 5, 3
+    loss = rng.uniform(0.0, 1.0, blocks * B)
+    loss[[2, 9]] = np.nan
+    converged = rng.uniform(size=blocks * B) < 0.5
+    slack = np.full(blocks * B, 0.2)
+
+    def state(rows):
+        return SimpleNamespace(loss=xp.asarray(loss[rows]), converged=xp.asarray(converged[rows], "bool"))
+
+    every = np.arange(blocks * B)
+    dense = xp.tolist(search.best_of(xp, state(every), B, xp.asarray(slack[:B])))
+    laid = xp.tolist(search.best_of(xp, state(every), B, xp.asarray(slack), (xp.asarray(every, "int"), blocks)))
+    assert laid == dense
+    present = np.array([k for k in every if k not in (0, 5, 6, 13)])  # reading 0 only in block 2
+    layout = (xp.asarray(present, "int"), blocks)
+    got = xp.tolist(search.best_of(xp, state(present), B, xp.asarray(slack[present]), layout))
+    for b in range(B):
+        rows = [i for i, k in enumerate(present) if k % B == b]
+        key = [loss[present[i]] - 0.2 * converged[present[i]] for i in rows]
+        key = [np.inf if np.isnan(v) else v for v in key]
+        assert got[b] == rows[int(np.argmin(key))], b
+
+
 def noisy_two_force_problem(rod, n, seed):
     """The NumPy problem of n readings of two random forces (0.05-0.29 m, components ~ N(0, 0.8^2) N) with noise
     0.1 1/m: their one-force fits are misfits, where local minima hide."""

@@ -86,6 +86,11 @@ class EstimatorOptions:
             alone; the scan's starts serve only a fit found suspicious (:mod:`.search`). Set by
             :meth:`Estimator.from_checkpoint` when the network's recorded quality is trusted; otherwise guesses
             are starts beside the scan's.
+        guess_probability: a warm-start network's guess of h forces starts a fit only for the readings where the
+            network gives h at least this probability (its count head); elsewhere it would be one more start for
+            a count the reading is unlikely to have (docs/results.md, "Network guesses where the network expects
+            them"). 0: every guess is used. Ignored with ``starts=0`` (the guesses are then the only starts) and
+            for a warm start that gives no probabilities.
         relative: readings of a precurved rod are the change of curvature from the unloaded shape, u - u*, not the
             total curvature u a fibre that is straight when unstrained reads (no effect on a straight rod).
         time_budget: [s] per reading, None: no limit. A call on B readings stops searching ``B * time_budget``
@@ -113,6 +118,7 @@ class EstimatorOptions:
     condition_limit: float = CONDITION_LIMIT
     backend: str = "auto"
     trust_guesses: bool = False
+    guess_probability: float = 0.01
     relative: bool = False
     time_budget: float | None = None
 
@@ -144,6 +150,7 @@ class EstimatorOptions:
         number("noise_floor", lambda v: v >= 0.0, ">= 0 [1/m]")
         number("max_step_angle", lambda v: v > 0.0, "positive")
         number("condition_limit", lambda v: v > 1.0, "above 1")
+        number("guess_probability", lambda v: 0.0 <= v < 1.0, "in [0, 1)")
         for name, kind in (("lm", lm.LMPolicy), ("search", search.SearchOptions), ("lbfgs", LBFGSOptions)):
             if not isinstance(getattr(self, name), kind):
                 raise TypeError(f"{name} must be {kind.__name__}, got {type(getattr(self, name)).__name__}")
@@ -479,20 +486,30 @@ class Estimator:
             for h, pf in extra_starts.items():
                 if h in found:
                     found[h].append(self._check_guess(pf, B, h, shift=-self.rod.location_bias))
+        # per guess: the readings it starts (None: all)
+        where: dict[int, list[torch.Tensor | None]] = {h: [None] * len(found[h]) for h in found}
         if self.warm_start is not None:
             net = (
                 self.warm_start.guess(curvature, mask)
                 if hasattr(self.warm_start, "guess")
                 else self.warm_start(curvature, mask)
             )
+            probs = getattr(net, "count_probs", None)
             for h, pf in (net.forces if hasattr(net, "forces") else net).items():
                 if h in found:
                     found[h].append(self._check_guess(pf, B, h, shift=0.0))
+                    likely = None
+                    if probs is not None and opts.starts > 0 and opts.guess_probability > 0 and h <= probs.shape[1]:
+                        likely = probs[:, h - 1].detach() >= opts.guess_probability
+                        likely = None if bool(likely.all()) else likely.nonzero()[:, 0].to(curvature.device)
+                    where[h].append(likely)
         xp = problem.xp
         reading = xp.arange(B)
         out: dict[int, list[Fits]] = {}
         for h, pfs in found.items():
-            for pf in pfs:
+            for pf, rows in zip(pfs, where[h], strict=True):
+                if rows is not None and rows.shape[0] == 0:
+                    continue
                 ok = (pf.active & torch.isfinite(pf.s) & torch.isfinite(pf.f).all(-1)).all(dim=1, keepdim=True)
                 s = torch.where(ok, pf.s.to(torch.float64), torch.zeros((), dtype=torch.float64))
                 f = torch.where(ok.unsqueeze(-1), pf.f.to(torch.float64), torch.zeros((), dtype=torch.float64))
@@ -500,7 +517,10 @@ class Estimator:
                 mid = 0.5 * (problem.lo[:, :1] + problem.hi[:, :1])  # the first interval's middle
                 s_x = xp.where(xp.asarray(ok.to(curvature.device), "bool"), s_x, xp.expand(mid, (B, h)))
                 j, s_x = interval_of(problem, reading, s_x)
-                out.setdefault(h, []).append(Fits(reading, s_x, xp.asarray(f.to(curvature.device)), j))
+                fits = Fits(reading, s_x, xp.asarray(f.to(curvature.device)), j)
+                if rows is not None:
+                    fits = fits.take(xp.asarray(rows, "int"))
+                out.setdefault(h, []).append(fits)
         return out
 
     def _rules(self, problem: Any, opts: EstimatorOptions) -> search.Rules:

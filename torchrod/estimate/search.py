@@ -297,16 +297,28 @@ def _solve(xp: Any, A: Any, g: Any) -> tuple[Any, Any]:
     return step, xp.where(ok, -(g * step).sum(1), -math.inf)
 
 
-def best_of(xp: Any, state: lm.LMState, B: int, slack: Any = None) -> Any:
+def best_of(xp: Any, state: lm.LMState, B: int, slack: Any = None, layout: tuple[Any, int] | None = None) -> Any:
     """(B,) the row index of each reading's best fit in ``state`` (rows in blocks of B): the lowest loss, where
-    fits within ``slack`` (B,) [1/m^2] of it count as equal and a converged one is preferred."""
-    loss = state.loss.reshape(-1, B)
-    key = loss
-    if slack is not None:
-        key = loss - slack[None, :] * xp.astype(state.converged.reshape(-1, B), "float")
+    fits within ``slack`` (B,) [1/m^2] of it count as equal and a converged one is preferred.
+
+    ``layout`` ``(slot, blocks)``: blocks that hold only some of the B readings; row r is reading ``slot[r] % B``
+    of block ``slot[r] // B``, out of ``blocks`` (every reading in at least one block); ``slack`` is then per row
+    (R,)."""
+    if layout is None:
+        key = state.loss.reshape(-1, B)
+        if slack is not None:
+            key = key - slack[None, :] * xp.astype(state.converged.reshape(-1, B), "float")
+    else:
+        slot, blocks = layout
+        key = state.loss
+        if slack is not None:
+            key = key - slack * xp.astype(state.converged, "float")
+        key = xp.put(xp.full((blocks * B,), math.inf), slot, key).reshape(-1, B)  # a missing row: last
     key = xp.where(key == key, key, math.inf)  # NaN last
-    block = xp.argmin(key, 0)
-    return block * B + xp.arange(B)
+    best = xp.argmin(key, 0) * B + xp.arange(B)
+    if layout is None:
+        return best
+    return xp.put(xp.zeros((blocks * B,), "int"), slot, xp.arange(slot.shape[0]))[best]
 
 
 def exchange(
@@ -417,6 +429,15 @@ def no_force(problem: Problem) -> lm.LMState:
     return state.replace(r=r, loss=(r * r).sum(1), converged=xp.ones((B,), "bool"))
 
 
+def _among(xp: Any, guess: Fits, readings: Any, B: int) -> Fits:
+    """The rows of ``guess`` (a block of starts, one row per reading it holds, reading order) of the readings
+    ``readings`` (increasing): all of them when ``guess`` holds every reading."""
+    if guess.rows == B:
+        return guess.take(readings)
+    wanted = xp.put(xp.zeros((B,), "bool"), readings, xp.ones((readings.shape[0],), "bool"))
+    return guess.take(xp.nonzero(wanted[guess.reading]))
+
+
 def _rows(blocks: list[Fits]) -> Fits:
     return Fits(*(_cat(blocks, k) for k in ("reading", "s", "f", "interval")))
 
@@ -493,8 +514,9 @@ def fit_counts(
     Args:
         rules: the decisions (:class:`Rules`).
         starts: scan starts per count (0: only ``guesses``).
-        guesses: {h: [Fits of B rows]} further starts (a network's guess, a previous solution), one row per
-            reading in reading order, each force already in its interval.
+        guesses: {h: [Fits]} further starts (a network's guess, a previous solution), each force already in its
+            interval: a block of B rows (one per reading, in reading order) or of the rows of some readings
+            (increasing ``Fits.reading``; those it leaves out are started from the scan, whether trusted or not).
         needed: the counts that must be fitted (None: all); with ``starts=0`` a count without guesses is left
             unfitted unless needed (then it is an error).
         trusted: the guesses are good enough to start alone (a network whose recorded quality says so): the first
@@ -535,14 +557,23 @@ def fit_counts(
                     sc = Scan(starts=sc.starts.take(rows), gain=sc.gain[keep], predicted=sc.predicted[:, keep])
                     n = open_.shape[0]
         state = _blank(xp, B, h, G)
-        first: list[Fits] = [g.take(open_) for g in guesses.get(h, [])] if n else []
-        if n and starts > 0 and not (first and trusted):
-            first.append(sc.starts.take(xp.arange(n)))
+        first = [_among(xp, g, open_, B) for g in guesses.get(h, [])] if n else []
+        first = [g for g in first if g.rows]
+        if n and starts > 0:
+            if not (first and trusted):
+                first.append(sc.starts.take(xp.arange(n)))
+            elif any(g.rows < n for g in first):  # trusted guesses that skip some readings: the scan starts those
+                covered = xp.zeros((B,), "bool")
+                for g in first:
+                    covered = xp.put(covered, g.reading, xp.ones((g.rows,), "bool"))
+                alone = xp.nonzero(~covered[open_])
+                if alone.shape[0]:
+                    first.append(sc.starts.take(alone))
         if n and not first and (needed is None or h in needed):
             raise ValueError(f"no start for h = {h}: starts=0 needs a warm start or extra_starts for every count")
         done_here = xp.zeros((B,), "bool")
         if first:
-            best, spent, short = _first_fits(problem, solver, first)
+            best, spent, short = _first_fits(problem, solver, first, open_)
             evaluations = xp.add_at(evaluations, open_, spent)
             cut = xp.put(cut, open_, cut[open_] | short)
             state = state.put(xp, open_, best)
@@ -690,16 +721,28 @@ def _explore(
     return best, spent + xp.astype(live, "int") * solver.finish_cost(late), cut | (live & late)
 
 
-def _first_fits(problem: Problem, solver: Solver, first: list[Fits]) -> tuple[lm.LMState, Any, Any]:
-    """The best of the ``first`` starts (blocks of n rows) per reading, finished on the exact model; the
-    evaluations spent and (n,) whether the deadline cut a start short, per reading."""
+def _first_fits(problem: Problem, solver: Solver, first: list[Fits], readings: Any) -> tuple[lm.LMState, Any, Any]:
+    """The best of the ``first`` starts per reading of ``readings`` (n,), finished on the exact model; the
+    evaluations spent and (n,) whether the deadline cut a start short, per reading. A block holds a row for every
+    one of the n readings, in their order, or (a network guess kept only where the network finds its count
+    likely, :meth:`torchrod.Estimator.estimate`) rows for some of them, named by ``Fits.reading``; every reading
+    has a row in some block."""
     xp = problem.xp
-    n = first[0].rows
+    n = readings.shape[0]
     st = solver.solve(problem, _rows(first))
-    spent = (1 + st.steps).reshape(-1, n).sum(0)
-    slack = 10.0 * solver.policy.tolerance * st.noise2[:n]
-    best, late = solver.finish(problem, st.take(xp, best_of(xp, st, n, slack)))
-    return best, spent + solver.finish_cost(late), _cut(xp, st, n) | late
+    if all(b.rows == n for b in first):
+        spent = (1 + st.steps).reshape(-1, n).sum(0)
+        pick = best_of(xp, st, n, 10.0 * solver.policy.tolerance * st.noise2[:n])
+        cut = _cut(xp, st, n)
+    else:
+        at = xp.put(xp.zeros((problem.batch_size,), "int"), readings, xp.arange(n))
+        slot = xp.concat([at[b.reading] + k * n for k, b in enumerate(first)])
+        pos = slot % n
+        spent = xp.add_at(xp.zeros((n,), "int"), pos, 1 + st.steps)
+        pick = best_of(xp, st, n, 10.0 * solver.policy.tolerance * st.noise2, (slot, len(first)))
+        cut = xp.add_at(xp.zeros((n,), "int"), pos, xp.astype(~st.done, "int")) > 0
+    best, late = solver.finish(problem, st.take(xp, pick))
+    return best, spent + solver.finish_cost(late), cut | late
 
 
 def _cut(xp: Any, state: lm.LMState, n: int) -> Any:
