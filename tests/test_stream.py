@@ -173,7 +173,7 @@ def test_tracking_starts_are_the_last_solution_in_reported_coordinates():
     cases = [[(0.12, -0.4, 0.3), (0.22, 0.5, 0.2)]] * 6
     u = _readings(rod, cases, seed=5)
     items = [Reading(k, u[k]) for k in range(6)]
-    list(stream(Spy(), items, StreamOptions(batch_size=2, max_latency=10.0, track_limit=2)))
+    list(stream(Spy(), items, StreamOptions(batch_size=2, max_latency=10.0, track=True, track_limit=2)))
     starts, results = seen[0::2], seen[1::2]
     assert starts[0] is None and len(starts) == 3
     for before, given in zip(results, starts[1:], strict=False):
@@ -184,7 +184,7 @@ def test_tracking_starts_are_the_last_solution_in_reported_coordinates():
         weakest = int(torch.linalg.vector_norm(before.forces.f[-1, :2], dim=-1).argmin())
         torch.testing.assert_close(given[1].s[0], before.forces.s[-1, [1 - weakest]])
     seen.clear()
-    list(stream(Spy(), items, StreamOptions(batch_size=3, max_latency=10.0, track_limit=2)))
+    list(stream(Spy(), items, StreamOptions(batch_size=3, max_latency=10.0, track=True, track_limit=2)))
     assert seen[0::2] == [None, None]
 
 
@@ -347,7 +347,7 @@ def test_tracking_a_force_that_appears_and_vanishes(rod):
     u = _readings(rod, cases, seed=3)
     estimator = tr.Estimator(rod, tr.EstimatorOptions(max_forces=3, noise=NOISE))
     items = [Reading(id=k, curvature=u[k], t=0.01 * k) for k in range(T)]
-    out = list(stream(estimator, items, StreamOptions(batch_size=4, max_latency=0.0)))
+    out = list(stream(estimator, items, StreamOptions(batch_size=4, max_latency=0.0, track=True)))
     static = estimator.estimate(u).to_records()
     clear = [k for k in range(T) if k < 8 or 11 <= k <= 25 or k >= 28]
     right = [k for k in clear if out[k].record["num_forces"] == len(truth[k])]
@@ -364,6 +364,22 @@ def test_tracking_a_force_that_appears_and_vanishes(rod):
     assert mine.force_error() <= 1.3 * ref.force_error() + 0.005
     assert mine.location_error() <= 1.3 * ref.location_error() + 0.5e-3
     assert mine.force_error() < 0.05 and mine.location_error() < 3e-3
+
+
+def test_by_default_a_reading_is_answered_as_the_static_estimator_answers_it(rod):
+    """Without tracking (the default) a stream adds no starts: each reading's answer is the estimator's on that
+    reading alone, whatever batch it fell in (two-force readings whose second force comes and goes)."""
+    cases = [[(0.21, 0.5, 0.2)] + ([(0.09, -0.4, 0.3)] if 3 <= k <= 8 else []) for k in range(12)]
+    u = _readings(rod, [sorted(c) for c in cases], seed=4)
+    estimator = tr.Estimator(rod, tr.EstimatorOptions(max_forces=3, noise=NOISE))
+    items = [Reading(id=k, curvature=u[k]) for k in range(len(cases))]
+    out = list(stream(estimator, items, StreamOptions(batch_size=5)))
+    for k, r in enumerate(out):
+        alone = estimator.estimate(u[k : k + 1])
+        assert r.record["status"] == alone.statuses[0] and r.record["num_forces"] == int(alone.num_forces[0]), k
+        h = int(alone.num_forces[0])
+        got = torch.tensor([f["s"] for f in r.record["forces"]], dtype=u.dtype)
+        torch.testing.assert_close(got, alone.forces.s[0, :h], atol=1e-7, rtol=0)
 
 
 def test_stream_stats_quantiles():

@@ -293,6 +293,8 @@ def test_cli_stream_with_two_workers_answers_as_one(tmp_path, capsys):
     base += ["--max-latency-ms", "60000"]
     if _has_option("stream", "--time-budget-ms"):
         base += ["--time-budget-ms", "1e9"]  # no timeouts: the answers must not depend on the machine's load
+    if _has_option("stream", "--track"):
+        base += ["--track"]
     assert main([*base, "--workers", "1", "--batch-size", "16"]) == 0
     one = _answers(capsys, "latency_ms")
     assert main([*base, "--workers", "2", "--batch-size", "8"]) == 0

@@ -9,11 +9,11 @@ iterable of readings and yields one result per reading, in input order, as soon 
   idle is solved at once); readings that queued up while a batch was being solved all join the next one (up to a
   full batch), so under load batches form by themselves and grow instead of falling behind; with ``workers`` > 1
   a batch is spread over that many processes (:mod:`torchrod.estimate.workers`);
-- each reading starts from the warm-start network's guess (when the estimator has one), from the grid scan
-  (unless the estimator's ``starts=0``), and, in batches of at most ``track_limit`` readings, from the forces of
-  the last solved reading (loads change slowly between frames: the count it chose, and that count less its
-  weakest force, for a contact that vanishes); the estimator keeps the best fit of each count and chooses the
-  number of forces per reading;
+- each reading is estimated as :meth:`~torchrod.Estimator.estimate` would alone (the warm-start network's
+  guesses when the estimator has one, the scan's starts, the count chosen per reading), so the stream's answers
+  are the static estimator's; with ``track``, readings in batches of at most ``track_limit`` also start from the
+  forces of the last solved reading (the count it chose, and that count less its weakest force, for a contact
+  that vanishes);
 - every reading is checked by the rules of :mod:`torchrod.io.readings` (the same as ``torchrod estimate``'s): a
   reading that cannot be used (an error upstream, NaN in a list, a value beyond the curvature bound, a wrong
   grating count, no grating present, an id JSON cannot echo) yields an error result in its place and the stream
@@ -102,11 +102,10 @@ class StreamOptions:
         read_ahead: bound on readings taken from the source and queued beyond the pending batch; None: twice
             the batch (with less, a backlog cannot fill whole batches: a batch takes what is queued).
         track: start the readings of a batch from the last solved reading's forces too, when the batch holds
-            at most ``track_limit`` readings. A larger batch (a backlog) spans too many frames for one previous
-            solution to be near most of its readings, and the extra starts cost there: measured with
-            ``torchrod bench stream``, 25% of the backlog throughput for no gain in accuracy; in small batches
-            they are nearly free, and without a warm-start network they lift the count accuracy (0.62 to 0.84 on
-            a hard stretch of the synthetic trajectory, batches of 8).
+            at most ``track_limit`` readings (loads change slowly between frames). Off by default: the search
+            finds what these starts find, and they cost time (docs/results.md, "Tracking starts in a stream"). A
+            larger batch (a backlog) spans too many frames for one previous solution to be near most of its
+            readings.
         device: torch device the readings are estimated on.
         learn_noise: with no noise given (neither the estimator's ``noise`` nor an override), learn the sensor's
             sigma from the stream's own fits (:mod:`torchrod.estimate.noise`) and, once learned, solve every
@@ -121,7 +120,7 @@ class StreamOptions:
     batch_size: int = 64
     max_latency: float = 0.0
     read_ahead: int | None = None
-    track: bool = True
+    track: bool = False
     track_limit: int = 16
     device: str | torch.device = "cpu"
     learn_noise: NoiseLearning | None = NoiseLearning()

@@ -24,7 +24,11 @@ the same readings several ways, in one run:
   interrogator would; default: the trajectory's own rate, real time); latency from release to answer, batches
   closed by ``--max-latency-ms``;
 * ``stream, one at a time``: batches of one on the same readings as ``static, one at a time``, each released when
-  the previous answer is out (latency: release to answer; previous-solution starts always one frame old).
+  the previous answer is out (latency: release to answer).
+
+The stream rows (and the CLI's) start each reading as the static estimator does; with ``--track`` they also start
+small batches from the last answer's forces (``StreamOptions(track=True)``; in ``one at a time`` always one frame
+old).
 * ``CLI, R Hz from outside`` (``--external``, default 100 and 1000 Hz): a ``torchrod stream`` process (the
   command's own options, with this run's ``--noise``, network, ``--batch-size`` and ``--threads``; ``--set`` does
   not reach it) fed the first ``--paced`` readings as JSON lines through a pipe at R Hz by a writer thread
@@ -126,6 +130,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="--workers of the externally paced rows (default 1)",
     )
+    parser.add_argument(
+        "--track", action="store_true", help="the stream rows also start from the last answer (StreamOptions.track)"
+    )
     parser.add_argument("--profile", action="store_true", help="where the time goes (a separate profiled pass)")
     parser.add_argument("--quick", action="store_true", help="a smoke run: 300 readings, 100 paced, 20 one at a time")
 
@@ -206,6 +213,8 @@ def _external_rows(
     base += ["--batch-size", str(args.batch_size), "--threads", str(args.threads)]
     if args.external_workers != 1:
         base += ["--workers", str(args.external_workers)]
+    if args.track:
+        base += ["--track"]
     u = torch.where(trajectory.mask.unsqueeze(-1), trajectory.curvature, math.nan).tolist()
     lines = [reading_line(k, float(trajectory.t[k]), u[k]) for k in range(paced)]
     warm = [reading_line(f"warm-up {k}", None, u[k]) for k in range(min(5, paced))]
@@ -382,7 +391,7 @@ def run(args: argparse.Namespace) -> int:
         for k in range(count)
     ]
     B = args.batch_size
-    options = StreamOptions(batch_size=B, max_latency=args.max_latency_ms / 1e3)
+    options = StreamOptions(batch_size=B, max_latency=args.max_latency_ms / 1e3, track=args.track)
     counts = [len(t) for t in truth]
     print(
         f"# torchrod bench stream: {count} readings of a {args.rate:g} Hz trajectory "
@@ -442,7 +451,8 @@ def run(args: argparse.Namespace) -> int:
 
     lock = _LockStep([items[k] for k in window])
     row = _Row("stream, one at a time")
-    _timed(row, lock.answered(stream(estimator, lock, StreamOptions(batch_size=1, max_latency=0.0))), truth)
+    single_options = StreamOptions(batch_size=1, max_latency=0.0, track=args.track)
+    _timed(row, lock.answered(stream(estimator, lock, single_options)), truth)
     rows.append(row)
 
     width = max(len(row.name) for row in rows)

@@ -146,6 +146,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="longest wait for more lines before a batch is solved (default 0)",
     )
     add_time_budget_option(parser, DEFAULT_TIME_BUDGET_MS)
+    parser.add_argument(
+        "--track",
+        action="store_true",
+        help="also start small batches from the last answer's forces (StreamOptions.track; off: it costs time)",
+    )
     parser.add_argument("--max-forces", type=int, default=3, metavar="H", help="choose the count in 0..H (3)")
     parser.add_argument(
         "--noise", type=float, metavar="SIGMA", help="sensor noise sigma [1/m]; default: learned from the stream"
@@ -263,6 +268,7 @@ def _run(args: argparse.Namespace) -> int:
         max_latency=args.max_latency_ms / 1e3,
         learn_noise=None if args.per_reading_noise else NoiseLearning(),
         workers=processes,
+        track=args.track,
     )
     # Warm-up before the first reading: per-rod caches and first-call costs would otherwise land on its latency.
     warm_up(estimator)
