@@ -25,10 +25,6 @@ the same readings several ways, in one run:
   closed by ``--max-latency-ms``;
 * ``stream, one at a time``: batches of one on the same readings as ``static, one at a time``, each released when
   the previous answer is out (latency: release to answer).
-
-The stream rows (and the CLI's) start each reading as the static estimator does; with ``--track`` they also start
-small batches from the last answer's forces (``StreamOptions(track=True)``; in ``one at a time`` always one frame
-old).
 * ``CLI, R Hz from outside`` (``--external``, default 100 and 1000 Hz): a ``torchrod stream`` process (the
   command's own options, with this run's ``--noise``, network, ``--batch-size`` and ``--threads``; ``--set`` does
   not reach it) fed the first ``--paced`` readings as JSON lines through a pipe at R Hz by a writer thread
@@ -38,6 +34,10 @@ old).
   row gives the median latency over the first and the last tenth of the run (a stream that cannot keep up falls
   behind: its latency grows) and the answers' statuses (``timeout``: cut by the time budget). cpu ms is the
   child's; readings per batch and evaluations are not reported (the answers do not carry them).
+
+The stream rows (and the CLI's) start each reading as the static estimator does; with ``--track`` they also start
+small batches from the last answer's forces (``StreamOptions(track=True)``; in ``one at a time`` always one frame
+old).
 
 Per way: readings per second (wall), process CPU time per reading, latency median and 99th percentile, readings
 per batch, the accuracy against the truth (count accuracy, and over the readings whose count is right the median
