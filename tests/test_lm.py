@@ -332,3 +332,25 @@ def test_the_one_force_shortcut_finds_what_the_full_search_finds(rod):
     assert np.all(spent_fast <= spent_full) and spent_fast.sum() < 0.8 * spent_full.sum()
     assert 4 <= better_full.sum() <= n - 4  # both outcomes are tested
     assert np.isinf(fast.loss).any()  # some readings had every start dropped: nothing finished for them
+
+
+def test_the_exact_finish_counts_what_each_row_costs_alone(rod, monkeypatch):
+    """``finish_counted`` gives each row the exact-model evaluations it makes alone (its residual, then each step
+    it tries until one is not worth taking or does not lower the loss): in a batch, the rows reach what they reach
+    alone and are counted as alone, although the batch loop evaluates every row while any moves."""
+    n, xp = 24, NUMPY
+    problem = noisy_two_force_problem(rod, n, seed=8)
+    policy = lm.LMPolicy()
+    s = problem.lo[:, 2:3] + 0.3 * (problem.hi[:, 2:3] - problem.lo[:, 2:3])
+    fitted = lm.solve(problem, policy, Fits(np.arange(n), s, np.tile([[[0.4, -0.3]]], (n, 1, 1)), np.full((n, 1), 2)))
+    calls = []
+    real = lm.exact_residual
+    monkeypatch.setattr(lm, "exact_residual", lambda p, f: calls.append(f.rows) or real(p, f))
+    batch, used = lm.finish_counted(problem, policy, fitted)
+    assert sum(calls) == n * (1 + len(calls[1:])) and len(set(xp.tolist(used))) > 1  # rows differ
+    for b in range(n):
+        calls.clear()
+        alone, one = lm.finish_counted(problem, policy, fitted.take(xp, np.array([b])))
+        assert xp.tolist(one) == [len(calls)] == [int(used[b])], b
+        assert np.allclose(alone.loss, batch.loss[b : b + 1], rtol=1e-12, atol=0)
+        assert np.allclose(alone.fits.s, batch.fits.s[b : b + 1], rtol=0, atol=1e-12)

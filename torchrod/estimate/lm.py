@@ -36,7 +36,7 @@ from typing import Any
 
 from .problem import Fits, Problem, bounds, evaluate, exact_residual, kink_slopes, near_bounds, sided, sigma2
 
-__all__ = ["LMPolicy", "LMState", "analyse", "finish", "gauss_newton", "solve", "start"]
+__all__ = ["LMPolicy", "LMState", "analyse", "finish", "finish_counted", "gauss_newton", "solve", "start"]
 
 
 @dataclass(frozen=True)
@@ -412,19 +412,30 @@ def solve(
 def finish(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
     """The fits of ``state`` moved to the exact model's optimum (module docstring); r and loss from the exact
     model, J the fitting model's (at the fitting model's optimum, within ~1e-4)."""
+    return finish_counted(problem, policy, state)[0]
+
+
+def finish_counted(problem: Problem, policy: LMPolicy, state: LMState) -> tuple[LMState, Any]:
+    """:func:`finish`, and (R,) the exact-model evaluations each row needs: the residual, then one per step it
+    tries, up to its first step that is not worth taking or does not lower the loss. That is what the row costs
+    alone; in a batch the loop runs while any row moves, and a row that has stopped is evaluated again at the same
+    point, to the same end (its state is the one it reaches alone)."""
     xp = problem.xp
     fits = state.fits
     R, h = fits.s.shape
     r = exact_residual(problem, fits)
     loss = (r * r).sum(1)
+    used = xp.ones((R,), "int")
     if h == 0:
-        return state.replace(r=r, loss=loss)
+        return state.replace(r=r, loss=loss), used
     J = sided(problem, fits, state.J)
     free = _free(state.held, xp)
+    going = xp.ones((R,), "bool")  # rows still moving as they would alone
     for _ in range(policy.exact_steps):
         dx, dec = gauss_newton(xp, J, r, free, 1e-9)
         # A step whose promise is far below the noise moves the fit by a sliver of its standard deviation: skip.
         worth = ~(dec <= policy.exact_tolerance * sigma2(problem, fits, loss))
+        going = going & worth
         if not bool(xp.any(worth)):
             break
         dx = xp.where(worth[:, None], dx, 0.0).reshape(R, h, 3)
@@ -437,7 +448,9 @@ def finish(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
         )
         r_t = exact_residual(problem, trial)
         loss_t = (r_t * r_t).sum(1)
+        used = used + xp.astype(going, "int")
         better = worth & xp.isfinite(loss_t) & (loss_t < loss)
+        going = going & better
         if not bool(xp.any(better)):
             break
         fits = Fits(
@@ -449,4 +462,4 @@ def finish(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
         r = xp.where(better[:, None], r_t, r)
         loss = xp.where(better, loss_t, loss)
     loss = xp.where(xp.isfinite(loss), loss, math.inf)
-    return state.replace(fits=fits, r=r, loss=loss)
+    return state.replace(fits=fits, r=r, loss=loss), used

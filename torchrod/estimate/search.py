@@ -62,32 +62,33 @@ class Solver:
         ``stop``: as :func:`.lm.solve`'s."""
         return lm.solve(problem, self.policy, fits, self.deadline, stop)
 
-    def finish(self, problem: Problem, best: lm.LMState) -> tuple[lm.LMState, bool]:
+    def finish(self, problem: Problem, best: lm.LMState) -> tuple[lm.LMState, bool, Any]:
         """The fits kept (the best of each reading): the exact-model steps (:func:`.lm.finish`); past the deadline
         only the exact model's residual (the fits stay at the fitting model's optimum, ~1e-4 off) and True: the
-        rows were cut short."""
+        rows were cut short. Also (R,) the exact-model evaluations each row needed
+        (:func:`.lm.finish_counted`)."""
         if self.late():
-            return lm.finish(problem, dataclasses.replace(self.policy, exact_steps=0), best), True
-        return lm.finish(problem, self.policy, best), False
+            done, used = lm.finish_counted(problem, dataclasses.replace(self.policy, exact_steps=0), best)
+            return done, True, used
+        done, used = lm.finish_counted(problem, self.policy, best)
+        return done, False, used
 
-    def finish_cost(self, late: bool) -> int:
-        """The evaluations :meth:`finish` counts per row: the exact residual and, unless ``late``, each exact-model
-        step it may take."""
-        return 1 if late else 1 + self.policy.exact_steps
-
-    def refine(self, problem: Problem, chosen: lm.LMState) -> lm.LMState:
+    def refine(self, problem: Problem, chosen: lm.LMState) -> tuple[lm.LMState, Any]:
         """The fits the answer is made of: L-BFGS where the LM budget left them open (:mod:`.finish`), then the
-        exact-model steps again; the others unchanged."""
-        if self.lbfgs is None:
-            return chosen
+        exact-model steps again; the others unchanged. Also (R,) the evaluations that took (0 where unchanged)."""
         xp = problem.xp
+        spent = xp.zeros((chosen.fits.rows,), "int")
+        if self.lbfgs is None:
+            return chosen, spent
         open_ = xp.nonzero(
             ~chosen.converged & (chosen.steps >= self.policy.iterations) & (chosen.damping < self.policy.max_damping)
         )
         if open_.shape[0] == 0:
-            return chosen
-        part = refine_open(problem, self.policy, self.lbfgs, chosen.take(xp, open_))
-        return chosen.put(xp, open_, lm.finish(problem, self.policy, part))
+            return chosen, spent
+        before = chosen.take(xp, open_)
+        part = refine_open(problem, self.policy, self.lbfgs, before)
+        done, used = lm.finish_counted(problem, self.policy, part)
+        return chosen.put(xp, open_, done), xp.put(spent, open_, part.steps - before.steps + used)
 
 
 @dataclass(frozen=True)
@@ -653,9 +654,8 @@ def fit_counts(
         if mine.shape[0] and solver.late():  # no time to refine: the fits the LM left open stay open
             cut = xp.put(cut, mine, cut[mine] | ~states[h].converged[mine])
         elif mine.shape[0]:
-            before = states[h].take(xp, mine)
-            after = solver.refine(problem, before)
-            evaluations = xp.add_at(evaluations, mine, after.steps - before.steps)
+            after, spent = solver.refine(problem, states[h].take(xp, mine))
+            evaluations = xp.add_at(evaluations, mine, spent)
             states[h] = states[h].put(xp, mine, after)
     return CountFits(states=states, fitted=fitted, evaluations=evaluations, cut=cut)
 
@@ -716,9 +716,10 @@ def _explore(
     at = xp.nonzero(live)
     late = False
     if at.shape[0]:
-        done, late = solver.finish(problem, pick.take(xp, at))
+        done, late, used = solver.finish(problem, pick.take(xp, at))
         best = best.put(xp, at, done)
-    return best, spent + xp.astype(live, "int") * solver.finish_cost(late), cut | (live & late)
+        spent = xp.add_at(spent, at, used)
+    return best, spent, cut | (live & late)
 
 
 def _first_fits(problem: Problem, solver: Solver, first: list[Fits], readings: Any) -> tuple[lm.LMState, Any, Any]:
@@ -741,8 +742,8 @@ def _first_fits(problem: Problem, solver: Solver, first: list[Fits], readings: A
         spent = xp.add_at(xp.zeros((n,), "int"), pos, 1 + st.steps)
         pick = best_of(xp, st, n, 10.0 * solver.policy.tolerance * st.noise2, (slot, len(first)))
         cut = xp.add_at(xp.zeros((n,), "int"), pos, xp.astype(~st.done, "int")) > 0
-    best, late = solver.finish(problem, st.take(xp, pick))
-    return best, spent + solver.finish_cost(late), cut | late
+    best, late, used = solver.finish(problem, st.take(xp, pick))
+    return best, spent + used, cut | late
 
 
 def _cut(xp: Any, state: lm.LMState, n: int) -> Any:
