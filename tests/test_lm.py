@@ -238,21 +238,21 @@ def test_best_of_blocks_that_hold_some_readings(xp):
     loss = rng.uniform(0.0, 1.0, blocks * B)
     loss[[2, 9]] = np.nan
     converged = rng.uniform(size=blocks * B) < 0.5
-    slack = np.full(blocks * B, 0.2)
+    slack = np.array([0.2, 0.05, 0.3, 0.1, 0.25])  # per reading
 
     def state(rows):
         return SimpleNamespace(loss=xp.asarray(loss[rows]), converged=xp.asarray(converged[rows], "bool"))
 
     every = np.arange(blocks * B)
-    dense = xp.tolist(search.best_of(xp, state(every), B, xp.asarray(slack[:B])))
+    dense = xp.tolist(search.best_of(xp, state(every), B, xp.asarray(slack)))
     laid = xp.tolist(search.best_of(xp, state(every), B, xp.asarray(slack), (xp.asarray(every, "int"), blocks)))
     assert laid == dense
     present = np.array([k for k in every if k not in (0, 5, 6, 13)])  # reading 0 only in block 2
     layout = (xp.asarray(present, "int"), blocks)
-    got = xp.tolist(search.best_of(xp, state(present), B, xp.asarray(slack[present]), layout))
+    got = xp.tolist(search.best_of(xp, state(present), B, xp.asarray(slack), layout))
     for b in range(B):
         rows = [i for i, k in enumerate(present) if k % B == b]
-        key = [loss[present[i]] - 0.2 * converged[present[i]] for i in rows]
+        key = [loss[present[i]] - slack[b] * converged[present[i]] for i in rows]
         key = [np.inf if np.isnan(v) else v for v in key]
         assert got[b] == rows[int(np.argmin(key))], b
 

@@ -303,8 +303,7 @@ def best_of(xp: Any, state: lm.LMState, B: int, slack: Any = None, layout: tuple
     fits within ``slack`` (B,) [1/m^2] of it count as equal and a converged one is preferred.
 
     ``layout`` ``(slot, blocks)``: blocks that hold only some of the B readings; row r is reading ``slot[r] % B``
-    of block ``slot[r] // B``, out of ``blocks`` (every reading in at least one block); ``slack`` is then per row
-    (R,)."""
+    of block ``slot[r] // B``, out of ``blocks`` (every reading in at least one block)."""
     if layout is None:
         key = state.loss.reshape(-1, B)
         if slack is not None:
@@ -313,7 +312,7 @@ def best_of(xp: Any, state: lm.LMState, B: int, slack: Any = None, layout: tuple
         slot, blocks = layout
         key = state.loss
         if slack is not None:
-            key = key - slack * xp.astype(state.converged, "float")
+            key = key - slack[slot % B] * xp.astype(state.converged, "float")
         key = xp.put(xp.full((blocks * B,), math.inf), slot, key).reshape(-1, B)  # a missing row: last
     key = xp.where(key == key, key, math.inf)  # NaN last
     best = xp.argmin(key, 0) * B + xp.arange(B)
@@ -740,7 +739,14 @@ def _first_fits(problem: Problem, solver: Solver, first: list[Fits], readings: A
         slot = xp.concat([at[b.reading] + k * n for k, b in enumerate(first)])
         pos = slot % n
         spent = xp.add_at(xp.zeros((n,), "int"), pos, 1 + st.steps)
-        pick = best_of(xp, st, n, 10.0 * solver.policy.tolerance * st.noise2, (slot, len(first)))
+        # The slack from each reading's row in the first block that holds it, as the dense layout takes block 0's
+        # (with the noise unknown a row's sigma^2 is its own): the same choice as without the skipped rows.
+        blocks = len(first)
+        held = xp.put(xp.zeros((blocks * n,), "bool"), slot, xp.ones((slot.shape[0],), "bool")).reshape(blocks, n)
+        noise2 = xp.put(xp.zeros((blocks * n,)), slot, st.noise2).reshape(blocks, n)
+        lowest = xp.argmin(xp.where(held, xp.astype(xp.arange(blocks), "float")[:, None], math.inf), 0)
+        noise2 = xp.take(noise2, lowest[None, :], 0)[0]
+        pick = best_of(xp, st, n, 10.0 * solver.policy.tolerance * noise2, (slot, blocks))
         cut = xp.add_at(xp.zeros((n,), "int"), pos, xp.astype(~st.done, "int")) > 0
     best, late, used = solver.finish(problem, st.take(xp, pick))
     return best, spent + used, cut | late
