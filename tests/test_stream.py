@@ -754,9 +754,9 @@ def test_bench_stream_runs_and_reports_every_way(capsys):
     out = capsys.readouterr().out
     rows = [line for line in out.splitlines() if "|" in line and not line.startswith("way")]
     assert [r.split("|")[0].strip() for r in rows] == [
-        "static, batched (B=64)",
+        "static, batched (B=1024)",
         "static, one at a time",
-        "stream, backlog (B<=64)",
+        "stream, backlog (B<=1024)",
         "stream, backlog, 2 processes",
         "stream, backlog, noise learned",
         "stream, backlog, noise per reading",

@@ -95,7 +95,11 @@ class StreamOptions:
     Attributes:
         batch_size: the most readings solved together by one process (with ``workers`` W, a batch holds up to
             W x batch_size readings, spread over the W processes: each solves a batch as large as it would alone,
-            which is where the estimator is efficient).
+            which is where the estimator is efficient). It bounds only a backlog: a source the solver keeps up
+            with leaves fewer readings pending. Large, because a reading costs the estimator less the more are
+            solved with it (per-operation overhead shared), so a backlog is cleared sooner and shrinks instead of
+            growing; the price is that the first answers of a large backlog wait for its whole batch
+            (docs/results.md, "Batches as large as the backlog").
         max_latency: [s] the longest the oldest pending reading waits for more readings before its batch is
             solved (0, the default: solve whatever is available at once; a wait lets a fast source fill larger
             batches at the cost of latency).
@@ -117,7 +121,7 @@ class StreamOptions:
             up with. The workers start with the stream (they take seconds to start) and stop when it ends.
     """
 
-    batch_size: int = 64
+    batch_size: int = 1024
     max_latency: float = 0.0
     read_ahead: int | None = None
     track: bool = False
@@ -258,6 +262,15 @@ class _Stream:
                     continue
             self._take(entry)
 
+    def batch_limit(self) -> int:
+        """The most pending readings the next batch takes: ``batch_size`` (times ``workers``), but only
+        ``learn_noise.after`` while the noise is still being learned, so that a backlog's first large batch does not
+        solve every one of its readings with a noise of its own (slower, and less accurate) before the stream has
+        the fits it learns from."""
+        if self.noise is not None and self.noise.sigma is None:
+            return min(self.batch_size, self.noise.learning.after)
+        return self.batch_size
+
     def drain(self) -> None:
         """The flush after an interrupt: take everything the reader already took (the queue, and the reading in
         its hands) and no more. A source with ``halt()`` and ``waiting`` (:class:`~torchrod.io.readings.
@@ -326,7 +339,6 @@ class _Stream:
             for rec in records:
                 rec["noise"] = learned
         if self.noise is not None:
-            # fits that stopped early (unconverged, or cut by the time budget) overstate the noise
             # fits that stopped early (unconverged, or cut by the time budget) overstate the noise
             use = (result.status != STATUSES.index("unconverged")) & (result.status != STATUSES.index("timeout"))
             dof = 2 * mask.sum(1) - 3 * result.num_forces.to(mask.device)
@@ -433,7 +445,7 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
                     state.fill()
                 if not state.pending:  # fill returns with nothing pending only at the end of the input
                     break
-                batch = state.pending[: state.batch_size]
+                batch = state.pending[: state.batch_limit()]
                 results = state.solve(batch)
             except KeyboardInterrupt as exc:
                 interrupted = exc
@@ -453,7 +465,7 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
             # Flush: everything already taken from the source (a second interrupt is not caught).
             state.drain()
             while state.pending:
-                batch = state.pending[: state.batch_size]
+                batch = state.pending[: state.batch_limit()]
                 results = state.solve(batch)
                 del state.pending[: len(batch)]
                 yield from results

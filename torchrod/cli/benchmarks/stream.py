@@ -83,7 +83,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, default=100.0, help="trajectory frame rate [Hz] (default 100)")
     parser.add_argument("--noise", type=float, default=0.1, help="sensor sigma [1/m] (default 0.1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the trajectory (default 0)")
-    parser.add_argument("--batch-size", type=int, default=64, help="readings per batch (default 64)")
+    parser.add_argument(
+        "--batch-size", type=int, default=StreamOptions.batch_size, help="readings per batch (default %(default)s)"
+    )
     parser.add_argument("--max-latency-ms", type=float, default=0.0, help="stream batching wait (default 0)")
     parser.add_argument(
         "--pace", type=float, default=None, help="paced stream release rate [Hz] (default: --rate, real time)"

@@ -137,7 +137,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     add_sensor_options(parser)
     parser.add_argument("--out", metavar="FILE", help="write the answers to FILE (default: standard output)")
-    parser.add_argument("--batch-size", type=int, default=64, metavar="B", help="most readings per batch (64)")
+    parser.add_argument(
+        "--batch-size",
+        type=int,
+        default=StreamOptions.batch_size,
+        metavar="B",
+        help="most readings per batch (%(default)s)",
+    )
     parser.add_argument(
         "--max-latency-ms",
         type=float,
