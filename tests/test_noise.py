@@ -70,8 +70,8 @@ def test_learning_options_are_checked(kwargs, match):
 def test_a_stream_without_noise_learns_it_and_answers_like_the_true_noise():
     """Readings of one and two forces at sigma 0.2, the estimator told no noise, all queued at once: the first batch
     holds only the ``after`` readings the noise is learned from (not a full batch) and estimates the noise per
-    reading, every later batch uses the sigma learned from the fits before it, close to the true one, and counts
-    as the estimator told the true sigma does."""
+    reading, every later batch uses the sigma learned from the fits before it, close to the true one, holds no more
+    readings than those fits, and counts as the estimator told the true sigma does."""
     rod = tr.presets.nitinol290()
     sigma, n = 0.2, 90
     g = torch.Generator().manual_seed(3)
@@ -90,7 +90,8 @@ def test_a_stream_without_noise_learns_it_and_answers_like_the_true_noise():
     assert all("noise" not in r.record and r.batch == 20 for r in learned[:20])
     used = [r.record["noise"] for r in learned[20:]]
     assert len(used) == 70 and all(v == pytest.approx(sigma, rel=0.15) for v in used)
-    assert [r.batch for r in learned[20:]] == [30] * 60 + [10] * 10  # then full batches
+    # then batches no larger than the fits learned from (20, then 40), up to the full 30
+    assert [r.batch for r in learned[20:]] == [20] * 20 + [30] * 30 + [20] * 20
     known = list(stream(tr.Estimator(rod, tr.EstimatorOptions(max_forces=2, noise=sigma)), lines, options))
     assert all("noise" not in r.record for r in known)  # a noise given is never replaced
     same = sum(a.record["num_forces"] == b.record["num_forces"] for a, b in zip(learned[20:], known[20:], strict=True))

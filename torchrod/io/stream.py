@@ -114,6 +114,8 @@ class StreamOptions:
         learn_noise: with no noise given (neither the estimator's ``noise`` nor an override), learn the sensor's
             sigma from the stream's own fits (:mod:`torchrod.estimate.noise`) and, once learned, solve every
             reading with it as a known noise: faster (counts settle early) and as accurate as with the true sigma.
+            Until then, and until the sigma comes from as many fits as ``batch_size``, a batch holds no more
+            readings than the fits learned from (at least ``after``).
             None: every reading estimates its own noise.
         workers: processes a batch is spread over (:class:`torchrod.estimate.workers.ParallelEstimator`; 1: the
             calling process alone). A batch is split into chunks of at least 8 readings, so this speeds up
@@ -263,13 +265,14 @@ class _Stream:
             self._take(entry)
 
     def batch_limit(self) -> int:
-        """The most pending readings the next batch takes: ``batch_size`` (times ``workers``), but only
-        ``learn_noise.after`` while the noise is still being learned, so that a backlog's first large batch does not
-        solve every one of its readings with a noise of its own (slower, and less accurate) before the stream has
-        the fits it learns from."""
-        if self.noise is not None and self.noise.sigma is None:
-            return min(self.batch_size, self.noise.learning.after)
-        return self.batch_size
+        """The most pending readings the next batch takes: ``batch_size`` (times ``workers``), but while the stream
+        learns its noise no more than the fits learned from so far (at least ``learn_noise.after``). So a backlog's
+        first large batch does not solve every reading with a noise of its own (slower, less accurate) before the
+        stream has the fits it learns from, nor a thousand readings with a sigma learned from 32 fits: the batches
+        double until the sigma comes from as many fits as a batch holds."""
+        if self.noise is None:
+            return self.batch_size
+        return min(self.batch_size, max(self.noise.learning.after, self.noise.used))
 
     def drain(self) -> None:
         """The flush after an interrupt: take everything the reader already took (the queue, and the reading in
