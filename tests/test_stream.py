@@ -773,3 +773,27 @@ def test_bench_stream_runs_and_reports_every_way(capsys):
     static, backlog = (float(rows[k].split("|")[4].split()[0].rstrip("%")) for k in (0, 2))
     assert abs(static - backlog) <= 10.0
     assert "max_forces=2" in out and "L-BFGS" in out
+
+
+def test_bench_paced_latency_counts_the_wait_of_a_stream_that_falls_behind(rod, estimator):
+    """The paced rows count latency from each reading's release time. A stream solving 25 ms per reading fed at
+    1 kHz, with room for one queued reading, takes each reading late: the wait between release and the stream taking
+    the reading grows with every reading, and the latency counts it."""
+    from torchrod.cli.benchmarks.stream import _paced, _since_due
+
+    class Slow:
+        def __init__(self, inner):
+            self.inner, self.rod, self.options = inner, inner.rod, inner.options
+
+        def estimate(self, *args, **kwargs):
+            time.sleep(0.025)
+            return self.inner.estimate(*args, **kwargs)
+
+    items = [Reading(k, torch.tensor(line["curvature"])) for k, line in enumerate(_one_force_lines(rod, 12))]
+    due: dict = {}
+    options = StreamOptions(batch_size=1, read_ahead=1)
+    got = list(_since_due(stream(Slow(estimator), _paced(items, 1000.0, due), options), due))
+    assert [r.id for r in got] == list(range(12)) and sorted(due) == list(range(12))
+    waited = [r.latency - 1e-3 * r.record["latency_ms"] for r in got]  # from release until the stream took it
+    assert waited[-1] > 0.2 and waited[-1] > waited[0] + 0.15
+    assert got[-1].latency > 2 * 1e-3 * got[-1].record["latency_ms"]

@@ -1,11 +1,13 @@
 """An external pacer for ``torchrod bench stream``: a ``torchrod stream`` process fed JSON lines at a fixed rate
 through a pipe, as an interrogator would feed it, with every latency measured by the process that writes the lines
-(from writing a line to reading its answer), so the numbers include what a user's process sees: the pipe, parsing,
-the stream's batching and the answer's JSON.
+(from the time a line is due to reading its answer), so the numbers include what a user's process sees: the pipe,
+parsing, the stream's batching and the answer's JSON.
 
 The child is started and warmed up first (``warm`` readings sent one at a time, each after the previous answer),
-then the paced lines go out on a writer thread at ``rate`` Hz, each on its own schedule (a line the writer could
-not send on time goes out at once, never in a burst to catch up) while the calling thread reads the answers.
+then the paced lines go out on a writer thread at ``rate`` Hz, line k due at k / ``rate`` s (one the writer could
+not send on time, because the pipe was full or the writer was slow, goes out at once), while the calling thread
+reads the answers. Latency counts from the line's due time, as a sensor's reading is taken on schedule whether or
+not its reader keeps up: a stream that falls behind and stops reading its input cannot hide the wait.
 """
 
 from __future__ import annotations
@@ -71,7 +73,8 @@ class ExternalStream:
 
     def run(self, lines: Sequence[str], ids: Sequence[Any], rate: float) -> Iterator[StreamResult]:
         """Send ``lines`` (ids ``ids``, in order) at ``rate`` Hz and yield each answer as a
-        :class:`StreamResult` whose latency is the writer's (the child's own ``latency_ms`` stays in the record);
+        :class:`StreamResult` whose latency runs from the line's due time (the child's own ``latency_ms`` stays in
+        the record);
         the child ends with its input, and :attr:`cpu` then holds its CPU time."""
         if self.process is None:
             self.start()
@@ -84,10 +87,11 @@ class ExternalStream:
             try:
                 t0 = time.perf_counter()
                 for k, (ident, line) in enumerate(zip(ids, lines, strict=True)):
-                    wait = t0 + k / rate - time.perf_counter()
+                    due = t0 + k / rate
+                    sent[json.dumps(ident)] = due
+                    wait = due - time.perf_counter()
                     if wait > 0:
                         time.sleep(wait)
-                    sent[json.dumps(ident)] = time.perf_counter()
                     self._send(line)
                 proc.stdin.close()
             except BaseException as exc:  # noqa: BLE001 - reported by the reading thread

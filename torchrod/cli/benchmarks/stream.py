@@ -21,14 +21,14 @@ the same readings several ways, in one run:
   which the stream learns from its fits (:mod:`torchrod.estimate.noise`, the default) or, as before that existed,
   each reading estimates alone;
 * ``stream, paced``: the first ``--paced`` readings, the source releasing reading k at k / ``--pace`` seconds (as an
-  interrogator would; default: the trajectory's own rate, real time); latency from release to answer, batches
-  closed by ``--max-latency-ms``;
+  interrogator would; default: the trajectory's own rate, real time); latency from release to answer (a reading
+  the stream is too busy to take waits, and that counts), batches closed by ``--max-latency-ms``;
 * ``stream, one at a time``: batches of one on the same readings as ``static, one at a time``, each released when
   the previous answer is out (latency: release to answer).
 * ``CLI, R Hz from outside`` (``--external``, default 100 and 1000 Hz): a ``torchrod stream`` process (the
   command's own options, with this run's ``--noise``, network, ``--batch-size`` and ``--threads``; ``--set`` does
   not reach it) fed the first ``--paced`` readings as JSON lines through a pipe at R Hz by a writer thread
-  (:mod:`.pacer`), the latency measured by the writing process from writing a line to reading its answer; at the
+  (:mod:`.pacer`), the latency measured by the writing process from the line's due time to reading its answer; at the
   first rate once per ``--external-budgets`` entry (default: the command's own time budget, and 10 ms), all with
   ``--external-workers`` processes (the command's ``--workers``, default 1). A note per
   row gives the median latency over the first and the last tenth of the run (a stream that cannot keep up falls
@@ -272,13 +272,23 @@ def _static_single(
         yield StreamResult(k, None, rec, latency=dt, solve_time=dt, _result=res)
 
 
-def _paced(items: list[Reading], rate: float) -> Iterator[Reading]:
+def _paced(items: list[Reading], rate: float, due: dict[Any, float]) -> Iterator[Reading]:
+    """Release reading k at k / ``rate`` s (at once when late); ``due`` gets each reading's release time by id."""
     t0 = time.perf_counter()
     for k, item in enumerate(items):
-        wait = t0 + k / rate - time.perf_counter()
+        due[item.id] = t0 + k / rate
+        wait = due[item.id] - time.perf_counter()
         if wait > 0:
             time.sleep(wait)
         yield item
+
+
+def _since_due(results: Iterable[StreamResult], due: dict[Any, float]) -> Iterator[StreamResult]:
+    """The results with their latency counted from the reading's release time, not from when the stream took it: a
+    stream that falls behind stops taking readings once its read-ahead is full, and the wait before that is latency
+    too."""
+    for r in results:
+        yield dataclasses.replace(r, latency=time.perf_counter() - due[r.id])
 
 
 class _LockStep:
@@ -446,7 +456,8 @@ def run(args: argparse.Namespace) -> int:
         rows.append(row)
 
     row = _Row(f"stream, paced {pace:g} Hz")
-    _timed(row, stream(estimator, _paced(items[:paced], pace), options), truth)
+    due: dict[Any, float] = {}
+    _timed(row, _since_due(stream(estimator, _paced(items[:paced], pace, due), options), due), truth)
     rows.append(row)
 
     notes = _external_rows(args, rows, trajectory, paced, truth, network_name)
