@@ -107,7 +107,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--format", choices=FORMATS, default="jsonl", help="input format: jsonl (default), csv or auto")
     add_sensor_options(parser)
     parser.add_argument("--out", metavar="FILE", help="write the answers to FILE (default: standard output)")
-    parser.add_argument("--batch-size", type=int, default=256, metavar="B", help="readings per batch (default 256)")
+    parser.add_argument("--batch-size", type=int, default=1024, metavar="B", help="readings per batch (default 1024)")
     add_time_budget_option(parser, None)
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
