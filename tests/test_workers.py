@@ -14,6 +14,7 @@ import pickle
 import signal
 import subprocess
 import sys
+import threading
 import time
 import warnings
 
@@ -205,6 +206,121 @@ def test_an_estimator_exception_in_a_worker_is_raised_as_itself():
         out = list(stream(par, items, StreamOptions(batch_size=16, max_latency=60.0)))
     assert [r.id for r in out] == list(range(16)) and all(r.ok for r in out)
     assert [r.record["num_forces"] for r in out] == est.estimate(u, m).num_forces.tolist()
+
+
+def test_submit_hands_a_batch_whole_to_an_idle_worker(estimator):
+    """submit(): with the workers ready and idle, a batch goes whole to one and the call returns without waiting;
+    a second batch goes to the second worker (``submitting``: N workers for N processes); each answer is the
+    in-process answer of the same batch, bit for bit."""
+    u, m, _ = _trajectory(6)
+    with ParallelEstimator(estimator, 2, submitting=True) as par:
+        assert par.workers == 2 and not par.idle()  # no pool yet
+        par.warm(wait=True)
+        assert par.idle() and len(par.worker_pids()) == 2
+        first = par.submit(u[:3], m[:3])
+        second = par.submit(u[3:], m[3:], max_forces=1)
+        assert first._future is not None and second._future is not None  # both handed out
+        _assert_identical(first.result(), estimator.estimate(u[:3], m[:3]))
+        _assert_identical(second.result(), estimator.estimate(u[3:], m[3:], max_forces=1))
+        assert first.done() and second.done() and par.idle()
+    # One process: solved before submit returns.
+    alone = ParallelEstimator(estimator, 1).submit(u[:2], m[:2])
+    assert alone.done() and alone._future is None
+    _assert_identical(alone.result(), estimator.estimate(u[:2], m[:2]))
+
+
+@pytest.mark.parametrize("how", ["exit", "raise"])
+def test_a_submitted_batch_whose_worker_fails(how):
+    """A worker that dies on a submitted batch: the batch is solved here when its result is asked for, and the pool
+    is started afresh; an estimator error in the worker is raised by result() as itself."""
+    rod = tr.presets.nitinol290()
+    est = tr.Estimator(rod, tr.EstimatorOptions(noise=NOISE, max_forces=2), warm_start=_InWorker(how))
+    u, m, _ = _trajectory(8)
+    with ParallelEstimator(est, 2, submitting=True) as par:
+        par.warm(wait=True)
+        solving = par.submit(u, m)
+        assert solving._future is not None
+        if how == "exit":
+            _assert_identical(solving.result(), est.estimate(u, m))
+            assert par.restarts == 1
+        else:
+            with pytest.raises(FloatingPointError, match="boom in a worker"):
+                solving.result()
+            assert par.restarts == 0
+
+
+class _SlowInWorker:
+    """A picklable warm start that sleeps ``delay`` seconds in a worker process and guesses nothing."""
+
+    def __init__(self, delay: float) -> None:
+        self.delay = delay
+
+    def __call__(self, curvature: torch.Tensor, mask: torch.Tensor) -> dict:
+        if multiprocessing.parent_process() is not None:
+            time.sleep(self.delay)
+        return {}
+
+
+def _ready_workers(monkeypatch) -> tuple[list[bool], threading.Event]:
+    """(sent, ready): ``sent`` gets, per submit(), whether the batch went to a worker; ``ready`` is set once a
+    stream's workers are ready (its warm() waits for them)."""
+    sent: list[bool] = []
+    ready = threading.Event()
+    submit, warm = ParallelEstimator.submit, ParallelEstimator.warm
+
+    def counting(self, *args, **kwargs):
+        solving = submit(self, *args, **kwargs)
+        sent.append(solving._future is not None)
+        return solving
+
+    def waiting(self, wait=False):
+        warm(self, wait=True)
+        ready.set()
+
+    monkeypatch.setattr(ParallelEstimator, "submit", counting)
+    monkeypatch.setattr(ParallelEstimator, "warm", waiting)
+    return sent, ready
+
+
+def _paced_items(u: torch.Tensor, m: torch.Tensor, period: float, ready: threading.Event):
+    """The readings, one every ``period`` s once ``ready`` is set (a live source, started when the workers are)."""
+    assert ready.wait(120)
+    for k in range(u.shape[0]):
+        time.sleep(period)
+        yield Reading(k, torch.where(m[k].unsqueeze(-1), u[k], math.nan))
+
+
+def test_a_live_stream_hands_small_batches_to_idle_workers(estimator, monkeypatch):
+    """workers=2 fed slower than it solves: readings go whole to an idle worker while this process takes the next
+    (the workers' answers come back in input order); every reading is answered as the estimator answers it alone."""
+    sent, ready = _ready_workers(monkeypatch)
+    u, m, _ = _trajectory(30, seed=5)
+    out = list(stream(estimator, _paced_items(u, m, 0.03, ready), StreamOptions(workers=2)))
+    assert [r.id for r in out] == list(range(30)) and all(r.ok for r in out)
+    assert sum(sent) >= 10  # (a reading that found both workers busy waited for one)
+    alone = [estimator.estimate(u[k : k + 1], m[k : k + 1]) for k in range(30)]
+    assert [r.record["num_forces"] for r in out] == [int(a.num_forces[0]) for a in alone]
+    assert [r.record["status"] for r in out] == [a.to_records([0])[0]["status"] for a in alone]
+    for r, a in zip(out, alone, strict=True):
+        assert r.record["loss"] == pytest.approx(float(a.loss[0]), rel=1e-6)
+
+
+def test_a_live_stream_flushes_the_batches_its_workers_hold(monkeypatch):
+    """An interrupt while workers hold batches (each takes 0.3 s there; readings come every 20 ms): the batches in
+    the workers are waited for and yielded in order before the readings still pending, then the interrupt is raised
+    again."""
+    sent, ready = _ready_workers(monkeypatch)
+    rod = tr.presets.nitinol290()
+    est = tr.Estimator(rod, tr.EstimatorOptions(noise=NOISE, max_forces=1), warm_start=_SlowInWorker(0.3))
+    u, m, _ = _trajectory(40, seed=6)
+    results = stream(est, _paced_items(u, m, 0.02, ready), StreamOptions(workers=2))
+    got = [next(results), next(results)]
+    assert sent[:2] == [True, True]
+    got.append(results.throw(KeyboardInterrupt()))
+    with pytest.raises(KeyboardInterrupt):
+        got.extend(results)
+    assert [r.id for r in got] == list(range(len(got))) and all(r.ok for r in got)
+    assert len(got) >= 3 and len(sent) >= 3
 
 
 def test_options_are_checked(estimator):

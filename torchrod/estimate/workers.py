@@ -11,6 +11,9 @@ of them in worker processes and one in the calling process at the same time, and
   batch big enough to split (:meth:`ParallelEstimator.warm` starts them early). Each receives the pickled estimator
   once (its warm-start network included), runs torch on one thread, ignores SIGINT (the caller handles Ctrl-C and
   flushes; a worker must keep solving for it) and estimates two readings to fill its first-call caches.
+- A stream fed no faster than it is solved makes batches too small to split; :meth:`ParallelEstimator.submit`
+  hands such a batch whole to an idle worker and returns at once, so the calling process can solve the next batch
+  meanwhile (:func:`torchrod.io.stream.stream` does this with ``workers`` > 1).
 - Nothing is lost: a chunk whose worker dies (or whose pool breaks) is solved in the calling process, and the pool
   is started afresh for the next batch (at most ``max_restarts`` times; then every batch runs in the calling
   process). An exception the estimator raises in a worker reaches the caller as the same exception type.
@@ -47,7 +50,7 @@ import torch
 from ..loads import PointForces
 from .estimator import EstimateResult
 
-__all__ = ["MIN_CHUNK", "ParallelEstimator", "concat_results", "resolve_processes"]
+__all__ = ["MIN_CHUNK", "ParallelEstimator", "Solving", "concat_results", "resolve_processes"]
 
 MIN_CHUNK = 8
 """The fewest readings a chunk holds: a batch of fewer than 2 * MIN_CHUNK readings is solved in one process."""
@@ -184,6 +187,9 @@ class ParallelEstimator:
         min_chunk: the fewest readings per chunk.
         max_restarts: how often a broken pool is started afresh before every batch stays in the calling process.
         warm_workers: each worker estimates two simulated readings when it starts.
+        submitting: start N workers, not N - 1, so that :meth:`submit` can keep every core busy while the calling
+            process only hands batches out and collects them (a live stream); :meth:`estimate` still splits a batch
+            into at most N chunks, one of them solved here.
     Raises:
         ValueError: for a bad ``processes``, ``min_chunk`` or ``max_restarts``.
         TypeError: if ``processes`` > 1 and the estimator cannot be pickled.
@@ -197,8 +203,10 @@ class ParallelEstimator:
         min_chunk: int = MIN_CHUNK,
         max_restarts: int = 3,
         warm_workers: bool = True,
+        submitting: bool = False,
     ) -> None:
         self.processes = resolve_processes(processes)
+        self.workers = self.processes if submitting and self.processes > 1 else self.processes - 1
         for name, value, low in (("min_chunk", min_chunk, 1), ("max_restarts", max_restarts, 0)):
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
@@ -211,6 +219,7 @@ class ParallelEstimator:
         self._warm_workers = warm_workers
         self._pool: concurrent.futures.ProcessPoolExecutor | None = None
         self._starting: list[concurrent.futures.Future] = []
+        self._submitted: list[concurrent.futures.Future] = []  # batches handed whole to workers (submit)
         self._spawned: dict[int, Any] = {}  # every worker process a pool of this object started, by pid
         self._managers: list[Any] = []  # the manager threads of the pools stopped so far (they reap the workers)
         self._payload = b""
@@ -245,13 +254,13 @@ class ParallelEstimator:
     def _ensure_pool(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._pool is None:
             self._pool = concurrent.futures.ProcessPoolExecutor(
-                max_workers=self.processes - 1,
+                max_workers=self.workers,
                 mp_context=multiprocessing.get_context("spawn"),
                 initializer=_init_worker,
                 initargs=(self._payload, self._warm_workers),
             )
             # One task per worker makes the pool start them all now (it starts one per task while none is idle).
-            self._starting = [self._pool.submit(_ready) for _ in range(self.processes - 1)]
+            self._starting = [self._pool.submit(_ready) for _ in range(self.workers)]
             self._spawned.update(getattr(self._pool, "_processes", None) or {})
         return self._pool
 
@@ -385,14 +394,55 @@ class ParallelEstimator:
                 raise error
         return concat_results(results)  # type: ignore[arg-type]
 
-    def _chunks(self, curvature: Any, mask: Any, extra_starts: Any) -> list[tuple[Any, Any, Any]] | None:
-        """The batch's chunks as (curvature, mask, extra_starts) each, or None to solve it whole here: one process,
-        too few readings, a device other than the CPU, or anything the estimator should judge whole."""
+    def idle(self) -> bool:
+        """True when a worker is started, ready and solving no batch handed to it by :meth:`submit` (chunks of
+        :meth:`estimate` are not counted: it waits for them before it returns)."""
+        if not self.parallel or self._pool is None or not all(f.done() for f in self._starting):
+            return False
+        self._submitted = [f for f in self._submitted if not f.done()]
+        return len(self._submitted) < self.workers
+
+    def submit(
+        self,
+        curvature: torch.Tensor,
+        mask: torch.Tensor | None = None,
+        *,
+        extra_starts: Mapping[int, PointForces] | None = None,
+        **overrides: Any,
+    ) -> Solving:
+        """Start :meth:`estimate` of a batch and return without waiting where a worker is :meth:`idle`: the batch
+        goes to it whole. Otherwise (no idle worker, one process, a batch the workers should not take) the batch is
+        estimated before this returns, split as :meth:`estimate` splits it.
+
+        Returns:
+            a :class:`Solving`: ``done()`` says whether the result is there, ``result()`` waits for it.
+        """
+        chunks = self._chunks(curvature, mask, extra_starts, whole=True) if self.idle() else None
+        if chunks:
+            try:
+                future = self._ensure_pool().submit(_solve_chunk, *self._packed(chunks[0]), overrides)
+                self._submitted.append(future)
+                return Solving(self, chunks[0], overrides, future)
+            except BrokenProcessPool:
+                self._broken()
+        solving = Solving(self, (curvature, mask, extra_starts), overrides)
+        try:
+            solving._value = self.estimate(curvature, mask, extra_starts=extra_starts, **overrides)
+        except Exception as exc:  # noqa: BLE001 - raised by result(), as from a worker
+            solving._error = exc
+        return solving
+
+    def _chunks(
+        self, curvature: Any, mask: Any, extra_starts: Any, whole: bool = False
+    ) -> list[tuple[Any, Any, Any]] | None:
+        """The batch's chunks as (curvature, mask, extra_starts) each (``whole``: one chunk of every row), or None
+        to solve it whole here: one process, too few readings to split, a device other than the CPU, or anything
+        the estimator should judge whole."""
         if not self.parallel or not isinstance(curvature, torch.Tensor) or curvature.dim() != 3:
             return None
         B = curvature.shape[0]
-        plan = self._plan(B)
-        if len(plan) < 2 or curvature.device.type != "cpu":
+        plan = [(0, B)] if whole else self._plan(B)
+        if (len(plan) < 2 and not whole) or curvature.device.type != "cpu":
             return None
         if mask is not None:
             if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool or mask.shape != curvature.shape[:2]:
@@ -433,3 +483,55 @@ class ParallelEstimator:
             return self.estimator.estimate(curvature, mask, extra_starts=starts, **overrides), None
         except Exception as exc:  # noqa: BLE001 - raised by estimate(), in row order
             return None, exc
+
+
+class Solving:
+    """A batch handed to :meth:`ParallelEstimator.submit`: being estimated in a worker, or already estimated.
+
+    ``done()`` says, without waiting, whether :meth:`result` would return at once. Should the worker die, the batch
+    is estimated in the calling process when :meth:`result` is asked for (nothing is lost), and the pool is started
+    afresh for later batches, as :meth:`ParallelEstimator.estimate` does.
+    """
+
+    def __init__(
+        self,
+        owner: ParallelEstimator,
+        chunk: tuple[Any, Any, Any],
+        overrides: dict[str, Any],
+        future: concurrent.futures.Future | None = None,
+    ) -> None:
+        self._owner, self._chunk, self._overrides = owner, chunk, overrides
+        self._future = future
+        self._value: EstimateResult | None = None
+        self._error: Exception | None = None
+
+    def done(self) -> bool:
+        return self._future is None or self._future.done()
+
+    def add_done_callback(self, callback: Any) -> None:
+        """Call ``callback()`` (from another thread, or at once if done) when the result is there."""
+        if self._future is None:
+            callback()
+        else:
+            self._future.add_done_callback(lambda _future: callback())
+
+    def result(self) -> EstimateResult:
+        """The batch's :class:`EstimateResult` (waiting for the worker); raises what the estimator raised."""
+        if self._future is not None:
+            try:
+                self._value = _unpack_result(self._future.result())
+            except BrokenProcessPool:
+                self._owner._broken()
+                self._value, self._error = self._owner._here(self._chunk, self._overrides)
+            except Exception as exc:  # noqa: BLE001 - raised below, as estimate() would
+                self._error = exc
+            self._future = None  # (only once the outcome is known: an interrupt while waiting keeps it)
+        if self._error is not None:
+            raise self._error
+        assert self._value is not None
+        return self._value
+
+    def cancel(self) -> None:
+        """Give up the batch if its worker has not started it."""
+        if self._future is not None:
+            self._future.cancel()

@@ -8,7 +8,8 @@ iterable of readings and yields one result per reading, in input order, as soon 
   the oldest pending reading has waited ``max_latency`` seconds (by default 0: a reading that finds the estimator
   idle is solved at once); readings that queued up while a batch was being solved all join the next one (up to a
   full batch), so under load batches form by themselves and grow instead of falling behind; with ``workers`` > 1
-  a batch is spread over that many processes (:mod:`torchrod.estimate.workers`);
+  a large batch is spread over that many processes, and a small one goes whole to an idle worker process while
+  the next readings are taken (:mod:`torchrod.estimate.workers`);
 - each reading is estimated as :meth:`~torchrod.Estimator.estimate` would alone (the warm-start network's
   guesses when the estimator has one, the scan's starts, the count chosen per reading), so the stream's answers
   are the static estimator's; with ``track``, readings in batches of at most ``track_limit`` also start from the
@@ -33,6 +34,7 @@ Readings are :class:`~torchrod.io.readings.Reading` objects or dicts with the sa
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 import queue
@@ -117,10 +119,14 @@ class StreamOptions:
             Until then, and until the sigma comes from as many fits as ``batch_size``, a batch holds no more
             readings than the fits learned from (at least ``after``).
             None: every reading estimates its own noise.
-        workers: processes a batch is spread over (:class:`torchrod.estimate.workers.ParallelEstimator`; 1: the
-            calling process alone). A batch is split into chunks of at least 8 readings, so this speeds up
-            backlogs (a file, a source faster than the solver), not the small batches of a source the solver keeps
-            up with. The workers start with the stream (they take seconds to start) and stop when it ends.
+        workers: processes the stream solves on (:class:`torchrod.estimate.workers.ParallelEstimator`; 1: the
+            calling process alone). A batch of 16 readings or more (a backlog: a file, a source faster than the
+            solver) is split over them in chunks of at least 8. A smaller batch (a live source) goes whole to an idle
+            worker process, and the calling process takes the next readings meanwhile, so consecutive readings are
+            solved at once on different cores and one slow reading does not hold the next ones back (their answers
+            still come in input order); with ``track`` or a ``max_latency`` wait, small batches are solved in the
+            calling process instead. The workers start with the stream (they take seconds to start; until they are
+            ready every batch is solved in the calling process) and stop when it ends.
     """
 
     batch_size: int = 1024
@@ -181,6 +187,7 @@ def _reader(state: _Stream, source: Iterable[Any]) -> None:
             reading = to_reading(item, state.G, fibre=state.fibre)
             if not put(_Pending(reading, arrived)):
                 return
+            state.wake.set()
         else:
             put(_HALTED)
             return
@@ -200,6 +207,22 @@ class _Pending:
         return self.reading.error is None
 
 
+@dataclass
+class _Slot:
+    """A batch taken from the pending readings: its results, or the worker's :class:`Solving` of it."""
+
+    batch: list[_Pending]
+    results: list[StreamResult] | None = None
+    solving: Any = None
+    good: list[_Pending] = field(default_factory=list)
+    mask: torch.Tensor | None = None
+    learned: float | None = None
+    start: float = 0.0
+
+    def done(self) -> bool:
+        return self.results is not None or self.solving.done()
+
+
 class _Stream:
     """The state of one :func:`stream`: queue, pending batch, last solution."""
 
@@ -213,6 +236,7 @@ class _Stream:
         self.q: queue.Queue = queue.Queue(maxsize=read_ahead)
         self.stop = threading.Event()
         self.halt = threading.Event()
+        self.wake = threading.Event()  # set by the reader after each reading and by a worker's finished batch
         self.in_source = threading.Event()
         self.pending: list[_Pending] = []
         # The last solved reading's forces, in reported coordinates, (1, h).
@@ -230,10 +254,14 @@ class _Stream:
         self.source = readings
         # The batches' solver: the estimator, or the estimator spread over worker processes (closed with the stream).
         self.solver = estimator
+        # Batches too small to split go whole to an idle worker while this process takes the next readings: with
+        # ``workers`` > 1, no tracking (which needs each batch's answer before the next) and no batching wait (which
+        # asks for batches to be gathered, not hurried).
+        self.pipelined = options.workers > 1 and not options.track and options.max_latency == 0.0
         if options.workers > 1:
             from ..estimate.workers import ParallelEstimator
 
-            self.solver = ParallelEstimator(estimator, options.workers)
+            self.solver = ParallelEstimator(estimator, options.workers, submitting=self.pipelined)
 
     def _take(self, entry: Any) -> None:
         if entry is _END or entry is _HALTED:
@@ -244,10 +272,16 @@ class _Stream:
         else:
             self.pending.append(entry)
 
-    def fill(self) -> None:
+    def fill(self, wait: bool = True) -> None:
         """Take readings until a batch is due: a full batch pending, the oldest pending waited ``max_latency``
-        (everything already queued still joins, up to a full batch), or the source ended."""
+        (everything already queued still joins, up to a full batch), or the source ended. ``wait`` False: take
+        only what is queued now."""
         opts = self.options
+        while not wait and len(self.pending) < self.batch_size and not self.finished:
+            try:
+                self._take(self.q.get_nowait())
+            except queue.Empty:
+                return
         while len(self.pending) < self.batch_size and not self.finished:
             if self.pending:
                 wait = opts.max_latency - (time.perf_counter() - self.pending[0].arrived)
@@ -263,6 +297,36 @@ class _Stream:
                 except queue.Empty:
                     continue
             self._take(entry)
+
+    def step(self, flight: collections.deque[_Slot]) -> list[StreamResult] | None:
+        """The results of the next batch in input order, or None at the end of the input. Batches are taken from
+        the pending readings as they come: solved here, or (:attr:`pipelined`) handed to an idle worker, in which
+        case more readings are taken and solved here while it works. A batch leaves ``pending`` only once it is
+        solved or handed out, and ``flight`` only once its results are returned, so an interrupt loses none."""
+        while True:
+            self.wake.clear()  # (before the checks: what happens after them sets it again)
+            if flight and flight[0].done():
+                results = self.receive(flight[0])
+                flight.popleft()
+                return results
+            if not self.finished:
+                self.fill(wait=not flight)
+            if not self.pending:
+                if not flight:
+                    return None  # fill waits for a reading unless something is in flight: the input ended
+                self.wake.wait(_POLL)  # for a reading, or the first batch in flight
+                continue
+            batch = self.pending[: self.batch_limit()]
+            if self.small(len(batch)) and self.solver.idle():
+                slot = self.send(batch)
+            elif self.small(len(batch)) and self.solver.parallel and flight and not all(s.done() for s in flight):
+                # Every worker is busy: the batch waits for one (solved here it would share their cores).
+                self.wake.wait(_POLL)
+                continue
+            else:
+                slot = _Slot(batch, results=self.solve(batch))
+            del self.pending[: len(batch)]
+            flight.append(slot)
 
     def batch_limit(self) -> int:
         """The most pending readings the next batch takes: ``batch_size`` (times ``workers``), but while the stream
@@ -302,6 +366,40 @@ class _Stream:
         good = [p for p in batch if p.ok]
         start = time.perf_counter()
         answers = self._estimate(good) if good else []
+        return self._results(batch, answers, start)
+
+    def small(self, size: int) -> bool:
+        """Whether a batch of ``size`` readings is one for a single worker: pipelined, and too small to split."""
+        return self.pipelined and size < 2 * self.solver.min_chunk
+
+    def send(self, batch: list[_Pending]) -> _Slot:
+        """Hand ``batch`` to an idle worker (:meth:`ParallelEstimator.submit`); :meth:`receive` gives its results."""
+        good = [p for p in batch if p.ok]
+        start = time.perf_counter()
+        if not good:
+            return _Slot(batch, results=self._results(batch, [], start))
+        curvature, mask, overrides, learned = self._request(good)
+        solving = self.solver.submit(curvature, mask, **overrides)
+        solving.add_done_callback(self.wake.set)
+        return _Slot(batch, solving=solving, good=good, mask=mask, learned=learned, start=start)
+
+    def receive(self, slot: _Slot) -> list[StreamResult]:
+        """The results of a batch :meth:`send` handed out (waiting for them), as :meth:`solve` gives them; should
+        the batched call have failed, each reading is estimated alone here."""
+        if slot.results is not None:
+            return slot.results
+        try:
+            result = slot.solving.result()
+        except Exception:  # noqa: BLE001 - a reading that breaks the solver must not stop the stream
+            answers = [a for k in range(len(slot.good)) for a in self._estimate(slot.good[k : k + 1])]
+        else:
+            answers = self._answers(slot.good, slot.mask, slot.learned, result)
+        slot.results = self._results(slot.batch, answers, slot.start)
+        return slot.results
+
+    def _results(self, batch: Sequence[_Pending], answers: list, start: float) -> list[StreamResult]:
+        """The :class:`StreamResult` of each reading of ``batch``: its answer, or its error."""
+        good = [p for p in batch if p.ok]
         elapsed = time.perf_counter() - start
         done = time.perf_counter()
         out, answers_it = [], iter(answers)
@@ -326,17 +424,30 @@ class _Stream:
     def _estimate(self, good: Sequence[_Pending]) -> list[tuple[Any, int, dict | None, str | None]]:
         """(batch result, index in it, record, None) per reading; should the batched call fail, each reading alone,
         and (None, 0, None, message) for one that fails alone too (the stream goes on)."""
-        curvature, mask = stack_readings([p.reading for p in good])
-        curvature, mask = curvature.to(self.device), mask.to(self.device)
-        overrides, learned = self.overrides, self.learned_noise
-        if learned is not None:
-            overrides = {**overrides, "noise": learned}
+        curvature, mask, overrides, learned = self._request(good)
         try:
             result = self.solver.estimate(curvature, mask, extra_starts=self._tracking_starts(len(good)), **overrides)
         except Exception as exc:  # noqa: BLE001 - a reading that breaks the solver must not stop the stream
             if len(good) == 1:
                 return [(None, 0, None, f"estimation failed: {_exception_text(exc)}")]
             return [a for k in range(len(good)) for a in self._estimate(good[k : k + 1])]
+        return self._answers(good, mask, learned, result)
+
+    def _request(self, good: Sequence[_Pending]) -> tuple[torch.Tensor, torch.Tensor, dict, float | None]:
+        """The batched call's curvature (B, G, 2) [1/m], mask (B, G), overrides (the learned noise with them) and
+        the learned noise [1/m] (or None)."""
+        curvature, mask = stack_readings([p.reading for p in good])
+        curvature, mask = curvature.to(self.device), mask.to(self.device)
+        overrides, learned = self.overrides, self.learned_noise
+        if learned is not None:
+            overrides = {**overrides, "noise": learned}
+        return curvature, mask, overrides, learned
+
+    def _answers(
+        self, good: Sequence[_Pending], mask: torch.Tensor, learned: float | None, result: Any
+    ) -> list[tuple[Any, int, dict | None, str | None]]:
+        """(batch result, index in it, record, None) per reading of a batched call's ``result``; the fits teach
+        the noise, the last one is the tracking start."""
         records = result.to_records([p.reading.id for p in good])
         if learned is not None:
             for rec in records:
@@ -440,20 +551,17 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
     state.thread.start()
     if state.solver is not state.estimator:
         state.solver.warm()  # the worker processes start (seconds) while the first readings come in
+    flight: collections.deque[_Slot] = collections.deque()  # batches taken from pending, not yet yielded
     try:
         interrupted: KeyboardInterrupt | None = None
         while True:
             try:
-                if not state.finished:
-                    state.fill()
-                if not state.pending:  # fill returns with nothing pending only at the end of the input
-                    break
-                batch = state.pending[: state.batch_limit()]
-                results = state.solve(batch)
+                results = state.step(flight)
             except KeyboardInterrupt as exc:
                 interrupted = exc
                 break
-            del state.pending[: len(batch)]
+            if results is None:  # the end of the input
+                break
             for k, r in enumerate(results):
                 try:
                     yield r
@@ -467,6 +575,10 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
         if interrupted is not None:
             # Flush: everything already taken from the source (a second interrupt is not caught).
             state.drain()
+            while flight:
+                results = state.receive(flight[0])
+                flight.popleft()
+                yield from results
             while state.pending:
                 batch = state.pending[: state.batch_limit()]
                 results = state.solve(batch)

@@ -132,7 +132,7 @@ def add_workers_option(parser: argparse.ArgumentParser) -> None:
         default=1,
         metavar="N",
         help="spread each batch over N processes, to use every core on a file or a backlog (2 on a 2-core machine; "
-        "0: one per CPU core; default 1)",
+        "0: one per CPU core; default 1); a stream also hands small batches to idle processes",
     )
 
 

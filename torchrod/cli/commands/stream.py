@@ -39,10 +39,11 @@ its answer). Readings are solved in batches of up to ``--batch-size``: a line th
 solved at once, and lines that arrive while a batch is solved form the next batch (``--max-latency-ms`` MS makes a
 batch wait up to MS for more lines; ``--workers N``, default 1, 0: one per CPU core, solves batches of up to N x
 ``--batch-size`` over N processes in chunks of 8 or more, so that a backlog or a file uses every core, e.g. 2 on a
-2-core machine).
-Each reading starts from the scan of the estimator, the warm-start network's
-guess and the previous reading's solution (as in ``Estimator.from_checkpoint``, a network adds starts, never
-replaces the scan); the number of forces is chosen among 0..``--max-forces`` (``--noise``: the sensor's sigma
+2-core machine, and hands a smaller batch whole to an idle process while the next lines are read, so that a live
+source's consecutive readings are solved on different cores).
+Each reading starts from the scan of the estimator and the warm-start network's guess (as in
+``Estimator.from_checkpoint``, a network adds starts, never replaces the scan; ``--track`` adds the previous
+reading's solution); the number of forces is chosen among 0..``--max-forces`` (``--noise``: the sensor's sigma
 [1/m]). Without ``--noise`` the stream learns the sigma from its own fits (the median of each fit's loss over its
 chi-square median, torchrod.estimate.noise): the first 32 fits estimate the noise per reading, every later batch
 uses the learned sigma as a known noise and its answers carry it as ``"noise"`` [1/m]; ``--per-reading-noise`` keeps
