@@ -480,6 +480,51 @@ def test_cli_stream_with_workers_flushes_on_ctrl_c(tmp_path):
     assert _group(proc.pid) == []  # no process of the command's group is left (its workers stopped)
 
 
+def test_cli_live_stream_with_workers_flushes_on_ctrl_c(tmp_path):
+    """A live source (a line every 50 ms for 3 s, the input left open) into ``--workers 2`` with no batching wait:
+    once the workers are up, lines go whole to idle workers; Ctrl-C right after the last line is read answers every
+    line, in order, exit status 130, and no process of the command is left."""
+    path = tmp_path / "in.jsonl"
+    _lines(path, 60)
+    cmd = [sys.executable, "-m", "torchrod", "stream", "--rod", "nitinol290", "--noise", str(NOISE)]
+    cmd += ["--max-forces", "2", "--checkpoint", "none", "--threads", "1", "--workers", "2"]
+
+    def interruptible() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+    proc = subprocess.Popen(
+        cmd,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=interruptible,
+    )
+    try:
+        for line in path.read_text().splitlines(keepends=True):
+            proc.stdin.write(line)
+            proc.stdin.flush()
+            time.sleep(0.05)
+        deadline = time.monotonic() + 60
+        while _unread(proc.stdin) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert [json.loads(x)["id"] for x in out.splitlines()] == [f"r{k}" for k in range(60)]
+    assert "Traceback" not in err
+    deadline = time.monotonic() + 10
+    while _group(proc.pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert _group(proc.pid) == []
+
+
 def _group(pgid: int) -> list[str]:
     """The processes of group ``pgid`` that still run (not zombies: an orphan's exit status may wait for a reaper
     that a container's init does not provide), as "pid state command" (Linux /proc)."""
