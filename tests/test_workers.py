@@ -147,14 +147,18 @@ def test_an_estimator_with_the_shipped_network_pickles_and_splits():
 
 
 class _InWorker:
-    """A picklable warm start that, in a worker process and on a batch of 8 or more, exits the process (``"exit"``)
-    or raises (``"raise"``); elsewhere it guesses nothing."""
+    """A picklable warm start that, in a worker process and on a batch of ``at_least`` readings or more (8), exits
+    the process (``"exit"``) or raises (``"raise"``); elsewhere, and on a worker's first ``spare`` calls (its
+    warm-up), it guesses nothing."""
 
-    def __init__(self, how: str) -> None:
-        self.how = how
+    def __init__(self, how: str, at_least: int = 8, spare: int = 0) -> None:
+        self.how, self.at_least, self.spare = how, at_least, spare
 
     def __call__(self, curvature: torch.Tensor, mask: torch.Tensor) -> dict:
-        if multiprocessing.parent_process() is not None and curvature.shape[0] >= 8:
+        if multiprocessing.parent_process() is not None and self.spare > 0:
+            self.spare -= 1
+            return {}
+        if multiprocessing.parent_process() is not None and curvature.shape[0] >= self.at_least:
             if self.how == "exit":
                 os._exit(7)
             raise FloatingPointError("boom in a worker")
@@ -301,6 +305,25 @@ def test_a_live_stream_hands_small_batches_to_idle_workers(estimator, monkeypatc
     alone = [estimator.estimate(u[k : k + 1], m[k : k + 1]) for k in range(30)]
     assert [r.record["num_forces"] for r in out] == [int(a.num_forces[0]) for a in alone]
     assert [r.record["status"] for r in out] == [a.to_records([0])[0]["status"] for a in alone]
+    for r, a in zip(out, alone, strict=True):
+        assert r.record["loss"] == pytest.approx(float(a.loss[0]), rel=1e-6)
+
+
+@pytest.mark.parametrize("how", ["raise", "exit"])
+def test_a_live_stream_answers_what_its_workers_fail_on(how, monkeypatch):
+    """Every batch handed to a worker fails there (the estimator raises, or the worker dies): each of its readings
+    is estimated in the stream's own process instead, and every reading is answered as the estimator answers it
+    alone; after a worker died the stream starts workers again and hands them batches."""
+    sent, ready = _ready_workers(monkeypatch)
+    rod = tr.presets.nitinol290()
+    est = tr.Estimator(rod, tr.EstimatorOptions(noise=NOISE, max_forces=2), warm_start=_InWorker(how, 1, spare=1))
+    u, m, _ = _trajectory(12, seed=7)
+    period = 0.03 if how == "raise" else 0.1
+    out = list(stream(est, _paced_items(u, m, period, ready), StreamOptions(workers=2)))
+    assert [r.id for r in out] == list(range(12)) and all(r.ok for r in out)
+    assert sum(sent) >= (6 if how == "raise" else 2)
+    alone = [est.estimate(u[k : k + 1], m[k : k + 1]) for k in range(12)]
+    assert [r.record["num_forces"] for r in out] == [int(a.num_forces[0]) for a in alone]
     for r, a in zip(out, alone, strict=True):
         assert r.record["loss"] == pytest.approx(float(a.loss[0]), rel=1e-6)
 

@@ -396,8 +396,14 @@ class ParallelEstimator:
 
     def idle(self) -> bool:
         """True when a worker is started, ready and solving no batch handed to it by :meth:`submit` (chunks of
-        :meth:`estimate` are not counted: it waits for them before it returns)."""
-        if not self.parallel or self._pool is None or not all(f.done() for f in self._starting):
+        :meth:`estimate` are not counted: it waits for them before it returns). With no pool running (not started
+        yet, or dropped when a worker died) this starts one, ready seconds later, and says False."""
+        if not self.parallel:
+            return False
+        if self._pool is None:
+            self.warm()
+            return False
+        if not all(f.done() for f in self._starting):
             return False
         self._submitted = [f for f in self._submitted if not f.done()]
         return len(self._submitted) < self.workers

@@ -300,9 +300,11 @@ class _Stream:
 
     def step(self, flight: collections.deque[_Slot]) -> list[StreamResult] | None:
         """The results of the next batch in input order, or None at the end of the input. Batches are taken from
-        the pending readings as they come: solved here, or (:attr:`pipelined`) handed to an idle worker, in which
-        case more readings are taken and solved here while it works. A batch leaves ``pending`` only once it is
-        solved or handed out, and ``flight`` only once its results are returned, so an interrupt loses none."""
+        the pending readings as they come and solved here, or (:attr:`pipelined`, a batch too small to split)
+        handed to an idle worker, while this process goes on taking readings: the next small batch goes to the
+        next idle worker, or waits for one; a large one is split as :meth:`ParallelEstimator.estimate` splits it.
+        A batch leaves ``pending`` only once it is solved or handed out, and ``flight`` only once its results are
+        returned, so an interrupt loses none."""
         while True:
             self.wake.clear()  # (before the checks: what happens after them sets it again)
             if flight and flight[0].done():
