@@ -213,19 +213,23 @@ def test_an_estimator_exception_in_a_worker_is_raised_as_itself():
 
 
 def test_submit_hands_a_batch_whole_to_an_idle_worker(estimator):
-    """submit(): with the workers ready and idle, a batch goes whole to one and the call returns without waiting;
-    a second batch goes to the second worker (``submitting``: N workers for N processes); each answer is the
-    in-process answer of the same batch, bit for bit."""
-    u, m, _ = _trajectory(6)
-    with ParallelEstimator(estimator, 2, submitting=True) as par:
-        assert par.workers == 2 and not par.idle()  # no pool yet
+    """submit(): with the worker ready and idle, a batch goes whole to it and the call returns without waiting; while
+    it is busy, the next batch is solved here before submit returns; each answer is the in-process answer of the
+    same batch, bit for bit."""
+    u, m, _ = _trajectory(9)
+    with ParallelEstimator(estimator, 3) as par:
+        assert not par.idle()  # no pool yet: idle() starts one
         par.warm(wait=True)
         assert par.idle() and len(par.worker_pids()) == 2
         first = par.submit(u[:3], m[:3])
-        second = par.submit(u[3:], m[3:], max_forces=1)
+        second = par.submit(u[3:6], m[3:6], max_forces=1)
         assert first._future is not None and second._future is not None  # both handed out
+        busy = not par.idle()
+        third = par.submit(u[6:], m[6:])
+        assert third.done() if busy else True
         _assert_identical(first.result(), estimator.estimate(u[:3], m[:3]))
-        _assert_identical(second.result(), estimator.estimate(u[3:], m[3:], max_forces=1))
+        _assert_identical(second.result(), estimator.estimate(u[3:6], m[3:6], max_forces=1))
+        _assert_identical(third.result(), estimator.estimate(u[6:], m[6:]))
         assert first.done() and second.done() and par.idle()
     # One process: solved before submit returns.
     alone = ParallelEstimator(estimator, 1).submit(u[:2], m[:2])
@@ -240,7 +244,7 @@ def test_a_submitted_batch_whose_worker_fails(how):
     rod = tr.presets.nitinol290()
     est = tr.Estimator(rod, tr.EstimatorOptions(noise=NOISE, max_forces=2), warm_start=_InWorker(how))
     u, m, _ = _trajectory(8)
-    with ParallelEstimator(est, 2, submitting=True) as par:
+    with ParallelEstimator(est, 2) as par:
         par.warm(wait=True)
         solving = par.submit(u, m)
         assert solving._future is not None
@@ -329,21 +333,21 @@ def test_a_live_stream_answers_what_its_workers_fail_on(how, monkeypatch):
 
 
 def test_a_live_stream_flushes_the_batches_its_workers_hold(monkeypatch):
-    """An interrupt while workers hold batches (each takes 0.3 s there; readings come every 20 ms): the batches in
-    the workers are waited for and yielded in order before the readings still pending, then the interrupt is raised
-    again."""
+    """An interrupt while the stream holds batches (each takes 0.3 s in the worker, readings come every 20 ms, and
+    those that find the worker busy are solved in the stream's own process meanwhile): the batches taken are
+    waited for and yielded in order before the readings still pending, then the interrupt is raised again."""
     sent, ready = _ready_workers(monkeypatch)
     rod = tr.presets.nitinol290()
     est = tr.Estimator(rod, tr.EstimatorOptions(noise=NOISE, max_forces=1), warm_start=_SlowInWorker(0.3))
     u, m, _ = _trajectory(40, seed=6)
     results = stream(est, _paced_items(u, m, 0.02, ready), StreamOptions(workers=2))
     got = [next(results), next(results)]
-    assert sent[:2] == [True, True]
+    assert sent[:1] == [True]
     got.append(results.throw(KeyboardInterrupt()))
     with pytest.raises(KeyboardInterrupt):
         got.extend(results)
     assert [r.id for r in got] == list(range(len(got))) and all(r.ok for r in got)
-    assert len(got) >= 3 and len(sent) >= 3
+    assert len(got) >= 4
 
 
 def test_options_are_checked(estimator):

@@ -187,9 +187,6 @@ class ParallelEstimator:
         min_chunk: the fewest readings per chunk.
         max_restarts: how often a broken pool is started afresh before every batch stays in the calling process.
         warm_workers: each worker estimates two simulated readings when it starts.
-        submitting: start N workers, not N - 1, so that :meth:`submit` can keep every core busy while the calling
-            process only hands batches out and collects them (a live stream); :meth:`estimate` still splits a batch
-            into at most N chunks, one of them solved here.
     Raises:
         ValueError: for a bad ``processes``, ``min_chunk`` or ``max_restarts``.
         TypeError: if ``processes`` > 1 and the estimator cannot be pickled.
@@ -203,10 +200,8 @@ class ParallelEstimator:
         min_chunk: int = MIN_CHUNK,
         max_restarts: int = 3,
         warm_workers: bool = True,
-        submitting: bool = False,
     ) -> None:
         self.processes = resolve_processes(processes)
-        self.workers = self.processes if submitting and self.processes > 1 else self.processes - 1
         for name, value, low in (("min_chunk", min_chunk, 1), ("max_restarts", max_restarts, 0)):
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
@@ -254,13 +249,13 @@ class ParallelEstimator:
     def _ensure_pool(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._pool is None:
             self._pool = concurrent.futures.ProcessPoolExecutor(
-                max_workers=self.workers,
+                max_workers=self.processes - 1,
                 mp_context=multiprocessing.get_context("spawn"),
                 initializer=_init_worker,
                 initargs=(self._payload, self._warm_workers),
             )
             # One task per worker makes the pool start them all now (it starts one per task while none is idle).
-            self._starting = [self._pool.submit(_ready) for _ in range(self.workers)]
+            self._starting = [self._pool.submit(_ready) for _ in range(self.processes - 1)]
             self._spawned.update(getattr(self._pool, "_processes", None) or {})
         return self._pool
 
@@ -406,7 +401,7 @@ class ParallelEstimator:
         if not all(f.done() for f in self._starting):
             return False
         self._submitted = [f for f in self._submitted if not f.done()]
-        return len(self._submitted) < self.workers
+        return len(self._submitted) < self.processes - 1
 
     def submit(
         self,
