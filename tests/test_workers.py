@@ -257,6 +257,26 @@ def test_a_submitted_batch_whose_worker_fails(how):
             assert par.restarts == 0
 
 
+def test_a_broken_pool_is_dropped_once_whoever_finds_it_first():
+    """A worker dies on a submitted batch; a later batch finds the pool broken first and drops it: the submitted
+    batch's result is then solved here without dropping (and counting) the pool a second time."""
+    rod = tr.presets.nitinol290()
+    est = tr.Estimator(rod, tr.EstimatorOptions(noise=NOISE, max_forces=2), warm_start=_InWorker("exit", 1, spare=1))
+    u, m, _ = _trajectory(18)
+    with ParallelEstimator(est, 2) as par:
+        par.warm(wait=True)
+        solving = par.submit(u[:2], m[:2])
+        assert solving._future is not None
+        deadline = time.monotonic() + 60
+        while not solving.done() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        halves = concat_results([est.estimate(u[2:10], m[2:10]), est.estimate(u[10:], m[10:])])
+        _assert_identical(par.estimate(u[2:], m[2:]), halves)  # (16 rows: split, the pool found broken)
+        assert par.restarts == 1
+        _assert_identical(solving.result(), est.estimate(u[:2], m[:2]))
+        assert par.restarts == 1
+
+
 class _SlowInWorker:
     """A picklable warm start that sleeps ``delay`` seconds in a worker process and guesses nothing."""
 

@@ -421,9 +421,10 @@ class ParallelEstimator:
         chunks = self._chunks(curvature, mask, extra_starts, whole=True) if self.idle() else None
         if chunks:
             try:
-                future = self._ensure_pool().submit(_solve_chunk, *self._packed(chunks[0]), overrides)
+                pool = self._ensure_pool()
+                future = pool.submit(_solve_chunk, *self._packed(chunks[0]), overrides)
                 self._submitted.append(future)
-                return Solving(self, chunks[0], overrides, future)
+                return Solving(self, chunks[0], overrides, future, pool)
             except BrokenProcessPool:
                 self._broken()
         solving = Solving(self, (curvature, mask, extra_starts), overrides)
@@ -500,9 +501,10 @@ class Solving:
         chunk: tuple[Any, Any, Any],
         overrides: dict[str, Any],
         future: concurrent.futures.Future | None = None,
+        pool: concurrent.futures.ProcessPoolExecutor | None = None,
     ) -> None:
         self._owner, self._chunk, self._overrides = owner, chunk, overrides
-        self._future = future
+        self._future, self._pool = future, pool
         self._value: EstimateResult | None = None
         self._error: Exception | None = None
 
@@ -522,7 +524,8 @@ class Solving:
             try:
                 self._value = _unpack_result(self._future.result())
             except BrokenProcessPool:
-                self._owner._broken()
+                if self._owner._pool is self._pool:  # (not already dropped, and replaced, for another batch)
+                    self._owner._broken()
                 self._value, self._error = self._owner._here(self._chunk, self._overrides)
             except Exception as exc:  # noqa: BLE001 - raised below, as estimate() would
                 self._error = exc
@@ -531,8 +534,3 @@ class Solving:
             raise self._error
         assert self._value is not None
         return self._value
-
-    def cancel(self) -> None:
-        """Give up the batch if its worker has not started it."""
-        if self._future is not None:
-            self._future.cancel()
