@@ -484,14 +484,13 @@ def _unread(pipe) -> int:
     return buf[0]
 
 
-def test_cli_stream_with_workers_flushes_on_ctrl_c(tmp_path):
-    """40 readings pending (a batch of 100 and a minute's latency bound), then Ctrl-C: all answered (over two
-    processes), exit status 130, and no process of the command is left."""
-    path = tmp_path / "in.jsonl"
-    _lines(path, 40)
+def _ctrl_c_after_reading(path, options: list[str], period: float | None) -> None:
+    """``torchrod stream --workers 2`` (plus ``options``) fed the lines of ``path`` (at once, or one every ``period``
+    s, the input left open), then Ctrl-C once it has read them all: every line answered in order, exit status 130,
+    no traceback, and no process of the command left."""
+    lines = path.read_text().splitlines(keepends=True)
     cmd = [sys.executable, "-m", "torchrod", "stream", "--rod", "nitinol290", "--noise", str(NOISE)]
-    cmd += ["--max-forces", "2", "--checkpoint", "none", "--threads", "1", "--workers", "2"]
-    cmd += ["--batch-size", "100", "--max-latency-ms", "60000"]
+    cmd += ["--max-forces", "2", "--checkpoint", "none", "--threads", "1", "--workers", "2", *options]
 
     def interruptible() -> None:
         signal.signal(signal.SIGINT, signal.SIG_DFL)
@@ -507,24 +506,35 @@ def test_cli_stream_with_workers_flushes_on_ctrl_c(tmp_path):
         preexec_fn=interruptible,
     )
     try:
-        proc.stdin.write(path.read_text())
-        proc.stdin.flush()
+        for chunk in [lines] if period is None else [[line] for line in lines]:
+            proc.stdin.write("".join(chunk))
+            proc.stdin.flush()
+            if period is not None:
+                time.sleep(period)
         deadline = time.monotonic() + 60
         while _unread(proc.stdin) and time.monotonic() < deadline:  # until the command has read them
-            time.sleep(0.05)
-        time.sleep(0.5)
+            time.sleep(0.01)
+        time.sleep(0.5 if period is None else 0.05)
         proc.send_signal(signal.SIGINT)  # to the command alone, as the existing stream tests do
         out, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 130, err
-    assert [json.loads(x)["id"] for x in out.splitlines()] == [f"r{k}" for k in range(40)]
+    assert [json.loads(x)["id"] for x in out.splitlines()] == [f"r{k}" for k in range(len(lines))]
     assert "Traceback" not in err
     deadline = time.monotonic() + 10
     while _group(proc.pid) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert _group(proc.pid) == []  # no process of the command's group is left (its workers stopped)
+
+
+def test_cli_stream_with_workers_flushes_on_ctrl_c(tmp_path):
+    """40 readings pending (a batch of 100 and a minute's latency bound), then Ctrl-C: all answered (over two
+    processes), exit status 130, and no process of the command is left."""
+    path = tmp_path / "in.jsonl"
+    _lines(path, 40)
+    _ctrl_c_after_reading(path, ["--batch-size", "100", "--max-latency-ms", "60000"], None)
 
 
 def test_cli_live_stream_with_workers_flushes_on_ctrl_c(tmp_path):
@@ -533,43 +543,7 @@ def test_cli_live_stream_with_workers_flushes_on_ctrl_c(tmp_path):
     line, in order, exit status 130, and no process of the command is left."""
     path = tmp_path / "in.jsonl"
     _lines(path, 60)
-    cmd = [sys.executable, "-m", "torchrod", "stream", "--rod", "nitinol290", "--noise", str(NOISE)]
-    cmd += ["--max-forces", "2", "--checkpoint", "none", "--threads", "1", "--workers", "2"]
-
-    def interruptible() -> None:
-        signal.signal(signal.SIGINT, signal.SIG_DFL)
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
-
-    proc = subprocess.Popen(
-        cmd,
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        preexec_fn=interruptible,
-    )
-    try:
-        for line in path.read_text().splitlines(keepends=True):
-            proc.stdin.write(line)
-            proc.stdin.flush()
-            time.sleep(0.05)
-        deadline = time.monotonic() + 60
-        while _unread(proc.stdin) and time.monotonic() < deadline:
-            time.sleep(0.01)
-        time.sleep(0.05)
-        proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == 130, err
-    assert [json.loads(x)["id"] for x in out.splitlines()] == [f"r{k}" for k in range(60)]
-    assert "Traceback" not in err
-    deadline = time.monotonic() + 10
-    while _group(proc.pid) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert _group(proc.pid) == []
+    _ctrl_c_after_reading(path, [], 0.05)
 
 
 def _group(pgid: int) -> list[str]:
