@@ -324,7 +324,7 @@ def test_the_one_force_shortcut_finds_what_the_full_search_finds(rod):
     sc = search.scan(problem, base, per_interval=options.per_interval, top=2, trust=policy.max_force_step)
     more = [sc.starts.take(t * n + np.arange(n)) for t in (0, 1)]
     full, spent_full, _ = search._explore(problem, solver, options, more, cur.loss)
-    fast, spent_fast, _ = search._explore(problem, solver, options, more, cur.loss, cur.fits.interval[:, 0])
+    fast, spent_fast, _ = search._explore(problem, solver, options, more, cur.loss, cur.fits.interval)
     margin = 10.0 * policy.tolerance * cur.noise2
     better_full, better_fast = full.loss < cur.loss - margin, fast.loss < cur.loss - margin
     assert better_fast.tolist() == better_full.tolist()
@@ -354,3 +354,84 @@ def test_the_exact_finish_counts_what_each_row_costs_alone(rod, monkeypatch):
         assert xp.tolist(one) == [len(calls)] == [int(used[b])], b
         assert np.allclose(alone.loss, batch.loss[b : b + 1], rtol=1e-12, atol=0)
         assert np.allclose(alone.fits.s, batch.fits.s[b : b + 1], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)
+def test_twins_stop_the_row_with_the_higher_loss(xp):
+    """``search._twins``: of two rows of one reading whose forces hold the same intervals, in any order, the one
+    with the higher loss stops (equal losses: the later block's; a NaN loss counts as the highest); rows in other
+    intervals, rows of other readings, rows with a location held on a bound and rows with two forces in one
+    interval go on. With a layout of blocks that hold some readings only, an absent row matches nothing."""
+    from types import SimpleNamespace
+
+    n, blocks = 3, 3
+    # rows in blocks of n: row k n + b is reading b's row in block k
+    interval = [
+        [1, 3], [0, 2], [4, 5],  # block 0
+        [3, 1], [0, 2], [5, 6],  # block 1
+        [2, 3], [2, 0], [6, 7],  # block 2
+    ]  # fmt: skip
+    loss = [5.0, 2.0, 1.0, 4.0, 2.0, 1.0, 1.0, np.nan, 1.0]
+
+    def state(rows, held=()):
+        iv = np.array(interval)[rows]
+        on_bound = np.zeros(iv.shape, dtype=bool)
+        on_bound[list(held), 0] = True
+        return SimpleNamespace(
+            fits=SimpleNamespace(s=xp.zeros(iv.shape), interval=xp.asarray(iv, "int")),
+            loss=xp.asarray(np.array(loss)[rows]),
+            held=xp.asarray(on_bound, "bool"),
+        )
+
+    every = np.arange(blocks * n)
+    got = xp.tolist(search._twins(xp, n, blocks)(state(every)))
+    # reading 0: block 0 = block 1 as a set, higher loss; reading 1: a tie (block 1 stops) and a NaN (block 2)
+    assert got == [True, False, False, False, True, False, False, True, False]
+    # a location held on a bound (reading 0, block 1) or two forces in one interval (reading 2): no twins
+    interval[2], interval[5] = [4, 4], [4, 4]
+    got = xp.tolist(search._twins(xp, n, blocks)(state(every, held=[3])))
+    assert got == [False, False, False, False, True, False, False, True, False]
+    present = np.array([0, 1, 2, 5, 6, 7, 8])  # reading 0 and 1 absent from block 1
+    got = xp.tolist(search._twins(xp, n, blocks, xp.asarray(present, "int"))(state(present)))
+    assert got == [False, False, False, False, False, True, False]
+
+
+def test_two_forces_have_one_minimum_per_pair_of_intervals(rod):
+    """What the twins rest on for more than one force (:func:`torchrod.estimate.search._twins`): two-force fits that
+    end in the same pair of intervals end at the same fit. Checked where local minima hide: two-force fits of noisy
+    three-force readings (misfits), from four starts in each of several pairs of intervals (two locations, the
+    forces as guessed and reversed)."""
+    n = 12
+    gen = torch.Generator().manual_seed(21)
+    s = 0.04 + 0.25 * torch.rand(n, 3, dtype=F64, generator=gen)
+    f = torch.randn(n, 3, 2, dtype=F64, generator=gen) * 0.6
+    u = tr.simulate(rod, tr.PointForces(s, f)).grating_curvature
+    problem = problem_for(NUMPY, rod, u + 0.1 * torch.randn(u.shape, dtype=F64, generator=gen), noise=0.1)
+    m = int(problem.intervals[0])
+    lo, hi = problem.lo[0, :m], problem.hi[0, :m]
+    pairs = [(i, j) for i in range(0, m, 2) for j in range(i + 1, m, 3)]
+    starts = [(a, sign) for a in (0.25, 0.75) for sign in (1.0, -1.0)]
+    rows = [(b, p, a, g) for b in range(n) for p in pairs for a, g in starts]
+    reading = np.array([b for b, _, _, _ in rows])
+    interval = np.array([p for _, p, _, _ in rows])
+    frac = np.array([a for _, _, a, _ in rows])[:, None]
+    sign = np.array([g for _, _, _, g in rows])[:, None, None]
+    loc = lo[interval] + frac * (hi[interval] - lo[interval])
+    guess = sign * np.array([[0.3, -0.2], [-0.2, 0.4]])[None]
+    policy = lm.LMPolicy()
+    out = lm.solve(problem, policy, Fits(reading, loc, guess, interval))
+    assert bool(out.converged.mean() > 0.8)
+    margin = 10.0 * policy.tolerance * 0.1**2
+    ends = np.sort(out.fits.interval, 1)
+    # Twins never pair fits with two forces in one interval or a location held on a bound: those have minima of
+    # their own (a force held on the first grating beside one inside the interval: the bulk of what this excludes).
+    apart = out.converged & (ends[:, 0] != ends[:, 1]) & ~out.held.any(1)
+    compared = 0
+    for b in range(n):
+        for pair in {tuple(e) for e in ends[(reading == b) & apart]}:
+            same = np.nonzero((reading == b) & apart & np.all(ends == pair, 1))[0]
+            if len(same) > 1:
+                compared += 1
+                spread = out.loss[same].max() - out.loss[same].min()
+                assert spread <= margin, (b, pair, out.loss[same])
+    assert compared >= 2 * n

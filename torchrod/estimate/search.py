@@ -15,6 +15,12 @@ minimum of each count from the one below it, with work linear in the number of g
 * **Other starts** (:func:`_explore`). A suspicious fit (below) is also fitted from the scan's other intervals
   for its last force, each start kept only while it promises to beat the fit. One force has one local minimum per
   interval, so a one-force start that enters the interval of the fit it is to beat, without a lower loss, stops.
+* **Twins** (``twins``, :func:`_twins`). Two rows of one reading whose forces occupy the same intervals (as a set,
+  each force in its own interval, none held on a bound) are taken to descend to the same fit: the one with the
+  higher loss stops, among the first fits of a count and among the other starts, and a start of any count that
+  enters the intervals of the converged fit it is to beat without a lower loss stops. For one force this is the one
+  minimum per interval; for more it is an assumption that tests check (two-force fits from several starts in one
+  pair of intervals end at one loss; estimates with and without twins agree).
 * **Exchange** (:func:`exchange`). A fit whose loss is worse than a correct fit's typically is (noise known:
   above the ``suspect`` quantile of the chi-square law; noise unknown: always), or that holds a force on a grating
   (a kink of the loss, where the loss rises on both sides: true forces seldom sit exactly on a grating, wrong local
@@ -111,6 +117,9 @@ class SearchOptions:
             counts: :func:`.selection.ceilings`), or below ``explained`` times the loss of the count
             under it (it explains nearly all of that one's misfit: on a clean reading a wrong local minimum of the
             true count does).
+        twins: stop a row that another row of the same reading has joined in the same intervals with a lower loss,
+            and a start of the wider search that reaches the intervals of the fit it is to beat without a lower
+            loss (module docstring; False: only the one-force case, which always holds).
     """
 
     per_interval: int = 2
@@ -122,6 +131,7 @@ class SearchOptions:
     kink_suspect: float = 0.5
     hopeless: float = 3.0
     explained: float = 0.01
+    twins: bool = True
 
     def __post_init__(self) -> None:
         for name in ("per_interval", "top", "exchange_top", "explore"):
@@ -135,6 +145,8 @@ class SearchOptions:
                 raise ValueError(f"{name} must lie in (0, 1), got {getattr(self, name)!r}")
         if not float(self.hopeless) >= 1.0:
             raise ValueError(f"hopeless must be >= 1, got {self.hopeless!r}")
+        if not isinstance(self.twins, bool):
+            raise ValueError(f"twins must be True or False, got {self.twins!r}")
 
 
 @dataclass(frozen=True)
@@ -370,7 +382,7 @@ def exchange(
         E = min(options.exchange_top, T * h)
         pick_rows = xp.argsort_desc(-pred.reshape(T * h, n).T)[:, :E].T * n + xp.arange(n)[None, :]  # (E, n)
         starts = [sc.starts.take(pick_rows[e]) for e in range(E)]
-        found, work, short = _explore(problem, solver, options, starts, cur.loss)
+        found, work, short = _explore(problem, solver, options, starts, cur.loss, _home(xp, cur, options.twins))
         spent = xp.add_at(spent, rows, work + h)
         cut = xp.put(cut, rows, cut[rows] | short)
         margin = 10.0 * solver.policy.tolerance * cur.noise2
@@ -573,7 +585,7 @@ def fit_counts(
             raise ValueError(f"no start for h = {h}: starts=0 needs a warm start or extra_starts for every count")
         done_here = xp.zeros((B,), "bool")
         if first:
-            best, spent, short = _first_fits(problem, solver, first, open_)
+            best, spent, short = _first_fits(problem, solver, first, open_, options.twins)
             evaluations = xp.add_at(evaluations, open_, spent)
             cut = xp.put(cut, open_, cut[open_] | short)
             state = state.put(xp, open_, best)
@@ -627,9 +639,9 @@ def fit_counts(
             if sc is not None and starts > 1:
                 pos = xp.put(xp.zeros((B,), "int") - 1, scanned, xp.arange(scanned.shape[0]))[readings]
                 more = [sc.starts.take(t * scanned.shape[0] + pos) for t in range(1, starts)]
-                # One force: a start that reaches the current fit's interval stops there (:func:`_explore`).
-                within = cur.fits.interval[:, 0] if h == 1 else None
-                found, spent, short = _explore(problem, solver, options, more, cur.loss, within)
+                # A start that reaches the current fit's intervals stops there (:func:`_explore`).
+                home = _home(xp, cur, options.twins)
+                found, spent, short = _explore(problem, solver, options, more, cur.loss, home)
                 evaluations = xp.add_at(evaluations, readings, spent)
                 cut = xp.put(cut, readings, cut[readings] | short)
                 better = found.loss < cur.loss - 10.0 * solver.policy.tolerance * cur.noise2
@@ -665,20 +677,21 @@ def _explore(
     options: SearchOptions,
     starts: list[Fits],
     current: Any,
-    within: Any = None,
+    home: Any = None,
 ) -> tuple[lm.LMState, Any, Any]:
     """The best of ``starts`` (blocks of n rows) per reading, fitted only while promising: each row takes at most
     ``options.explore`` steps, and only the rows whose loss, or the loss a Gauss-Newton step promises from it,
     has fallen below ``current`` (n,), the reading's loss to beat, are fitted to the end. Returns the best rows (n),
     finished on the exact model, the evaluations spent per reading and (n,) whether the deadline cut it short.
 
-    ``within`` (n,) (one force only): the interval of the reading's current fit. The loss of one force has one
+    ``home`` (n, h): the intervals of the reading's current fit (None: no such stop). The loss of one force has one
     local minimum within an interval (for small deflections the best force at a location is linear least squares,
     and the loss left is a ratio of two quadratic forms of a plane direction set by the location: one minimum per
     half-turn; ``test_one_force_has_one_minimum_per_interval`` checks it on misfits), so a row that enters the
-    current fit's interval without a lower loss descends to that fit: it is dropped there. A reading whose rows are
-    all dropped has nothing better: its row gets an infinite loss and skips the exact-model steps (so the
-    deadline cannot cut it there)."""
+    current fit's interval without a lower loss descends to that fit: it is dropped there. For more forces the same
+    is assumed of a set of intervals (``SearchOptions.twins``, which also drops the twins among the rows,
+    :func:`_twins`). A reading whose rows are all dropped has nothing better: its row gets an infinite loss and
+    skips the exact-model steps (so the deadline cannot cut it there)."""
     xp = problem.xp
     n = starts[0].rows
     rows = _rows(starts)
@@ -689,11 +702,13 @@ def _explore(
     )
     goal = xp.concat([current] * len(starts))
     stop = None
-    if within is not None:
-        home = xp.concat([within] * len(starts))
+    if home is not None:
+        homes = _as_set(xp, xp.concat([home] * len(starts)))
+        twins = _twins(xp, n, len(starts)) if home.shape[1] > 1 and len(starts) > 1 else None
 
         def stop(state: lm.LMState) -> Any:
-            return (state.fits.interval[:, 0] == home) & (state.loss >= goal)
+            back = xp.all(_as_set(xp, state.fits.interval) == homes, 1) & (homes[:, 0] >= 0) & (state.loss >= goal)
+            return back if twins is None else back | twins(state)
 
     st = short.solve(problem, rows, stop)
     cut = _cut(xp, st, n)
@@ -721,22 +736,29 @@ def _explore(
     return best, spent, cut | (live & late)
 
 
-def _first_fits(problem: Problem, solver: Solver, first: list[Fits], readings: Any) -> tuple[lm.LMState, Any, Any]:
+def _first_fits(
+    problem: Problem, solver: Solver, first: list[Fits], readings: Any, twins: bool = False
+) -> tuple[lm.LMState, Any, Any]:
     """The best of the ``first`` starts per reading of ``readings`` (n,), finished on the exact model; the
     evaluations spent and (n,) whether the deadline cut a start short, per reading. A block holds a row for every
     one of the n readings, in their order, or (a network guess kept only where the network finds its count
     likely, :meth:`torchrod.Estimator.estimate`) rows for some of them, named by ``Fits.reading``; every reading
-    has a row in some block."""
+    has a row in some block. ``twins``: a row that another row of its reading joins with a lower loss stops
+    (:func:`_twins`)."""
     xp = problem.xp
     n = readings.shape[0]
-    st = solver.solve(problem, _rows(first))
-    if all(b.rows == n for b in first):
+    dense = all(b.rows == n for b in first)
+    slot = None
+    if not dense:  # row r is reading slot[r] % n of block slot[r] // n
+        at = xp.put(xp.zeros((problem.batch_size,), "int"), readings, xp.arange(n))
+        slot = xp.concat([at[b.reading] + k * n for k, b in enumerate(first)])
+    stop = _twins(xp, n, len(first), slot) if twins and len(first) > 1 else None
+    st = solver.solve(problem, _rows(first), stop=stop)
+    if dense:
         spent = (1 + st.steps).reshape(-1, n).sum(0)
         pick = best_of(xp, st, n, 10.0 * solver.policy.tolerance * st.noise2[:n])
         cut = _cut(xp, st, n)
     else:
-        at = xp.put(xp.zeros((problem.batch_size,), "int"), readings, xp.arange(n))
-        slot = xp.concat([at[b.reading] + k * n for k, b in enumerate(first)])
         pos = slot % n
         spent = xp.add_at(xp.zeros((n,), "int"), pos, 1 + st.steps)
         # The slack from each reading's row in the first block that holds it, as the dense layout takes block 0's
@@ -750,6 +772,56 @@ def _first_fits(problem: Problem, solver: Solver, first: list[Fits], readings: A
         cut = xp.add_at(xp.zeros((n,), "int"), pos, xp.astype(~st.done, "int")) > 0
     best, late, used = solver.finish(problem, st.take(xp, pick))
     return best, spent + used, cut | late
+
+
+def _as_set(xp: Any, interval: Any) -> Any:
+    """(R, h) each row's intervals in decreasing order: equal rows hold the same set of intervals; a row with two
+    forces in one interval (where a set of intervals holds several minima) becomes -1s, equal to no row's."""
+    key = xp.take(interval, xp.argsort_desc(interval), 1)
+    if key.shape[1] < 2:
+        return key
+    repeated = xp.any(key[:, 1:] == key[:, :-1], 1)
+    return xp.where(repeated[:, None], -1, key)
+
+
+def _home(xp: Any, current: lm.LMState, twins: bool) -> Any:
+    """The intervals (R, h) of the fits the wider search is to beat, for :func:`_explore`'s stop: with ``twins``
+    those of the fits that converged in the open (-1 elsewhere: a start in the intervals of a fit still creeping
+    towards its minimum may get there first, and a fit held on a bound is a minimum of its own beside the one
+    inside); without, one force's of every fit (the one-force shortcut as it was), None for more forces."""
+    if not twins:
+        return current.fits.interval if current.fits.s.shape[1] == 1 else None
+    inside = current.converged & ~xp.any(current.held, 1)
+    return xp.where(inside[:, None], current.fits.interval, -1)
+
+
+def _twins(xp: Any, n: int, blocks: int, slot: Any = None) -> Any:
+    """A ``stop`` for :func:`.lm.solve` (module docstring, "Twins") on rows laid out in ``blocks`` blocks of n
+    readings (``slot`` (R,): the layout of :func:`best_of` for blocks that hold some readings only): ``stop(state)``
+    is (R,) True for each row that a row of the same reading in another block matches, the same set of intervals,
+    with a lower loss (equal losses: the earlier block's row goes on). Rows with two forces in one interval or a
+    location held on a bound of its interval match none: those have minima of their own beside the one inside."""
+
+    def stop(state: lm.LMState) -> Any:
+        h = state.fits.s.shape[1]
+        key = xp.where(xp.any(state.held, 1)[:, None], -1, _as_set(xp, state.fits.interval))
+        loss = xp.where(state.loss == state.loss, state.loss, math.inf)
+        if slot is None:
+            key, loss = key.reshape(blocks, n, h), loss.reshape(blocks, n)
+        else:  # absent rows: interval -1, matching none
+            key = xp.put(xp.full((blocks * n, h), -1, "int"), slot, key).reshape(blocks, n, h)
+            loss = xp.put(xp.full((blocks * n,), math.inf), slot, loss).reshape(blocks, n)
+        present = key[:, :, 0] >= 0  # in distinct intervals, none held on a bound
+        drop = [xp.zeros((n,), "bool") for _ in range(blocks)]
+        for a in range(blocks):
+            for b in range(a + 1, blocks):
+                same = xp.all(key[a] == key[b], 1) & present[a] & present[b]
+                drop[b] = drop[b] | (same & (loss[b] >= loss[a]))
+                drop[a] = drop[a] | (same & (loss[a] > loss[b]))
+        out = xp.concat(drop)
+        return out if slot is None else out[slot]
+
+    return stop
 
 
 def _cut(xp: Any, state: lm.LMState, n: int) -> Any:
