@@ -393,10 +393,12 @@ def solve(
 ) -> LMState:
     """Fit every row of ``fits`` (or continue the solves of a state) until each is done (module docstring), or
     until ``time.perf_counter()`` passes ``deadline``: the rows still going are then returned as they are, with
-    ``done`` False (a later call may continue them). ``stop(state) -> (R,) bool``, checked on all rows after each
-    step: the rows where it holds are done (the caller knows where they lead)."""
+    ``done`` False (a later call may continue them). ``stop(state) -> (R,) bool``, checked on all rows at the
+    start and after each step: the rows where it holds are done (the caller knows where they lead)."""
     xp = problem.xp
     state = start(problem, policy, fits) if isinstance(fits, Fits) else fits
+    if stop is not None:
+        state = state.replace(done=state.done | stop(state))
     while True:
         idx = xp.nonzero(~state.done)
         if idx.shape[0] == 0 or (deadline is not None and time.perf_counter() > deadline):
