@@ -435,3 +435,19 @@ def test_two_forces_have_one_minimum_per_pair_of_intervals(rod):
                 spread = out.loss[same].max() - out.loss[same].min()
                 assert spread <= margin, (b, pair, out.loss[same])
     assert compared >= 2 * n
+
+
+def test_a_solve_checks_its_stop_at_the_start(rod):
+    """``lm.solve``'s ``stop`` is checked on the starting point too: the rows it names take no step at all (twins
+    that begin in the same intervals cost one evaluation, not two); the others are fitted as without it."""
+    n = 8
+    problem = noisy_two_force_problem(rod, n, seed=4)
+    s = problem.lo[:, 2:3] + 0.3 * (problem.hi[:, 2:3] - problem.lo[:, 2:3])
+    fits = Fits(np.arange(n), s, np.tile([[[0.4, -0.3]]], (n, 1, 1)), np.full((n, 1), 2))
+    policy = lm.LMPolicy()
+    even = np.arange(n) % 2 == 0
+    out = lm.solve(problem, policy, fits, stop=lambda state: even)
+    alone = lm.solve(problem, policy, fits)
+    assert out.done.all() and (out.steps[even] == 0).all() and not out.converged[even].any()
+    assert (alone.steps[even] > 0).all()
+    assert np.array_equal(out.steps[~even], alone.steps[~even]) and np.allclose(out.loss[~even], alone.loss[~even])
