@@ -69,3 +69,31 @@ def test_bench_rejects_unknown_and_reports_missing_suites(capsys, monkeypatch):
 def test_bench_forward_rejects_bad_options(capsys):
     assert main(["bench", "forward", "--threads", "0"]) == 2
     assert "--threads" in capsys.readouterr().err
+
+
+def test_the_pacer_waits_until_the_stream_and_its_workers_are_idle():
+    """``pacer.wait_idle`` (the external pacer's wait before timing): a process whose child burns CPU for a
+    second (as a stream's worker starting up does) is not idle until the burn ends; then it is, and ``family``
+    finds the child. With a timeout within the burn it gives up and says so."""
+    import subprocess
+    import sys
+    import time
+
+    from torchrod.cli.benchmarks import pacer
+
+    child = "import time\nt = time.time()\nwhile time.time() - t < 1.0: pass\ntime.sleep(60)"
+    parent = f"import subprocess, sys, time\nsubprocess.Popen([sys.executable, '-c', {child!r}])\ntime.sleep(60)"
+    proc = subprocess.Popen([sys.executable, "-c", parent])
+    try:
+        t0 = time.perf_counter()
+        while len(pacer.family(proc.pid)) < 2 and time.perf_counter() - t0 < 20:
+            time.sleep(0.02)
+        assert len(pacer.family(proc.pid)) == 2
+        assert not pacer.wait_idle(proc.pid, 0.6)  # two windows, both within the burn
+        assert pacer.wait_idle(proc.pid, 30.0)
+        assert time.perf_counter() - t0 >= 1.0
+    finally:
+        for pid in pacer.family(proc.pid)[1:]:
+            subprocess.run(["kill", str(pid)], check=False)
+        proc.kill()
+        proc.wait()

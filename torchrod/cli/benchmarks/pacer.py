@@ -4,7 +4,9 @@ through a pipe, as an interrogator would feed it, with every latency measured by
 parsing, the stream's batching and the answer's JSON.
 
 The child is started and warmed up first (``warm`` readings sent one at a time, each after the previous answer),
-then the paced lines go out on a writer thread at ``rate`` Hz, line k due at k / ``rate`` s (one the writer could
+and then left until it and its worker processes (``--workers``) are idle: a worker starts in the background (it
+imports torch and warms up: seconds of CPU), and timing while it does would measure its start-up, not the stream.
+Then the paced lines go out on a writer thread at ``rate`` Hz, line k due at k / ``rate`` s (one the writer could
 not send on time, because the pipe was full or the writer was slow, goes out at once), while the calling thread
 reads the answers. Latency counts from the line's due time, as a sensor's reading is taken on schedule whether or
 not its reader keeps up: a stream that falls behind and stops reading its input cannot hide the wait.
@@ -42,12 +44,16 @@ class ExternalStream:
     Args:
         arguments: the options after ``torchrod stream`` (``--rod`` and the rest; input and output are the pipes).
         warm: lines (``reading_line`` text) sent one at a time before any timing, answers discarded.
+        settle: [s] at most this long after the warm-up, wait until the child and its own child processes use
+            less than ``IDLE`` of a core over two windows of ``WINDOW`` (:func:`wait_idle`); 0: no wait.
     """
 
-    def __init__(self, arguments: Sequence[str], warm: Sequence[str] = ()) -> None:
+    def __init__(self, arguments: Sequence[str], warm: Sequence[str] = (), settle: float = 60.0) -> None:
         self.arguments = list(arguments)
         self.warm = list(warm)
-        self.cpu = math.nan  # [s] the child's CPU time (user + system) during the run (Linux /proc)
+        self.settle = settle
+        self.cpu = math.nan  # [s] CPU time (user + system) of the child and its workers during the run (Linux /proc)
+        self.settled = math.nan  # [s] the wait for the child's processes to be idle after the warm-up
         self.process: subprocess.Popen | None = None
 
     def start(self) -> ExternalStream:
@@ -64,6 +70,10 @@ class ExternalStream:
             self._send(line)
             if not self.process.stdout.readline():
                 raise RuntimeError(f"torchrod stream {' '.join(self.arguments)} ended during its warm-up")
+        if self.settle > 0:
+            t0 = time.perf_counter()
+            wait_idle(self.process.pid, self.settle)
+            self.settled = time.perf_counter() - t0
         return self
 
     def _send(self, line: str) -> None:
@@ -79,7 +89,7 @@ class ExternalStream:
         if self.process is None:
             self.start()
         proc = self.process
-        cpu0 = cpu_time([proc.pid])
+        cpu0 = cpu_time(family(proc.pid))
         sent: dict[str, float] = {}
         failed: list[BaseException] = []
 
@@ -108,7 +118,7 @@ class ExternalStream:
             latency = now - sent.get(key, now)
             got += 1
             if got == len(lines):
-                cpu1 = cpu_time([proc.pid])
+                cpu1 = cpu_time(family(proc.pid))
             yield StreamResult(record.get("id"), record.get("t"), record, latency=latency, error=record.get("error"))
         writer.join()
         proc.wait()
@@ -117,6 +127,50 @@ class ExternalStream:
             raise RuntimeError(f"the pacer could not write to torchrod stream: {failed[0]}")
         if got != len(lines):
             raise RuntimeError(f"torchrod stream answered {got} of {len(lines)} lines (exit status {proc.returncode})")
+
+
+IDLE = 0.1
+"""The share of one core below which :func:`wait_idle` calls a process family idle."""
+
+WINDOW = 0.25
+"""[s] the window over which :func:`wait_idle` measures CPU use."""
+
+
+def family(pid: int) -> list[int]:
+    """``pid`` and the live processes whose parent it is (a stream's workers; Linux's /proc, else ``[pid]``)."""
+    out = [pid]
+    try:
+        entries = os.listdir("/proc")
+    except OSError:
+        return out
+    for entry in entries:
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as fh:
+                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == pid:
+            out.append(int(entry))
+    return out
+
+
+def wait_idle(pid: int, timeout: float) -> bool:
+    """Wait until process ``pid`` and its child processes used less than :data:`IDLE` of a core in each of two
+    consecutive :data:`WINDOW` windows (a worker that has not appeared yet shows in the second), at most
+    ``timeout`` seconds; whether they did."""
+    end = time.perf_counter() + timeout
+    quiet = 0
+    before = cpu_time(family(pid))
+    while time.perf_counter() < end:
+        time.sleep(WINDOW)
+        now = cpu_time(family(pid))
+        quiet = quiet + 1 if now - before < IDLE * WINDOW else 0
+        if quiet >= 2:
+            return True
+        before = now
+    return False
 
 
 def cpu_time(pids: Iterable[int]) -> float:

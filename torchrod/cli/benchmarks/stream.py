@@ -30,10 +30,12 @@ the same readings several ways, in one run:
   not reach it) fed the first ``--paced`` readings as JSON lines through a pipe at R Hz by a writer thread
   (:mod:`.pacer`), the latency measured by the writing process from the line's due time to reading its answer; at the
   first rate once per ``--external-budgets`` entry (default: the command's own time budget, and 10 ms), all with
-  ``--external-workers`` processes (the command's ``--workers``, default 1). A note per
+  ``--external-workers`` processes (the command's ``--workers``, default 1). The timing starts after a warm-up
+  of five lines, once the process and its workers are idle (a worker's start-up takes seconds of CPU). A note per
   row gives the median latency over the first and the last tenth of the run (a stream that cannot keep up falls
-  behind: its latency grows) and the answers' statuses (``timeout``: cut by the time budget). cpu ms is the
-  child's; readings per batch and evaluations are not reported (the answers do not carry them).
+  behind: its latency grows), the answers' statuses (``timeout``: cut by the time budget) and how long the warm-up
+  waited for idle processes. cpu ms is the child's and its workers'; readings per batch and evaluations are not
+  reported (the answers do not carry them).
 
 The stream rows (and the CLI's) start each reading as the static estimator does; with ``--track`` they also start
 small batches from the last answer's forces (``StreamOptions(track=True)``; in ``one at a time`` always one frame
@@ -242,7 +244,8 @@ def _external_rows(
         statuses = ", ".join(f"{k} {v}" for k, v in row.stats.statuses.items())
         notes.append(
             f"# {name}: latency median over the first tenth {1e3 * first[len(first) // 2]:.1f} ms, over the last "
-            f"tenth {1e3 * last[len(last) // 2]:.1f} ms; statuses: {statuses}"
+            f"tenth {1e3 * last[len(last) // 2]:.1f} ms; statuses: {statuses}; {pacer.settled:.1f} s waited after "
+            "the warm-up for idle processes"
         )
     return notes
 
