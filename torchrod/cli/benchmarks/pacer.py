@@ -3,13 +3,15 @@ through a pipe, as an interrogator would feed it, with every latency measured by
 (from the time a line is due to reading its answer), so the numbers include what a user's process sees: the pipe,
 parsing, the stream's batching and the answer's JSON.
 
-The child is started and warmed up first (``warm`` readings sent one at a time, each after the previous answer),
-and then left until it and its worker processes (``--workers``) are idle: a worker starts in the background (it
-imports torch and warms up: seconds of CPU), and timing while it does would measure its start-up, not the stream.
-Then the paced lines go out on a writer thread at ``rate`` Hz, line k due at k / ``rate`` s (one the writer could
-not send on time, because the pipe was full or the writer was slow, goes out at once), while the calling thread
-reads the answers. Latency counts from the line's due time, as a sensor's reading is taken on schedule whether or
-not its reader keeps up: a stream that falls behind and stops reading its input cannot hide the wait.
+The child is started and warmed up first, the ``warm`` readings sent one at a time, each after the previous
+answer, in two rounds: the first reading, and the rest; after each round the pacer waits until the child and its
+worker processes (``--workers``) are idle. A worker starts in the background (it imports torch and warms up:
+seconds of CPU), the pool when the stream starts and any worker started by the stream's first batches in the
+second round, and timing while one does would measure its start-up, not the stream. Then the paced lines go out
+on a writer thread at ``rate`` Hz, line k due at k / ``rate`` s (one the writer could not send on time, because
+the pipe was full or the writer was slow, goes out at once), while the calling thread reads the answers. Latency
+counts from the line's due time, as a sensor's reading is taken on schedule whether or not its reader keeps up: a
+stream that falls behind and stops reading its input cannot hide the wait.
 """
 
 from __future__ import annotations
@@ -44,8 +46,9 @@ class ExternalStream:
     Args:
         arguments: the options after ``torchrod stream`` (``--rod`` and the rest; input and output are the pipes).
         warm: lines (``reading_line`` text) sent one at a time before any timing, answers discarded.
-        settle: [s] at most this long after the warm-up, wait until the child and its own child processes use
-            less than ``IDLE`` of a core over two windows of ``WINDOW`` (:func:`wait_idle`); 0: no wait.
+        settle: [s] at most this long after each round of the warm-up, wait until the child and its own child
+            processes use less than ``IDLE`` of a core over two windows of ``WINDOW`` (:func:`wait_idle`); 0: no
+            wait.
     """
 
     def __init__(self, arguments: Sequence[str], warm: Sequence[str] = (), settle: float = 60.0) -> None:
@@ -66,14 +69,16 @@ class ExternalStream:
             text=True,
             bufsize=1,
         )
-        for line in self.warm:
-            self._send(line)
-            if not self.process.stdout.readline():
-                raise RuntimeError(f"torchrod stream {' '.join(self.arguments)} ended during its warm-up")
-        if self.settle > 0:
-            t0 = time.perf_counter()
-            wait_idle(self.process.pid, self.settle)
-            self.settled = time.perf_counter() - t0
+        self.settled = 0.0
+        for round_ in (self.warm[:1], self.warm[1:]):
+            for line in round_:
+                self._send(line)
+                if not self.process.stdout.readline():
+                    raise RuntimeError(f"torchrod stream {' '.join(self.arguments)} ended during its warm-up")
+            if self.settle > 0 and round_:
+                t0 = time.perf_counter()
+                wait_idle(self.process.pid, self.settle)
+                self.settled += time.perf_counter() - t0
         return self
 
     def _send(self, line: str) -> None:
