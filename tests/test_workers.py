@@ -289,6 +289,31 @@ class _SlowInWorker:
         return {}
 
 
+def test_the_first_batch_handed_out_starts_a_spare_worker():
+    """Two processes: the pool has one worker, and a batch split by estimate() leaves it so; the first batch submit()
+    hands out starts a spare worker in a pool of its own; once it is ready, two batches go out at once, one to each
+    worker, and with both busy the estimator is full(); the answers are the in-process ones, bit for bit."""
+    rod = tr.presets.nitinol290()
+    est = tr.Estimator(rod, tr.EstimatorOptions(noise=NOISE, max_forces=1), warm_start=_SlowInWorker(0.5))
+    u, m, _ = _trajectory(19)
+    with ParallelEstimator(est, 2) as par:
+        par.warm(wait=True)
+        halves = concat_results([est.estimate(u[:8], m[:8]), est.estimate(u[8:16], m[8:16])])
+        _assert_identical(par.estimate(u[:16], m[:16]), halves)
+        assert par._spare is None and len(par.worker_pids()) == 1
+        first = par.submit(u[16:17], m[16:17])
+        assert first._pool is par._pool and par._spare is not None
+        par._spare_ready.result(timeout=120)
+        _assert_identical(first.result(), est.estimate(u[16:17], m[16:17]))
+        second, third = par.submit(u[17:18], m[17:18]), par.submit(u[18:], m[18:])
+        assert {second._pool, third._pool} == {par._pool, par._spare} and par.full() and not par.idle()
+        assert len(par.worker_pids()) == 2
+        _assert_identical(second.result(), est.estimate(u[17:18], m[17:18]))
+        _assert_identical(third.result(), est.estimate(u[18:], m[18:]))
+        assert par.idle() and not par.full()
+    assert par.worker_pids() == []
+
+
 def _ready_workers(monkeypatch) -> tuple[list[bool], threading.Event]:
     """(sent, ready): ``sent`` gets, per submit(), whether the batch went to a worker; ``ready`` is set once a
     stream's workers are ready (its warm() waits for them)."""

@@ -12,8 +12,10 @@ of them in worker processes and one in the calling process at the same time, and
   once (its warm-start network included), runs torch on one thread, ignores SIGINT (the caller handles Ctrl-C and
   flushes; a worker must keep solving for it) and estimates two readings to fill its first-call caches.
 - A stream fed no faster than it is solved makes batches too small to split; :meth:`ParallelEstimator.submit`
-  hands such a batch whole to an idle worker and returns at once, so the calling process can solve the next batch
-  meanwhile (:func:`torchrod.io.stream.stream` does this with ``workers`` > 1).
+  hands such a batch whole to an idle worker and returns at once (:func:`torchrod.io.stream.stream` does this with
+  ``workers`` > 1). The first batch handed out starts one spare worker in a pool of its own, so that N processes
+  give N workers to hand batches to while the calling process only reads and collects; a file, whose batches are
+  split, never starts it (a pool of N workers would: it starts a worker for any chunk while none is idle).
 - Nothing is lost: a chunk whose worker dies (or whose pool breaks) is solved in the calling process, and the pool
   is started afresh for the next batch (at most ``max_restarts`` times; then every batch runs in the calling
   process). An exception the estimator raises in a worker reaches the caller as the same exception type.
@@ -214,7 +216,9 @@ class ParallelEstimator:
         self._warm_workers = warm_workers
         self._pool: concurrent.futures.ProcessPoolExecutor | None = None
         self._starting: list[concurrent.futures.Future] = []
-        self._submitted: list[concurrent.futures.Future] = []  # batches handed whole to workers (submit)
+        self._submitted: list[tuple[concurrent.futures.Future, Any]] = []  # (batch handed out by submit, its pool)
+        self._spare: concurrent.futures.ProcessPoolExecutor | None = None  # one more worker, for submit() alone
+        self._spare_ready: concurrent.futures.Future | None = None
         self._spawned: dict[int, Any] = {}  # every worker process a pool of this object started, by pid
         self._managers: list[Any] = []  # the manager threads of the pools stopped so far (they reap the workers)
         self._payload = b""
@@ -246,17 +250,22 @@ class ParallelEstimator:
         """True while batches may go to workers (processes > 1 and the restarts not used up)."""
         return self.processes > 1 and self.restarts <= self.max_restarts
 
+    def _new_pool(self, workers: int) -> tuple[concurrent.futures.ProcessPoolExecutor, list[concurrent.futures.Future]]:
+        """A pool of ``workers`` workers, started now: one task per worker makes it start them all (it starts one
+        per task while none is idle); the tasks' futures say when they are ready."""
+        pool = concurrent.futures.ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_init_worker,
+            initargs=(self._payload, self._warm_workers),
+        )
+        starting = [pool.submit(_ready) for _ in range(workers)]
+        self._spawned.update(getattr(pool, "_processes", None) or {})
+        return pool, starting
+
     def _ensure_pool(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._pool is None:
-            self._pool = concurrent.futures.ProcessPoolExecutor(
-                max_workers=self.processes - 1,
-                mp_context=multiprocessing.get_context("spawn"),
-                initializer=_init_worker,
-                initargs=(self._payload, self._warm_workers),
-            )
-            # One task per worker makes the pool start them all now (it starts one per task while none is idle).
-            self._starting = [self._pool.submit(_ready) for _ in range(self.processes - 1)]
-            self._spawned.update(getattr(self._pool, "_processes", None) or {})
+            self._pool, self._starting = self._new_pool(self.processes - 1)
         return self._pool
 
     def warm(self, wait: bool = False) -> None:
@@ -273,14 +282,19 @@ class ParallelEstimator:
             self._broken()
 
     def worker_pids(self) -> list[int]:
-        """The process ids of the running workers ([] before the pool starts)."""
-        processes = getattr(self._pool, "_processes", None) or {}
-        return [p.pid for p in list(processes.values()) if p.is_alive()]
+        """The process ids of the running workers, the spare's included ([] before the pool starts)."""
+        pools = (self._pool, self._spare)
+        processes = [p for pool in pools for p in list((getattr(pool, "_processes", None) or {}).values())]
+        return [p.pid for p in processes if p.is_alive()]
 
-    def _broken(self) -> None:
-        """Drop a broken pool (its chunks are solved here); the next batch starts a new one."""
+    def _broken(self, pool: concurrent.futures.ProcessPoolExecutor | None = None) -> None:
+        """Drop a broken pool, the main one or (``pool``) the spare (its chunks are solved here); the next batch
+        starts a new one."""
         self.restarts += 1
-        pool, self._pool, self._starting = self._pool, None, []
+        if pool is not None and pool is self._spare:
+            self._spare, self._spare_ready = None, None
+        else:
+            pool, self._pool, self._starting = self._pool, None, []
         if pool is not None:
             self._stop(pool)
         if self.restarts > self.max_restarts:
@@ -308,9 +322,11 @@ class ParallelEstimator:
         """Stop the workers (the object still estimates afterwards, starting a new pool if needed): the current
         pool's, and any worker of an earlier pool still running; then wait (a second at most) for the pools'
         manager threads, which reap them."""
-        pool, self._pool, self._starting = self._pool, None, []
-        if pool is not None:
-            self._stop(pool)
+        pools = [self._pool, self._spare]
+        self._pool, self._starting, self._spare, self._spare_ready, self._submitted = None, [], None, None, []
+        for pool in pools:
+            if pool is not None:
+                self._stop(pool)
         spawned, self._spawned = list(self._spawned.values()), {}
         _end(spawned)
         managers, self._managers = self._managers, []
@@ -390,18 +406,32 @@ class ParallelEstimator:
         return concat_results(results)  # type: ignore[arg-type]
 
     def idle(self) -> bool:
-        """True when a worker is started, ready and solving no batch handed to it by :meth:`submit` (chunks of
-        :meth:`estimate` are not counted: it waits for them before it returns). With no pool running (not started
-        yet, or dropped when a worker died) this starts one, ready seconds later, and says False."""
+        """True when a worker (the spare's included) is started, ready and solving no batch handed to it by
+        :meth:`submit` (chunks of :meth:`estimate` are not counted: it waits for them before it returns). With no
+        pool running (not started yet, or dropped when a worker died) this starts one, ready seconds later, and says
+        False."""
         if not self.parallel:
             return False
         if self._pool is None:
             self.warm()
             return False
-        if not all(f.done() for f in self._starting):
-            return False
-        self._submitted = [f for f in self._submitted if not f.done()]
-        return len(self._submitted) < self.processes - 1
+        return self._free() is not None
+
+    def full(self) -> bool:
+        """True when every worker, the spare's included, is solving a batch handed to it by :meth:`submit`: a
+        caller that only hands batches out should wait for one rather than solve beside them on their cores."""
+        ready = self._spare_ready is not None and self._spare_ready.done()
+        return self.parallel and self._pool is not None and ready and self._free() is None
+
+    def _free(self) -> concurrent.futures.ProcessPoolExecutor | None:
+        """A pool with a ready worker that :meth:`submit` has not handed a batch: the main pool first, or None."""
+        self._submitted = [(f, pool) for f, pool in self._submitted if not f.done()]
+        busy = [pool for _, pool in self._submitted]
+        if all(f.done() for f in self._starting) and busy.count(self._pool) < self.processes - 1:
+            return self._pool
+        if self._spare is not None and self._spare_ready.done() and self._spare not in busy:
+            return self._spare
+        return None
 
     def submit(
         self,
@@ -418,15 +448,17 @@ class ParallelEstimator:
         Returns:
             a :class:`Solving`: ``done()`` says whether the result is there, ``result()`` waits for it.
         """
-        chunks = self._chunks(curvature, mask, extra_starts, whole=True) if self.idle() else None
+        pool = self._free() if self.idle() else None
+        chunks = self._chunks(curvature, mask, extra_starts, whole=True) if pool is not None else None
         if chunks:
             try:
-                pool = self._ensure_pool()
                 future = pool.submit(_solve_chunk, *self._packed(chunks[0]), overrides)
-                self._submitted.append(future)
+                self._submitted.append((future, pool))
+                if self._spare is None:  # the first batch handed out: the spare worker starts
+                    self._spare, (self._spare_ready,) = self._new_pool(1)
                 return Solving(self, chunks[0], overrides, future, pool)
             except BrokenProcessPool:
-                self._broken()
+                self._broken(pool)
         solving = Solving(self, (curvature, mask, extra_starts), overrides)
         try:
             solving._value = self.estimate(curvature, mask, extra_starts=extra_starts, **overrides)
@@ -524,8 +556,8 @@ class Solving:
             try:
                 self._value = _unpack_result(self._future.result())
             except BrokenProcessPool:
-                if self._owner._pool is self._pool:  # (not already dropped, and replaced, for another batch)
-                    self._owner._broken()
+                if self._pool in (self._owner._pool, self._owner._spare):  # (not dropped yet for another batch)
+                    self._owner._broken(self._pool)
                 self._value, self._error = self._owner._here(self._chunk, self._overrides)
             except Exception as exc:  # noqa: BLE001 - raised below, as estimate() would
                 self._error = exc

@@ -122,12 +122,13 @@ class StreamOptions:
         workers: processes the stream solves on (:class:`torchrod.estimate.workers.ParallelEstimator`; 1: the
             calling process alone). A batch of 16 readings or more (a backlog: a file, a source faster than the
             solver) is split over them in chunks of at least 8. A smaller batch (a live source) goes whole to an
-            idle worker process, and the calling process takes the next readings and solves them meanwhile, so
-            consecutive readings are solved at once on different cores and one slow reading does not hold the next
-            ones back (their answers still come in input order); with ``track`` or a ``max_latency`` wait, small
-            batches are solved in the calling process instead. The workers start with the stream (they take
-            seconds to start; until they are ready every batch is solved in the calling process) and stop when it
-            ends.
+            idle worker process (the first such batch starts a spare worker, so that W processes give W workers
+            while the calling process reads and collects; until it is ready the calling process solves what finds
+            the others busy), so consecutive readings are solved at once on different cores and one slow reading
+            does not hold the next ones back (their answers still come in input order); with ``track`` or a
+            ``max_latency`` wait, small batches are solved in the calling process instead. The workers start with
+            the stream (they take seconds to start; until they are ready every batch is solved in the calling
+            process) and stop when it ends.
     """
 
     batch_size: int = 1024
@@ -303,8 +304,8 @@ class _Stream:
         """The results of the next batch in input order, or None at the end of the input. Batches are taken from
         the pending readings as they come and solved here, or (:attr:`pipelined`, a batch too small to split)
         handed to an idle worker, while this process goes on taking readings: the next small batch goes to the
-        next idle worker, or is solved here while the workers are busy; a large one is split as
-        :meth:`ParallelEstimator.estimate` splits it.
+        next idle worker, is solved here while the spare worker is not ready yet, or waits once every worker is
+        busy; a large one is split as :meth:`ParallelEstimator.estimate` splits it.
         A batch leaves ``pending`` only once it is solved or handed out, and ``flight`` only once its results are
         returned, so an interrupt loses none."""
         while True:
@@ -323,6 +324,9 @@ class _Stream:
             batch = self.pending[: self.batch_limit()]
             if self.small(len(batch)) and self.solver.idle():
                 slot = self.send(batch)
+            elif self.small(len(batch)) and flight and self.solver.full():
+                self.wake.wait(_POLL)  # every worker is busy: wait for one rather than solve beside them
+                continue
             else:
                 slot = _Slot(batch, results=self.solve(batch))
             del self.pending[: len(batch)]
