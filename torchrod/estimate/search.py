@@ -704,7 +704,7 @@ def _explore(
     stop = None
     if home is not None:
         homes = _as_set(xp, xp.concat([home] * len(starts)))
-        twins = _twins(xp, n, len(starts)) if options.twins and len(starts) > 1 else None
+        twins = _twins(xp, n, len(starts)) if home.shape[1] > 1 and len(starts) > 1 else None
 
         def stop(state: lm.LMState) -> Any:
             back = xp.all(_as_set(xp, state.fits.interval) == homes, 1) & (homes[:, 0] >= 0) & (state.loss >= goal)
