@@ -17,10 +17,10 @@ minimum of each count from the one below it, with work linear in the number of g
   interval, so a one-force start that enters the interval of the fit it is to beat, without a lower loss, stops.
 * **Twins** (``twins``, :func:`_twins`). Two rows of one reading whose forces occupy the same intervals (as a set,
   each force in its own interval, none held on a bound) are taken to descend to the same fit: the one with the
-  higher loss stops, among the first fits of a count and among the other starts, and a start of any count that
-  enters the intervals of the converged fit it is to beat without a lower loss stops. For one force this is the one
-  minimum per interval; for more it is an assumption that tests check (two-force fits from several starts in one
-  pair of intervals end at one loss; estimates with and without twins agree).
+  higher loss stops, among the first fits of a count and among the other starts of two or more forces, and a
+  start of any count that enters the intervals of the converged fit it is to beat without a lower loss stops. For
+  one force this is the one minimum per interval; for more it is an assumption that tests check (two-force fits
+  from several starts in one pair of intervals end at one loss; estimates with and without twins agree).
 * **Exchange** (:func:`exchange`). A fit whose loss is worse than a correct fit's typically is (noise known:
   above the ``suspect`` quantile of the chi-square law; noise unknown: always), or that holds a force on a grating
   (a kink of the loss, where the loss rises on both sides: true forces seldom sit exactly on a grating, wrong local
@@ -689,9 +689,9 @@ def _explore(
     and the loss left is a ratio of two quadratic forms of a plane direction set by the location: one minimum per
     half-turn; ``test_one_force_has_one_minimum_per_interval`` checks it on misfits), so a row that enters the
     current fit's interval without a lower loss descends to that fit: it is dropped there. For more forces the same
-    is assumed of a set of intervals (``SearchOptions.twins``, which also drops the twins among the rows,
-    :func:`_twins`). A reading whose rows are all dropped has nothing better: its row gets an infinite loss and
-    skips the exact-model steps (so the deadline cannot cut it there)."""
+    is assumed of a set of intervals (``SearchOptions.twins``, which also drops the twins among the rows of two or
+    more forces, :func:`_twins`). A reading whose rows are all dropped has nothing better: its row gets an infinite
+    loss and skips the exact-model steps (so the deadline cannot cut it there)."""
     xp = problem.xp
     n = starts[0].rows
     rows = _rows(starts)
