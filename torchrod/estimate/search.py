@@ -704,10 +704,11 @@ def _explore(
     stop = None
     if home is not None:
         homes = _as_set(xp, xp.concat([home] * len(starts)))
+        known = homes[:, 0] >= 0  # rows with a fit to go back to
         twins = _twins(xp, n, len(starts)) if home.shape[1] > 1 and len(starts) > 1 else None
 
         def stop(state: lm.LMState) -> Any:
-            back = xp.all(_as_set(xp, state.fits.interval) == homes, 1) & (homes[:, 0] >= 0) & (state.loss >= goal)
+            back = xp.all(_as_set(xp, state.fits.interval) == homes, 1) & known & (state.loss >= goal)
             return back if twins is None else back | twins(state)
 
     st = short.solve(problem, rows, stop)
