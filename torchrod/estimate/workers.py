@@ -410,12 +410,17 @@ class ParallelEstimator:
         :meth:`submit` (chunks of :meth:`estimate` are not counted: it waits for them before it returns). With no
         pool running (not started yet, or dropped when a worker died) this starts one, ready seconds later, and says
         False."""
+        return self._idle_pool() is not None
+
+    def _idle_pool(self) -> concurrent.futures.ProcessPoolExecutor | None:
+        """:meth:`idle`'s answer as the pool whose worker is idle (:meth:`_free`), or None; starts the pool if
+        none is running."""
         if not self.parallel:
-            return False
+            return None
         if self._pool is None:
             self.warm()
-            return False
-        return self._free() is not None
+            return None
+        return self._free()
 
     def full(self) -> bool:
         """True when every worker, the spare's included, is solving a batch handed to it by :meth:`submit`: a
@@ -448,7 +453,7 @@ class ParallelEstimator:
         Returns:
             a :class:`Solving`: ``done()`` says whether the result is there, ``result()`` waits for it.
         """
-        pool = self._free() if self.idle() else None
+        pool = self._idle_pool()
         chunks = self._chunks(curvature, mask, extra_starts, whole=True) if pool is not None else None
         if chunks:
             try:
