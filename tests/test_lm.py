@@ -186,6 +186,34 @@ def test_the_scan_finds_where_a_force_is_missing(rod, xp):
     assert float(xp.tolist(sc.gain)[0]) > 0.5 * float(xp.tolist(one.loss)[0])
 
 
+@pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)
+@pytest.mark.parametrize("h0", [0, 1, 2])
+def test_the_scans_response_to_a_new_force_is_the_models_jacobian(rod, xp, h0):
+    """The scan's responses of the gratings to a unit force at each candidate (from the base fit's propagator, or
+    the straight rod's lever for no base force) equal the forward model's Jacobian columns of a force added there
+    with zero load; and its residual and base Jacobian are the model's."""
+    s_base, f_base = [[0.08, 0.21][:h0]], [[[0.5, -0.2], [0.1, 0.6]][:h0]]
+    u = clean(rod, [[0.05, 0.17, 0.26]], [[[0.3, 0.2], [-0.4, 0.1], [0.2, 0.5]]])
+    problem = problem_for(xp, rod, u)
+    base = fits_at(xp, problem, s_base, xp.asarray(f_base) if h0 else xp.zeros((1, 0, 2)))
+    cand, cint, valid = search._candidates(problem, base.reading, 2)
+    r, J, Jc = search._responses(problem, base, cand, None)
+    C = cand.shape[1]
+    assert tuple(Jc.shape) == (1, C, 2 * problem.query.shape[0], 2) and bool(xp.all(valid))
+    s_all = xp.concat([xp.expand(base.s, (C, h0)), xp.mT(cand)], 1)
+    f_all = xp.concat([xp.expand(base.f, (C, h0, 2)), xp.zeros((C, 1, 2))], 1)
+    interval = xp.concat([xp.expand(base.interval, (C, h0)), xp.mT(cint)], 1)
+    r_m, J_m = evaluate(problem, Fits(xp.zeros((C,), "int"), s_all, f_all, interval))
+    col = np.asarray(xp.tolist(J_m)).reshape(C, -1, h0 + 1, 3)[:, :, h0, 1:]  # (C, 2G, 2): d r / d(f_x, f_y) new
+    resp = np.asarray(xp.tolist(Jc))[0]
+    scale = np.abs(col).max()
+    assert scale > 0 and np.abs(resp - col).max() < 1e-3 * scale
+    assert np.allclose(np.asarray(xp.tolist(r))[0], np.asarray(xp.tolist(r_m))[0], rtol=0, atol=1e-3 * scale)
+    if h0:
+        J_base = np.asarray(xp.tolist(J_m)).reshape(C, -1, h0 + 1, 3)[0, :, :h0].reshape(-1, 3 * h0)
+        assert np.abs(np.asarray(xp.tolist(J))[0] - J_base).max() < 1e-3 * np.abs(J_base).max()
+
+
 def test_state_replace_copies_with_changes_and_refuses_unknown_fields(rod):
     xp = NUMPY
     problem = problem_for(xp, rod, clean(rod, [[0.2]], [[[0.3, 0.1]]]))
