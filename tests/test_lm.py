@@ -214,6 +214,66 @@ def test_the_scans_response_to_a_new_force_is_the_models_jacobian(rod, xp, h0):
         assert np.abs(np.asarray(xp.tolist(J))[0] - J_base).max() < 1e-3 * np.abs(J_base).max()
 
 
+@pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)
+@pytest.mark.parametrize("Pb", [0, 3, 6])
+def test_the_scans_block_solve_is_the_damped_normal_system_of_each_candidate(xp, Pb):
+    """The scan's per-candidate solve through the shared base block (its Schur complement) gives the decrement and
+    the step of each candidate's whole damped normal system, solved densely: for random columns, for a candidate
+    that responds as a base force does (the damping alone then decides the split) and for one with no response
+    (it adds nothing: the base fit's decrement, a zero force step)."""
+    rng = np.random.default_rng(Pb)
+    R0, C, n = 3, 6, 16
+    J = rng.normal(size=(R0, n, Pb))
+    r = rng.normal(size=(R0, n))
+    Jc = rng.normal(size=(R0, C, n, 2))
+    Jc[:, -1] = 0.0
+    if Pb:
+        Jc[:, -2] = J[:, :, 1:3]
+    dec, steps = search._added_force(xp, xp.asarray(J), xp.asarray(r), xp.asarray(Jc))
+    dec = np.asarray(xp.tolist(dec))
+    i, c = np.repeat(np.arange(R0), C), np.tile(np.arange(C), R0)
+    st = np.asarray(xp.tolist(steps(xp.asarray(i, "int"), xp.asarray(c, "int")))).reshape(R0, C, Pb + 2)
+    for k in range(R0):
+        scale = max(np.einsum("np,np->p", J[k], J[k]).max(initial=0.0), np.einsum("cni,cni->ci", Jc[k], Jc[k]).max())
+        for j in range(C):
+            M = np.concatenate([J[k], Jc[k, j]], 1)
+            A, g = M.T @ M, M.T @ r[k]
+            x = np.linalg.solve(A + np.diag(1e-9 * np.diag(A) + 1e-12 * scale), g)
+            tol = 1e-5 if j == C - 2 and Pb else 1e-9  # duplicate columns: a condition number of about 1e9
+            assert dec[k, j] == pytest.approx(g @ x, rel=tol)
+            assert np.allclose(st[k, j], -x, rtol=tol, atol=tol * np.abs(x).max())
+        A_b, g_b = J[k].T @ J[k], J[k].T @ r[k]
+        base_dec = g_b @ np.linalg.solve(A_b + np.diag(1e-9 * np.diag(A_b) + 1e-12 * scale), g_b) if Pb else 0.0
+        assert dec[k, -1] == pytest.approx(base_dec, rel=1e-9, abs=1e-300) and not st[k, -1, Pb:].any()
+        assert np.all(dec[k] >= base_dec * (1 - 1e-9))
+
+
+@pytest.mark.parametrize("xp", BACKENDS, ids=lambda b: b.name)
+def test_the_scans_block_solve_lets_a_candidate_the_base_spans_add_nothing(xp):
+    """Two base forces nearly in one place (their columns equal to 1e-6) and a candidate responding as one of them:
+    the Schur complement of the candidate is rounding error, not positive definite. The candidate then adds nothing
+    (the base fit's decrement, a zero force step) rather than a step of that error's size; the rows whose
+    complement stays definite are unaffected."""
+    rng = np.random.default_rng(0)
+    n, Pb = 16, 6
+    J = rng.normal(size=(n, Pb)) * np.array([10.0, 1.0, 1.0, 10.0, 1.0, 1.0])
+    J[:, 3:] = J[:, :3] + 3.6e-6 * rng.normal(size=(n, 3))
+    r = rng.normal(size=n)
+    Jc = np.stack([J[:, 1:3], rng.normal(size=(n, 2))])[None]  # (1, 2, n, 2)
+    dec, steps = search._added_force(xp, xp.asarray(J[None]), xp.asarray(r[None]), xp.asarray(Jc))
+    dec = np.asarray(xp.tolist(dec))[0]
+    st = np.asarray(xp.tolist(steps(xp.asarray([0, 0], "int"), xp.asarray([0, 1], "int"))))
+    Acc = Jc[0, 0].T @ Jc[0, 0]
+    K = J.T @ J
+    K_inv = np.linalg.inv(K + np.diag(1e-9 * np.diag(K) + 1e-12 * np.diag(K).max()))
+    S = Acc - Jc[0, 0].T @ J @ K_inv @ J.T @ Jc[0, 0] + np.diag(1e-9 * np.diag(Acc) + 1e-12 * np.diag(K).max())
+    assert np.linalg.eigvalsh(S).min() <= 0.0  # the case this test is for
+    g = J.T @ r
+    base_dec = g @ K_inv @ g
+    assert dec[0] == pytest.approx(base_dec, rel=1e-6) and not st[0, Pb:].any()
+    assert np.isfinite(dec[1]) and dec[1] > base_dec and np.abs(st[1, Pb:]).max() > 0.0
+
+
 def test_state_replace_copies_with_changes_and_refuses_unknown_fields(rod):
     xp = NUMPY
     problem = problem_for(xp, rod, clean(rod, [[0.2]], [[[0.3, 0.1]]]))

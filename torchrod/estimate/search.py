@@ -8,8 +8,9 @@ minimum of each count from the one below it, with work linear in the number of g
   more force at a candidate location c, with every unknown of the fit free to adjust, promises a loss decrease
   (its decrement: the score statistic for a force at c). Candidates sit at ``per_interval`` points inside each
   interval of the reading; their responses come from ONE march of the fit with the propagator of the linearised
-  rod equation (:func:`torchrod.model.sensitivity.march_propagator`), so the scan costs one march and a small
-  linear solve per candidate: O(G) candidates, each O(G). The best candidate of each interval is ranked by its
+  rod equation (:func:`torchrod.model.sensitivity.march_propagator`), and the fit's own normal system is
+  factored once for all of them (:func:`_added_force`), so the scan costs one march and a 2 x 2 solve per
+  candidate: O(G) candidates, each O(G). The best candidate of each interval is ranked by its
   decrement, and the ``top`` best intervals become starts: the fit moved by the Gauss-Newton step with the new
   force at c.
 * **Other starts** (:func:`_explore`). A suspicious fit (below) is also fitted from the scan's other intervals
@@ -248,22 +249,9 @@ def scan(problem: Problem, base: Fits | lm.LMState, *, per_interval: int, top: i
     R0, h0 = base.s.shape
     G = problem.query.shape[0]
     cand, cint, valid = _candidates(problem, base.reading, per_interval)
-    C = cand.shape[1]
     r, J, Jc = _responses(problem, base, cand, known)
-    # Normal equations of [J, Jc] for every candidate, blockwise (J is shared by a base row's candidates).
-    Pb = 3 * h0
-    Abb = xp.mT(J) @ J  # (R0, Pb, Pb)
-    Abc = xp.mT(J)[:, None] @ Jc  # (R0, C, Pb, 2)
-    Acc = xp.mT(Jc) @ Jc  # (R0, C, 2, 2)
-    gb = xp.einsum("rkp,rk->rp", J, r)
-    gc = (r[:, None, None, :] @ Jc)[:, :, 0, :]  # (R0, C, 2)
-    top_rows = xp.concat([xp.expand(Abb[:, None], (R0, C, Pb, Pb)), Abc], 3)
-    low_rows = xp.concat([xp.mT(Abc), Acc], 3)
-    A = xp.concat([top_rows, low_rows], 2).reshape(R0 * C, Pb + 2, Pb + 2)
-    g = xp.concat([xp.expand(gb[:, None], (R0, C, Pb)), gc], 2).reshape(R0 * C, Pb + 2)
-    step, dec = _solve(xp, A, g)
-    dec = xp.where(valid.reshape(-1) & xp.isfinite(dec), dec, -math.inf).reshape(R0, C)
-    step = step.reshape(R0, C, Pb + 2)
+    dec, steps = _added_force(xp, J, r, Jc)
+    dec = xp.where(valid & xp.isfinite(dec), dec, -math.inf)
     # The best candidate of each interval, then the `top` best intervals.
     K = per_interval
     dec_i = dec.reshape(R0, G, K)
@@ -284,9 +272,10 @@ def scan(problem: Problem, base: Fits | lm.LMState, *, per_interval: int, top: i
     predicted = xp.mT(xp.where(ok, base_loss[:, None] - xp.take(dec, c, 1), math.inf))  # (top, R0)
     c = xp.mT(c).reshape(-1)  # (top R0,) block order
     i = xp.concat([xp.arange(R0)] * top)
-    st = step[i, c]  # (top R0, Pb + 2)
+    st = steps(i, c)  # (top R0, Pb + 2)
     big = xp.clip(xp.amax(abs(st), 1) / trust, lo=1.0)[:, None]
     st = st / big
+    Pb = 3 * h0
     d = st[:, :Pb].reshape(top * R0, h0, 3)
     reading = base.reading[i]
     s_old = base.s[i] + d[..., 0] * problem.length
@@ -302,13 +291,64 @@ def scan(problem: Problem, base: Fits | lm.LMState, *, per_interval: int, top: i
     return Scan(starts=starts, gain=gain, predicted=predicted)
 
 
-def _solve(xp: Any, A: Any, g: Any) -> tuple[Any, Any]:
-    """Gauss-Newton step and decrement for normal matrices A (n, P, P) and gradients g (n, P), lightly damped."""
-    d = xp.diagonal(A)
-    scale = xp.clip(xp.amax(d, 1), lo=1e-300)[:, None]
-    x, ok = xp.spd_solve(A + xp.eye(A.shape[-1]) * (1e-9 * d + 1e-12 * scale)[:, :, None], g)
-    step = -x
-    return step, xp.where(ok, -(g * step).sum(1), -math.inf)
+def _added_force(xp: Any, J: Any, r: Any, Jc: Any) -> tuple[Any, Any]:
+    """The Gauss-Newton model of each base fit with one more force at each candidate, every unknown free.
+
+    For base row i and candidate c the normal system of the columns [J_i, Jc_ic] is
+    ``[[Abb, Abc], [Acb, Acc]] x = [gb; gc]``, lightly damped (``1e-9`` of each diagonal entry plus ``1e-12`` of
+    the row's largest one, base and candidates alike). It is solved through the base block K, shared by a row's C
+    candidates and inverted once, so that each candidate costs a 2 x 2 system, its Schur complement:
+    ``S = Acc - Y Abc`` with ``Y = Acb K^-1``, ``S x_c = z = gc - Y gb``; then ``x_b = K^-1 gb - Y^T x_c`` and the
+    decrement g.x is ``gb.K^-1 gb + z.x_c``. Where the base columns span a candidate's response to rounding (S is
+    then rounding error, and the decrement of the new force zero to the same accuracy) the candidate adds nothing:
+    ``x_c = 0``.
+
+    Args:
+        J: (R0, n, Pb) the base fits' Jacobians; r: (R0, n) residuals; Jc: (R0, C, n, 2) the responses to a unit
+            force at each candidate (scaled units).
+
+    Returns:
+        (R0, C) decrements (-inf where the base system failed), and ``steps(i, c)``: the Gauss-Newton steps
+        (len(i), Pb + 2) of base rows ``i`` with candidates ``c`` (the base unknowns, then the new force's).
+    """
+    R0, C = Jc.shape[:2]
+    Pb = J.shape[-1]
+    Abb = xp.mT(J) @ J  # (R0, Pb, Pb)
+    Acc = xp.mT(Jc) @ Jc  # (R0, C, 2, 2)
+    gc = (r[:, None, None, :] @ Jc)[:, :, 0, :]  # (R0, C, 2)
+    d_b, d_c = xp.diagonal(Abb), xp.diagonal(Acc)  # (R0, Pb), (R0, C, 2)
+    scale = xp.clip(xp.amax(xp.concat([d_b, d_c.reshape(R0, 2 * C)], 1), 1), lo=1e-300)[:, None]
+    S, z = Acc, gc
+    if Pb:
+        K = Abb + xp.eye(Pb) * (1e-9 * d_b + 1e-12 * scale)[:, :, None]
+        K_inv, ok = xp.spd_solve(K, xp.expand(xp.eye(Pb), (R0, Pb, Pb)))  # (R0, Pb, Pb)
+        gb = xp.einsum("rkp,rk->rp", J, r)
+        yb = (K_inv @ gb[:, :, None])[..., 0]  # K^-1 gb
+        Acb = xp.mT(Jc) @ J[:, None]  # (R0, C, 2, Pb)
+        Y = (Acb.reshape(R0, 2 * C, Pb) @ K_inv).reshape(R0, C, 2, Pb)  # Acb K^-1 (K symmetric)
+        S = S - (Y[:, :, :, None, :] * Acb[:, :, None, :, :]).sum(4)
+        z = z - (Y @ gb[:, None, :, None])[..., 0]
+        base_dec = (gb * yb).sum(1)[:, None]
+    else:
+        base_dec, ok = 0.0, xp.ones((R0,), "bool")
+    a = S[..., 0, 0] + (1e-9 * d_c[..., 0] + 1e-12 * scale)
+    d = S[..., 1, 1] + (1e-9 * d_c[..., 1] + 1e-12 * scale)
+    b = 0.5 * (S[..., 0, 1] + S[..., 1, 0])
+    det = a * d - b * b
+    adds = (a > 0.0) & (det > 0.0)
+    det = xp.where(adds, det, 1.0)
+    xc = xp.stack([(d * z[..., 0] - b * z[..., 1]) / det, (a * z[..., 1] - b * z[..., 0]) / det], 2)  # (R0, C, 2)
+    xc = xp.where(adds[:, :, None], xc, 0.0)
+    dec = xp.where(ok[:, None], base_dec + (z * xc).sum(2), -math.inf)
+
+    def steps(i: Any, c: Any) -> Any:
+        x_c = xc[i, c]  # (n, 2)
+        if not Pb:
+            return -x_c
+        x_b = yb[i] - (x_c[:, None, :] @ Y[i, c])[:, 0, :]
+        return -xp.concat([x_b, x_c], 1)
+
+    return dec, steps
 
 
 def best_of(xp: Any, state: lm.LMState, B: int, slack: Any = None, layout: tuple[Any, int] | None = None) -> Any:
