@@ -97,3 +97,13 @@ def test_the_pacer_waits_until_the_stream_and_its_workers_are_idle():
             subprocess.run(["kill", str(pid)], check=False)
         proc.kill()
         proc.wait()
+
+
+def test_tenth_medians_show_a_latency_that_grows_and_one_that_stays_level():
+    from torchrod.cli.benchmarks.stream import tenth_medians
+
+    growing = [0.001 * k for k in range(100)]  # a backlog that grows by a reading's wait every reading
+    assert tenth_medians(growing) == [0.001 * (10 * k + 5) for k in range(10)]
+    level = [0.5 + 0.1 * ((7 * k) % 3) for k in range(100)]
+    assert max(tenth_medians(level)) - min(tenth_medians(level)) <= 0.1
+    assert tenth_medians([3.0, 1.0, 2.0]) == [3.0, 1.0, 2.0] and tenth_medians([]) == []

@@ -32,8 +32,10 @@ the same readings several ways, in one run:
   first rate once per ``--external-budgets`` entry (default: the command's own time budget, and 10 ms), all with
   ``--external-workers`` processes (the command's ``--workers``, default 1). The timing starts after a warm-up
   of five lines, once the process and its workers are idle (a worker's start-up takes seconds of CPU). A note per
-  row gives the median latency over the first and the last tenth of the run (a stream that cannot keep up falls
-  behind: its latency grows), the answers' statuses (``timeout``: cut by the time budget) and how long the warm-up
+  row gives the median latency over each tenth of the run (:func:`tenth_medians`; a stream that cannot keep up
+  falls behind: its latency grows from tenth to tenth, where one that keeps up stays level after the first tenths,
+  which start from an empty queue; the readings' difficulty varies along the trajectory, so a run needs enough
+  seconds to tell the two apart), the answers' statuses (``timeout``: cut by the time budget) and how long the warm-up
   waited for idle processes. cpu ms is the child's and its workers'; readings per batch and evaluations are not
   reported (the answers do not carry them).
 
@@ -62,7 +64,7 @@ import os
 import pstats
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
 import torch
@@ -239,15 +241,25 @@ def _external_rows(
             latencies.append(r.latency)
         row.wall, row.cpu = time.perf_counter() - w0, pacer.cpu
         rows.append(row)
-        tenth = max(1, len(latencies) // 10)
-        first, last = sorted(latencies[:tenth]), sorted(latencies[-tenth:])
         statuses = ", ".join(f"{k} {v}" for k, v in row.stats.statuses.items())
+        tenths = " ".join(f"{1e3 * m:.0f}" for m in tenth_medians(latencies))
         notes.append(
-            f"# {name}: latency median over the first tenth {1e3 * first[len(first) // 2]:.1f} ms, over the last "
-            f"tenth {1e3 * last[len(last) // 2]:.1f} ms; statuses: {statuses}; {pacer.settled:.1f} s waited after "
-            "the warm-up for idle processes"
+            f"# {name}: latency median over each tenth of the run {tenths} ms; statuses: {statuses}; "
+            f"{pacer.settled:.1f} s waited after the warm-up for idle processes"
         )
     return notes
+
+
+def tenth_medians(values: Sequence[float]) -> list[float]:
+    """The median of each tenth of ``values`` in order (fewer parts when there are fewer than ten values): a stream
+    that keeps up has a level latency, one that falls behind a latency that grows from tenth to tenth."""
+    n = len(values)
+    parts = min(10, n)
+    out = []
+    for k in range(parts):
+        part = sorted(values[k * n // parts : (k + 1) * n // parts])
+        out.append(part[len(part) // 2])
+    return out
 
 
 def _static_batched(
