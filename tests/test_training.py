@@ -225,6 +225,10 @@ def _free_port() -> int:
 
 
 def _ddp_worker(rank: int, world: int, port: int, folder: str, data_path: str) -> None:
+    import faulthandler
+
+    # A crash in native code (gloo) leaves a trace the test prints.
+    faulthandler.enable(file=open(os.path.join(folder, f"fault{rank}.txt"), "w"), all_threads=True)
     os.environ.update(
         MASTER_ADDR="127.0.0.1",
         MASTER_PORT=str(port),
@@ -256,6 +260,11 @@ def test_two_processes_with_ddp_end_with_identical_weights(tiny_set, tmp_path):
     try:
         while not ctx.join(timeout=1.0):
             assert time.monotonic() < deadline, "two-process training did not finish within 120 s"
+    except Exception:
+        for r in (0, 1):
+            trace = tmp_path / f"fault{r}.txt"
+            print(f"==== rank {r}:", trace.read_text()[-6000:] if trace.exists() else "(no trace)")
+        raise
     finally:
         for p in ctx.processes:
             if p.is_alive():
