@@ -749,8 +749,9 @@ def _explore(
         twins = _twins(xp, n, len(starts)) if home.shape[1] > 1 and len(starts) > 1 else None
 
         def stop(state: lm.LMState) -> Any:
-            back = xp.all(_as_set(xp, state.fits.interval) == homes, 1) & known & (state.loss >= goal)
-            return back if twins is None else back | twins(state)
+            key = _as_set(xp, state.fits.interval)
+            back = xp.all(key == homes, 1) & known & (state.loss >= goal)
+            return back if twins is None else back | twins(state, key)
 
     st = short.solve(problem, rows, stop)
     cut = _cut(xp, st, n)
@@ -844,9 +845,10 @@ def _twins(xp: Any, n: int, blocks: int, slot: Any = None) -> Any:
     with a lower loss (equal losses: the earlier block's row goes on). Rows with two forces in one interval or a
     location held on a bound of its interval match none: those have minima of their own beside the one inside."""
 
-    def stop(state: lm.LMState) -> Any:
+    def stop(state: lm.LMState, as_set: Any = None) -> Any:  # as_set: _as_set of the state's intervals, if known
         h = state.fits.s.shape[1]
-        key = xp.where(xp.any(state.held, 1)[:, None], -1, _as_set(xp, state.fits.interval))
+        as_set = _as_set(xp, state.fits.interval) if as_set is None else as_set
+        key = xp.where(xp.any(state.held, 1)[:, None], -1, as_set)
         loss = xp.where(state.loss == state.loss, state.loss, math.inf)
         if slot is None:
             key, loss = key.reshape(blocks, n, h), loss.reshape(blocks, n)
