@@ -12,7 +12,7 @@ import torch
 
 import torchrod as tr
 from torchrod.estimate.estimator import Estimator, EstimatorOptions
-from torchrod.learn.warm_start import TRUSTED, WarmStart, load_checkpoint, quality_verdict
+from torchrod.learn.warm_start import QUALITY_KEYS, TRUST_TOLERANCE, WarmStart, load_checkpoint, quality_verdict
 
 CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "nitinol290.pt"
 
@@ -23,23 +23,24 @@ def _readings(rod, cases):
 
 
 def test_the_shipped_checkpoint_records_its_quality_and_is_used_beside_the_scan():
-    """The shipped network records a held-back quality below the trusted bar: the estimator says once that it is
-    weak and uses its guesses beside the scan's starts; clean readings are recovered."""
+    """The shipped network records its held-back quality, with the estimator's answers from its guesses alone and
+    beside the scan; the verdict follows from those two. The estimator says once if it is weak and then uses its
+    guesses beside the scan's starts; clean readings are recovered."""
     _, meta = load_checkpoint(CHECKPOINT)
     quality = meta["quality"]
-    assert set(quality) >= {
-        "count_accuracy",
-        "force_error_median",
-        "location_error_median",
-        "readings",
-        "noise",
-    }
+    assert set(quality) >= set(QUALITY_KEYS)
     assert 0.5 < quality["count_accuracy"] < 1.0 and quality["readings"] >= 1000
+    assert 0.5 < quality["search_count_accuracy"] < 1.0 and 0.5 < quality["trusted_count_accuracy"] < 1.0
+    weak = quality_verdict(meta)
+    falls = quality["trusted_count_accuracy"] < quality["search_count_accuracy"] - TRUST_TOLERANCE["count_accuracy"]
+    rises = any(
+        quality[f"trusted_{k}"] > quality[f"search_{k}"] * (1 + TRUST_TOLERANCE[k])
+        for k in ("force_error_median", "location_error_median")
+    )
+    assert bool(weak) == (falls or rises)
     rod = tr.presets.nitinol290()
     messages = []
     est = Estimator.from_checkpoint(CHECKPOINT, rod, warn=messages.append)
-    weak = quality_verdict(meta)
-    assert bool(weak) == (quality["count_accuracy"] < TRUSTED["count_accuracy"])
     assert isinstance(est.warm_start, WarmStart)
     assert est.options.starts > 0 and est.options.trust_guesses == (not weak)
     assert len(messages) == (1 if weak else 0) and (not weak or "weak" in messages[0])
@@ -65,6 +66,65 @@ def test_a_checkpoint_without_recorded_quality_is_weak(tmp_path):
     assert len(messages) == 1 and "torchrod train --evaluate" in messages[0]
 
 
+def _with_quality(tmp_path, **quality):
+    from torchrod.learn.warm_start import save_checkpoint
+
+    net, meta = load_checkpoint(CHECKPOINT)
+    path = tmp_path / "net.pt"
+    save_checkpoint(path, net, step=meta["step"], epoch=meta["epoch"], quality={**meta["quality"], **quality})
+    return path
+
+
+@pytest.mark.parametrize(
+    ("change", "trusted"),
+    [
+        ({}, True),
+        ({"trusted_count_accuracy": 0.80 - 0.004}, True),  # within half a point
+        ({"trusted_count_accuracy": 0.80 - 0.006}, False),
+        ({"trusted_force_error_median": 0.04 * 1.049}, True),
+        ({"trusted_force_error_median": 0.04 * 1.051}, False),
+        ({"trusted_location_error_median": 0.001 * 1.06}, False),
+        ({"trusted_count_accuracy": float("nan")}, False),  # not recorded
+    ],
+)
+def test_a_network_is_trusted_when_its_guesses_alone_answer_as_well_as_the_search(tmp_path, change, trusted):
+    """The verdict compares the estimator from the guesses alone with the estimator that also scans, on the same
+    held-back readings (within :data:`TRUST_TOLERANCE`), not the network alone against a fixed bar; a trusted
+    network's guesses start the fits alone."""
+    same = {
+        "search_count_accuracy": 0.80,
+        "search_force_error_median": 0.04,
+        "search_location_error_median": 0.001,
+        "trusted_count_accuracy": 0.80,
+        "trusted_force_error_median": 0.04,
+        "trusted_location_error_median": 0.001,
+        "count_accuracy": 0.5,  # the network alone: not the test
+    }
+    path = _with_quality(tmp_path, **{**same, **change})
+    messages = []
+    est = Estimator.from_checkpoint(path, tr.presets.nitinol290(), warn=messages.append)
+    assert est.options.trust_guesses == trusted and est.warm_start is not None
+    assert len(messages) == (0 if trusted else 1)
+    if not trusted:
+        assert "weak" in messages[0]
+        assert ("torchrod train --evaluate" in messages[0]) == ("nan" in repr(change))
+
+
+def test_a_checkpoint_that_records_only_the_network_alone_is_weak(tmp_path):
+    """A checkpoint recorded before the estimator's comparison was part of the quality is weak, and says how to
+    record it."""
+    net, meta = load_checkpoint(CHECKPOINT)
+    from torchrod.learn.warm_start import save_checkpoint
+
+    path = tmp_path / "older.pt"
+    alone = {k: meta["quality"][k] for k in QUALITY_KEYS[:5]}
+    save_checkpoint(path, net, step=meta["step"], epoch=meta["epoch"], quality=alone)
+    messages = []
+    est = Estimator.from_checkpoint(path, tr.presets.nitinol290(), warn=messages.append)
+    assert not est.options.trust_guesses
+    assert len(messages) == 1 and "torchrod train --evaluate" in messages[0] and "trusted_count_accuracy" in messages[0]
+
+
 def test_recording_the_quality_of_a_checkpoint(tmp_path):
     """``torchrod train --evaluate CHECKPOINT`` measures the held-back quality and writes it into the file, the
     weights unchanged."""
@@ -75,7 +135,7 @@ def test_recording_the_quality_of_a_checkpoint(tmp_path):
     before, _ = load_checkpoint(path)
     assert main(["train", "--evaluate", str(path), "--rod", "nitinol290", "--validation", "200"]) == 0
     after, meta = load_checkpoint(path)
-    assert meta["quality"]["readings"] == 200.0
+    assert meta["quality"]["readings"] == 200.0 and set(meta["quality"]) >= set(QUALITY_KEYS)
     for a, b in zip(before.state_dict().values(), after.state_dict().values(), strict=False):
         assert torch.equal(a, b)
 
@@ -130,7 +190,7 @@ def test_an_under_trained_network_changes_the_count_accuracy_by_less_than_a_poin
         physics_batch=0,
     )
     result = train(config)
-    assert result.quality["count_accuracy"] < TRUSTED["count_accuracy"]  # it is weak, and it knows it
+    assert quality_verdict({"quality": result.quality})  # it is weak, and it knows it
     messages = []
     with_net = Estimator.from_checkpoint(path, rod, EstimatorOptions(noise=0.1), warn=messages.append)
     assert len(messages) == 1 and "weak" in messages[0] and not with_net.options.trust_guesses

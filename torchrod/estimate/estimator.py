@@ -328,8 +328,9 @@ class Estimator:
         """An estimator whose starts include a trained warm-start network's guesses.
 
         The network is used when its grating layout (positions relative to the length) matches ``rod``'s. A
-        checkpoint whose recorded held-back quality meets :data:`torchrod.learn.warm_start.TRUSTED` is trusted:
-        its guesses start the fits alone, and the scan serves the fits found suspicious (``trust_guesses``).
+        checkpoint whose recorded held-back quality says that its guesses alone answer as well as the full search
+        (:data:`torchrod.learn.warm_start.TRUST_TOLERANCE`) is trusted: its guesses start the fits alone, and the
+        scan serves the fits found suspicious (``trust_guesses``).
         Otherwise the network is said to be weak, once, through ``warn`` (default: a :class:`UserWarning`), and its
         guesses are starts beside the scan's, so it cannot make results worse. When the layout does not match (or the
         file is missing or damaged), the estimator runs without a network and says so, and how to train one.

@@ -396,43 +396,84 @@ def evaluate_guess(guess: WarmStartGuess, truth: PointForces) -> dict[str, float
     return metrics
 
 
-def held_back_quality(guess: WarmStartGuess, truth: PointForces, noise: float) -> dict[str, float]:
-    """The quality a checkpoint records (:data:`torchrod.learn.warm_start.QUALITY_KEYS`), of the network alone on
-    held-back readings: ``count_accuracy``, and over the readings whose count it gets right, the median relative
-    force error ``|f_guess - f_true| / |f_true|`` and the median location error [m], with the number of readings
-    and their noise [1/m]."""
-    truth = truth.sorted()
-    count = truth.count.to(guess.count.device)
-    right = guess.count == count
+def _answer_quality(count: torch.Tensor, forces_of: Callable[[int], PointForces], truth: PointForces) -> list[float]:
+    """[count accuracy, median relative force error, median location error (m)] of answers: ``count`` (B,) the
+    counts given, ``forces_of(h)`` their h-force answers (B, h) (read where the count is h), against the sorted
+    ``truth``; the errors over the readings whose count is right."""
+    right = count == truth.count
     rel, loc = [], []
-    for h in range(1, guess.max_forces + 1):
-        sel = right & (count == h)
+    for h in range(1, int(truth.count.max()) + 1 if truth.count.numel() else 1):
+        sel = right & (truth.count == h)
         if not bool(sel.any()):
             continue
-        g = guess.forces[h]
-        tf = truth.f[sel, :h].to(g.f)
-        rel.append((torch.linalg.vector_norm(g.f[sel] - tf, dim=-1) / torch.linalg.vector_norm(tf, dim=-1)).flatten())
-        loc.append((g.s[sel] - truth.s[sel, :h].to(g.s)).abs().flatten())
+        g = forces_of(h)
+        gs, gf = g.s[sel].to(truth.s), g.f[sel].to(truth.f)
+        tf = truth.f[sel, :h]
+        rel.append((torch.linalg.vector_norm(gf - tf, dim=-1) / torch.linalg.vector_norm(tf, dim=-1)).flatten())
+        loc.append((gs - truth.s[sel, :h]).abs().flatten())
 
     def median(xs):
         return float(torch.cat(xs).quantile(0.5)) if xs else math.nan
 
-    return {
-        "count_accuracy": float(right.double().mean()),
-        "force_error_median": median(rel),
-        "location_error_median": median(loc),
-        "readings": float(count.numel()),
-        "noise": float(noise),
-    }
+    return [float(right.double().mean()), median(rel), median(loc)]
+
+
+def held_back_quality(
+    network: WarmStart, curvature: torch.Tensor, mask: torch.Tensor | None, truth: PointForces, noise: float
+) -> dict[str, float]:
+    """The quality a checkpoint records (:data:`torchrod.learn.warm_start.QUALITY_KEYS`) on held-back readings
+    (``curvature`` (B, G, 2) [1/m], ``mask`` (B, G), the ``truth`` that made them, sensor ``noise`` [1/m]).
+
+    Three answers are scored: the network's own guess (its most probable count, and its guess for that count), the
+    estimator with the network's guesses beside its scan's starts, and the estimator with the guesses starting the
+    fits alone (``trust_guesses``). The last two, compared, decide whether the network is trusted
+    (:func:`torchrod.learn.warm_start.quality_verdict`)."""
+    from ..estimate.estimator import Estimator, EstimatorOptions
+
+    truth = truth.sorted().to(device="cpu", dtype=torch.float64)
+    curvature = curvature.to(device="cpu", dtype=torch.float64)
+    mask = mask.to(device="cpu") if mask is not None else None
+    guess = network.guess(curvature, mask)
+    scores = {"": _answer_quality(guess.count.cpu(), lambda h: guess.forces[h].sorted(), truth)}
+    for prefix, trust in (("search_", False), ("trusted_", True)):
+        est = Estimator(network.rod, EstimatorOptions(noise=noise, trust_guesses=trust), warm_start=network)
+        r = est.estimate(curvature, mask)
+        found = r.forces
+
+        def forces_of(h: int, found: PointForces = found) -> PointForces:
+            return PointForces(found.s[:, :h], found.f[:, :h]).sorted()
+
+        scores[prefix] = _answer_quality(r.num_forces, forces_of, truth)
+    quality = {"readings": float(truth.count.numel()), "noise": float(noise)}
+    for prefix, (count_accuracy, force, location) in scores.items():
+        quality[f"{prefix}count_accuracy"] = count_accuracy
+        quality[f"{prefix}force_error_median"] = force
+        quality[f"{prefix}location_error_median"] = location
+    return quality
 
 
 def format_quality(quality: Mapping[str, float]) -> str:
-    """A checkpoint's recorded quality as one readable line."""
-    return (
-        f"held-back quality ({int(quality['readings'])} readings, noise {quality['noise']:g} 1/m): count accuracy "
-        f"{100 * quality['count_accuracy']:.1f} %, median force error {100 * quality['force_error_median']:.1f} %, "
-        f"median location error {1e3 * quality['location_error_median']:.2f} mm"
-    )
+    """A checkpoint's recorded quality as readable lines, ending with whether the estimator trusts the network."""
+    from .warm_start import quality_verdict
+
+    lines = [
+        f"held-back quality ({int(quality['readings'])} readings, noise {quality['noise']:g} 1/m): count accuracy, "
+        "median force error, median location error"
+    ]
+    for prefix, who in (
+        ("", "the network alone"),
+        ("search_", "estimator, guesses beside the scan"),
+        ("trusted_", "estimator, guesses alone"),
+    ):
+        if f"{prefix}count_accuracy" in quality:
+            lines.append(
+                f"  {who}: {100 * quality[f'{prefix}count_accuracy']:.1f} %, "
+                f"{100 * quality[f'{prefix}force_error_median']:.1f} %, "
+                f"{1e3 * quality[f'{prefix}location_error_median']:.2f} mm"
+            )
+    weak = quality_verdict({"quality": quality})
+    lines.append(f"  trusted: no ({weak})" if weak else "  trusted: yes")
+    return "\n".join(lines)
 
 
 def fit_figure(rod: Rod, curvature: torch.Tensor, mask: torch.Tensor, guess: WarmStartGuess, truth: PointForces):
@@ -752,11 +793,8 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
     quality: dict[str, float] = {}
     if main_rank:
         # The quality measured at the end of training, on the held-back set, goes into the checkpoint: an
-        # estimator told to use this network can tell whether to trust it (torchrod.learn.warm_start.TRUSTED).
-        with torch.no_grad():
-            device_ = next(net.parameters()).device
-            guess = WarmStart(net, rod).guess(held.curvature.to(device_), held.mask.to(device_))
-        quality = held_back_quality(guess, held.loads.to(device=device_), config.noise)
+        # estimator told to use this network can tell whether to trust it (warm_start.quality_verdict).
+        quality = held_back_quality(WarmStart(net, rod), held.curvature, held.mask, held.loads, config.noise)
         save_checkpoint(
             config.checkpoint,
             net,
@@ -953,7 +991,7 @@ def record_quality(
     rod = load_rod(rod) if not isinstance(rod, Rod) else rod
     ws = WarmStart(net, rod)
     held = _simulated(rod, count, net.config.max_forces, _mix(seed, 2), noise, 0.0)
-    quality = held_back_quality(ws.guess(held.curvature, held.mask), held.loads, noise)
+    quality = held_back_quality(ws, held.curvature, held.mask, held.loads, noise)
     save_checkpoint(
         path,
         net,
