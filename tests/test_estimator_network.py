@@ -37,7 +37,8 @@ def test_the_shipped_checkpoint_records_its_quality_and_is_used_beside_the_scan(
         quality[f"trusted_{k}"] > quality[f"search_{k}"] * (1 + TRUST_TOLERANCE[k])
         for k in ("force_error_median", "location_error_median")
     )
-    assert bool(weak) == (falls or rises)
+    dearer = quality["trusted_evaluations"] >= quality["plain_evaluations"]
+    assert bool(weak) == (falls or rises or dearer)
     rod = tr.presets.nitinol290()
     messages = []
     est = Estimator.from_checkpoint(CHECKPOINT, rod, warn=messages.append)
@@ -85,6 +86,8 @@ def _with_quality(tmp_path, **quality):
         ({"trusted_force_error_median": 0.04 * 1.051}, False),
         ({"trusted_location_error_median": 0.001 * 1.06}, False),
         ({"trusted_count_accuracy": float("nan")}, False),  # not recorded
+        ({"trusted_evaluations": 25.0}, False),  # saves nothing against no network
+        ({"trusted_evaluations": 24.9, "search_evaluations": 20.0}, True),
     ],
 )
 def test_a_network_is_trusted_when_its_guesses_alone_answer_as_well_as_the_search(tmp_path, change, trusted):
@@ -98,6 +101,9 @@ def test_a_network_is_trusted_when_its_guesses_alone_answer_as_well_as_the_searc
         "trusted_count_accuracy": 0.80,
         "trusted_force_error_median": 0.04,
         "trusted_location_error_median": 0.001,
+        "search_evaluations": 30.0,
+        "trusted_evaluations": 20.0,
+        "plain_evaluations": 25.0,
         "count_accuracy": 0.5,  # the network alone: not the test
     }
     path = _with_quality(tmp_path, **{**same, **change})

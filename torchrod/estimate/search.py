@@ -584,6 +584,7 @@ def fit_counts(
     evaluations = xp.zeros((B,), "int")
     cut = xp.zeros((B,), "bool")
     open_ = xp.arange(B)
+    unscanned = [False] * (top_count + 1)  # trusted guesses took the place of the scan's best start for count h
     for h in range(1, top_count + 1):
         n = open_.shape[0]
         sc = None
@@ -615,13 +616,15 @@ def fit_counts(
         if n and starts > 0:
             if not (first and trusted):
                 first.append(sc.starts.take(xp.arange(n)))
-            elif any(g.rows < n for g in first):  # trusted guesses that skip some readings: the scan starts those
-                covered = xp.zeros((B,), "bool")
-                for g in first:
-                    covered = xp.put(covered, g.reading, xp.ones((g.rows,), "bool"))
-                alone = xp.nonzero(~covered[open_])
-                if alone.shape[0]:
-                    first.append(sc.starts.take(alone))
+            else:
+                unscanned[h] = True
+                if any(g.rows < n for g in first):  # trusted guesses that skip some readings: the scan starts those
+                    covered = xp.zeros((B,), "bool")
+                    for g in first:
+                        covered = xp.put(covered, g.reading, xp.ones((g.rows,), "bool"))
+                    alone = xp.nonzero(~covered[open_])
+                    if alone.shape[0]:
+                        first.append(sc.starts.take(alone))
         if n and not first and (needed is None or h in needed):
             raise ValueError(f"no start for h = {h}: starts=0 needs a warm start or extra_starts for every count")
         done_here = xp.zeros((B,), "bool")
@@ -636,6 +639,29 @@ def fit_counts(
         scans.append((open_, sc))
     if rules.suspect is not None:
         # Search further where it matters.
+        for h in range(2, top_count + 1):
+            # Just above the chosen count, a fit from trusted guesses alone (the scan's best start skipped) is the
+            # one the count test rejected; a wrong local minimum of it would keep the count too small, so it is
+            # fitted from the scan's best start too, as the full search fits it.
+            scanned, sc = scans[h]
+            if not unscanned[h] or sc is None:
+                continue
+            readings = xp.nonzero(fitted[h] & (rules.choose(xp.stack([s.loss for s in states], 1)) == h - 1))
+            if readings.shape[0] == 0:
+                continue
+            if solver.late():
+                cut = xp.put(cut, readings, xp.ones((readings.shape[0],), "bool"))
+                continue
+            pos = xp.put(xp.zeros((B,), "int") - 1, scanned, xp.arange(scanned.shape[0]))[readings]
+            cur = states[h].take(xp, readings)
+            found, spent, short = _explore(
+                problem, solver, options, [sc.starts.take(pos)], cur.loss, _home(xp, cur, options.twins)
+            )
+            evaluations = xp.add_at(evaluations, readings, spent)
+            cut = xp.put(cut, readings, cut[readings] | short)
+            better = xp.nonzero(found.loss < cur.loss - 10.0 * solver.policy.tolerance * cur.noise2)
+            if better.shape[0]:
+                states[h] = states[h].put(xp, readings[better], found.take(xp, better))
         losses = xp.stack([s.loss for s in states], 1)
         chosen = rules.choose(losses)
         near_limit = None if rules.plausible is None else rules.plausible(xp.arange(B), losses)  # (B, top + 1)

@@ -426,8 +426,8 @@ def held_back_quality(
 
     Three answers are scored: the network's own guess (its most probable count, and its guess for that count), the
     estimator with the network's guesses beside its scan's starts, and the estimator with the guesses starting the
-    fits alone (``trust_guesses``). The last two, compared, decide whether the network is trusted
-    (:func:`torchrod.learn.warm_start.quality_verdict`)."""
+    fits alone (``trust_guesses``); with the estimator's evaluations per reading in both ways, and without a
+    network. They decide whether the network is trusted (:func:`torchrod.learn.warm_start.quality_verdict`)."""
     from ..estimate.estimator import Estimator, EstimatorOptions
 
     truth = truth.sorted().to(device="cpu", dtype=torch.float64)
@@ -435,16 +435,19 @@ def held_back_quality(
     mask = mask.to(device="cpu") if mask is not None else None
     guess = network.guess(curvature, mask)
     scores = {"": _answer_quality(guess.count.cpu(), lambda h: guess.forces[h].sorted(), truth)}
-    for prefix, trust in (("search_", False), ("trusted_", True)):
-        est = Estimator(network.rod, EstimatorOptions(noise=noise, trust_guesses=trust), warm_start=network)
+    quality = {"readings": float(truth.count.numel()), "noise": float(noise)}
+    for prefix, trust, net in (("search_", False, network), ("trusted_", True, network), ("plain_", False, None)):
+        est = Estimator(network.rod, EstimatorOptions(noise=noise, trust_guesses=trust), warm_start=net)
         r = est.estimate(curvature, mask)
+        quality[f"{prefix}evaluations"] = float(r.evaluations.double().mean())
+        if net is None:
+            continue
         found = r.forces
 
         def forces_of(h: int, found: PointForces = found) -> PointForces:
             return PointForces(found.s[:, :h], found.f[:, :h]).sorted()
 
         scores[prefix] = _answer_quality(r.num_forces, forces_of, truth)
-    quality = {"readings": float(truth.count.numel()), "noise": float(noise)}
     for prefix, (count_accuracy, force, location) in scores.items():
         quality[f"{prefix}count_accuracy"] = count_accuracy
         quality[f"{prefix}force_error_median"] = force
@@ -470,7 +473,10 @@ def format_quality(quality: Mapping[str, float]) -> str:
                 f"  {who}: {100 * quality[f'{prefix}count_accuracy']:.1f} %, "
                 f"{100 * quality[f'{prefix}force_error_median']:.1f} %, "
                 f"{1e3 * quality[f'{prefix}location_error_median']:.2f} mm"
+                + (f", {quality[f'{prefix}evaluations']:.1f} evaluations" if f"{prefix}evaluations" in quality else "")
             )
+    if "plain_evaluations" in quality:
+        lines.append(f"  estimator without the network: {quality['plain_evaluations']:.1f} evaluations")
     weak = quality_verdict({"quality": quality})
     lines.append(f"  trusted: no ({weak})" if weak else "  trusted: yes")
     return "\n".join(lines)

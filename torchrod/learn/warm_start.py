@@ -655,17 +655,23 @@ QUALITY_KEYS = (
     "trusted_count_accuracy",
     "trusted_force_error_median",
     "trusted_location_error_median",
+    "search_evaluations",
+    "trusted_evaluations",
+    "plain_evaluations",
 )
 """What a checkpoint records of its held-back quality (:func:`torchrod.learn.training.held_back_quality`), on
 ``readings`` readings it never saw, at noise ``noise`` [1/m]. Three answers to each reading, each scored by the
 share of readings whose count it gets right and, over those, the median relative force error and the median
 location error [m]: the network alone (no prefix), the estimator with the guesses beside its scan's starts
-(``search_``), and the estimator with the guesses starting the fits alone (``trusted_``)."""
+(``search_``), and the estimator with the guesses starting the fits alone (``trusted_``); and the estimator's mean
+evaluations per reading in those two ways and without a network (``plain_evaluations``)."""
 
 TRUST_TOLERANCE = {"count_accuracy": 0.005, "force_error_median": 0.05, "location_error_median": 0.05}
 """How much worse than the full search the estimator may answer held-back readings when it starts the fits from
 the network's guesses alone, for the network to be trusted: a count accuracy lower by at most 0.005 (half a point),
-median force and location errors higher by at most 5 % (relative). A weaker network is said to be weak, once, by
+median force and location errors higher by at most 5 % (relative). It must also cost fewer evaluations than the
+estimator without a network: trusting exists to save work, and the search's guards keep even a bad network's
+answers accurate, at the price of more evaluations. A weaker network is said to be weak, once, by
 :meth:`torchrod.Estimator.from_checkpoint`, which then uses its guesses beside the scan's starts, so it cannot make
 results worse. The network alone is not the test: on readings whose forces the noise hides, no estimator can count
 them, and the prior a network learns can count better than any fit without being a good start (docs/results.md,
@@ -673,7 +679,8 @@ them, and the prior a network learns can count better than any fit without being
 
 
 def quality_verdict(meta: Mapping[str, Any]) -> str:
-    """Why a checkpoint's network is weak ('' when trusting it loses no more than :data:`TRUST_TOLERANCE`)."""
+    """Why a checkpoint's network is weak ('' when trusting it loses no more than :data:`TRUST_TOLERANCE` and saves
+    evaluations)."""
     quality = meta.get("quality")
     how = "record one with `torchrod train --evaluate CHECKPOINT --rod ROD`"
     if not isinstance(quality, Mapping):
@@ -689,6 +696,9 @@ def quality_verdict(meta: Mapping[str, Any]) -> str:
         elif key != "count_accuracy" and trusted > search * (1.0 + tolerance):
             name = key.replace("_", " ")
             why.append(f"trusting it, the held-back {name} rises from {search:.3g} to {trusted:.3g}")
+    trusted, plain = float(quality["trusted_evaluations"]), float(quality["plain_evaluations"])
+    if not trusted < plain:
+        why.append(f"trusted, it costs {trusted:.1f} evaluations per reading against {plain:.1f} without it")
     return "; ".join(why)
 
 
