@@ -57,6 +57,7 @@ def test_running_noise_skips_unusable_fits_and_follows_a_drift():
         ({"after": 0}, "after"),
         ({"window": 0}, "window"),
         ({"after": 10, "window": 5}, "window"),
+        ({"growth": 0}, "growth"),
         ({"after": 2.5}, "after"),
     ],
 )
@@ -67,11 +68,12 @@ def test_learning_options_are_checked(kwargs, match):
         StreamOptions(learn_noise=32)
 
 
-def test_a_stream_without_noise_learns_it_and_answers_like_the_true_noise():
+@pytest.mark.parametrize(("growth", "batches"), [(1, [20] * 20 + [30] * 30 + [20] * 20), (4, [30] * 60 + [10] * 10)])
+def test_a_stream_without_noise_learns_it_and_answers_like_the_true_noise(growth, batches):
     """Readings of one and two forces at sigma 0.2, the estimator told no noise, all queued at once: the first batch
     holds only the ``after`` readings the noise is learned from (not a full batch) and estimates the noise per
     reading, every later batch uses the sigma learned from the fits before it, close to the true one, holds no more
-    readings than those fits, and counts as the estimator told the true sigma does."""
+    readings than ``growth`` times those fits, and counts as the estimator told the true sigma does."""
     rod = tr.presets.nitinol290()
     sigma, n = 0.2, 90
     g = torch.Generator().manual_seed(3)
@@ -84,14 +86,15 @@ def test_a_stream_without_noise_learns_it_and_answers_like_the_true_noise():
     u = tr.simulate(rod, loads).grating_curvature
     u = u + sigma * torch.randn(u.shape, generator=g, dtype=u.dtype)
     lines = [{"id": k, "curvature": u[k].tolist()} for k in range(n)]
-    options = StreamOptions(batch_size=30, max_latency=10.0, track=False, learn_noise=NoiseLearning(after=20))
+    learning = NoiseLearning(after=20, growth=growth)
+    options = StreamOptions(batch_size=30, max_latency=10.0, track=False, learn_noise=learning)
 
     learned = list(stream(tr.Estimator(rod, tr.EstimatorOptions(max_forces=2)), lines, options))
     assert all("noise" not in r.record and r.batch == 20 for r in learned[:20])
     used = [r.record["noise"] for r in learned[20:]]
     assert len(used) == 70 and all(v == pytest.approx(sigma, rel=0.15) for v in used)
-    # then batches no larger than the fits learned from (20, then 40), up to the full 30
-    assert [r.batch for r in learned[20:]] == [20] * 20 + [30] * 30 + [20] * 20
+    # then batches no larger than growth x the fits learned from (20, then 40; or 80), up to the full 30
+    assert [r.batch for r in learned[20:]] == batches
     known = list(stream(tr.Estimator(rod, tr.EstimatorOptions(max_forces=2, noise=sigma)), lines, options))
     assert all("noise" not in r.record for r in known)  # a noise given is never replaced
     same = sum(a.record["num_forces"] == b.record["num_forces"] for a, b in zip(learned[20:], known[20:], strict=True))

@@ -32,13 +32,18 @@ class NoiseLearning:
     Attributes:
         after: fits used before the estimate is (until then every reading estimates its own noise).
         window: the most recent fits the estimate is made from.
+        growth: while the estimate comes from fewer fits than a stream's batch holds, a batch holds at most
+            ``growth`` times the fits it comes from (at least ``after``): a sigma from few fits answers few
+            readings, and a backlog's batches grow to full size in a few steps (32, 128, 640, ... with the
+            defaults; docs/results.md, "Unknown noise: how fast the batches grow").
     """
 
     after: int = 32
     window: int = 1000
+    growth: int = 4
 
     def __post_init__(self) -> None:
-        for name in ("after", "window"):
+        for name in ("after", "window", "growth"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")

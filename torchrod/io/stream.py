@@ -116,8 +116,8 @@ class StreamOptions:
         learn_noise: with no noise given (neither the estimator's ``noise`` nor an override), learn the sensor's
             sigma from the stream's own fits (:mod:`torchrod.estimate.noise`) and, once learned, solve every
             reading with it as a known noise: faster (counts settle early) and as accurate as with the true sigma.
-            Until then, and until the sigma comes from as many fits as ``batch_size``, a batch holds no more
-            readings than the fits learned from (at least ``after``).
+            Until then a batch holds ``after`` readings, and until the sigma comes from enough fits, no more
+            readings than ``growth`` times the fits learned from (:class:`~torchrod.estimate.noise.NoiseLearning`).
             None: every reading estimates its own noise.
         workers: processes the stream solves on (:class:`torchrod.estimate.workers.ParallelEstimator`; 1: the
             calling process alone). A batch of 16 readings or more (a backlog: a file, a source faster than the
@@ -334,13 +334,16 @@ class _Stream:
 
     def batch_limit(self) -> int:
         """The most pending readings the next batch takes: ``batch_size`` (times ``workers``), but while the stream
-        learns its noise no more than the fits learned from so far (at least ``learn_noise.after``). So a backlog's
-        first large batch does not solve every reading with a noise of its own (slower, less accurate) before the
-        stream has the fits it learns from, nor a thousand readings with a sigma learned from 32 fits: the batches
-        double until the sigma comes from as many fits as a batch holds."""
+        learns its noise no more than ``learn_noise.growth`` times the fits learned from so far, and before it has
+        a sigma, ``learn_noise.after``. So a backlog's first large batch does not solve every reading with a noise
+        of its own (slower, less accurate) before the stream has the fits it learns from, nor a thousand readings
+        with a sigma learned from 32 fits: the batches grow until the sigma comes from enough fits."""
         if self.noise is None:
             return self.batch_size
-        return min(self.batch_size, max(self.noise.learning.after, self.noise.used))
+        learning = self.noise.learning
+        if self.noise.sigma is None:
+            return min(self.batch_size, learning.after)
+        return min(self.batch_size, max(learning.after, learning.growth * self.noise.used))
 
     def drain(self) -> None:
         """The flush after an interrupt: take everything the reader already took (the queue, and the reading in
