@@ -28,6 +28,10 @@ minimum of each count from the one below it, with work linear in the number of g
   minima often do), may hold one force in a wrong interval. For each of its forces in turn, the force is removed and the
   scan re-places it among all intervals; the best re-placement that lowers the loss replaces the fit. Repeated on the
   fits it changed, while it helps (at most ``rounds``).
+* **Trusted guesses** (``trusted``). A warm-start network's guesses, when trusted, replace the scan's best start
+  among a count's first fits. The suspicious fits are then searched as above; and the count just above the chosen
+  one, whose fit the count test rejected and which nothing else would search again, is also fitted from the scan's
+  best start, as without trust: a guess that ends in a wrong local minimum there would keep the count too small.
 
 Rows are laid out in blocks of B (one row per reading), so the best row of each reading is a minimum over the
 block axis (:func:`best_of`).
@@ -562,7 +566,8 @@ def fit_counts(
     First every count is fitted from its first starts (the guesses and the scan's best interval), counts in turn,
     readings whose count is settled dropping out. Then the fits that matter are searched further where they look
     :func:`suspicious`: the chosen count's, and those of smaller counts that could still be accepted (their other
-    scan starts, then the exchange).
+    scan starts, then the exchange); with trusted guesses, first the count just above the chosen one from the
+    scan's best start (module docstring).
 
     Args:
         rules: the decisions (:class:`Rules`).
