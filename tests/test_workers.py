@@ -146,6 +146,38 @@ def test_an_estimator_with_the_shipped_network_pickles_and_splits():
     _assert_identical(got, concat_results([est.estimate(u[:8], m[:8]), est.estimate(u[8:], m[8:])]))
 
 
+def test_workers_read_the_estimator_from_a_private_file_removed_with_its_owner():
+    """A worker's start-up arguments stay small: a pickled network (about a megabyte) in them overfills the pipe that
+    starts the process, and the caller then waits about a second for the child to import torch and read it. The
+    estimator goes through a temporary file instead, readable by its owner only, which the workers read, and which
+    goes when the :class:`ParallelEstimator` does."""
+    import gc
+
+    from torchrod.learn.warm_start import SHIPPED_CHECKPOINT, WarmStart
+
+    if not os.path.exists(SHIPPED_CHECKPOINT):
+        pytest.skip("no shipped checkpoint")
+    rod = tr.presets.nitinol290()
+    est = tr.Estimator(rod, tr.EstimatorOptions(noise=NOISE), warm_start=WarmStart.load(SHIPPED_CHECKPOINT, rod))
+    u, m, _ = _trajectory(16, seed=4)
+    par = ParallelEstimator(est, 2)
+    par.warm(wait=True)
+    path = par._payload_file()
+    assert len(par._payload) > 2**16  # more than a pipe holds
+    assert os.stat(path).st_mode & 0o077 == 0
+    assert len(pickle.dumps(par._pool._initargs)) < 2**12  # the pool's own record of what each worker gets
+    with open(path, "rb") as file:
+        again = pickle.load(file)
+    assert torch.equal(again.warm_start.guess(u, m).forces[2].s, est.warm_start.guess(u, m).forces[2].s)
+    got = par.estimate(u, m)
+    _assert_identical(got, concat_results([est.estimate(u[:8], m[:8]), est.estimate(u[8:], m[8:])]))
+    par.close()
+    assert os.path.exists(path)  # a closed ParallelEstimator still estimates, starting workers again
+    del par
+    gc.collect()
+    assert not os.path.exists(path)
+
+
 class _InWorker:
     """A picklable warm start that, in a worker process and on a batch of ``at_least`` readings or more (8), exits
     the process (``"exit"``) or raises (``"raise"``); elsewhere, and on a worker's first ``spare`` calls (its

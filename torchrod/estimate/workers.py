@@ -40,8 +40,10 @@ import multiprocessing
 import os
 import pickle
 import signal
+import tempfile
 import time
 import warnings
+import weakref
 from collections.abc import Mapping, Sequence
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
@@ -120,12 +122,14 @@ def _unpack_result(packed: Mapping[str, Any]) -> EstimateResult:
 _ESTIMATOR: Any = None  # in a worker: the estimator it was given
 
 
-def _init_worker(payload: bytes, warm: bool) -> None:
-    """A worker's start: one torch thread, SIGINT ignored (the caller handles Ctrl-C), the estimator, a warm-up."""
+def _init_worker(payload: str, warm: bool) -> None:
+    """A worker's start: one torch thread, SIGINT ignored (the caller handles Ctrl-C), the estimator (pickled in the
+    file ``payload``), a warm-up."""
     global _ESTIMATOR
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(1)
-    _ESTIMATOR = pickle.loads(payload)
+    with open(payload, "rb") as file:
+        _ESTIMATOR = pickle.load(file)
     if warm:
         from ..io.stream import warm_up
 
@@ -134,6 +138,13 @@ def _init_worker(payload: bytes, warm: bool) -> None:
 
 def _ready() -> int:
     return os.getpid()
+
+
+def _remove(path: str) -> None:
+    try:
+        os.remove(path)
+    except OSError:
+        pass
 
 
 def _solve_chunk(
@@ -222,6 +233,7 @@ class ParallelEstimator:
         self._spawned: dict[int, Any] = {}  # every worker process a pool of this object started, by pid
         self._managers: list[Any] = []  # the manager threads of the pools stopped so far (they reap the workers)
         self._payload = b""
+        self._payload_path: str | None = None
         if self.processes > 1:
             try:
                 self._payload = pickle.dumps(estimator)
@@ -257,11 +269,25 @@ class ParallelEstimator:
             max_workers=workers,
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_init_worker,
-            initargs=(self._payload, self._warm_workers),
+            initargs=(self._payload_file(), self._warm_workers),
         )
         starting = [pool.submit(_ready) for _ in range(workers)]
         self._spawned.update(getattr(pool, "_processes", None) or {})
         return pool, starting
+
+    def _payload_file(self) -> str:
+        """The pickled estimator, in a private temporary file that each worker reads as it starts (removed when this
+        object is collected, or at exit). Passed in the worker's start-up arguments instead, a payload of about a
+        megabyte (a network's weights) overfilled the pipe that starts the process, and the caller's start of a
+        worker waited until the new process had imported torch and read it: about a second, which the first
+        batch a stream handed out waited too (docs/results.md, "Starting a worker without waiting for it")."""
+        if self._payload_path is None:
+            fd, path = tempfile.mkstemp(prefix="torchrod-estimator-", suffix=".pickle")
+            with os.fdopen(fd, "wb") as file:
+                file.write(self._payload)
+            self._payload_path = path
+            weakref.finalize(self, _remove, path)
+        return self._payload_path
 
     def _ensure_pool(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._pool is None:
