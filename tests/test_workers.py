@@ -162,7 +162,7 @@ def test_workers_read_the_estimator_from_a_private_file_removed_with_its_owner()
     u, m, _ = _trajectory(16, seed=4)
     par = ParallelEstimator(est, 2)
     par.warm(wait=True)
-    path = par._payload_file()
+    path = par._payload_argument()
     assert len(par._payload) > 2**16  # more than a pipe holds
     assert os.stat(path).st_mode & 0o077 == 0
     assert len(pickle.dumps(par._pool._initargs)) < 2**12  # the pool's own record of what each worker gets
@@ -176,6 +176,22 @@ def test_workers_read_the_estimator_from_a_private_file_removed_with_its_owner()
     del par
     gc.collect()
     assert not os.path.exists(path)
+
+
+def test_without_a_temporary_file_the_workers_get_the_pickle_itself(estimator, monkeypatch):
+    """Where no temporary file can be written, the estimator goes in the workers' start-up arguments, as before."""
+    import tempfile
+
+    def refuse(*args, **kwargs):
+        raise OSError("read-only file system")
+
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    u, m, _ = _trajectory(16, seed=5)
+    with ParallelEstimator(estimator, 2) as par:
+        assert isinstance(par._payload_argument(), bytes)
+        got = par.estimate(u, m)
+        assert par.restarts == 0
+    _assert_identical(got, concat_results([estimator.estimate(u[:8], m[:8]), estimator.estimate(u[8:], m[8:])]))
 
 
 class _InWorker:

@@ -122,14 +122,17 @@ def _unpack_result(packed: Mapping[str, Any]) -> EstimateResult:
 _ESTIMATOR: Any = None  # in a worker: the estimator it was given
 
 
-def _init_worker(payload: str, warm: bool) -> None:
+def _init_worker(payload: str | bytes, warm: bool) -> None:
     """A worker's start: one torch thread, SIGINT ignored (the caller handles Ctrl-C), the estimator (pickled in the
-    file ``payload``), a warm-up."""
+    file named ``payload``, or the pickle itself), a warm-up."""
     global _ESTIMATOR
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(1)
-    with open(payload, "rb") as file:
-        _ESTIMATOR = pickle.load(file)
+    if isinstance(payload, bytes):
+        _ESTIMATOR = pickle.loads(payload)
+    else:
+        with open(payload, "rb") as file:
+            _ESTIMATOR = pickle.load(file)
     if warm:
         from ..io.stream import warm_up
 
@@ -269,22 +272,30 @@ class ParallelEstimator:
             max_workers=workers,
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_init_worker,
-            initargs=(self._payload_file(), self._warm_workers),
+            initargs=(self._payload_argument(), self._warm_workers),
         )
         starting = [pool.submit(_ready) for _ in range(workers)]
         self._spawned.update(getattr(pool, "_processes", None) or {})
         return pool, starting
 
-    def _payload_file(self) -> str:
+    def _payload_argument(self) -> str | bytes:
         """The pickled estimator, in a private temporary file that each worker reads as it starts (removed when this
         object is collected, or at exit). Passed in the worker's start-up arguments instead, a payload of about a
         megabyte (a network's weights) overfilled the pipe that starts the process, and the caller's start of a
         worker waited until the new process had imported torch and read it: about a second, which the first
-        batch a stream handed out waited too (docs/results.md, "Starting a worker without waiting for it")."""
+        batch a stream handed out waited too (docs/results.md, "Starting a worker without waiting for it"). Where
+        no temporary file can be written, the pickle itself, as before."""
         if self._payload_path is None:
-            fd, path = tempfile.mkstemp(prefix="torchrod-estimator-", suffix=".pickle")
-            with os.fdopen(fd, "wb") as file:
-                file.write(self._payload)
+            try:
+                fd, path = tempfile.mkstemp(prefix="torchrod-estimator-", suffix=".pickle")
+            except OSError:
+                return self._payload
+            try:
+                with os.fdopen(fd, "wb") as file:
+                    file.write(self._payload)
+            except OSError:
+                _remove(path)
+                return self._payload
             self._payload_path = path
             weakref.finalize(self, _remove, path)
         return self._payload_path
