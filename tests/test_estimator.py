@@ -453,3 +453,43 @@ def test_trusted_guesses_in_a_wrong_place_do_not_keep_the_count_too_small(rod, b
     assert int((full.num_forces == truth).sum()) >= 0.8 * B  # the readings can be counted
     assert int((trusted.num_forces < full.num_forces).sum()) <= 3
     assert int((trusted.num_forces == truth).sum()) >= int((full.num_forces == truth).sum()) - 3
+
+
+# A reading of the `bench stream` trajectory (seed 0, reading 621: one force of 0.21 N at 148 mm, noise 0.1 1/m),
+# whose chosen fit, of two forces, creeps along a direction the data barely determine.
+CREEPING = [
+    [0.5789085643066753, -3.9758345823179506],
+    [0.4491097914292039, -3.416327348326002],
+    [0.29730370450632637, -2.9008576262301187],
+    [0.45283684356506637, -2.0818725464230092],
+    [0.12161792300759336, -1.6770057631413313],
+    [-0.03866756867291596, -1.0956229554916632],
+    [0.011315234590758491, -0.4009896956967772],
+    [-0.017912546538729018, 0.124531965970848],
+    [-0.02873398125255032, 0.3647610161911581],
+    [0.08491167465927972, -0.09121709312567518],
+    [0.058785059737430846, 0.03635447448565405],
+    [-0.014051081486528255, -0.09390009005861777],
+    [0.03931594056936082, -0.1344240939030433],
+    [0.060815722976914836, 0.05001370865098801],
+]
+
+
+@pytest.mark.parametrize("backend", ["numpy", "torch"])
+def test_a_chosen_fit_still_improving_after_its_steps_gets_more_of_them(rod, backend):
+    """After ``LMPolicy.iterations`` steps the chosen fit of this reading is still improving: it gets up to
+    ``refine_iterations`` more from where it stands, converges, and is answered for what it is (poorly determined).
+    Without them (and L-BFGS alone) it stays ``unconverged``, with the same count and a loss no lower."""
+    from torchrod.estimate.lm import LMPolicy
+
+    u = torch.tensor([CREEPING], dtype=torch.float64)
+    answers = {}
+    for more in (70, 0):
+        opts = EstimatorOptions(noise=0.1, backend=backend, lm=LMPolicy(refine_iterations=more))
+        answers[more] = Estimator(rod, opts).estimate(u)
+    assert STATUSES[int(answers[70].status[0])] == "poorly_determined"
+    assert STATUSES[int(answers[0].status[0])] == "unconverged"
+    assert int(answers[70].num_forces[0]) == int(answers[0].num_forces[0]) == 2
+    assert float(answers[70].loss[0]) <= float(answers[0].loss[0])
+    with pytest.raises(ValueError, match="refine_iterations"):
+        LMPolicy(refine_iterations=-1)

@@ -51,6 +51,9 @@ class LMPolicy:
         max_force_step: the largest change of a force component per step [EI / L^2].
         tolerance: converged when the Gauss-Newton decrement is at most ``tolerance`` x sigma^2.
         iterations: at most this many steps (evaluations after the first) per fit.
+        refine_iterations: for the fits an answer is made of that ``iterations`` left open (not converged, not
+            stalled), at most this many more steps, from where they stand (:class:`.search.Solver`; 0: none). Such
+            fits creep along a direction the data barely determine; spent on every fit, the same steps cost more.
         exact_steps: Gauss-Newton steps on the exact model's residual after convergence (:func:`finish`), each
             taken only where it promises more than ``exact_tolerance`` x sigma^2.
         acceleration: add the geodesic acceleration to a step when the previous one lowered the loss by less than
@@ -67,6 +70,7 @@ class LMPolicy:
     max_force_step: float = 10.0
     tolerance: float = 1e-3
     iterations: int = 30
+    refine_iterations: int = 70
     exact_steps: int = 3
     exact_tolerance: float = 1e-4
     acceleration: float | None = 0.5
@@ -82,7 +86,7 @@ class LMPolicy:
             raise ValueError(f"increase and decrease must exceed 1, got {self.increase!r}, {self.decrease!r}")
         if not (self.tolerance > 0.0):
             raise ValueError(f"tolerance must be positive, got {self.tolerance!r}")
-        for name in ("iterations", "exact_steps"):
+        for name in ("iterations", "refine_iterations", "exact_steps"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise ValueError(f"{name} must be an integer >= 0, got {v!r}")

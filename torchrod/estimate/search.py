@@ -85,21 +85,30 @@ class Solver:
         return done, False, used
 
     def refine(self, problem: Problem, chosen: lm.LMState) -> tuple[lm.LMState, Any]:
-        """The fits the answer is made of: L-BFGS where the LM budget left them open (:mod:`.finish`), then the
-        exact-model steps again; the others unchanged. Also (R,) the evaluations that took (0 where unchanged)."""
+        """The fits the answer is made of, where the LM budget left them open: more LM steps from where they stand
+        (``policy.refine_iterations``), then L-BFGS where still open (:mod:`.finish`), then the exact-model steps
+        again; the others unchanged. Also (R,) the evaluations that took (0 where unchanged)."""
         xp = problem.xp
         spent = xp.zeros((chosen.fits.rows,), "int")
-        if self.lbfgs is None:
+        if self.lbfgs is None and self.policy.refine_iterations == 0:
             return chosen, spent
         open_ = xp.nonzero(
             ~chosen.converged & (chosen.steps >= self.policy.iterations) & (chosen.damping < self.policy.max_damping)
         )
         if open_.shape[0] == 0:
             return chosen, spent
-        before = chosen.take(xp, open_)
-        part = refine_open(problem, self.policy, self.lbfgs, before)
-        done, used = lm.finish_counted(problem, self.policy, part)
-        return chosen.put(xp, open_, done), xp.put(spent, open_, part.steps - before.steps + used)
+        part, used = chosen.take(xp, open_), xp.zeros((open_.shape[0],), "int")
+        policy = self.policy
+        if policy.refine_iterations > 0:
+            policy = dataclasses.replace(policy, iterations=policy.refine_iterations)
+            part = lm.solve(problem, policy, part.fits, self.deadline)  # the fitting model's residual again
+            used = 1 + part.steps
+        if self.lbfgs is not None:
+            before = part.steps
+            part = refine_open(problem, policy, self.lbfgs, part)
+            used = used + part.steps - before
+        done, exact = lm.finish_counted(problem, self.policy, part)
+        return chosen.put(xp, open_, done), xp.put(spent, open_, used + exact)
 
 
 @dataclass(frozen=True)

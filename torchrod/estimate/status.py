@@ -20,7 +20,8 @@ Each reading's result carries one status; when several apply, the first in this 
     wrong ``noise``. Do not act on the forces; check the sensor and the rod file.
 ``"unconverged"``
     The fit was still improving when its budget ran out (or its linear algebra failed): the forces may be off.
-    Retry with more iterations (``EstimatorOptions(lm=LMPolicy(iterations=...))``) or report the reading.
+    Retry with more iterations (``EstimatorOptions(lm=LMPolicy(iterations=..., refine_iterations=...))``) or
+    report the reading.
 ``"poorly_determined"``
     The data cannot tell this answer from others (:mod:`.uncertainty`: forces the gratings cannot separate, a
     force seen by one grating only, a location uncertain beyond its grating interval). The fit explains the
