@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 import warnings
 from pathlib import Path
@@ -323,3 +324,50 @@ def test_twins_answer_as_the_search_without_them_for_fewer_evaluations(backend):
     worse = (on.loss - off.loss) / 0.1**2
     assert int((worse.abs() > 0.01).sum()) <= 4 and float(worse.max()) < 2.0
     assert int(on.evaluations.sum()) < 0.95 * int(off.evaluations.sum())
+
+
+@pytest.mark.parametrize("command", ["estimate", "stream"])
+def test_the_commands_trust_a_network_as_from_checkpoint_does(tmp_path, monkeypatch, capsys, command):
+    """``torchrod estimate`` and ``torchrod stream`` with ``--checkpoint`` trust the network exactly when
+    ``Estimator.from_checkpoint`` does (:func:`torchrod.learn.warm_start.is_trusted`)."""
+    from torchrod.cli import main
+    from torchrod.learn.warm_start import is_trusted
+
+    trusted = _with_quality(
+        tmp_path,
+        search_count_accuracy=0.8,
+        trusted_count_accuracy=0.8,
+        search_force_error_median=0.04,
+        trusted_force_error_median=0.04,
+        search_location_error_median=0.001,
+        trusted_location_error_median=0.001,
+        search_evaluations=30.0,
+        trusted_evaluations=20.0,
+        plain_evaluations=25.0,
+    )
+    rod = tr.presets.nitinol290()
+    kappa, _ = _readings(rod, [[(0.2, 0.3, -0.2)]])
+    readings = tmp_path / "in.jsonl"
+    readings.write_text(json.dumps({"id": 0, "curvature": kappa[0].tolist()}) + "\n")
+    seen = []
+    real = Estimator.__init__
+
+    def spy(self, rod, options=None, **kwargs):
+        seen.append(options.trust_guesses)
+        real(self, rod, options, **kwargs)
+
+    monkeypatch.setattr(Estimator, "__init__", spy)
+    for path in (trusted, CHECKPOINT):
+        net = WarmStart.load(path, rod)
+        seen.clear()
+        args = ["--rod", "nitinol290", "--checkpoint", str(path), "--noise", "0.1"]
+        if command == "estimate":
+            assert main(["estimate", *args, str(readings)]) == 0
+        else:
+            assert main(["stream", *args, "--input", str(readings)]) == 0
+        assert seen and set(seen) == {is_trusted(net)}
+        assert '"num_forces": 1' in capsys.readouterr().out
+        messages = []
+        assert Estimator.from_checkpoint(path, rod, warn=messages.append).options.trust_guesses == is_trusted(net)
+    assert is_trusted(WarmStart.load(trusted, rod)) and not is_trusted(WarmStart.load(CHECKPOINT, rod))
+    assert not is_trusted(None)

@@ -702,5 +702,12 @@ def quality_verdict(meta: Mapping[str, Any]) -> str:
     return "; ".join(why)
 
 
+def is_trusted(network: Any) -> bool:
+    """Whether an estimator may start its fits from ``network``'s guesses alone (``trust_guesses``): its
+    checkpoint's recorded quality says nothing against it (:func:`quality_verdict`). False for None, and for a
+    network without a checkpoint's record."""
+    return network is not None and not quality_verdict(getattr(network, "meta", None) or {})
+
+
 def _finite(value: Any) -> bool:
     return isinstance(value, (int, float)) and math.isfinite(value)

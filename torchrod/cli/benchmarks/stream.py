@@ -364,12 +364,9 @@ def _options(noise: float, settings: list[str], network: Any) -> EstimatorOption
     """EstimatorOptions(noise=noise) (with a trusted network, ``trust_guesses``, as ``Estimator.from_checkpoint``
     sets it), then the ``FIELD=VALUE`` settings (values as Python literals; ``lbfgs.FIELD`` sets a field of the
     L-BFGS options)."""
-    options = EstimatorOptions(noise=noise)
-    if network is not None:
-        from ...learn.warm_start import quality_verdict
+    from ...learn.warm_start import is_trusted
 
-        if not quality_verdict(getattr(network, "meta", {}) or {}):
-            options = dataclasses.replace(options, trust_guesses=True)
+    options = EstimatorOptions(noise=noise, trust_guesses=is_trusted(network))
     for setting in settings:
         name, sep, text = setting.partition("=")
         if not sep:

@@ -56,6 +56,7 @@ batch over N processes (default 1; 0: one per CPU core): two use both cores of a
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -73,7 +74,7 @@ from . import add_sensor_options, add_time_budget_option, check_estimation_optio
 
 HELP = "forces from FBG curvature readings (JSON lines in, JSON lines out)"
 
-__all__ = ["HELP", "configure", "load_network", "options_from_args", "run"]
+__all__ = ["HELP", "configure", "load_network", "options_from_args", "run", "trusting"]
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -147,7 +148,7 @@ def check_workers(args: argparse.Namespace) -> int:
 
 def options_from_args(args: argparse.Namespace) -> EstimatorOptions:
     """The :class:`EstimatorOptions` the command-line arguments ask for (``ValueError`` for bad values). A network
-    (``--checkpoint``) adds its guesses beside the scan's starts, as in ``Estimator.from_checkpoint``."""
+    (``--checkpoint``) adds its guesses, trusted or not as :func:`trusting` says."""
     return EstimatorOptions(
         max_forces=args.max_forces,
         num_forces=args.num_forces,
@@ -158,6 +159,14 @@ def options_from_args(args: argparse.Namespace) -> EstimatorOptions:
         relative=getattr(args, "relative", False),
         time_budget=time_budget(args),
     )
+
+
+def trusting(options: EstimatorOptions, network: Any) -> EstimatorOptions:
+    """``options`` with ``trust_guesses`` as ``Estimator.from_checkpoint`` sets it: a trusted network's guesses
+    start the fits alone (:func:`torchrod.learn.warm_start.is_trusted`), a weak one's are starts beside the scan's."""
+    from ...learn.warm_start import is_trusted
+
+    return dataclasses.replace(options, trust_guesses=is_trusted(network))
 
 
 def load_network(checkpoint: str | None, rod: Rod) -> Any:
@@ -201,7 +210,7 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError(f"--starts must be >= 0, got {args.starts}")
     check_input(args.readings, "READINGS")
     network = load_network(args.checkpoint, rod)
-    estimator = Estimator(rod, options_from_args(args), warm_start=network)
+    estimator = Estimator(rod, trusting(options_from_args(args), network), warm_start=network)
     device = torch.device(args.device)
     from ...estimate.workers import ParallelEstimator
 

@@ -101,7 +101,7 @@ from ...io.stream import StreamOptions, StreamResult, StreamStats, stream, warm_
 from ...presets import load as load_rod
 from ...rod import Rod
 from . import add_sensor_options, add_time_budget_option, check_estimation_options, sensor_noise, time_budget
-from .estimate import add_workers_option, check_counts, check_workers, load_network
+from .estimate import add_workers_option, check_counts, check_workers, load_network, trusting
 
 HELP = "amortised estimation on a stream of readings"
 
@@ -261,7 +261,7 @@ def _run(args: argparse.Namespace) -> int:
     network = _warm_start(args, rod)
     if args.iterations < 0:
         raise ValueError(f"--iterations must be >= 0, got {args.iterations}")
-    # As Estimator.from_checkpoint: the network's guesses are starts beside the scan's.
+    # As Estimator.from_checkpoint: a trusted network's guesses start the fits alone, a weak one's are beside.
     options = EstimatorOptions(
         max_forces=args.max_forces,
         noise=args.noise,
@@ -269,7 +269,7 @@ def _run(args: argparse.Namespace) -> int:
         relative=args.relative,
         time_budget=time_budget(args),
     )
-    estimator = Estimator(rod, options, warm_start=network)
+    estimator = Estimator(rod, trusting(options, network), warm_start=network)
     options = StreamOptions(
         batch_size=args.batch_size,
         max_latency=args.max_latency_ms / 1e3,
