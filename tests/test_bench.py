@@ -107,3 +107,21 @@ def test_tenth_medians_show_a_latency_that_grows_and_one_that_stays_level():
     level = [0.5 + 0.1 * ((7 * k) % 3) for k in range(100)]
     assert max(tenth_medians(level)) - min(tenth_medians(level)) <= 0.1
     assert tenth_medians([3.0, 1.0, 2.0]) == [3.0, 1.0, 2.0] and tenth_medians([]) == []
+
+
+def test_the_pacers_child_runs_this_torchrod_not_the_one_in_its_working_directory(tmp_path):
+    """``python -m torchrod`` imports the package in the working directory first, whatever ``PYTHONPATH`` says, so
+    a benchmark of one version run from another's checkout timed the other's CLI. The pacer's child runs the
+    package its parent runs, even from a directory holding another ``torchrod``."""
+    import subprocess
+    import sys
+
+    from torchrod.cli.benchmarks.pacer import child_command
+
+    shadow = tmp_path / "torchrod"
+    shadow.mkdir()
+    (shadow / "__init__.py").write_text("raise ImportError('the torchrod of the working directory')\n")
+    (shadow / "__main__.py").write_text("")
+    assert subprocess.run([sys.executable, "-m", "torchrod", "--version"], cwd=tmp_path).returncode != 0
+    out = subprocess.run(child_command("--version"), cwd=tmp_path, capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.startswith("torchrod "), out.stderr

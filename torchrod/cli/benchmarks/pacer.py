@@ -28,7 +28,17 @@ from typing import Any
 
 from ...io.stream import StreamResult
 
-__all__ = ["ExternalStream", "cpu_time", "reading_line"]
+__all__ = ["ExternalStream", "child_command", "cpu_time", "reading_line"]
+
+_CHILD = "import sys; sys.path.insert(0, sys.argv.pop(1)); from torchrod.cli import main; sys.exit(main(sys.argv[1:]))"
+
+
+def child_command(*arguments: str) -> list[str]:
+    """The command that runs ``torchrod ARGUMENTS`` in a child process with the torchrod package this process runs.
+    ``python -m torchrod`` would import the one in the child's working directory first, whatever ``PYTHONPATH``
+    says, so a benchmark of one version run from another version's checkout would time the wrong code."""
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+    return [sys.executable, "-c", _CHILD, root, *arguments]
 
 
 def reading_line(ident: Any, t: float | None, curvature: Sequence[Sequence[float]]) -> str:
@@ -62,7 +72,7 @@ class ExternalStream:
     def start(self) -> ExternalStream:
         """Start the child and warm it up (its start-up and first calls stay out of the timed run)."""
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "torchrod", "stream", *self.arguments],
+            child_command("stream", *self.arguments),
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,
