@@ -68,6 +68,19 @@ def test_a_checkpoint_without_recorded_quality_is_weak(tmp_path):
     assert len(messages) == 1 and "torchrod train --evaluate" in messages[0]
 
 
+TRUSTED_QUALITY = {  # a recorded quality that trusts the network: as accurate trusted, and cheaper than no network
+    "search_count_accuracy": 0.80,
+    "search_force_error_median": 0.04,
+    "search_location_error_median": 0.001,
+    "trusted_count_accuracy": 0.80,
+    "trusted_force_error_median": 0.04,
+    "trusted_location_error_median": 0.001,
+    "search_evaluations": 30.0,
+    "trusted_evaluations": 20.0,
+    "plain_evaluations": 25.0,
+}
+
+
 def _with_quality(tmp_path, **quality):
     from torchrod.learn.warm_start import save_checkpoint
 
@@ -95,19 +108,8 @@ def test_a_network_is_trusted_when_its_guesses_alone_answer_as_well_as_the_searc
     """The verdict compares the estimator from the guesses alone with the estimator that also scans, on the same
     held-back readings (within :data:`TRUST_TOLERANCE`), not the network alone against a fixed bar; a trusted
     network's guesses start the fits alone."""
-    same = {
-        "search_count_accuracy": 0.80,
-        "search_force_error_median": 0.04,
-        "search_location_error_median": 0.001,
-        "trusted_count_accuracy": 0.80,
-        "trusted_force_error_median": 0.04,
-        "trusted_location_error_median": 0.001,
-        "search_evaluations": 30.0,
-        "trusted_evaluations": 20.0,
-        "plain_evaluations": 25.0,
-        "count_accuracy": 0.5,  # the network alone: not the test
-    }
-    path = _with_quality(tmp_path, **{**same, **change})
+    alone = {"count_accuracy": 0.5}  # the network alone: not the test
+    path = _with_quality(tmp_path, **{**TRUSTED_QUALITY, **alone, **change})
     messages = []
     est = Estimator.from_checkpoint(path, tr.presets.nitinol290(), warn=messages.append)
     assert est.options.trust_guesses == trusted and est.warm_start is not None
@@ -333,18 +335,7 @@ def test_the_commands_trust_a_network_as_from_checkpoint_does(tmp_path, monkeypa
     from torchrod.cli import main
     from torchrod.learn.warm_start import is_trusted
 
-    trusted = _with_quality(
-        tmp_path,
-        search_count_accuracy=0.8,
-        trusted_count_accuracy=0.8,
-        search_force_error_median=0.04,
-        trusted_force_error_median=0.04,
-        search_location_error_median=0.001,
-        trusted_location_error_median=0.001,
-        search_evaluations=30.0,
-        trusted_evaluations=20.0,
-        plain_evaluations=25.0,
-    )
+    trusted = _with_quality(tmp_path, **TRUSTED_QUALITY)
     rod = tr.presets.nitinol290()
     kappa, _ = _readings(rod, [[(0.2, 0.3, -0.2)]])
     readings = tmp_path / "in.jsonl"
