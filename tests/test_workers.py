@@ -633,3 +633,31 @@ def _group(pgid: int) -> list[str]:
         if int(rest[2]) == pgid and rest[0] != "Z":
             found.append(f"{pid} {rest[0]} {name}")
     return found
+
+
+def test_close_waits_for_busy_workers_only(estimator, monkeypatch):
+    """``close()`` gives a worker busy on a batch (abandoned after an interrupt) a second to finish before it
+    terminates it, but does not wait for workers that have nothing to do, some perhaps still importing torch: a
+    short input with ``--workers 2`` no longer ends a second after its last answer."""
+    import concurrent.futures
+
+    import torchrod.estimate.workers as workers
+
+    graces = []
+    real = workers._end
+
+    def spy(processes, timeout=1.0, grace=0.0):
+        graces.append(grace)
+        real(processes, timeout, grace)
+
+    monkeypatch.setattr(workers, "_end", spy)
+    par = ParallelEstimator(estimator, 2)
+    par.warm()  # started, perhaps not ready
+    par.close()
+    assert graces[0] == workers._IDLE_EXIT < 1.0
+    par.warm()
+    pending = concurrent.futures.Future()  # a chunk a worker is still solving
+    par._chunks_out = [pending]
+    graces.clear()
+    par.close()
+    assert graces[0] == 1.0 and par._chunks_out == []

@@ -121,6 +121,10 @@ def _unpack_result(packed: Mapping[str, Any]) -> EstimateResult:
 # ---------------------------------------------------------------------------------------------------- the worker
 _ESTIMATOR: Any = None  # in a worker: the estimator it was given
 
+_IDLE_EXIT = 0.2
+"""[s] how long :meth:`ParallelEstimator.close` waits for workers with nothing to do to exit by themselves before
+it terminates them (an idle one exits in milliseconds; one still starting would take a second or more)."""
+
 
 def _init_worker(payload: str | bytes, warm: bool) -> None:
     """A worker's start: one torch thread, SIGINT ignored (the caller handles Ctrl-C), the estimator (pickled in the
@@ -237,6 +241,7 @@ class ParallelEstimator:
         self._managers: list[Any] = []  # the manager threads of the pools stopped so far (they reap the workers)
         self._payload = b""
         self._payload_path: str | None = None
+        self._chunks_out: list[concurrent.futures.Future] = []  # chunks handed to workers by estimate(), not done
         if self.processes > 1:
             try:
                 self._payload = pickle.dumps(estimator)
@@ -341,29 +346,32 @@ class ParallelEstimator:
                 stacklevel=3,
             )
 
-    def _stop(self, pool: concurrent.futures.ProcessPoolExecutor, timeout: float = 1.0) -> None:
-        """Shut ``pool`` down: idle workers exit at once, a worker still busy on an abandoned chunk (after an
-        interrupt) is given ``timeout`` seconds, then terminated (SIGTERM), and killed (SIGKILL) if it is still
-        there ``timeout`` seconds later: when this returns, no worker of ``pool`` is left running, and the pool's
-        manager thread, which reaps them, is given ``timeout`` seconds to finish."""
+    def _stop(self, pool: concurrent.futures.ProcessPoolExecutor, timeout: float = 1.0, grace: float = 1.0) -> None:
+        """Shut ``pool`` down: idle workers exit at once, a worker still busy (on an abandoned chunk, after an
+        interrupt, or starting) is given ``grace`` seconds, then terminated (SIGTERM), and killed (SIGKILL) if it is
+        still there ``timeout`` seconds later: when this returns, no worker of ``pool`` is left running, and the
+        pool's manager thread, which reaps them, is given ``timeout`` seconds to finish."""
         processes = list((getattr(pool, "_processes", None) or {}).values())
         manager = getattr(pool, "_executor_manager_thread", None)
         if manager is not None:
             self._managers.append(manager)
         pool.shutdown(wait=False, cancel_futures=True)
-        _end(processes, timeout, grace=timeout)
+        _end(processes, timeout, grace=grace)
         if manager is not None:
             manager.join(timeout)
 
     def close(self) -> None:
         """Stop the workers (the object still estimates afterwards, starting a new pool if needed): the current
         pool's, and any worker of an earlier pool still running; then wait (a second at most) for the pools'
-        manager threads, which reap them."""
+        manager threads, which reap them. A worker busy on a batch (abandoned after an interrupt) is given a second
+        to finish; with none busy, a worker still starting (importing torch) is not waited for."""
+        busy = any(not f.done() for f in [*self._chunks_out, *(f for f, _ in self._submitted)])
         pools = [self._pool, self._spare]
         self._pool, self._starting, self._spare, self._spare_ready, self._submitted = None, [], None, None, []
+        self._chunks_out = []
         for pool in pools:
             if pool is not None:
-                self._stop(pool)
+                self._stop(pool, grace=1.0 if busy else _IDLE_EXIT)
         spawned, self._spawned = list(self._spawned.values()), {}
         _end(spawned)
         managers, self._managers = self._managers, []
@@ -411,6 +419,7 @@ class ParallelEstimator:
                 pool = self._ensure_pool()
                 for chunk in chunks[1:]:
                     futures.append(pool.submit(_solve_chunk, *self._packed(chunk), overrides))
+                self._chunks_out = [f for f in self._chunks_out if not f.done()] + [f for f in futures if f]
                 self._spawned.update(getattr(pool, "_processes", None) or {})  # (a pool may start more on demand)
             except BrokenProcessPool:  # a worker died while idle: this batch's chunks are solved here
                 self._broken()
