@@ -39,7 +39,8 @@ def test_the_shipped_checkpoint_records_its_quality_and_is_used_beside_the_scan(
         for k in ("force_error_median", "location_error_median")
     )
     dearer = quality["trusted_evaluations"] >= quality["plain_evaluations"]
-    assert bool(weak) == (falls or rises or dearer)
+    worse = quality["trusted_worse_fits"] > TRUST_TOLERANCE["worse_fits"]
+    assert bool(weak) == (falls or rises or dearer or worse)
     rod = tr.presets.nitinol290()
     messages = []
     est = Estimator.from_checkpoint(CHECKPOINT, rod, warn=messages.append)
@@ -78,6 +79,7 @@ TRUSTED_QUALITY = {  # a recorded quality that trusts the network: as accurate t
     "search_evaluations": 30.0,
     "trusted_evaluations": 20.0,
     "plain_evaluations": 25.0,
+    "trusted_worse_fits": 0.0,
 }
 
 
@@ -102,6 +104,8 @@ def _with_quality(tmp_path, **quality):
         ({"trusted_count_accuracy": float("nan")}, False),  # not recorded
         ({"trusted_evaluations": 25.0}, False),  # saves nothing against no network
         ({"trusted_evaluations": 24.9, "search_evaluations": 20.0}, True),
+        ({"trusted_worse_fits": 0.004}, True),
+        ({"trusted_worse_fits": 0.006}, False),  # wrong local minima the medians do not show
     ],
 )
 def test_a_network_is_trusted_when_its_guesses_alone_answer_as_well_as_the_search(tmp_path, change, trusted):

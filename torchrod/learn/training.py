@@ -427,7 +427,9 @@ def held_back_quality(
     Three answers are scored: the network's own guess (its most probable count, and its guess for that count), the
     estimator with the network's guesses beside its scan's starts, and the estimator with the guesses starting the
     fits alone (``trust_guesses``); with the estimator's evaluations per reading in both ways, and without a
-    network. They decide whether the network is trusted (:func:`torchrod.learn.warm_start.quality_verdict`)."""
+    network, and the share of readings whose answer from the guesses alone fits worse than the full search's (its
+    loss higher by more than sigma^2). They decide whether the network is trusted
+    (:func:`torchrod.learn.warm_start.quality_verdict`)."""
     from ..estimate.estimator import Estimator, EstimatorOptions
 
     truth = truth.sorted().to(device="cpu", dtype=torch.float64)
@@ -436,10 +438,12 @@ def held_back_quality(
     guess = network.guess(curvature, mask)
     scores = {"": _answer_quality(guess.count.cpu(), lambda h: guess.forces[h].sorted(), truth)}
     quality = {"readings": float(truth.count.numel()), "noise": float(noise)}
+    losses = {}
     for prefix, trust, net in (("search_", False, network), ("trusted_", True, network), ("plain_", False, None)):
         est = Estimator(network.rod, EstimatorOptions(noise=noise, trust_guesses=trust), warm_start=net)
         r = est.estimate(curvature, mask)
         quality[f"{prefix}evaluations"] = float(r.evaluations.double().mean())
+        losses[prefix] = r.loss
         if net is None:
             continue
         found = r.forces
@@ -452,6 +456,10 @@ def held_back_quality(
         quality[f"{prefix}count_accuracy"] = count_accuracy
         quality[f"{prefix}force_error_median"] = force
         quality[f"{prefix}location_error_median"] = location
+    # A reading whose answer from the guesses alone fits worse than the full search's by more than sigma^2: the
+    # guesses led to a wrong local minimum that nothing found suspicious.
+    worse = losses["trusted_"] > losses["search_"] + float(noise) ** 2
+    quality["trusted_worse_fits"] = float(worse.double().mean())
     return quality
 
 
@@ -477,6 +485,11 @@ def format_quality(quality: Mapping[str, float]) -> str:
             )
     if "plain_evaluations" in quality:
         lines.append(f"  estimator without the network: {quality['plain_evaluations']:.1f} evaluations")
+    if "trusted_worse_fits" in quality:
+        lines.append(
+            f"  readings whose fit from the guesses alone is worse by more than sigma^2: "
+            f"{100 * quality['trusted_worse_fits']:.1f} %"
+        )
     weak = quality_verdict({"quality": quality})
     lines.append(f"  trusted: no ({weak})" if weak else "  trusted: yes")
     return "\n".join(lines)

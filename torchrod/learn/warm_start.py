@@ -658,18 +658,28 @@ QUALITY_KEYS = (
     "search_evaluations",
     "trusted_evaluations",
     "plain_evaluations",
+    "trusted_worse_fits",
 )
 """What a checkpoint records of its held-back quality (:func:`torchrod.learn.training.held_back_quality`), on
 ``readings`` readings it never saw, at noise ``noise`` [1/m]. Three answers to each reading, each scored by the
 share of readings whose count it gets right and, over those, the median relative force error and the median
 location error [m]: the network alone (no prefix), the estimator with the guesses beside its scan's starts
-(``search_``), and the estimator with the guesses starting the fits alone (``trusted_``); and the estimator's mean
-evaluations per reading in those two ways and without a network (``plain_evaluations``)."""
+(``search_``), and the estimator with the guesses starting the fits alone (``trusted_``); the estimator's mean
+evaluations per reading in those two ways and without a network (``plain_evaluations``); and the share of readings
+whose answer from the guesses alone has a loss higher than the full search's by more than sigma^2
+(``trusted_worse_fits``)."""
 
-TRUST_TOLERANCE = {"count_accuracy": 0.005, "force_error_median": 0.05, "location_error_median": 0.05}
+TRUST_TOLERANCE = {
+    "count_accuracy": 0.005,
+    "force_error_median": 0.05,
+    "location_error_median": 0.05,
+    "worse_fits": 0.005,
+}
 """How much worse than the full search the estimator may answer held-back readings when it starts the fits from
 the network's guesses alone, for the network to be trusted: a count accuracy lower by at most 0.005 (half a point),
-median force and location errors higher by at most 5 % (relative). It must also cost fewer evaluations than the
+median force and location errors higher by at most 5 % (relative), and at most 0.5 % of the readings answered with
+a fit worse than the full search's (a loss higher by more than sigma^2: a wrong local minimum the medians do not
+show). It must also cost fewer evaluations than the
 estimator without a network: trusting exists to save work, and the search's guards keep even a bad network's
 answers accurate, at the price of more evaluations. A weaker network is said to be weak, once, by
 :meth:`torchrod.Estimator.from_checkpoint`, which then uses its guesses beside the scan's starts, so it cannot make
@@ -689,7 +699,12 @@ def quality_verdict(meta: Mapping[str, Any]) -> str:
     if missing:
         return f"it records no comparison of trusted and full-search answers ({', '.join(missing)}); {how}"
     why = []
+    worse = float(quality["trusted_worse_fits"])
+    if worse > TRUST_TOLERANCE["worse_fits"]:
+        why.append(f"trusting it, {worse:.1%} of held-back readings end in a worse fit than the full search's")
     for key, tolerance in TRUST_TOLERANCE.items():
+        if key == "worse_fits":
+            continue
         search, trusted = float(quality[f"search_{key}"]), float(quality[f"trusted_{key}"])
         if key == "count_accuracy" and trusted < search - tolerance:
             why.append(f"trusting it, the held-back count accuracy falls from {search:.1%} to {trusted:.1%}")
