@@ -657,8 +657,7 @@ def fit_counts(
             # Just above the chosen count, a fit from trusted guesses alone (the scan's best start skipped) is the
             # one the count test rejected; a wrong local minimum of it would keep the count too small, so it is
             # fitted from the scan's best start too, as the full search fits it.
-            scanned, sc = scans[h]
-            if not unscanned[h] or sc is None:
+            if not unscanned[h] or scans[h][1] is None:
                 continue
             readings = xp.nonzero(fitted[h] & (rules.choose(xp.stack([s.loss for s in states], 1)) == h - 1))
             if readings.shape[0] == 0:
@@ -666,16 +665,11 @@ def fit_counts(
             if solver.late():
                 cut = xp.put(cut, readings, xp.ones((readings.shape[0],), "bool"))
                 continue
-            pos = xp.put(xp.zeros((B,), "int") - 1, scanned, xp.arange(scanned.shape[0]))[readings]
-            cur = states[h].take(xp, readings)
-            found, spent, short = _explore(
-                problem, solver, options, [sc.starts.take(pos)], cur.loss, _home(xp, cur, options.twins)
-            )
+            best_start = _scan_starts(xp, scans[h], readings, B, range(1))
+            cur, spent, short = _try_starts(problem, solver, options, states[h].take(xp, readings), best_start)
             evaluations = xp.add_at(evaluations, readings, spent)
             cut = xp.put(cut, readings, cut[readings] | short)
-            better = xp.nonzero(found.loss < cur.loss - 10.0 * solver.policy.tolerance * cur.noise2)
-            if better.shape[0]:
-                states[h] = states[h].put(xp, readings[better], found.take(xp, better))
+            states[h] = states[h].put(xp, readings, cur)
         losses = xp.stack([s.loss for s in states], 1)
         chosen = rules.choose(losses)
         near_limit = None if rules.plausible is None else rules.plausible(xp.arange(B), losses)  # (B, top + 1)
@@ -710,25 +704,17 @@ def fit_counts(
             if solver.late():
                 cut = xp.put(cut, readings, xp.ones((readings.shape[0],), "bool"))
                 continue
-            scanned, sc = scans[h]
             cur = states[h].take(xp, readings)
             limit = rules.suspect(h, readings)
             if rules.plausible is not None:  # rows below a doubtful answer: every fit counts as suspicious
                 forced = below[readings]
                 limit = (xp.where(forced, 0.0, limit[0]), xp.where(forced, 0.0, limit[1]))
             # The scan's other intervals for the count's last force.
-            if sc is not None and starts > 1:
-                pos = xp.put(xp.zeros((B,), "int") - 1, scanned, xp.arange(scanned.shape[0]))[readings]
-                more = [sc.starts.take(t * scanned.shape[0] + pos) for t in range(1, starts)]
-                # A start that reaches the current fit's intervals stops there (:func:`_explore`).
-                home = _home(xp, cur, options.twins)
-                found, spent, short = _explore(problem, solver, options, more, cur.loss, home)
+            if scans[h][1] is not None and starts > 1:
+                more = _scan_starts(xp, scans[h], readings, B, range(1, starts))
+                cur, spent, short = _try_starts(problem, solver, options, cur, more)
                 evaluations = xp.add_at(evaluations, readings, spent)
                 cut = xp.put(cut, readings, cut[readings] | short)
-                better = found.loss < cur.loss - 10.0 * solver.policy.tolerance * cur.noise2
-                if bool(xp.any(better)):
-                    at = xp.nonzero(better)
-                    cur = cur.put(xp, at, found.take(xp, at))
             # If still suspicious: the exchange re-places every force.
             mine = xp.nonzero(wide[readings] & suspicious(problem, cur, limit))
             if h >= 2 and mine.shape[0]:
@@ -750,6 +736,28 @@ def fit_counts(
             evaluations = xp.add_at(evaluations, mine, spent)
             states[h] = states[h].put(xp, mine, after)
     return CountFits(states=states, fitted=fitted, evaluations=evaluations, cut=cut)
+
+
+def _scan_starts(xp: Any, scanned: tuple[Any, Scan], readings: Any, B: int, ranks: range) -> list[Fits]:
+    """The starts of ``readings`` that a count's scan ranked ``ranks`` (0: its best interval), one block each;
+    ``scanned``: the readings the scan ran on and the :class:`Scan`."""
+    on, sc = scanned
+    pos = xp.put(xp.zeros((B,), "int") - 1, on, xp.arange(on.shape[0]))[readings]
+    return [sc.starts.take(t * on.shape[0] + pos) for t in ranks]
+
+
+def _try_starts(
+    problem: Problem, solver: Solver, options: SearchOptions, cur: lm.LMState, starts: list[Fits]
+) -> tuple[lm.LMState, Any, Any]:
+    """``cur`` (n fits, one per reading) with each fit replaced by the best of its ``starts`` (blocks of n rows,
+    :func:`_explore`; a start that reaches the fit's intervals stops there) where that is lower by more than the
+    solver's slack; also the evaluations spent and whether the deadline cut it short, per reading."""
+    xp = problem.xp
+    found, spent, short = _explore(problem, solver, options, starts, cur.loss, _home(xp, cur, options.twins))
+    better = xp.nonzero(found.loss < cur.loss - 10.0 * solver.policy.tolerance * cur.noise2)
+    if better.shape[0]:
+        cur = cur.put(xp, better, found.take(xp, better))
+    return cur, spent, short
 
 
 def _explore(
