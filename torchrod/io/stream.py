@@ -341,7 +341,7 @@ class _Stream:
         if self.noise is None:
             return self.batch_size
         learning = self.noise.learning
-        if self.noise.sigma is None:
+        if self.noise.count < learning.after:  # no sigma yet (without sorting the fits to find out)
             return min(self.batch_size, learning.after)
         return min(self.batch_size, max(learning.after, learning.growth * self.noise.used))
 
