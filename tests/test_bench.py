@@ -8,7 +8,7 @@ import torch
 
 from torchrod.cli import main
 from torchrod.cli.commands import bench
-from torchrod.model import sensitivity
+from torchrod.model import compiled, sensitivity
 
 
 def test_bench_forward_quick_prints_both_tables(capsys):
@@ -55,6 +55,9 @@ def test_bench_forward_paths_times_both_marches_side_by_side(capsys):
             assert work == b * (4 + int(cols)) == sensitivity.march_work(b, int(cols))
         pairs = re.findall(r"(\d+\.\d+)/\s*(\d+\.\d+)", cells)
         assert len(pairs) == 10 and all(float(a) > 0 and float(b) > 0 for a, b in pairs), cells
+        if compiled.available():  # arrays / Python rows / compiled rows
+            triples = re.findall(r"\d+\.\d+/\s*\d+\.\d+/(\d+\.\d+)", cells)
+            assert len(triples) == 10 and all(float(c) > 0 for c in triples), cells
 
 
 def test_bench_rejects_unknown_and_reports_missing_suites(capsys, monkeypatch):

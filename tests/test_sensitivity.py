@@ -9,11 +9,18 @@ import torch
 import torchrod as tr
 import torchrod.model.sensitivity as sens
 from torchrod.backend import NUMPY, torch_backend
-from torchrod.model import schedule
+from torchrod.model import compiled, schedule
 from torchrod.model.body_frame import integrate_curvature, march_curvature, step_counts
 from torchrod.model.sensitivity import curvature_and_jacobian, march, march_propagator
 
 F64 = torch.float64
+
+
+def _path(monkeypatch, path: str) -> None:
+    """Send the NumPy backend's marches down one path: ``"rows"`` (Python numbers), ``"arrays"`` or
+    ``"compiled"`` (the Numba rows; the caller checks that they are available)."""
+    monkeypatch.setenv("TORCHROD_NUMBA", "1" if path == "compiled" else "0")
+    monkeypatch.setattr(sens, "SCALAR_WORK", 0 if path == "arrays" else 10**6)
 
 
 def test_sensitivity_matches_forward_model_and_autograd(rod, gen):
@@ -65,11 +72,15 @@ def test_three_implementations_of_the_march_agree(rod, gen, monkeypatch, h):
     mask = torch.rand(B, h, generator=gen) > 0.3
     mask[:, 0] = True
     for kwargs in ({}, {"mask": mask}, {"max_steps": 2}, {"jacobian": False}):
-        monkeypatch.setattr(sens, "SCALAR_WORK", 10**6)
+        _path(monkeypatch, "rows")
         u1, J1 = curvature_and_jacobian(q, s, f, rod.length, rod.bending_stiffness, **kwargs)  # Python rows
-        monkeypatch.setattr(sens, "SCALAR_WORK", 0)
+        _path(monkeypatch, "arrays")
         u2, J2 = curvature_and_jacobian(q, s, f, rod.length, rod.bending_stiffness, **kwargs)  # NumPy arrays
         u3, J3 = curvature_and_jacobian(q, s, f, rod.length, rod.bending_stiffness, backend="torch", **kwargs)
+        if compiled.available():  # the compiled rows: the Python rows' operations, so the same numbers exactly
+            _path(monkeypatch, "compiled")
+            u4, J4 = curvature_and_jacobian(q, s, f, rod.length, rod.bending_stiffness, **kwargs)
+            assert torch.equal(u4, u1) and (J1 is None if J4 is None else torch.equal(J4, J1))
         for u, Jx in ((u2, J2), (u3, J3)):
             assert u1.shape == u.shape and (u1 - u).abs().max() <= 1e-12 * u.abs().max()
             if Jx is None:
@@ -92,10 +103,14 @@ def test_three_implementations_of_the_propagator_march_agree(rod, gen, monkeypat
     if h:
         s[1, :] = rod.length - 1e-3 * np.arange(h)  # every force distal to the last grating
     args = (q, s, f, rod.length, rod.bending_stiffness)
-    monkeypatch.setattr(sens, "SCALAR_WORK", 10**6)
+    _path(monkeypatch, "rows")
     rows = march_propagator(NUMPY, *args)
-    monkeypatch.setattr(sens, "SCALAR_WORK", 0)
+    _path(monkeypatch, "arrays")
     arrays = march_propagator(NUMPY, *args)
+    if compiled.available():
+        _path(monkeypatch, "compiled")
+        for a, c in zip(rows, march_propagator(NUMPY, *args), strict=True):
+            assert (a is None and c is None) or np.array_equal(a, c)
     xp = torch_backend()
     tensors = march_propagator(xp, *(torch.as_tensor(a) for a in args[:3]), *args[3:])
     for a, b, c in zip(rows, arrays, tensors, strict=True):
@@ -227,3 +242,41 @@ def test_the_one_row_schedule_is_the_array_schedule(rod):
     assert checked == 1600 and capped > 0
     with pytest.raises(ValueError, match="rule"):
         schedule.row([0.1], [0.2], [1j], rod.length, step_angle=0.3, max_steps=64, rule="guess", skip=False)
+
+
+@pytest.mark.skipif(not compiled.available(), reason="Numba is not installed (pip install torchrod[fast])")
+def test_the_compiled_rows_are_the_python_rows_bit_for_bit(rod, monkeypatch):
+    """The Numba march (schedule and steps) against the Python-number march, exactly: 300 random batches of 0 to 3
+    forces from 0.1 to 10 N (past the step cap), ties between forces, forces on gratings and at the tip, padded
+    forces, per-row queries, with and without the Jacobian and the propagator's seeds, and rows with a NaN input
+    among finite ones (those stay on the Python path, the finite rows around them do not)."""
+    rng = np.random.default_rng(11)
+    q = rod.grating_positions().numpy()
+    compared = nan_rows = 0
+    for _ in range(300):
+        h, B = int(rng.integers(0, 4)), int(rng.integers(1, 6))
+        s = rng.uniform(0.0, rod.length, (B, h))
+        if h >= 2 and rng.random() < 0.3:
+            s[:, 1] = s[:, 0]
+        if h and rng.random() < 0.3:
+            s[:, 0] = q[rng.integers(q.shape[0])]
+        if h and rng.random() < 0.1:
+            s[:, -1] = rod.length
+        f = rng.normal(0.0, rng.choice([0.1, 1.0, 10.0]), (B, h, 2))
+        if h and rng.random() < 0.1:
+            f[rng.integers(B), 0, 0] = np.nan
+            nan_rows += 1
+        active = None if rng.random() < 0.5 else rng.random((B, h)) > 0.3
+        query = q if rng.random() < 0.5 else rng.uniform(0.0, rod.length, (B, 20))
+        jacobian, seeds = bool(h and rng.random() < 0.8), bool(rng.random() < 0.4)
+        args = (query, s, f, rod.length, rod.bending_stiffness, active, jacobian, seeds, 0.3, int(rng.choice([2, 64])))
+        monkeypatch.setenv("TORCHROD_NUMBA", "0")
+        want = sens._march_rows(*args)
+        monkeypatch.setenv("TORCHROD_NUMBA", "1")
+        got = sens._march_rows(*args)
+        for a, b in zip(want, got, strict=True):
+            assert (a is None and b is None) or np.array_equal(a, b, equal_nan=True)
+            compared += a is not None
+    assert compared > 500 and nan_rows > 10
+    monkeypatch.setenv("TORCHROD_NUMBA", "0")
+    assert not compiled.available()

@@ -26,9 +26,10 @@ At a force event:
 A force of zero magnitude changes nothing, but its f-columns are the linearised response to a new force at its
 location: the estimator's scan for where to add a force uses exactly that.
 
-Three implementations of the one scheme: :func:`march` on arrays (NumPy or torch, :mod:`torchrod.backend`,
-batched), and :func:`_march_rows` on Python complex numbers for a few rows on the CPU (no per-operation
-overhead). They give the same numbers to rounding (tests/test_sensitivity.py).
+Implementations of the one scheme: :func:`march` on arrays (NumPy or torch, :mod:`torchrod.backend`, batched),
+and :func:`_march_rows` one row at a time on the CPU (no per-operation overhead), on Python complex numbers or,
+where Numba is installed, compiled (:mod:`torchrod.model.compiled`: the same operations, so the same numbers
+exactly). Arrays and rows give the same numbers to rounding (tests/test_sensitivity.py).
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from typing import Any
 import torch
 
 from ..backend import NUMPY, Backend, TorchBackend
+from . import compiled
 from .schedule import events, sequence, skip_unloaded, step_counts
 from .schedule import row as row_schedule
 
@@ -55,7 +57,9 @@ SCALAR_WORK = 80
 """Batches on the NumPy backend whose work (:func:`march_work`) is at most this are marched one row at a time on
 Python complex numbers (no per-operation overhead), larger ones on arrays. The first path's cost grows with that
 work, the second's is mostly fixed per operation at small batch: this puts the switch at the crossover
-``torchrod bench forward --paths`` measures (docs/results.md)."""
+``torchrod bench forward --paths`` measures (docs/results.md). Where the compiled rows run
+(:func:`torchrod.model.compiled.available`), every batch on the NumPy backend takes them: they cost less than the
+arrays at every batch size that command measures."""
 
 
 def march_work(rows: int, columns: int) -> int:
@@ -135,7 +139,7 @@ def march_propagator(
 def _march(xp, query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps):
     B = s.shape[0]
     columns = (3 * s.shape[1] if jacobian else 0) + (4 if seeds else 0)
-    if xp.name == "numpy" and march_work(B, columns) <= SCALAR_WORK:
+    if xp.name == "numpy" and (march_work(B, columns) <= SCALAR_WORK or compiled.available()):
         return _march_rows(query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps)
     if B > CHUNK:
         parts = [
@@ -304,20 +308,28 @@ def _march_arrays(xp, query, s, f, length, ei, active, jacobian, seeds, step_ang
 
 
 def _march_rows(query, s, f, length, ei, active, jacobian, seeds, step_angle, max_steps):
-    """:func:`march` on NumPy arrays for a few rows, each on Python numbers: its schedule (:func:`.schedule.row`),
-    then its march on complex numbers (:func:`_row`)."""
+    """:func:`march` on NumPy arrays one row at a time: its schedule (:func:`.schedule.row`), then its march on
+    complex numbers (:func:`_row`), each compiled where :func:`.compiled.available` (rows with a non-finite input
+    excepted), else on Python numbers."""
     import numpy as np
 
     B, h = s.shape
     Q = query.shape[-1]
     ei = float(ei)
     F = 3 * h if jacobian else 0
-    curv = np.empty((B, Q, 2))
-    jac = np.empty((B, Q, 2, F)) if jacobian else None
-    phi = np.empty((B, Q, 4, 4)) if seeds else None
+    curv = np.zeros((B, Q, 2))
+    jac = np.zeros((B, Q, 2, F)) if jacobian else None
+    phi = np.zeros((B, Q, 4, 4)) if seeds else None
+    jump = _jumps(NUMPY, f, active, ei)
+    python = range(B)
+    if compiled.available():  # the same march compiled; rows with a non-finite input stay on Python numbers
+        marched = compiled.march_rows(query, s, jump, active, length, ei, curv, jac, phi, step_angle, max_steps)
+        python = np.flatnonzero(~marched).tolist()
+    if not len(python):
+        return curv, (jac.reshape(B, Q, 2, h, 3) if jacobian else None), phi
     on = [[True] * h] * B if active is None else active.tolist()
-    positions, jumps, queries = s.tolist(), _jumps(NUMPY, f, active, ei).tolist(), query.tolist()
-    for b in range(B):
+    positions, jumps, queries = s.tolist(), jump.tolist(), query.tolist()
+    for b in python:
         order, seg, steps = row_schedule(
             queries if query.ndim == 1 else queries[b],
             positions[b],

@@ -18,6 +18,7 @@ seeded generator and kept when the rod's tangent turns by at least 90 degrees fr
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import time
@@ -62,7 +63,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--paths",
         action="store_true",
         help="also time the estimator's forward-sensitivity march on arrays against one row at a time (the switch "
-        "torchrod.model.sensitivity.SCALAR_WORK)",
+        "torchrod.model.sensitivity.SCALAR_WORK) and, with Numba, the compiled rows",
     )
 
 
@@ -184,7 +185,7 @@ def _paths(rod: Rod, seed: int, min_time: float, repeats: int) -> None:
     sizes. Prints the smallest batch where the arrays win and its work (:func:`.sensitivity.march_work`), against
     which the switch SCALAR_WORK is set."""
     from ...backend import NUMPY
-    from ...model import sensitivity
+    from ...model import compiled, sensitivity
     from .estimate import readings
 
     query = np.asarray(rod.gratings, dtype=float)
@@ -192,13 +193,17 @@ def _paths(rod: Rod, seed: int, min_time: float, repeats: int) -> None:
     step = sensitivity.ESTIMATION_STEP_ANGLE
     three = readings(rod, 3, sizes[-1], 0.0, seed).loads  # the estimator's envelope; the first h of 3 forces
     s_all, f_all = three.s.numpy(), three.f.numpy()
+    fast = compiled.available()
+    width = 17 if fast else 11
     print(
-        "forward-sensitivity march, ms per call: arrays / rows (one at a time); "
-        f"switch at work {sensitivity.SCALAR_WORK}"
+        "forward-sensitivity march, ms per call: arrays / rows (one at a time)"
+        + (" / compiled rows (Numba)" if fast else "")
+        + f"; switch at work {sensitivity.SCALAR_WORK}"
+        + ("; with Numba the NumPy backend marches every batch on the compiled rows" if fast else "")
     )
     print(
         f"{'forces':>6s} {'seeds':>5s} {'cols':>4s} | "
-        + " ".join(f"{'B=' + str(b):>11s}" for b in sizes)
+        + " ".join(f"{'B=' + str(b):>{width}s}" for b in sizes)
         + " | arrays win"
     )
     for h, seeds in ((0, True), (1, False), (2, False), (3, False), (1, True), (2, True), (3, True)):
@@ -211,15 +216,37 @@ def _paths(rod: Rod, seed: int, min_time: float, repeats: int) -> None:
             arrays, _ = time_call(
                 lambda a=args: sensitivity._march_arrays(NUMPY, *a), min_time=min_time, repeats=repeats
             )
-            rows, _ = time_call(lambda a=args: sensitivity._march_rows(*a), min_time=min_time, repeats=repeats)
-            cells.append(f"{1e3 * arrays:5.2f}/{1e3 * rows:5.2f}")
+            with _numba("0"):
+                rows, _ = time_call(lambda a=args: sensitivity._march_rows(*a), min_time=min_time, repeats=repeats)
+            cell = f"{1e3 * arrays:5.2f}/{1e3 * rows:5.2f}"
+            if fast:
+                with _numba("1"):
+                    done, _ = time_call(lambda a=args: sensitivity._march_rows(*a), min_time=min_time, repeats=repeats)
+                cell += f"/{1e3 * done:5.3f}"
+            cells.append(cell)
             if win is None and arrays < rows:
                 win = B
         work = "-" if win is None else f"B={win}, work {sensitivity.march_work(win, cols)}"
         print(
-            f"{h:6d} {'yes' if seeds else 'no':>5s} {cols:4d} | " + " ".join(f"{c:>11s}" for c in cells) + f" | {work}"
+            f"{h:6d} {'yes' if seeds else 'no':>5s} {cols:4d} | "
+            + " ".join(f"{c:>{width}s}" for c in cells)
+            + f" | {work}"
         )
     print()
+
+
+@contextlib.contextmanager
+def _numba(value: str):
+    """``TORCHROD_NUMBA`` set to ``value`` for the block (:func:`torchrod.model.compiled.available`)."""
+    old = os.environ.get("TORCHROD_NUMBA")
+    os.environ["TORCHROD_NUMBA"] = value
+    try:
+        yield
+    finally:
+        if old is None:
+            del os.environ["TORCHROD_NUMBA"]
+        else:
+            os.environ["TORCHROD_NUMBA"] = old
 
 
 def _microseconds(x: float) -> str:

@@ -1,0 +1,90 @@
+"""The one-row march of :mod:`torchrod.model.sensitivity` compiled with Numba, when Numba is installed.
+
+The estimator marches a few rows at a time most of the time (one reading's fits, the last rows of a batch still
+stepping), where arrays cost a fixed overhead per operation and the Python-number march
+(:func:`torchrod.model.sensitivity._row`) costs the interpreter's time per number. This module is the same march,
+with the same schedule (:func:`torchrod.model.schedule.row`, rule ``"estimate"``, unloaded events skipped), in the
+same order of floating-point operations, compiled: a test holds it to the Python-number march bit for bit
+(tests/test_sensitivity.py). It is a backend of that scheme, not a second scheme: the RKN coefficients, the step
+rule and the tie-breaks are the ones those modules document.
+
+Numba is optional (``pip install torchrod[fast]``): without it, or with the environment variable
+``TORCHROD_NUMBA=0``, :func:`available` is False and the marches run as before. The kernels are compiled on first
+use (a second or two) and cached on disk next to this file where that is writable (Numba's ``cache=True``).
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import os
+from typing import Any
+
+import numpy as np
+
+__all__ = ["available", "march_rows"]
+
+
+def available() -> bool:
+    """Whether the compiled march runs here: Numba is installed and ``TORCHROD_NUMBA`` is not ``0``."""
+    return os.environ.get("TORCHROD_NUMBA", "1") != "0" and _installed()
+
+
+@functools.cache
+def _installed() -> bool:
+    return importlib.util.find_spec("numba") is not None
+
+
+def march_rows(
+    query: np.ndarray,
+    s: np.ndarray,
+    jump: np.ndarray,
+    active: np.ndarray | None,
+    length: float,
+    ei: float,
+    curvature: np.ndarray,
+    jacobian: np.ndarray | None,
+    propagator: np.ndarray | None,
+    step_angle: float,
+    max_steps: int,
+) -> np.ndarray:
+    """The one-row march of every row of a batch whose inputs are finite, compiled, into the given outputs.
+
+    Args:
+        query: (Q,) or per row (B, Q) positions [m]; s: (B, h) force locations [m]; jump: (B, h) complex slope
+            jumps i (f_x + i f_y) / EI [1/m^2], zero for padding; active: (B, h) bool, False for padded forces
+            (None: all real). length: L [m]; ei: EI [N m^2].
+        curvature: (B, Q, 2) out [1/m]; jacobian: (B, Q, 2, F) out, F = 3 h (None: no Jacobian); propagator:
+            (B, Q, 4, 4) out (None: no seeds); their layouts are :func:`torchrod.model.sensitivity._march_rows`'s.
+    Returns:
+        (B,) bool: the rows marched. The others (a non-finite input, whose schedule NaN orders) are left to the
+        caller, their outputs untouched.
+    """
+    kernel = _kernel()
+    B, h = s.shape
+    queries = query[None, :] if query.ndim == 1 else query
+    F = 0 if jacobian is None else jacobian.shape[-1]
+    marched = np.zeros(B, np.bool_)
+    kernel(
+        np.ascontiguousarray(queries, np.float64),
+        np.ascontiguousarray(s, np.float64),
+        np.ascontiguousarray(jump, np.complex128),
+        np.ones((B, h), np.bool_) if active is None else np.ascontiguousarray(active, np.bool_),
+        float(length),
+        float(ei),
+        curvature,
+        np.empty((B, queries.shape[1], 2, 0)) if jacobian is None else jacobian,
+        np.empty((1, 1, 4, 4)) if propagator is None else propagator,
+        F,
+        propagator is not None,
+        float(step_angle),
+        int(max_steps),
+        marched,
+    )
+    return marched
+
+
+def _kernel() -> Any:
+    from . import _kernels  # imports Numba: only where the compiled march runs
+
+    return _kernels.batch
