@@ -21,6 +21,8 @@ def _path(monkeypatch, path: str) -> None:
     ``"compiled"`` (the Numba rows; the caller checks that they are available)."""
     monkeypatch.setenv("TORCHROD_NUMBA", "1" if path == "compiled" else "0")
     monkeypatch.setattr(sens, "SCALAR_WORK", 0 if path == "arrays" else 10**6)
+    if path == "compiled":
+        assert compiled.load()
 
 
 def test_sensitivity_matches_forward_model_and_autograd(rod, gen):
@@ -250,6 +252,7 @@ def test_the_compiled_rows_are_the_python_rows_bit_for_bit(rod, monkeypatch):
     forces from 0.1 to 10 N (past the step cap), ties between forces, forces on gratings and at the tip, padded
     forces, per-row queries, with and without the Jacobian and the propagator's seeds, and rows with a NaN input
     among finite ones (those stay on the Python path, the finite rows around them do not)."""
+    assert compiled.load()
     rng = np.random.default_rng(11)
     q = rod.grating_positions().numpy()
     compared = nan_rows = 0
@@ -280,3 +283,37 @@ def test_the_compiled_rows_are_the_python_rows_bit_for_bit(rod, monkeypatch):
     assert compared > 500 and nan_rows > 10
     monkeypatch.setenv("TORCHROD_NUMBA", "0")
     assert not compiled.available()
+
+
+_LOADING = """
+import sys, torch
+import torchrod as tr
+from torchrod.estimate.estimator import Estimator, EstimatorOptions
+from torchrod.io.stream import warm_up
+from torchrod.model import compiled
+rod = tr.presets.load("nitinol290")
+u = tr.simulate(rod, tr.PointForces.from_lists([[(0.2, 0.3, -0.2)], [(0.1, 0.2, 0.1), (0.25, -0.3, 0.2)]]))
+u = u.grating_curvature + 0.1 * torch.randn(2, rod.num_gratings, 2, generator=torch.Generator().manual_seed(0))
+est = Estimator(rod, EstimatorOptions(noise=0.1))
+before = est.estimate(u[1:])
+print("one reading", compiled.loaded())
+{load}
+print("loaded", compiled.loaded())
+after = est.estimate(u[1:])
+print("same", torch.equal(before.forces.s, after.forces.s) and torch.equal(before.loss, after.loss))
+"""
+
+
+@pytest.mark.skipif(not compiled.available(), reason="Numba is not installed (pip install torchrod[fast])")
+@pytest.mark.parametrize("load", ["warm_up(est)", "est.estimate(u.repeat(32, 1, 1))"])
+def test_the_compiled_march_loads_for_large_marches_and_warm_ups_only(load):
+    """In a new process: one reading marches only small batches, which do not load Numba (half a second, more than
+    the reading costs); a stream's warm-up, or a batch with a march too large for the Python numbers, loads it; and
+    the reading's answer is the same bit for bit before and after."""
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-c", _LOADING.format(load=load)], capture_output=True, text=True, timeout=300, check=True
+    ).stdout.split("\n")
+    assert out[:3] == ["one reading False", "loaded True", "same True"], out

@@ -600,8 +600,12 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
 
 def warm_up(estimator: Any, device: str | torch.device = "cpu") -> None:
     """Estimate two simulated readings (one and two forces) so that first-call costs (per-rod caches, lazy
-    initialisation in torch) do not land on the first real reading's latency."""
+    initialisation in torch, the compiled march of :mod:`torchrod.model.compiled`) do not land on the first real
+    reading's latency."""
+    from ..model import compiled
     from ..model.body_frame import simulate
+
+    compiled.load()
 
     rod = estimator.rod
     L = rod.length

@@ -9,8 +9,13 @@ same order of floating-point operations, compiled: a test holds it to the Python
 rule and the tie-breaks are the ones those modules document.
 
 Numba is optional (``pip install torchrod[fast]``): without it, or with the environment variable
-``TORCHROD_NUMBA=0``, :func:`available` is False and the marches run as before. The kernels are compiled on first
-use (a second or two) and cached on disk next to this file where that is writable (Numba's ``cache=True``).
+``TORCHROD_NUMBA=0``, :func:`available` is False and the marches run as before. Loading the kernels costs a
+process about half a second (Numba's import and its on-disk cache, next to this file where that is writable;
+the first load after an install compiles them, a few seconds), more than a one-shot command on a few readings
+spends marching. So they load (:func:`load`) when a march too large for the Python numbers comes (on the NumPy
+backend such marches always take them), or when a long-running process asks: a stream's warm-up and the worker
+processes do. Until then the small marches run on the Python numbers, which give the same numbers bit for bit,
+so an answer does not depend on whether they had loaded.
 """
 
 from __future__ import annotations
@@ -18,11 +23,28 @@ from __future__ import annotations
 import functools
 import importlib.util
 import os
+import sys
 from typing import Any
 
 import numpy as np
 
-__all__ = ["available", "march_rows"]
+__all__ = ["available", "load", "loaded", "march_rows"]
+
+
+def load() -> bool:
+    """Load the kernels now (compiled, or from Numba's cache) and run them once, where :func:`available`; returns
+    whether they are loaded. For processes that will march many small batches: a stream, a worker, a loop over
+    single readings."""
+    if not available():
+        return False
+    march_rows(np.zeros(1), np.full((1, 1), 0.5), np.ones((1, 1), np.complex128), None, 1.0, 1.0,
+               np.zeros((1, 1, 2)), np.zeros((1, 1, 2, 3)), None, 0.3, 4)  # fmt: skip
+    return True
+
+
+def loaded() -> bool:
+    """Whether the kernels are loaded in this process (by :func:`load` or a large march)."""
+    return _kernels_module() is not None
 
 
 def available() -> bool:
@@ -88,3 +110,7 @@ def _kernel() -> Any:
     from . import _kernels  # imports Numba: only where the compiled march runs
 
     return _kernels.batch
+
+
+def _kernels_module() -> Any:
+    return sys.modules.get(__name__.rpartition(".")[0] + "._kernels")

@@ -9,7 +9,8 @@ from the rod's second grating to the tip, bending <= 90 degrees), Gaussian noise
 Per k: B = 1 (``--single`` readings estimated one after the other: mean, median and 90th percentile of the wall time
 per call, and the mean process CPU time, which a busy machine inflates less) and batched (``--batched`` readings in
 calls of ``--batch-size``: readings per second, wall and CPU). Count accuracy is printed as a sanity check. Every
-timing follows a warm-up call (per-rod caches: the grid bases of the starts); torch runs on ``--threads`` threads.
+timing follows a warm-up call (per-rod caches: the grid bases of the starts) and the compiled march's load where
+Numba is installed (:func:`torchrod.model.compiled.load`); torch runs on ``--threads`` threads.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import time
 import torch
 
 from ...estimate.estimator import Estimator, EstimatorOptions
+from ...model import compiled
 from ...presets import load as load_rod
 from . import SUITES
 
@@ -77,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
         f"{'forces':>6} | {'B=1 ms mean':>11} {'median':>7} {'p90':>7} {'cpu':>7} | {'batched rd/s':>12} "
         f"{'ms/rd':>7} {'cpu ms/rd':>9} | {'count ok':>8}"
     )
+    compiled.load()
     for k in (1, 2, 3, None):
         data = readings(rod, k, max(single, batched), args.noise, args.seed + (k or 0))
         curvature, mask = data.curvature, data.mask
