@@ -11,6 +11,7 @@ import torchrod.model.sensitivity as sens
 from torchrod.backend import NUMPY, torch_backend
 from torchrod.model import compiled, schedule
 from torchrod.model.body_frame import integrate_curvature, march_curvature, step_counts
+from torchrod.model.nystrom import METHODS
 from torchrod.model.sensitivity import curvature_and_jacobian, march, march_propagator
 
 F64 = torch.float64
@@ -317,3 +318,44 @@ def test_the_compiled_march_loads_for_large_marches_and_warm_ups_only(load):
         [sys.executable, "-c", _LOADING.format(load=load)], capture_output=True, text=True, timeout=300, check=True
     ).stdout.split("\n")
     assert out[:3] == ["one reading False", "loaded True", "same True"], out
+
+
+@pytest.mark.skipif(not compiled.available(), reason="Numba is not installed (pip install torchrod[fast])")
+def test_the_compiled_exact_model_rows_are_the_python_rows_bit_for_bit(rod, monkeypatch):
+    """The exact model's march (``march_curvature``: the "bound" step rule and a tableau's generic RKN steps)
+    compiled against its Python-number rows, exactly, for every tableau: 300 random batches as above, zero forces
+    (no kick), and NaN rows among finite ones; and against the arrays at a large batch, to rounding."""
+    assert compiled.load()
+    rng = np.random.default_rng(5)
+    q = rod.grating_positions().numpy()
+    methods, nan_rows = set(), 0
+    for _ in range(300):
+        h, B = int(rng.integers(0, 4)), int(rng.integers(1, 6))
+        s = rng.uniform(0.0, rod.length, (B, h))
+        if h >= 2 and rng.random() < 0.3:
+            s[:, 1] = s[:, 0]
+        if h and rng.random() < 0.3:
+            s[:, 0] = q[rng.integers(q.shape[0])]
+        if h and rng.random() < 0.1:
+            s[:, -1] = rod.length
+        f = rng.normal(0.0, rng.choice([0.1, 1.0, 10.0]), (B, h, 2))
+        if h and rng.random() < 0.2:
+            f[0, 0] = 0.0
+        if h and rng.random() < 0.1:
+            f[rng.integers(B), 0, 0] = np.nan
+            nan_rows += 1
+        method = str(rng.choice(sorted(METHODS)))
+        methods.add(method)
+        args = (NUMPY, q, s, f, rod.length, rod.bending_stiffness)
+        monkeypatch.setenv("TORCHROD_NUMBA", "0")
+        want = march_curvature(*args, method=method)
+        monkeypatch.setenv("TORCHROD_NUMBA", "1")
+        assert np.array_equal(march_curvature(*args, method=method), want, equal_nan=True)
+    assert methods == set(METHODS) and nan_rows > 10
+    s = rng.uniform(0.02, rod.length, (200, 3))
+    f = rng.normal(0.0, 0.5, (200, 3, 2))
+    args = (NUMPY, q, s, f, rod.length, rod.bending_stiffness)
+    got = march_curvature(*args)
+    monkeypatch.setenv("TORCHROD_NUMBA", "0")
+    arrays = march_curvature(*args)
+    assert np.abs(got - arrays).max() <= 1e-12 * np.abs(arrays).max()

@@ -13,8 +13,9 @@ _jit = numba.njit(cache=True, nogil=True)
 
 
 @_jit
-def schedule(query, s, jump, length, step_angle, max_steps, order, seg, steps):
-    # schedule.row(rule="estimate", skip=True), line for line.
+def schedule(query, s, jump, length, step_angle, max_steps, bound, order, seg, steps):
+    # schedule.row(rule="bound" if bound else "estimate", skip=True), line for line (for "bound", jump holds the
+    # magnitudes as complex numbers with zero imaginary parts: their sums are the real sums exactly).
     h = s.shape[0]
     E = h + query.shape[0]
     pos = np.empty(E)
@@ -49,9 +50,15 @@ def schedule(query, s, jump, length, step_angle, max_steps, order, seg, steps):
                 if x > 0.0:
                     a += jump[i] * x
                     m += jump[i]
-        ra = abs(a)
-        rm = math.sqrt(abs(m))
-        rate = ra if ra != ra or ra >= rm else rm
+        if bound:
+            rm = math.sqrt(m.real)
+            r2 = math.sqrt(2.0 * m.real)
+            lo = a.real if a.real <= r2 else r2
+            rate = lo if lo >= rm else rm
+        else:
+            ra = abs(a)
+            rm = math.sqrt(abs(m))
+            rate = ra if ra != ra or ra >= rm else rm
         need = rate * d / step_angle
         if need != need:
             steps[e] = 1
@@ -166,7 +173,85 @@ def batch(query, s, jump, active, length, ei, curvature, jacobian, propagator, F
         at = query[0] if query.shape[0] == 1 else query[b]
         if not (np.isfinite(at).all() and np.isfinite(s[b]).all() and np.isfinite(jump[b]).all()):
             continue
-        schedule(at, s[b], jump[b], length, step_angle, max_steps, order, seg, steps)
+        schedule(at, s[b], jump[b], length, step_angle, max_steps, False, order, seg, steps)
         row(order, seg, steps, jump[b], active[b], h, F, seeds, ei, curvature[b], jacobian[b],
             propagator[b] if seeds else propagator[0])  # fmt: skip
+        marched[b] = True
+
+
+@_jit
+def exact_rows(query, s, magnitude, jump, length, step_angle, max_steps, c, a, bp, bv, fsal, curvature, marched):
+    # body_frame.march_curvature's rows: schedule.row(rule="bound", skip=True), then nystrom._forward_generic on
+    # the tableau (c, a, bp, bv, fsal) with the slope jump after a force's last step: the same operations in the
+    # same order (each sum over a tableau row starts from its first nonzero term, as the Python one does).
+    B, h = s.shape
+    Q = query.shape[0]
+    S = c.shape[0]
+    E = h + Q
+    order = np.empty(E, np.int64)
+    seg = np.empty(E)
+    steps = np.empty(E, np.int64)
+    Ys = np.empty(S, np.complex128)
+    Gs = np.empty(S, np.complex128)
+    for b in range(B):
+        if not (np.isfinite(s[b]).all() and np.isfinite(jump[b]).all() and np.isfinite(magnitude[b]).all()):
+            continue
+        schedule(query, s[b], magnitude[b] + 0j, length, step_angle, max_steps, True, order, seg, steps)
+        U = 0j
+        W = 0j
+        stepped = False
+        carried = False
+        Gc = 0j
+        for e in range(E):
+            idx = order[e]
+            n = steps[e]
+            hstep = seg[e] / n if n else 0.0
+            h2 = hstep * hstep
+            for _ in range(n):
+                hW = hstep * W
+                Ys[0] = U
+                Gs[0] = Gc if carried else (U.real * U.real + U.imag * U.imag) * U
+                for i in range(1, S):
+                    acc = 0j
+                    first = True
+                    for j in range(i):
+                        if a[i, j] != 0.0:
+                            acc = a[i, j] * Gs[j] if first else acc + a[i, j] * Gs[j]
+                            first = False
+                    Y = U + c[i] * hW + h2 * acc
+                    G = (Y.real * Y.real + Y.imag * Y.imag) * Y
+                    if fsal and i == S - 1:
+                        Gc = G
+                        carried = True
+                    Ys[i] = Y
+                    Gs[i] = G
+                accv = 0j
+                first = True
+                for j in range(S):
+                    if bv[j] != 0.0:
+                        accv = bv[j] * Gs[j] if first else accv + bv[j] * Gs[j]
+                        first = False
+                W_new = W + hstep * accv
+                if fsal:
+                    U_new = Ys[S - 1]
+                else:
+                    accp = 0j
+                    first = True
+                    for j in range(S):
+                        if bp[j] != 0.0:
+                            accp = bp[j] * Gs[j] if first else accp + bp[j] * Gs[j]
+                            first = False
+                    U_new = U + hW + h2 * accp
+                U = U_new
+                W = W_new
+                stepped = True
+            if idx < h:
+                if n and jump[b, idx] != 0:
+                    W = W + jump[b, idx]
+            elif stepped:
+                curvature[b, idx - h, 0] = U.real
+                curvature[b, idx - h, 1] = U.imag
+            else:
+                curvature[b, idx - h, 0] = 0.0
+                curvature[b, idx - h, 1] = 0.0
         marched[b] = True

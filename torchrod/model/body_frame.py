@@ -45,7 +45,7 @@ import torch
 from ..backend import torch_backend
 from ..loads import PointForces, spread_to_nodes
 from ..rod import Rod
-from . import schedule
+from . import compiled, schedule
 from .nystrom import METHODS, Tableau, _forward_array, _forward_generic, _sq_complex, march
 
 __all__ = [
@@ -252,19 +252,26 @@ def march_curvature(
     """:func:`integrate_curvature` without autograd on a backend's arrays (:mod:`torchrod.backend`): curvature
     (B, Q, 2) [1/m] at ``query`` (Q,) for forces s (B, h) [m], f (B, h, 2) [N]. The same schedule and method; a few
     rows on NumPy (at most :data:`ROWS_MAX_BATCH`) run one at a time on Python numbers (no per-operation overhead),
-    the rest as arrays."""
+    the rest as arrays; where the compiled march runs (:mod:`torchrod.model.compiled`), every NumPy batch runs one
+    row at a time on it."""
     tab = _method(method, "exact")
     B, h = s.shape
     Q = query.shape[0]
     ei = float(bending_stiffness)
     fmag = xp.lib.sqrt((f * f).sum(-1)) / ei
     jump = xp.complex(-f[..., 1], f[..., 0]) / ei  # (B, h) slope jumps
-    if xp.name == "numpy" and B <= ROWS_MAX_BATCH:
+    if xp.name == "numpy" and (B <= ROWS_MAX_BATCH or compiled.available()):
         import numpy as np
 
-        out = np.empty((B, Q, 2))
+        out = np.zeros((B, Q, 2))
+        python = range(B)
+        if compiled.available() and (compiled.loaded() or B > ROWS_MAX_BATCH):
+            # The same march compiled (compiled.load; the small batches give the same numbers on either), every
+            # batch size; rows with a non-finite input stay on Python numbers.
+            marched = compiled.exact_rows(query, s, fmag, jump, length, max_step_angle, 64, tab, out)
+            python = np.flatnonzero(~marched).tolist()
         queries, positions, magnitudes, slopes = query.tolist(), s.tolist(), fmag.tolist(), jump.tolist()
-        for b in range(B):
+        for b in python:
             jumps = slopes[b]
             order, seg, counts = schedule.row(
                 queries,

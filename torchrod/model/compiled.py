@@ -1,12 +1,14 @@
-"""The one-row march of :mod:`torchrod.model.sensitivity` compiled with Numba, when Numba is installed.
+"""The one-row marches compiled with Numba, when Numba is installed: the estimator's tangent march
+(:mod:`torchrod.model.sensitivity`) and its exact model's march (:func:`torchrod.model.body_frame.march_curvature`).
 
 The estimator marches a few rows at a time most of the time (one reading's fits, the last rows of a batch still
-stepping), where arrays cost a fixed overhead per operation and the Python-number march
-(:func:`torchrod.model.sensitivity._row`) costs the interpreter's time per number. This module is the same march,
-with the same schedule (:func:`torchrod.model.schedule.row`, rule ``"estimate"``, unloaded events skipped), in the
-same order of floating-point operations, compiled: a test holds it to the Python-number march bit for bit
-(tests/test_sensitivity.py). It is a backend of that scheme, not a second scheme: the RKN coefficients, the step
-rule and the tie-breaks are the ones those modules document.
+stepping), where arrays cost a fixed overhead per operation and the Python-number marches
+(:func:`torchrod.model.sensitivity._row`, :func:`torchrod.model.nystrom._forward_generic`) cost the interpreter's
+time per number. This module runs those marches, on the same schedule (:func:`torchrod.model.schedule.row`, rules
+``"estimate"`` and ``"bound"``, unloaded events skipped), in the same order of floating-point operations,
+compiled: tests hold them to the Python-number marches bit for bit (tests/test_sensitivity.py). They are a backend
+of those schemes, not second schemes: the RKN coefficients (the exact model's from its tableau), the step rules and
+the tie-breaks are the ones those modules define.
 
 Numba is optional (``pip install torchrod[fast]``): without it, or with the environment variable
 ``TORCHROD_NUMBA=0``, :func:`available` is False and the marches run as before. Loading the kernels costs a
@@ -28,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["available", "load", "loaded", "march_rows"]
+__all__ = ["available", "exact_rows", "load", "loaded", "march_rows"]
 
 
 def load() -> bool:
@@ -104,6 +106,53 @@ def march_rows(
         marched,
     )
     return marched
+
+
+def exact_rows(
+    query: np.ndarray,
+    s: np.ndarray,
+    magnitude: np.ndarray,
+    jump: np.ndarray,
+    length: float,
+    step_angle: float,
+    max_steps: int,
+    tableau: Any,
+    curvature: np.ndarray,
+) -> np.ndarray:
+    """The exact model's one-row march (:func:`torchrod.model.body_frame.march_curvature`) of every row whose
+    inputs are finite, compiled, into ``curvature``.
+
+    Args:
+        query: (Q,) positions [m]; s: (B, h) force locations [m]; magnitude: (B, h) |f| / EI [1/m^2] (the
+            ``"bound"`` step rule's); jump: (B, h) complex slope jumps [1/m^2]; length: L [m];
+            tableau: the :class:`torchrod.model.nystrom.Tableau`; curvature: (B, Q, 2) out [1/m].
+    Returns:
+        (B,) bool: the rows marched (the others are left to the caller).
+    """
+    from . import _kernels
+
+    B, h = s.shape
+    marched = np.zeros(B, np.bool_)
+    _kernels.exact_rows(
+        np.ascontiguousarray(query, np.float64),
+        np.ascontiguousarray(s, np.float64),
+        np.ascontiguousarray(magnitude, np.float64),
+        np.ascontiguousarray(jump, np.complex128),
+        float(length),
+        float(step_angle),
+        int(max_steps),
+        *_tableau_arrays(tableau),
+        curvature,
+        marched,
+    )
+    return marched
+
+
+@functools.cache
+def _tableau_arrays(tableau: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+    """(c, a, bp, bv, fsal) of a tableau as the kernel takes them (a few tableaus exist: made once each)."""
+    c, bp, bv = (np.asarray(x, np.float64) for x in (tableau.c, tableau.bp, tableau.bv))
+    return c, tableau.matrix(), bp, bv, bool(tableau.fsal)
 
 
 def _kernel() -> Any:
