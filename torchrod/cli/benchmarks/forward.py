@@ -193,7 +193,7 @@ def _paths(rod: Rod, seed: int, min_time: float, repeats: int) -> None:
     step = sensitivity.ESTIMATION_STEP_ANGLE
     three = readings(rod, 3, sizes[-1], 0.0, seed).loads  # the estimator's envelope; the first h of 3 forces
     s_all, f_all = three.s.numpy(), three.f.numpy()
-    fast = compiled.available()
+    fast = compiled.load()  # loaded now: the small batches would run on the Python rows until something loads it
     width = 17 if fast else 11
     print(
         "forward-sensitivity march, ms per call: arrays / rows (one at a time)"
