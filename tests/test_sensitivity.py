@@ -247,6 +247,27 @@ def test_the_one_row_schedule_is_the_array_schedule(rod):
         schedule.row([0.1], [0.2], [1j], rod.length, step_angle=0.3, max_steps=64, rule="guess", skip=False)
 
 
+def _random_forces(rng, rod, q, zero: float = 0.0) -> tuple[np.ndarray, np.ndarray, bool]:
+    """A batch of 1-5 rows of 0-3 forces from 0.1 to 10 N (past the step cap): ties between forces, forces on
+    gratings and at the tip, with probability ``zero`` a zero force, and with probability 0.1 a NaN in one row.
+    Returns s (B, h) [m], f (B, h, 2) [N] and whether a NaN was put in."""
+    h, B = int(rng.integers(0, 4)), int(rng.integers(1, 6))
+    s = rng.uniform(0.0, rod.length, (B, h))
+    if h >= 2 and rng.random() < 0.3:
+        s[:, 1] = s[:, 0]
+    if h and rng.random() < 0.3:
+        s[:, 0] = q[rng.integers(q.shape[0])]
+    if h and rng.random() < 0.1:
+        s[:, -1] = rod.length
+    f = rng.normal(0.0, rng.choice([0.1, 1.0, 10.0]), (B, h, 2))
+    if h and rng.random() < zero:
+        f[0, 0] = 0.0
+    nan = bool(h and rng.random() < 0.1)
+    if nan:
+        f[rng.integers(B), 0, 0] = np.nan
+    return s, f, nan
+
+
 @pytest.mark.skipif(not compiled.available(), reason="Numba is not installed (pip install torchrod[fast])")
 def test_the_compiled_rows_are_the_python_rows_bit_for_bit(rod, monkeypatch):
     """The Numba march (schedule and steps) against the Python-number march, exactly: 300 random batches of 0 to 3
@@ -258,18 +279,8 @@ def test_the_compiled_rows_are_the_python_rows_bit_for_bit(rod, monkeypatch):
     q = rod.grating_positions().numpy()
     compared = nan_rows = 0
     for _ in range(300):
-        h, B = int(rng.integers(0, 4)), int(rng.integers(1, 6))
-        s = rng.uniform(0.0, rod.length, (B, h))
-        if h >= 2 and rng.random() < 0.3:
-            s[:, 1] = s[:, 0]
-        if h and rng.random() < 0.3:
-            s[:, 0] = q[rng.integers(q.shape[0])]
-        if h and rng.random() < 0.1:
-            s[:, -1] = rod.length
-        f = rng.normal(0.0, rng.choice([0.1, 1.0, 10.0]), (B, h, 2))
-        if h and rng.random() < 0.1:
-            f[rng.integers(B), 0, 0] = np.nan
-            nan_rows += 1
+        s, f, nan = _random_forces(rng, rod, q)
+        h, B, nan_rows = s.shape[1], s.shape[0], nan_rows + nan
         active = None if rng.random() < 0.5 else rng.random((B, h)) > 0.3
         query = q if rng.random() < 0.5 else rng.uniform(0.0, rod.length, (B, 20))
         jacobian, seeds = bool(h and rng.random() < 0.8), bool(rng.random() < 0.4)
@@ -330,20 +341,8 @@ def test_the_compiled_exact_model_rows_are_the_python_rows_bit_for_bit(rod, monk
     q = rod.grating_positions().numpy()
     methods, nan_rows = set(), 0
     for _ in range(300):
-        h, B = int(rng.integers(0, 4)), int(rng.integers(1, 6))
-        s = rng.uniform(0.0, rod.length, (B, h))
-        if h >= 2 and rng.random() < 0.3:
-            s[:, 1] = s[:, 0]
-        if h and rng.random() < 0.3:
-            s[:, 0] = q[rng.integers(q.shape[0])]
-        if h and rng.random() < 0.1:
-            s[:, -1] = rod.length
-        f = rng.normal(0.0, rng.choice([0.1, 1.0, 10.0]), (B, h, 2))
-        if h and rng.random() < 0.2:
-            f[0, 0] = 0.0
-        if h and rng.random() < 0.1:
-            f[rng.integers(B), 0, 0] = np.nan
-            nan_rows += 1
+        s, f, nan = _random_forces(rng, rod, q, zero=0.2)
+        nan_rows += nan
         method = str(rng.choice(sorted(METHODS)))
         methods.add(method)
         args = (NUMPY, q, s, f, rod.length, rod.bending_stiffness)

@@ -180,6 +180,18 @@ def batch(query, s, jump, active, length, ei, curvature, jacobian, propagator, F
 
 
 @_jit
+def _weighted(w, G, n):
+    # sum_{j < n} w_j G_j over the nonzero w_j, from the first term on: nystrom._forward_generic's sums exactly.
+    acc = 0j
+    first = True
+    for j in range(n):
+        if w[j] != 0.0:
+            acc = w[j] * G[j] if first else acc + w[j] * G[j]
+            first = False
+    return acc
+
+
+@_jit
 def exact_rows(query, s, magnitude, jump, length, step_angle, max_steps, c, a, bp, bv, fsal, curvature, marched):
     # body_frame.march_curvature's rows: schedule.row(rule="bound", skip=True), then nystrom._forward_generic on
     # the tableau (c, a, bp, bv, fsal) with the slope jump after a force's last step: the same operations in the
@@ -212,36 +224,18 @@ def exact_rows(query, s, magnitude, jump, length, step_angle, max_steps, c, a, b
                 Ys[0] = U
                 Gs[0] = Gc if carried else (U.real * U.real + U.imag * U.imag) * U
                 for i in range(1, S):
-                    acc = 0j
-                    first = True
-                    for j in range(i):
-                        if a[i, j] != 0.0:
-                            acc = a[i, j] * Gs[j] if first else acc + a[i, j] * Gs[j]
-                            first = False
-                    Y = U + c[i] * hW + h2 * acc
+                    Y = U + c[i] * hW + h2 * _weighted(a[i], Gs, i)
                     G = (Y.real * Y.real + Y.imag * Y.imag) * Y
                     if fsal and i == S - 1:
                         Gc = G
                         carried = True
                     Ys[i] = Y
                     Gs[i] = G
-                accv = 0j
-                first = True
-                for j in range(S):
-                    if bv[j] != 0.0:
-                        accv = bv[j] * Gs[j] if first else accv + bv[j] * Gs[j]
-                        first = False
-                W_new = W + hstep * accv
+                W_new = W + hstep * _weighted(bv, Gs, S)
                 if fsal:
                     U_new = Ys[S - 1]
                 else:
-                    accp = 0j
-                    first = True
-                    for j in range(S):
-                        if bp[j] != 0.0:
-                            accp = bp[j] * Gs[j] if first else accp + bp[j] * Gs[j]
-                            first = False
-                    U_new = U + hW + h2 * accp
+                    U_new = U + hW + h2 * _weighted(bp, Gs, S)
                 U = U_new
                 W = W_new
                 stepped = True
