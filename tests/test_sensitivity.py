@@ -358,3 +358,35 @@ def test_the_compiled_exact_model_rows_are_the_python_rows_bit_for_bit(rod, monk
     monkeypatch.setenv("TORCHROD_NUMBA", "0")
     arrays = march_curvature(*args)
     assert np.abs(got - arrays).max() <= 1e-12 * np.abs(arrays).max()
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_compiled_marches_that_cannot_run_warn_once_and_march_without(rod, gen, monkeypatch):
+    """An incompatible Numba (here: kernels missing from their module) costs a warning, once: that march's rows go
+    to the Python numbers, the next marches to the arrays, each with its path's own numbers."""
+    import sys
+    import types
+
+    import torchrod.model
+
+    broken = types.ModuleType("torchrod.model._kernels")
+    monkeypatch.setitem(sys.modules, "torchrod.model._kernels", broken)
+    monkeypatch.setattr(torchrod.model, "_kernels", broken, raising=False)
+    monkeypatch.setattr(compiled, "_installed", lambda: True)
+    monkeypatch.setattr(compiled, "_failure", None)
+    monkeypatch.setenv("TORCHROD_NUMBA", "1")
+    q = rod.grating_positions().numpy()
+    s = 0.03 + 0.26 * torch.rand(40, 3, dtype=F64, generator=gen).numpy()
+    f = 0.8 * torch.randn(40, 3, 2, dtype=F64, generator=gen).numpy()
+    args = (NUMPY, q, s, f, rod.length, rod.bending_stiffness)
+    with pytest.warns(RuntimeWarning, match="compiled marches could not run"):
+        first = march(*args)
+    assert not compiled.available() and "AttributeError" in compiled._failure
+    second = march(*args)  # no warning: pytest's filter below turns one into an error
+    monkeypatch.setenv("TORCHROD_NUMBA", "0")
+    monkeypatch.setattr(sens, "SCALAR_WORK", 10**6)
+    rows = march(*args)
+    monkeypatch.setattr(sens, "SCALAR_WORK", 0)
+    arrays = march(*args)
+    assert all(np.array_equal(a, b) for a, b in zip(first, rows, strict=True))
+    assert all(np.array_equal(a, b) for a, b in zip(second, arrays, strict=True))

@@ -26,6 +26,7 @@ import functools
 import importlib.util
 import os
 import sys
+import warnings
 from typing import Any
 
 import numpy as np
@@ -39,9 +40,12 @@ def load() -> bool:
     single readings."""
     if not available():
         return False
-    march_rows(np.zeros(1), np.full((1, 1), 0.5), np.ones((1, 1), np.complex128), None, 1.0, 1.0,
-               np.zeros((1, 1, 2)), np.zeros((1, 1, 2, 3)), None, 0.3, 4)  # fmt: skip
-    return True
+    from .nystrom import RKN4
+
+    one, jump = np.full((1, 1), 0.5), np.ones((1, 1), np.complex128)
+    march_rows(np.zeros(1), one, jump, None, 1.0, 1.0, np.zeros((1, 1, 2)), np.zeros((1, 1, 2, 3)), None, 0.3, 4)
+    exact_rows(np.zeros(1), one, one, jump, 1.0, 0.3, 4, RKN4, np.zeros((1, 1, 2)))
+    return available()  # False where the kernels failed to load
 
 
 def loaded() -> bool:
@@ -50,8 +54,35 @@ def loaded() -> bool:
 
 
 def available() -> bool:
-    """Whether the compiled march runs here: Numba is installed and ``TORCHROD_NUMBA`` is not ``0``."""
-    return os.environ.get("TORCHROD_NUMBA", "1") != "0" and _installed()
+    """Whether the compiled march runs here: Numba is installed, ``TORCHROD_NUMBA`` is not ``0``, and the kernels
+    have not failed to load (an incompatible Numba: then a warning says why, once, and the marches run as without
+    Numba)."""
+    return os.environ.get("TORCHROD_NUMBA", "1") != "0" and _failure is None and _installed()
+
+
+_failure: str | None = None  # why the kernels could not load, once they could not
+
+
+def _run(name: str, *args: Any) -> bool:
+    """Call kernel ``name`` of :mod:`._kernels`; False (with a warning, and :func:`available` False from then on)
+    where the kernels cannot be imported or compiled here."""
+    global _failure
+    if _failure is not None:
+        return False
+    try:
+        from . import _kernels
+
+        getattr(_kernels, name)(*args)
+    except Exception as exc:  # noqa: BLE001 - whatever an incompatible Numba raises, the marches go on without it
+        _failure = f"{type(exc).__name__}: {exc}"
+        warnings.warn(
+            f"torchrod: the compiled marches could not run ({_failure}); marching without them "
+            "(set TORCHROD_NUMBA=0 to skip them)",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        return False
+    return True
 
 
 @functools.cache
@@ -81,15 +112,15 @@ def march_rows(
         curvature: (B, Q, 2) out [1/m]; jacobian: (B, Q, 2, F) out, F = 3 h (None: no Jacobian); propagator:
             (B, Q, 4, 4) out (None: no seeds); their layouts are :func:`torchrod.model.sensitivity._march_rows`'s.
     Returns:
-        (B,) bool: the rows marched. The others (a non-finite input, whose schedule NaN orders) are left to the
-        caller, their outputs untouched.
+        (B,) bool: the rows marched. The others (a non-finite input, whose schedule NaN orders; every row where the
+        kernels cannot run) are left to the caller, their outputs untouched.
     """
-    kernel = _kernel()
     B, h = s.shape
     queries = query[None, :] if query.ndim == 1 else query
     F = 0 if jacobian is None else jacobian.shape[-1]
     marched = np.zeros(B, np.bool_)
-    kernel(
+    _run(
+        "batch",
         np.ascontiguousarray(queries, np.float64),
         np.ascontiguousarray(s, np.float64),
         np.ascontiguousarray(jump, np.complex128),
@@ -129,11 +160,10 @@ def exact_rows(
     Returns:
         (B,) bool: the rows marched (the others are left to the caller).
     """
-    from . import _kernels
-
     B, h = s.shape
     marched = np.zeros(B, np.bool_)
-    _kernels.exact_rows(
+    _run(
+        "exact_rows",
         np.ascontiguousarray(query, np.float64),
         np.ascontiguousarray(s, np.float64),
         np.ascontiguousarray(magnitude, np.float64),
@@ -153,12 +183,6 @@ def _tableau_arrays(tableau: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
     """(c, a, bp, bv, fsal) of a tableau as the kernel takes them (a few tableaus exist: made once each)."""
     c, bp, bv = (np.asarray(x, np.float64) for x in (tableau.c, tableau.bp, tableau.bv))
     return c, tableau.matrix(), bp, bv, bool(tableau.fsal)
-
-
-def _kernel() -> Any:
-    from . import _kernels  # imports Numba: only where the compiled march runs
-
-    return _kernels.batch
 
 
 def _kernels_module() -> Any:
