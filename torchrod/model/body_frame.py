@@ -265,11 +265,13 @@ def march_curvature(
 
         out = np.zeros((B, Q, 2))
         python = range(B)
-        if compiled.available() and (compiled.loaded() or B > ROWS_MAX_BATCH):
-            # The same march compiled (compiled.load; the small batches give the same numbers on either), every
-            # batch size; rows with a non-finite input stay on Python numbers.
+        if compiled.takes(B > ROWS_MAX_BATCH):
+            # The same march compiled (the small batches give the same numbers on either), every batch size; rows
+            # with a non-finite input stay on Python numbers.
             marched = compiled.exact_rows(query, s, fmag, jump, length, max_step_angle, 64, tab, out)
             python = np.flatnonzero(~marched).tolist()
+        if not len(python):
+            return out
         queries, positions, magnitudes, slopes = query.tolist(), s.tolist(), fmag.tolist(), jump.tolist()
         for b in python:
             jumps = slopes[b]

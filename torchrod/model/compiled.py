@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["available", "exact_rows", "load", "loaded", "march_rows"]
+__all__ = ["available", "exact_rows", "load", "loaded", "march_rows", "takes"]
 
 
 def load() -> bool:
@@ -63,16 +63,24 @@ def available() -> bool:
 _failure: str | None = None  # why the kernels could not load, once they could not
 
 
-def _run(name: str, *args: Any) -> bool:
-    """Call kernel ``name`` of :mod:`._kernels`; False (with a warning, and :func:`available` False from then on)
-    where the kernels cannot be imported or compiled here."""
+def takes(large: bool) -> bool:
+    """Whether a NumPy march runs compiled: where :func:`available`, once the kernels are loaded, or for a march
+    too ``large`` for the Python numbers (which loads them). The one loading policy of both marches."""
+    return available() and (large or loaded())
+
+
+def _run(name: str, rows: int, *args: Any) -> np.ndarray:
+    """Call kernel ``name`` of :mod:`._kernels` on a batch of ``rows`` rows, with ``args`` and then the (rows,)
+    bool array it marks the rows it marched in; returned. None marched (with a warning, and :func:`available`
+    False from then on) where the kernels cannot be imported or compiled here."""
     global _failure
+    marched = np.zeros(rows, np.bool_)
     if _failure is not None:
-        return False
+        return marched
     try:
         from . import _kernels
 
-        getattr(_kernels, name)(*args)
+        getattr(_kernels, name)(*args, marched)
     except Exception as exc:  # noqa: BLE001 - whatever an incompatible Numba raises, the marches go on without it
         _failure = f"{type(exc).__name__}: {exc}"
         warnings.warn(
@@ -81,8 +89,7 @@ def _run(name: str, *args: Any) -> bool:
             RuntimeWarning,
             stacklevel=3,
         )
-        return False
-    return True
+    return marched
 
 
 @functools.cache
@@ -118,9 +125,9 @@ def march_rows(
     B, h = s.shape
     queries = query[None, :] if query.ndim == 1 else query
     F = 0 if jacobian is None else jacobian.shape[-1]
-    marched = np.zeros(B, np.bool_)
-    _run(
+    return _run(
         "batch",
+        B,
         np.ascontiguousarray(queries, np.float64),
         np.ascontiguousarray(s, np.float64),
         np.ascontiguousarray(jump, np.complex128),
@@ -134,9 +141,7 @@ def march_rows(
         propagator is not None,
         float(step_angle),
         int(max_steps),
-        marched,
     )
-    return marched
 
 
 def exact_rows(
@@ -160,10 +165,9 @@ def exact_rows(
     Returns:
         (B,) bool: the rows marched (the others are left to the caller).
     """
-    B, h = s.shape
-    marched = np.zeros(B, np.bool_)
-    _run(
+    return _run(
         "exact_rows",
+        s.shape[0],
         np.ascontiguousarray(query, np.float64),
         np.ascontiguousarray(s, np.float64),
         np.ascontiguousarray(magnitude, np.float64),
@@ -173,9 +177,7 @@ def exact_rows(
         int(max_steps),
         *_tableau_arrays(tableau),
         curvature,
-        marched,
     )
-    return marched
 
 
 @functools.cache

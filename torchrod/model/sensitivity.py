@@ -322,9 +322,9 @@ def _march_rows(query, s, f, length, ei, active, jacobian, seeds, step_angle, ma
     phi = np.zeros((B, Q, 4, 4)) if seeds else None
     jump = _jumps(NUMPY, f, active, ei)
     python = range(B)
-    if compiled.available() and (compiled.loaded() or march_work(B, F + 4 * seeds) > SCALAR_WORK):
-        # The same march compiled (loaded for a march too large for the Python numbers, or by compiled.load; the
-        # smaller ones give the same numbers on either); rows with a non-finite input stay on Python numbers.
+    if compiled.takes(march_work(B, F + 4 * seeds) > SCALAR_WORK):
+        # The same march compiled (the smaller marches give the same numbers on either); rows with a non-finite
+        # input stay on Python numbers.
         marched = compiled.march_rows(query, s, jump, active, length, ei, curv, jac, phi, step_angle, max_steps)
         python = np.flatnonzero(~marched).tolist()
     if not len(python):
