@@ -443,6 +443,23 @@ def test_cli_jsonl_with_bad_lines(rod, tmp_path, capsys):
     assert "7 readings, 4 errors" in cap.err and "latency median" in cap.err and "solve time" in cap.err
 
 
+def test_cli_freezes_what_it_set_up_and_gives_it_back(rod, tmp_path, capsys, monkeypatch):
+    """``torchrod stream`` moves what it set up out of the garbage collector's full collections before the
+    readings come (``commands.settle``), and :func:`main` gives it back when the command returns, so a process that
+    calls it, as this test does, goes on as before."""
+    import gc
+
+    frozen = []
+    freeze = gc.freeze
+    monkeypatch.setattr(gc, "freeze", lambda: (freeze(), frozen.append(gc.get_freeze_count())))
+    path = tmp_path / "in.jsonl"
+    path.write_text("".join(json.dumps(x) + "\n" for x in _one_force_lines(rod, 2)))
+    args = ["stream", "--rod", "nitinol290", "--checkpoint", "none", "--noise", str(NOISE), "--input", str(path)]
+    assert main(args) == 0
+    assert len(capsys.readouterr().out.splitlines()) == 2
+    assert len(frozen) == 1 and frozen[0] > 0 and gc.get_freeze_count() == 0
+
+
 def test_cli_csv_with_header_and_missing_gratings(rod, tmp_path, capsys):
     good = _one_force_lines(rod, 3)
     G = rod.num_gratings

@@ -8,6 +8,7 @@ only when their subcommand runs, and ``import torchrod`` loads nothing heavy, so
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import sys
 import textwrap
@@ -102,6 +103,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         # one line, no traceback.
         print(f"torchrod {name}: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        gc.unfreeze()  # what the command froze (commands.settle) is the collector's again: main() may be called in a
+        # process that goes on (a test, a script)
 
 
 if __name__ == "__main__":  # pragma: no cover

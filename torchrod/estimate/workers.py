@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import gc
 import multiprocessing
 import os
 import pickle
@@ -141,6 +142,7 @@ def _init_worker(payload: str | bytes, warm: bool) -> None:
         from ..io.stream import warm_up
 
         warm_up(_ESTIMATOR)
+    gc.freeze()  # what the worker is made of, out of the collector's full collections (cli.commands.settle)
 
 
 def _ready() -> int:

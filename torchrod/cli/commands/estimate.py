@@ -70,7 +70,7 @@ from ...io.jsonl import LineWriter, check_input, open_output, until_interrupted
 from ...io.readings import FORMATS, Reading, ReadingSource, stack_readings
 from ...presets import load as load_rod
 from ...rod import Rod
-from . import add_sensor_options, add_time_budget_option, check_estimation_options, sensor_noise, time_budget
+from . import add_sensor_options, add_time_budget_option, check_estimation_options, sensor_noise, settle, time_budget
 
 HELP = "forces from FBG curvature readings (JSON lines in, JSON lines out)"
 
@@ -217,6 +217,7 @@ def _run(args: argparse.Namespace) -> int:
     solver = ParallelEstimator(estimator, processes)
     if device.type == "cpu":
         solver.warm()  # the workers start while the first batch is read
+    settle()
     readings = ReadingSource(
         args.readings, rod.num_gratings, rod.gratings, args.format, quantity=args.csv_quantity, fibre=rod.fibre
     )

@@ -100,7 +100,7 @@ from ...io.readings import ReadingSource
 from ...io.stream import StreamOptions, StreamResult, StreamStats, stream, warm_up
 from ...presets import load as load_rod
 from ...rod import Rod
-from . import add_sensor_options, add_time_budget_option, check_estimation_options, sensor_noise, time_budget
+from . import add_sensor_options, add_time_budget_option, check_estimation_options, sensor_noise, settle, time_budget
 from .estimate import add_workers_option, check_counts, check_workers, load_network, trusting
 
 HELP = "amortised estimation on a stream of readings"
@@ -279,6 +279,7 @@ def _run(args: argparse.Namespace) -> int:
     )
     # Warm-up before the first reading: per-rod caches and first-call costs would otherwise land on its latency.
     warm_up(estimator)
+    settle()
     source = read_stream(args.input, rod, args.format, quantity=args.csv_quantity, topic=args.topic)
     with open_output(args.out, [args.input]) as out, _bag(args.output_bag, args.max_forces) as bag:
         return _answer(args, estimator, options, source, LineWriter(out), truth, bag)
