@@ -227,6 +227,27 @@ def test_to_reading_never_raises_and_keeps_ids_it_can_echo():
         assert r.id is None or r.id == "r"
 
 
+def test_a_reading_checked_here_is_not_checked_again():
+    """:func:`to_reading` takes a reading the checks made (:func:`parse_reading`, a file's readings) as it is: a
+    stream reads each line through them, then takes what they yield through :func:`to_reading`. A reading made
+    otherwise or changed (:func:`dataclasses.replace` makes a new one), or one for a rod with another number of
+    gratings, is checked."""
+    import dataclasses
+    import io
+
+    from torchrod.io.readings import iter_readings
+
+    r = parse_reading({"id": "a", "curvature": pairs(1, 2)}, G)
+    assert to_reading(r, G) is r and "_checked" not in repr(r)
+    (read,) = iter_readings(io.StringIO(json.dumps({"id": "b", "curvature": pairs(1, 2)}) + "\n"), G)
+    assert to_reading(read, G) is read and read.line == 1
+    changed = dataclasses.replace(r, curvature=torch.full((G, 2), math.inf))
+    assert "must be finite" in to_reading(changed, G).error
+    assert "shape (4, 2)" in to_reading(r, G + 1).error
+    made = Reading("c", torch.tensor(pairs(1, 2), dtype=torch.float64))
+    assert to_reading(made, G) is not made and to_reading(made, G).ok
+
+
 def test_csv_rows_read_like_json_lines():
     row = ["a", "0.5", "1", "2", "", "", "0.5", "-1e4"]
     r = parse_csv_row(row, G, line=3)

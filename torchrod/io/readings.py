@@ -643,7 +643,16 @@ def parse_reading(
         check_gratings(obj["gratings"], gratings)
     curvature = reading_curvature(obj, num_gratings, fibre)
     t = check_time(obj.get("t"))
-    return Reading(ident, curvature, t, None, line)
+    return _checked(Reading(ident, curvature, t, None, line))
+
+
+def _checked(reading: Reading) -> Reading:
+    """``reading``, marked as made here from input that passed every check (a flag outside the dataclass's fields:
+    equality, ``repr`` and :func:`dataclasses.replace` ignore it), so that :func:`to_reading` need not check it
+    again: a stream reads each line through a :class:`ReadingSource`, then takes what it yields through
+    :func:`to_reading`, and the second check cost as much again."""
+    object.__setattr__(reading, "_checked", True)
+    return reading
 
 
 def _given_error(error: Any) -> str:
@@ -659,6 +668,8 @@ def to_reading(item: Any, num_gratings: int, gratings: Sequence[float] | None = 
     (float64 CPU curvature), or one with ``error`` set. Never raises (the Python stream API's entry point).
     ``fibre``: the rod's (:class:`torchrod.sensors.Fibre`), for readings that give core strains."""
     if isinstance(item, Reading):
+        if item.__dict__.get("_checked") and item.curvature.shape[0] == num_gratings:
+            return item  # made by the checks below, for a rod with as many gratings
         if item.error is not None:
             ident = item.id if id_problem(item.id) is None else None
             return replace(item, id=ident, curvature=None, error=_given_error(item.error))
@@ -733,7 +744,7 @@ def parse_csv_row(
                     "grating empty"
                 )
         rows.append(values)
-    return Reading(ident, reading_curvature({key: rows}, G, fibre), t, None, line)
+    return _checked(Reading(ident, reading_curvature({key: rows}, G, fibre), t, None, line))
 
 
 def _csv_cells(text: str) -> list[str]:
@@ -817,7 +828,7 @@ def iter_readings(
         return
     for record in parse_records(lines, lambda obj: parse_reading(obj, num_gratings, gratings, fibre=fibre)):
         if record.ok and record.value is not None:
-            yield replace(record.value, line=record.line)
+            yield _checked(replace(record.value, line=record.line))
         else:
             yield Reading(record.id, error=record.error, line=record.line)
 
