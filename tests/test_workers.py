@@ -101,11 +101,25 @@ def test_two_processes_give_the_in_process_answers(estimator, parallel):
     )
 
 
+def test_chunks_are_solved_here_while_the_workers_start_if_asked(estimator):
+    """``wait_for_workers=False`` (``torchrod estimate``): a batch that comes while the workers are still starting
+    (seconds) is solved in this process in the same chunks, so with the same answers bit for bit; it starts the pool
+    and hands nothing to it. By default the call waits for the workers, which then solve their chunks."""
+    u, m, _ = _trajectory(16)
+    expected = concat_results([estimator.estimate(u[:8], m[:8]), estimator.estimate(u[8:], m[8:])])
+    with ParallelEstimator(estimator, 2) as par:
+        _assert_identical(par.estimate(u, m, wait_for_workers=False), expected)
+        assert par._pool is not None and par._chunks_out == [] and par.starting()
+        _assert_identical(par.estimate(u, m), expected)  # waits for the worker
+        assert len(par._chunks_out) == 1 and not par.starting()
+
+
 def test_small_batches_stay_in_process(estimator):
     u, m, _ = _trajectory(15)
     par = ParallelEstimator(estimator, 2)
     _assert_identical(par.estimate(u, m), estimator.estimate(u, m))
     assert par._pool is None  # 15 readings: no chunk of 8 for a second process, so no pool was started
+    assert not ParallelEstimator(estimator, 1).starting()  # one process: nothing ever starts
     assert par._plan(16) == [(0, 8), (8, 16)] and par._plan(101) == [(0, 50), (50, 101)]
     assert ParallelEstimator(estimator, 3)._plan(24) == [(0, 8), (8, 16), (16, 24)]
 
@@ -161,7 +175,9 @@ def test_workers_read_the_estimator_from_a_private_file_removed_with_its_owner()
     est = tr.Estimator(rod, tr.EstimatorOptions(noise=NOISE), warm_start=WarmStart.load(SHIPPED_CHECKPOINT, rod))
     u, m, _ = _trajectory(16, seed=4)
     par = ParallelEstimator(est, 2)
+    assert par.starting() and par._pool is not None  # asked with no pool: it starts one
     par.warm(wait=True)
+    assert not par.starting()
     path = par._payload_argument()
     assert len(par._payload) > 2**16  # more than a pipe holds
     assert os.stat(path).st_mode & 0o077 == 0
@@ -517,6 +533,67 @@ def _has_option(command: str, option: str) -> bool:
     parser = argparse.ArgumentParser()
     importlib.import_module(f"torchrod.cli.commands.{command}").configure(parser)
     return option in parser._option_string_actions
+
+
+class _Starting:
+    """A stand-in for the stream's :class:`ParallelEstimator` whose workers are starting until ``ready`` is set: its
+    own estimate records each batch it is given (solved by the wrapped estimator, in this process)."""
+
+    ready = False
+    given: list[int] = []
+
+    def __init__(self, estimator, processes):
+        self.estimator, self.processes, self.min_chunk = estimator, processes, 8
+
+    def starting(self):
+        return not _Starting.ready
+
+    def estimate(self, curvature, mask=None, **kwargs):
+        _Starting.given.append(curvature.shape[0])
+        return self.estimator.estimate(curvature, mask, **kwargs)
+
+    def warm(self):
+        pass
+
+    def idle(self):
+        return False
+
+    def full(self):
+        return False
+
+    def close(self):
+        pass
+
+
+@pytest.mark.parametrize("track", [False, True])
+def test_a_stream_solves_alone_while_its_workers_start(estimator, monkeypatch, track):
+    """Until the workers are ready a stream solves its batches in its own process, and a batch holds what one
+    process solves (``batch_size``): split over workers still starting, it waited seconds for them, this process
+    idle. Once they are ready, the batches hold ``workers`` x ``batch_size`` and go to them. With ``track`` the
+    batches keep their size throughout (their ends decide the tracking starts)."""
+    import torchrod.estimate.workers as workers_module
+
+    monkeypatch.setattr(workers_module, "ParallelEstimator", _Starting)
+    monkeypatch.setattr(_Starting, "ready", False)
+    monkeypatch.setattr(_Starting, "given", [])
+    u, m, _ = _trajectory(64)
+    items = [Reading(k, torch.where(m[k].unsqueeze(-1), u[k], math.nan)) for k in range(64)]
+    options = StreamOptions(batch_size=8, workers=2, read_ahead=64, track=track, max_latency=60.0)
+    results = stream(estimator, items, options)
+    first = [next(results) for _ in range(24)]
+    assert _Starting.given == []  # nothing handed to the workers while they start
+    assert max(r.batch for r in first) == (16 if track else 8)
+    _Starting.ready = True
+    rest = list(results)
+    assert [r.id for r in first + rest] == list(range(64))
+    # Ready: twice the batch (the last one what is left), to the workers.
+    # (With track the first 24 answers took two batches of 16: the last 8 of them come with the rest.)
+    assert _Starting.given == ([16, 16] if track else [16, 16, 8])
+    one = StreamOptions(batch_size=8 * (2 if track else 1), track=track, max_latency=60.0)  # (full batches)
+    alone = list(stream(estimator, items, one))
+    for a, b in zip(alone[:24], first, strict=True):
+        assert a.record["num_forces"] == b.record["num_forces"] and a.record["status"] == b.record["status"]
+        assert a.record["loss"] == pytest.approx(b.record["loss"], rel=1e-6)
 
 
 def test_cli_stream_with_two_workers_answers_as_one(tmp_path, capsys):

@@ -399,11 +399,17 @@ class ParallelEstimator:
         mask: torch.Tensor | None = None,
         *,
         extra_starts: Mapping[int, PointForces] | None = None,
+        wait_for_workers: bool = True,
         **overrides: Any,
     ) -> EstimateResult:
         """:meth:`Estimator.estimate <torchrod.estimate.estimator.Estimator.estimate>` (same arguments: curvature
         (B, G, 2) [1/m], mask (B, G) bool or None, extra_starts {h: PointForces (B, h)} in reported coordinates,
         EstimatorOptions overrides), the B rows spread over the processes in contiguous chunks.
+
+        ``wait_for_workers`` False: while the workers are still starting (:meth:`starting`: seconds), solve every
+        chunk in this process instead of waiting for them; the same chunks, so the same answers. For a caller
+        that sends batch after batch (``torchrod estimate`` on a file): its first batches do not wait, and the
+        workers join once ready. One large batch is faster waited for.
 
         Returns:
             the :class:`EstimateResult` of the B readings, in order (the chunks' results joined).
@@ -417,15 +423,7 @@ class ParallelEstimator:
             return self.estimator.estimate(curvature, mask, extra_starts=extra_starts, **overrides)
         futures: list[concurrent.futures.Future | None] = []
         try:
-            try:
-                pool = self._ensure_pool()
-                for chunk in chunks[1:]:
-                    futures.append(pool.submit(_solve_chunk, *self._packed(chunk), overrides))
-                self._chunks_out = [f for f in self._chunks_out if not f.done()] + [f for f in futures if f]
-                self._spawned.update(getattr(pool, "_processes", None) or {})  # (a pool may start more on demand)
-            except BrokenProcessPool:  # a worker died while idle: this batch's chunks are solved here
-                self._broken()
-                futures += [None] * (len(chunks) - 1 - len(futures))
+            self._hand_out(chunks[1:], overrides, futures, wait_for_workers)
             results: list[EstimateResult | None] = [None] * len(chunks)
             errors: list[BaseException | None] = [None] * len(chunks)
             results[0], errors[0] = self._here(chunks[0], overrides)
@@ -452,6 +450,34 @@ class ParallelEstimator:
             if error is not None:
                 raise error
         return concat_results(results)  # type: ignore[arg-type]
+
+    def _hand_out(self, chunks: list[Any], overrides: dict[str, Any], futures: list[Any], wait: bool) -> None:
+        """Hand ``chunks`` to the workers, appending to ``futures`` (as they go: an interrupt cancels those handed
+        out) each chunk's future, or None for a chunk to solve here: every chunk while the workers are still
+        starting, unless ``wait`` (:meth:`estimate`), or the rest when the pool is found broken."""
+        if not wait and self.starting():
+            futures += [None] * len(chunks)
+            return
+        try:
+            pool = self._ensure_pool()
+            for chunk in chunks:
+                futures.append(pool.submit(_solve_chunk, *self._packed(chunk), overrides))
+            self._chunks_out = [f for f in self._chunks_out if not f.done()] + [f for f in futures if f]
+            self._spawned.update(getattr(pool, "_processes", None) or {})  # (a pool may start more on demand)
+        except BrokenProcessPool:  # a worker died while idle: this batch's chunks are solved here
+            self._broken()
+            futures += [None] * (len(chunks) - len(futures))
+
+    def starting(self) -> bool:
+        """True while the workers are being started (each imports torch and warms up: seconds), when
+        :meth:`estimate` would wait for them; with no pool running this starts one and says True. False with one
+        process. A caller with work of its own, such as a stream, solves alone meanwhile rather than wait."""
+        if not self.parallel:
+            return False
+        if self._pool is None:
+            self.warm()
+            return self._pool is not None
+        return not all(f.done() for f in self._starting)
 
     def idle(self) -> bool:
         """True when a worker (the spare's included) is started, ready and solving no batch handed to it by

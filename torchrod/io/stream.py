@@ -128,7 +128,7 @@ class StreamOptions:
             does not hold the next ones back (their answers still come in input order); with ``track`` or a
             ``max_latency`` wait, small batches are solved in the calling process instead. The workers start with
             the stream (they take seconds to start; until they are ready every batch is solved in the calling
-            process) and stop when it ends.
+            process, and holds ``batch_size`` readings, but with ``track``) and stop when it ends.
     """
 
     batch_size: int = 1024
@@ -333,17 +333,27 @@ class _Stream:
             flight.append(slot)
 
     def batch_limit(self) -> int:
-        """The most pending readings the next batch takes: ``batch_size`` (times ``workers``), but while the stream
-        learns its noise no more than ``learn_noise.growth`` times the fits learned from so far, and before it has
-        a sigma, ``learn_noise.after``. So a backlog's first large batch does not solve every reading with a noise
-        of its own (slower, less accurate) before the stream has the fits it learns from, nor a thousand readings
-        with a sigma learned from 32 fits: the batches grow until the sigma comes from enough fits."""
+        """The most pending readings the next batch takes: ``batch_size`` (times ``workers`` once they are ready:
+        :meth:`alone`), but while the stream learns its noise no more than ``learn_noise.growth`` times the fits
+        learned from so far, and before it has a sigma, ``learn_noise.after``. So a backlog's first large batch does
+        not solve every reading with a noise of its own (slower, less accurate) before the stream has the fits it
+        learns from, nor a thousand readings with a sigma learned from 32 fits: the batches grow until the sigma
+        comes from enough fits."""
+        # (With ``track`` the batches keep their size: their ends decide the tracking starts, so the answers.)
+        size = self.options.batch_size if not self.options.track and self.alone() else self.batch_size
         if self.noise is None:
-            return self.batch_size
+            return size
         learning = self.noise.learning
         if self.noise.count < learning.after:  # no sigma yet (without sorting the fits to find out)
-            return min(self.batch_size, learning.after)
-        return min(self.batch_size, max(learning.after, learning.growth * self.noise.used))
+            return min(size, learning.after)
+        return min(size, max(learning.after, learning.growth * self.noise.used))
+
+    def alone(self) -> bool:
+        """Whether batches are solved in this process alone for now: the workers are still starting. Split over
+        them, a batch would wait seconds for their start with this process idle. Solved here, a batch holds what
+        one process solves (``batch_size``), not the W times as much that would then run on one (but for
+        ``track``: :meth:`batch_limit`)."""
+        return self.solver is not self.estimator and self.solver.starting()
 
     def drain(self) -> None:
         """The flush after an interrupt: take everything the reader already took (the queue, and the reading in
@@ -432,8 +442,9 @@ class _Stream:
         """(batch result, index in it, record, None) per reading; should the batched call fail, each reading alone,
         and (None, 0, None, message) for one that fails alone too (the stream goes on)."""
         curvature, mask, overrides, learned = self._request(good)
+        solver = self.estimator if self.alone() else self.solver
         try:
-            result = self.solver.estimate(curvature, mask, extra_starts=self._tracking_starts(len(good)), **overrides)
+            result = solver.estimate(curvature, mask, extra_starts=self._tracking_starts(len(good)), **overrides)
         except Exception as exc:  # noqa: BLE001 - a reading that breaks the solver must not stop the stream
             if len(good) == 1:
                 return [(None, 0, None, f"estimation failed: {_exception_text(exc)}")]

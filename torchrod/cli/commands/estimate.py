@@ -247,7 +247,8 @@ class _Answers:
     """Reads, estimates in batches and writes answers in order; on an interrupt (Ctrl-C, SIGTERM) it answers every
     reading already read before the interrupt propagates."""
 
-    def __init__(self, estimator: Estimator, writer: LineWriter, device: torch.device, bar: Any) -> None:
+    def __init__(self, estimator: Any, writer: LineWriter, device: torch.device, bar: Any) -> None:
+        # estimator: the ParallelEstimator (one process: no pool)
         self.estimator, self.writer, self.device, self.bar = estimator, writer, device, bar
         self.pending: list[Reading] = []  # read, not yet answered
         self.ready: list[dict[str, Any]] = []  # the answers of pending[: len(ready)]
@@ -294,7 +295,8 @@ class _Answers:
         curvature, mask = stack_readings(good)
         start = time.perf_counter()
         try:
-            result = self.estimator.estimate(curvature.to(self.device), mask.to(self.device))
+            # The workers' chunks here while they start (seconds): the same answers, and no batch waits for them.
+            result = self.estimator.estimate(curvature.to(self.device), mask.to(self.device), wait_for_workers=False)
         except Exception as exc:  # noqa: BLE001 - one reading that breaks the solver must not stop the others
             if len(good) == 1:
                 message = str(exc)[:300]
