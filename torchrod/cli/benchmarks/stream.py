@@ -50,7 +50,9 @@ of forward-model evaluations per reading (every residual, with or without its Ja
 ``--profile`` adds where the time goes in a backlog stream of (at most) the first 2000 readings, a separate pass
 under cProfile (cumulative times): the network's guesses, the scans, the Levenberg-Marquardt fits, the exchange,
 L-BFGS, the exact-model steps, count selection, uncertainty, the rest of ``estimate``, and the stream's own work
-(batching, checking readings, result records). Every timing follows a warm-up; torch runs on ``--threads`` threads.
+(batching, checking readings, result records). Every timing follows a warm-up and, as in ``torchrod stream``, the
+set-up frozen out of the garbage collector's full collections (:func:`torchrod.cli.commands.settle`); torch runs
+on ``--threads`` threads.
 """
 
 from __future__ import annotations
@@ -73,6 +75,7 @@ from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.workers import ParallelEstimator
 from ...io.stream import Reading, StreamOptions, StreamResult, StreamStats, stream, warm_up
 from ...presets import load as load_rod
+from ..commands import settle
 from . import SUITES
 from .pacer import ExternalStream, cpu_time, reading_line
 
@@ -430,6 +433,7 @@ def run(args: argparse.Namespace) -> int:
         + f"; lbfgs: {dataclasses.asdict(estimator.options.lbfgs)}"
     )
     warm_up(estimator)
+    settle()  # as `torchrod stream` does once it is set up (commands.settle)
     rows = []
 
     row = _Row(f"static, batched (B={B})")
