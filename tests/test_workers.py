@@ -535,6 +535,26 @@ def _has_option(command: str, option: str) -> bool:
     return option in parser._option_string_actions
 
 
+def test_a_stream_runs_on_a_given_parallel_estimator_and_leaves_it_running(estimator):
+    """A ParallelEstimator given to stream() is the stream's workers (batches of its processes x batch_size, split
+    over them) and stays running when the stream ends, ready for the next one; its spare worker can be started
+    ahead too (``warm(spare=True)``). A ``workers`` option other than 1 or its own count is refused."""
+    u, m, _ = _trajectory(40)
+    items = [Reading(k, torch.where(m[k].unsqueeze(-1), u[k], math.nan)) for k in range(40)]
+    with ParallelEstimator(estimator, 2) as par:
+        par.warm(wait=True, spare=True)
+        pids = par.worker_pids()
+        assert len(pids) == 2 and not par.starting()
+        out = list(stream(par, items, StreamOptions(batch_size=8, max_latency=60.0)))
+        assert [r.id for r in out] == list(range(40)) and [r.batch for r in out[:32]] == [16] * 32
+        assert [r.record["num_forces"] for r in out] == estimator.estimate(u, m).num_forces.tolist()
+        assert par.worker_pids() == pids  # left running
+        again = list(stream(par, items[:5], StreamOptions(workers=2)))
+        assert [r.id for r in again] == list(range(5)) and par.worker_pids() == pids
+        with pytest.raises(ValueError, match="workers is 3 but the ParallelEstimator has 2"):
+            stream(par, items, StreamOptions(workers=3))
+
+
 class _Starting:
     """A stand-in for the stream's :class:`ParallelEstimator` whose workers are starting until ``ready`` is set: its
     own estimate records each batch it is given (solved by the wrapped estimator, in this process)."""

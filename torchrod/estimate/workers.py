@@ -312,15 +312,19 @@ class ParallelEstimator:
             self._pool, self._starting = self._new_pool(self.processes - 1)
         return self._pool
 
-    def warm(self, wait: bool = False) -> None:
-        """Start the workers now instead of on the first batch big enough to split; ``wait``: until they are ready
-        (each has imported torch, unpickled the estimator and warmed up: seconds). No effect with one process."""
+    def warm(self, wait: bool = False, spare: bool = False) -> None:
+        """Start the workers now instead of on the first batch big enough to split; ``spare``: the spare worker
+        too, which :meth:`submit` otherwise starts with the first batch it hands out; ``wait``: until they are
+        ready (each has imported torch, unpickled the estimator and warmed up: seconds). No effect with one
+        process."""
         if not self.parallel:
             return
         try:
             self._ensure_pool()
+            if spare and self._spare is None:
+                self._spare, (self._spare_ready,) = self._new_pool(1)
             if wait:
-                for future in self._starting:
+                for future in [*self._starting, *([self._spare_ready] if spare else [])]:
                     future.result()
         except BrokenProcessPool:
             self._broken()

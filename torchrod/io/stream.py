@@ -128,7 +128,9 @@ class StreamOptions:
             does not hold the next ones back (their answers still come in input order); with ``track`` or a
             ``max_latency`` wait, small batches are solved in the calling process instead. The workers start with
             the stream (they take seconds to start; until they are ready every batch is solved in the calling
-            process, and holds ``batch_size`` readings, but with ``track``) and stop when it ends.
+            process, and holds ``batch_size`` readings, but with ``track``) and stop when it ends. With a
+            :class:`~torchrod.estimate.workers.ParallelEstimator` as the stream's estimator, leave 1: its
+            processes are the workers.
     """
 
     batch_size: int = 1024
@@ -229,11 +231,27 @@ class _Stream:
     """The state of one :func:`stream`: queue, pending batch, last solution."""
 
     def __init__(self, estimator: Any, readings: Iterable[Any], options: StreamOptions, overrides: dict) -> None:
-        self.estimator, self.options, self.overrides = estimator, options, overrides
+        from ..estimate.workers import ParallelEstimator
+
+        # The batches' solver: the estimator, or the estimator spread over worker processes: the caller's
+        # ParallelEstimator (left running), or one made here (closed with the stream).
+        self.solver = estimator
+        workers = options.workers
+        self.owned = False  # whether the stream closes its solver's workers when it ends
+        if isinstance(estimator, ParallelEstimator):
+            if workers not in (1, estimator.processes):
+                raise ValueError(
+                    f"StreamOptions.workers is {workers} but the ParallelEstimator has {estimator.processes} "
+                    "processes: leave workers at 1 with a ParallelEstimator, or give an estimator"
+                )
+            workers, estimator = estimator.processes, estimator.estimator
+        elif workers > 1:
+            self.solver, self.owned = ParallelEstimator(estimator, workers), True
+        self.estimator, self.options, self.overrides, self.workers = estimator, options, overrides, workers
         self.G = estimator.rod.num_gratings
         self.fibre = estimator.rod.fibre
         self.device = torch.device(options.device)
-        self.batch_size = options.batch_size * options.workers  # the most readings of one batch, all processes
+        self.batch_size = options.batch_size * workers  # the most readings of one batch, all processes
         read_ahead = options.read_ahead if options.read_ahead is not None else 2 * self.batch_size
         self.q: queue.Queue = queue.Queue(maxsize=read_ahead)
         self.stop = threading.Event()
@@ -254,16 +272,10 @@ class _Stream:
         # Started by the first ``next``: a stream that is never iterated takes nothing from its source.
         self.thread = threading.Thread(target=_reader, args=(self, readings), daemon=True)
         self.source = readings
-        # The batches' solver: the estimator, or the estimator spread over worker processes (closed with the stream).
-        self.solver = estimator
         # Batches too small to split go whole to an idle worker while this process takes the next readings: with
         # ``workers`` > 1, no tracking (which needs each batch's answer before the next) and no batching wait (which
         # asks for batches to be gathered, not hurried).
-        self.pipelined = options.workers > 1 and not options.track and options.max_latency == 0.0
-        if options.workers > 1:
-            from ..estimate.workers import ParallelEstimator
-
-            self.solver = ParallelEstimator(estimator, options.workers)
+        self.pipelined = workers > 1 and not options.track and options.max_latency == 0.0
 
     def _take(self, entry: Any) -> None:
         if entry is _END or entry is _HALTED:
@@ -510,7 +522,7 @@ class _Stream:
             pass
         if self.thread.is_alive():
             self.thread.join(timeout=2 * _POLL)
-        if self.solver is not self.estimator:
+        if self.owned:
             self.solver.close()
 
 
@@ -545,7 +557,10 @@ def stream(
     """Estimate the forces of every reading of ``readings``, in order, in latency-bounded batches.
 
     Args:
-        estimator: a :class:`torchrod.estimator.Estimator` (with its ``warm_start`` network, if any).
+        estimator: a :class:`torchrod.estimator.Estimator` (with its ``warm_start`` network, if any), or a
+            :class:`torchrod.estimate.workers.ParallelEstimator`: the stream then runs on its processes as on
+            ``workers`` of its own, and leaves them running when it ends (the caller closes it), so that its
+            workers can start before the stream, and serve one stream after another.
         readings: any iterable (possibly endless, possibly slow) of :class:`Reading` or dicts with the keys
             ``id``, ``curvature`` ((G, 2) [1/m]), optional ``t`` [s] and ``error``.
         options: batching (:class:`StreamOptions`).

@@ -14,8 +14,9 @@ the same readings several ways, in one run:
   then mostly the wait in the read-ahead queue);
 * ``stream, backlog, P processes``: the same backlog over ``--workers`` P processes, as ``StreamOptions(workers=P)``
   solves it (batches of up to P x ``--batch-size``, each process a chunk of up to ``--batch-size``;
-  :mod:`torchrod.estimate.workers`); the workers started and warmed up before the timing, their CPU time in its
-  cpu ms: how throughput scales from one core to P;
+  :mod:`torchrod.estimate.workers`; a ParallelEstimator given to the stream); the workers, the spare of a live
+  stream's small batches included, started and warmed up before the timing, their CPU time in its cpu ms: how
+  throughput scales from one core to P;
 * ``stream, backlog, no network`` (when a network is used): the same backlog without it;
 * ``stream, backlog, noise learned`` and ``noise per reading``: the same backlog with an estimator told no noise,
   which the stream learns from its fits (:mod:`torchrod.estimate.noise`, the default) or, as before that existed,
@@ -451,10 +452,9 @@ def run(args: argparse.Namespace) -> int:
     if args.workers > 1:
         # The same backlog over P processes (started and warmed up first: the timing is the solving's).
         with ParallelEstimator(estimator, args.workers) as parallel:
-            parallel.warm(wait=True)
+            parallel.warm(wait=True, spare=True)  # (a stream's first small batch would start the spare)
             row = _Row(f"stream, backlog, {args.workers} processes")
-            wide = dataclasses.replace(options, batch_size=B * args.workers)  # the batches of workers=P
-            _timed(row, stream(parallel, items, wide), truth, parallel.worker_pids())
+            _timed(row, stream(parallel, items, options), truth, parallel.worker_pids())  # as workers=P does
         rows.append(row)
 
     if network is not None:

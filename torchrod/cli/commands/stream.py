@@ -84,6 +84,7 @@ from typing import Any
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.lm import LMPolicy
 from ...estimate.noise import NoiseLearning
+from ...estimate.workers import ParallelEstimator
 from ...io.jsonl import (
     LineWriter,
     check_input,
@@ -274,15 +275,18 @@ def _run(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         max_latency=args.max_latency_ms / 1e3,
         learn_noise=None if args.per_reading_noise else NoiseLearning(),
-        workers=processes,
         track=args.track,
     )
-    # Warm-up before the first reading: per-rod caches and first-call costs would otherwise land on its latency.
-    warm_up(estimator)
-    settle()
-    source = read_stream(args.input, rod, args.format, quantity=args.csv_quantity, topic=args.topic)
-    with open_output(args.out, [args.input]) as out, _bag(args.output_bag, args.max_forces) as bag:
-        return _answer(args, estimator, options, source, LineWriter(out), truth, bag)
+    # The workers start now, beside this process's warm-up (before the first reading: per-rod caches and first-call
+    # costs would otherwise land on its latency), not once the stream begins: they are ready that much sooner.
+    solver = ParallelEstimator(estimator, processes)
+    solver.warm()
+    with solver:
+        warm_up(estimator)
+        settle()
+        source = read_stream(args.input, rod, args.format, quantity=args.csv_quantity, topic=args.topic)
+        with open_output(args.out, [args.input]) as out, _bag(args.output_bag, args.max_forces) as bag:
+            return _answer(args, solver, options, source, LineWriter(out), truth, bag)
 
 
 @contextlib.contextmanager
@@ -299,7 +303,7 @@ def _bag(path: str | None, slots: int) -> Iterator[Any]:
 
 def _answer(
     args: argparse.Namespace,
-    estimator: Estimator,
+    estimator: Any,
     options: StreamOptions,
     source: Any,
     writer: LineWriter,
