@@ -247,7 +247,7 @@ class _Stream:
             workers, estimator = estimator.processes, estimator.estimator
         elif workers > 1:
             self.solver, self.owned = ParallelEstimator(estimator, workers), True
-        self.estimator, self.options, self.overrides, self.workers = estimator, options, overrides, workers
+        self.estimator, self.options, self.overrides = estimator, options, overrides
         self.G = estimator.rod.num_gratings
         self.fibre = estimator.rod.fibre
         self.device = torch.device(options.device)
