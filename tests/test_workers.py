@@ -555,6 +555,39 @@ def test_a_stream_runs_on_a_given_parallel_estimator_and_leaves_it_running(estim
             stream(par, items, StreamOptions(workers=3))
 
 
+def test_a_backlog_keeps_the_workers_fed_without_barriers(estimator, monkeypatch):
+    """A backlog (a whole batch of every process pending) goes in batches of ``batch_size``, each solved whole:
+    queued at the worker, two at a time, and solved in the stream's own process while the worker is fed, with no
+    barrier between batches; the answers are those of one process on batches of that size (to rounding: where the
+    batches begin depends on when the reader has read how much), in input order."""
+    from torchrod.io import stream as stream_module
+
+    ways = {"queued": 0, "here": 0}
+    send, solve = stream_module._Stream.send, stream_module._Stream.solve
+
+    def counted_send(self, batch, queue=False):
+        ways["queued"] += queue
+        return send(self, batch, queue)
+
+    def counted_solve(self, batch, here=False):
+        ways["here"] += here
+        return solve(self, batch, here)
+
+    monkeypatch.setattr(stream_module._Stream, "send", counted_send)
+    monkeypatch.setattr(stream_module._Stream, "solve", counted_solve)
+    u, m, _ = _trajectory(96)
+    items = [Reading(k, torch.where(m[k].unsqueeze(-1), u[k], math.nan)) for k in range(96)]
+    with ParallelEstimator(estimator, 2) as par:
+        par.warm(wait=True)
+        out = list(stream(par, items, StreamOptions(batch_size=8, read_ahead=96)))
+    assert ways["queued"] >= 2 and ways["here"] >= 1, ways
+    assert [r.id for r in out] == list(range(96))
+    alone = list(stream(estimator, items, StreamOptions(batch_size=8, max_latency=60.0)))
+    for a, b in zip(alone, out, strict=True):
+        assert a.record["num_forces"] == b.record["num_forces"] and a.record["status"] == b.record["status"]
+        assert a.record["loss"] == pytest.approx(b.record["loss"], rel=1e-6)
+
+
 class _Starting:
     """A stand-in for the stream's :class:`ParallelEstimator` whose workers are starting until ``ready`` is set: its
     own estimate records each batch it is given (solved by the wrapped estimator, in this process)."""

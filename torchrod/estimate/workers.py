@@ -522,22 +522,26 @@ class ParallelEstimator:
         mask: torch.Tensor | None = None,
         *,
         extra_starts: Mapping[int, PointForces] | None = None,
+        queue: bool = False,
         **overrides: Any,
     ) -> Solving:
         """Start :meth:`estimate` of a batch and return without waiting where a worker is :meth:`idle`: the batch
         goes to it whole. Otherwise (no idle worker, one process, a batch the workers should not take) the batch is
         estimated before this returns, split as :meth:`estimate` splits it.
 
+        ``queue``: the batch goes whole to the workers (the main pool, not the spare, which this then does not
+        start) even while they are busy, and waits there for one: for a caller that keeps them fed with a backlog.
+
         Returns:
             a :class:`Solving`: ``done()`` says whether the result is there, ``result()`` waits for it.
         """
-        pool = self._idle_pool()
+        pool = self._pool if queue and self.parallel else self._idle_pool()
         chunks = self._chunks(curvature, mask, extra_starts, whole=True) if pool is not None else None
         if chunks:
             try:
                 future = pool.submit(_solve_chunk, *self._packed(chunks[0]), overrides)
                 self._submitted.append((future, pool))
-                if self._spare is None:  # the first batch handed out: the spare worker starts
+                if self._spare is None and not queue:  # the first batch handed out: the spare worker starts
                     self._spare, (self._spare_ready,) = self._new_pool(1)
                 return Solving(self, chunks[0], overrides, future, pool)
             except BrokenProcessPool:

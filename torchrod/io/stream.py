@@ -120,15 +120,18 @@ class StreamOptions:
             readings than ``growth`` times the fits learned from (:class:`~torchrod.estimate.noise.NoiseLearning`).
             None: every reading estimates its own noise.
         workers: processes the stream solves on (:class:`torchrod.estimate.workers.ParallelEstimator`; 1: the
-            calling process alone). A batch of 16 readings or more (a backlog: a file, a source faster than the
-            solver) is split over them in chunks of at least 8. A smaller batch (a live source) goes whole to an
-            idle worker process (the first such batch starts a spare worker, so that W processes give W workers
-            while the calling process reads and collects; until it is ready the calling process solves what finds
-            the others busy), so consecutive readings are solved at once on different cores and one slow reading
-            does not hold the next ones back (their answers still come in input order); with ``track`` or a
-            ``max_latency`` wait, small batches are solved in the calling process instead. The workers start with
-            the stream (they take seconds to start; until they are ready every batch is solved in the calling
-            process, and holds ``batch_size`` readings, but with ``track``) and stop when it ends. With a
+            calling process alone). A batch of 16 readings or more (a source faster than the solver) is split over
+            them in chunks of at least 8; a backlog of W x ``batch_size`` readings or more (a file) is solved in
+            batches of ``batch_size``, each whole, kept queued at the workers (two each) and solved in the calling
+            process while they are fed, with no barrier between batches. A smaller batch (a live source) goes
+            whole to an idle worker process (the first such batch starts a spare worker, so that W processes give W
+            workers while the calling process reads and collects; until it is ready the calling process solves what
+            finds the others busy), so consecutive readings are solved at once on different cores and one slow
+            reading does not hold the next ones back (their answers still come in input order). With ``track`` or a
+            ``max_latency`` wait, neither: small batches are solved in the calling process, backlogs are split.
+            The workers start with the stream (they take seconds to start; until they are ready every batch is
+            solved in the calling process, and holds ``batch_size`` readings, but with ``track``) and stop when it
+            ends. With a
             :class:`~torchrod.estimate.workers.ParallelEstimator` as the stream's estimator, leave 1: its
             processes are the workers.
     """
@@ -334,7 +337,19 @@ class _Stream:
                 self.wake.wait(_POLL)  # for a reading, or the first batch in flight
                 continue
             batch = self.pending[: self.batch_limit()]
-            if self.small(len(batch)) and self.solver.idle():
+            if self.backlog(len(batch)):
+                # Batches of batch_size, each solved whole: queued at the workers, two per worker so that none waits
+                # for this process to hand it the next, and solved here while they are fed.
+                batch = batch[: self.options.batch_size]
+                fed = 2 * (self.solver.processes - 1)
+                if sum(1 for s in flight if s.results is None) < fed:  # handed out, not yet received
+                    slot = self.send(batch, queue=True)
+                elif len(flight) >= 4 * fed:
+                    self.wake.wait(_POLL)  # enough solved ahead of the oldest: wait for it
+                    continue
+                else:
+                    slot = _Slot(batch, results=self.solve(batch, here=True))
+            elif self.small(len(batch)) and self.solver.idle():
                 slot = self.send(batch)
             elif self.small(len(batch)) and flight and self.solver.full():
                 self.wake.wait(_POLL)  # every worker is busy: wait for one rather than solve beside them
@@ -390,25 +405,34 @@ class _Stream:
                 continue
             self._take(entry)
 
-    def solve(self, batch: Sequence[_Pending]) -> list[StreamResult]:
-        """Estimate the usable readings of ``batch`` together; one result per reading, in order."""
+    def solve(self, batch: Sequence[_Pending], here: bool = False) -> list[StreamResult]:
+        """Estimate the usable readings of ``batch`` together (``here``: in this process, not split over the
+        workers); one result per reading, in order."""
         good = [p for p in batch if p.ok]
         start = time.perf_counter()
-        answers = self._estimate(good) if good else []
+        answers = self._estimate(good, here) if good else []
         return self._results(batch, answers, start)
 
     def small(self, size: int) -> bool:
         """Whether a batch of ``size`` readings is one for a single worker: pipelined, and too small to split."""
         return self.pipelined and size < 2 * self.solver.min_chunk
 
-    def send(self, batch: list[_Pending]) -> _Slot:
-        """Hand ``batch`` to an idle worker (:meth:`ParallelEstimator.submit`); :meth:`receive` gives its results."""
+    def backlog(self, size: int) -> bool:
+        """Whether the next batch, ``size`` readings, shows a backlog to keep the workers fed with: pipelined, the
+        workers ready (:meth:`batch_limit` is ``batch_size`` while they start) and a whole batch of every process
+        pending. Split over the processes instead, each batch ended at a barrier: the workers waited while this
+        process wrote the batch's answers and read the next (docs/results.md, "A backlog without barriers")."""
+        return self.pipelined and size == self.batch_size > self.options.batch_size
+
+    def send(self, batch: list[_Pending], queue: bool = False) -> _Slot:
+        """Hand ``batch`` to an idle worker (:meth:`ParallelEstimator.submit`; ``queue``: to the workers, busy or
+        not); :meth:`receive` gives its results."""
         good = [p for p in batch if p.ok]
         start = time.perf_counter()
         if not good:
             return _Slot(batch, results=self._results(batch, [], start))
         curvature, mask, overrides, learned = self._request(good)
-        solving = self.solver.submit(curvature, mask, **overrides)
+        solving = self.solver.submit(curvature, mask, queue=queue, **overrides)
         solving.add_done_callback(self.wake.set)
         return _Slot(batch, solving=solving, good=good, mask=mask, learned=learned, start=start)
 
@@ -450,11 +474,11 @@ class _Stream:
             out.append(StreamResult(r.id, r.t, rec, latency, None, len(good), elapsed, result, index, line=r.line))
         return out
 
-    def _estimate(self, good: Sequence[_Pending]) -> list[tuple[Any, int, dict | None, str | None]]:
+    def _estimate(self, good: Sequence[_Pending], here: bool = False) -> list[tuple[Any, int, dict | None, str | None]]:
         """(batch result, index in it, record, None) per reading; should the batched call fail, each reading alone,
         and (None, 0, None, message) for one that fails alone too (the stream goes on)."""
         curvature, mask, overrides, learned = self._request(good)
-        solver = self.estimator if self.alone() else self.solver
+        solver = self.estimator if here or self.alone() else self.solver
         try:
             result = solver.estimate(curvature, mask, extra_starts=self._tracking_starts(len(good)), **overrides)
         except Exception as exc:  # noqa: BLE001 - a reading that breaks the solver must not stop the stream
