@@ -320,7 +320,9 @@ class _Stream:
         the pending readings as they come and solved here, or (:attr:`pipelined`, a batch too small to split)
         handed to an idle worker, while this process goes on taking readings: the next small batch goes to the
         next idle worker, is solved here while the spare worker is not ready yet, or waits once every worker is
-        busy; a large one is split as :meth:`ParallelEstimator.estimate` splits it.
+        busy; a large one is split as :meth:`ParallelEstimator.estimate` splits it; a backlog (:meth:`backlog`)
+        goes in batches of ``batch_size``, queued at the workers two at a time and solved here while they are fed,
+        up to four times as many batches in flight as are queued.
         A batch leaves ``pending`` only once it is solved or handed out, and ``flight`` only once its results are
         returned, so an interrupt loses none."""
         while True:
