@@ -39,6 +39,11 @@ def _trajectory(count: int, seed: int = 1) -> tuple[torch.Tensor, torch.Tensor, 
     return traj.curvature, traj.mask, truth
 
 
+def _items(u: torch.Tensor, m: torch.Tensor) -> list[Reading]:
+    """The readings of a trajectory as stream items: id k, a row of NaN at each missing grating."""
+    return [Reading(k, torch.where(m[k].unsqueeze(-1), u[k], math.nan)) for k in range(u.shape[0])]
+
+
 def _json_rows(u: torch.Tensor, m: torch.Tensor) -> list[list]:
     """Readings as JSON lists: [ux, uy] per grating, None for a missing one."""
     return [
@@ -270,7 +275,7 @@ def test_an_estimator_exception_in_a_worker_is_raised_as_itself():
             par.estimate(u, m)
         assert par.restarts == 0  # an estimator error does not break the pool
         # The stream answers such a batch reading by reading (in this process, where the warm start does not fail).
-        items = [Reading(k, torch.where(m[k].unsqueeze(-1), u[k], math.nan)) for k in range(16)]
+        items = _items(u, m)
         out = list(stream(par, items, StreamOptions(batch_size=16, max_latency=60.0)))
     assert [r.id for r in out] == list(range(16)) and all(r.ok for r in out)
     assert [r.record["num_forces"] for r in out] == est.estimate(u, m).num_forces.tolist()
@@ -540,7 +545,7 @@ def test_a_stream_runs_on_a_given_parallel_estimator_and_leaves_it_running(estim
     over them) and stays running when the stream ends, ready for the next one; its spare worker can be started
     ahead too (``warm(spare=True)``). A ``workers`` option other than 1 or its own count is refused."""
     u, m, _ = _trajectory(40)
-    items = [Reading(k, torch.where(m[k].unsqueeze(-1), u[k], math.nan)) for k in range(40)]
+    items = _items(u, m)
     with ParallelEstimator(estimator, 2) as par:
         par.warm(wait=True, spare=True)
         pids = par.worker_pids()
@@ -576,7 +581,7 @@ def test_a_backlog_keeps_the_workers_fed_without_barriers(estimator, monkeypatch
     monkeypatch.setattr(stream_module._Stream, "send", counted_send)
     monkeypatch.setattr(stream_module._Stream, "solve", counted_solve)
     u, m, _ = _trajectory(96)
-    items = [Reading(k, torch.where(m[k].unsqueeze(-1), u[k], math.nan)) for k in range(96)]
+    items = _items(u, m)
     with ParallelEstimator(estimator, 2) as par:
         par.warm(wait=True)
         out = list(stream(par, items, StreamOptions(batch_size=8, read_ahead=96)))
@@ -630,7 +635,7 @@ def test_a_stream_solves_alone_while_its_workers_start(estimator, monkeypatch, t
     monkeypatch.setattr(_Starting, "ready", False)
     monkeypatch.setattr(_Starting, "given", [])
     u, m, _ = _trajectory(64)
-    items = [Reading(k, torch.where(m[k].unsqueeze(-1), u[k], math.nan)) for k in range(64)]
+    items = _items(u, m)
     options = StreamOptions(batch_size=8, workers=2, read_ahead=64, track=track, max_latency=60.0)
     results = stream(estimator, items, options)
     first = [next(results) for _ in range(24)]
