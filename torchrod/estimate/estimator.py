@@ -292,6 +292,17 @@ class EstimateResult:
 WarmStartLike = Callable[[torch.Tensor, torch.Tensor], Mapping[int, PointForces]]
 
 
+def _p_values(problem: Any, opts: EstimatorOptions, readings: Any, chosen: Any, loss: Any) -> Any:
+    """(n,) the verdict's chi-square p-values of fits of ``chosen`` (n,) forces with ``loss`` (n,) to
+    ``readings`` (n,): at the given noise, or (noise unknown) at the largest believed; 0 where the loss is not
+    finite (it explains nothing)."""
+    xp = problem.xp
+    test_sigma2 = (float(opts.noise) if opts.noise is not None else float(opts.max_noise)) ** 2 + problem.floor2
+    dof = xp.tolist(problem.residuals[readings] - 3 * chosen)
+    p_value = xp.asarray(chi2_survival(xp.tolist(loss / test_sigma2), dof))
+    return xp.where(xp.isfinite(loss), p_value, 0.0)
+
+
 class Estimator:
     """Force estimation for one rod (module docstring: the method).
 
@@ -583,9 +594,13 @@ class Estimator:
             )
             return unc.poorly_determined
 
+        def unexplained(readings: Any, chosen: Any, loss: Any) -> Any:
+            return _p_values(problem, opts, readings, chosen, loss) < opts.misfit_level  # the verdict's misfit
+
         return search.Rules(
             choose=choose,
             doubtful=doubtful,
+            unexplained=unexplained,
             settled=settle if (opts.settle and not fixed and opts.starts > 0) else None,
             suspect=suspect,
             plausible=plausible,
@@ -660,15 +675,8 @@ class Estimator:
             sigma,
             condition_limit=opts.condition_limit,
         )
-        residuals = problem.residuals
-        # The verdict: the chi-square p-value at the given noise, or (noise unknown) at the largest believed.
-        test_sigma2 = (float(opts.noise) if opts.noise is not None else float(opts.max_noise)) ** 2 + problem.floor2
-        dof = xp.tolist(residuals - 3 * chosen)
-        p = chi2_survival(xp.tolist(loss / test_sigma2), dof)
-        p_value = xp.asarray(p)
-        finite = xp.isfinite(loss)
-        p_value = xp.where(finite, p_value, 0.0)  # a loss that is not finite explains nothing
-        converged = converged & finite
+        p_value = _p_values(problem, opts, xp.arange(B), chosen, loss)
+        converged = converged & xp.isfinite(loss)
         status = verdict(xp, p_value, converged, unc.poorly_determined, opts.misfit_level, found.cut)
 
         # Reported form: sorted by location, the location bias added, in the input's dtype and device.

@@ -549,6 +549,9 @@ class Rules:
             ``state.fits.reading``) are poorly determined (:mod:`.uncertainty`); the count below such a chosen fit
             is searched further (a poorly determined fit often holds one force too many for a local minimum of
             the count below).
+        unexplained: ``unexplained(readings, chosen, loss) -> (n,) bool``: the chosen fits (``chosen`` forces,
+            ``loss``) would be answered as a misfit; the count above such a fit is searched further (a local
+            minimum of that count, no better than the chosen one, is all that keeps the answer a misfit).
     """
 
     choose: Any
@@ -556,6 +559,7 @@ class Rules:
     suspect: Any = None
     plausible: Any = None
     doubtful: Any = None
+    unexplained: Any = None
 
 
 def fit_counts(
@@ -673,6 +677,10 @@ def fit_counts(
         losses = xp.stack([s.loss for s in states], 1)
         chosen = rules.choose(losses)
         near_limit = None if rules.plausible is None else rules.plausible(xp.arange(B), losses)  # (B, top + 1)
+        every = xp.arange(B)
+        misfit = xp.zeros((B,), "bool")
+        if rules.unexplained is not None:
+            misfit = rules.unexplained(every, chosen, xp.take(losses, chosen[:, None], 1)[:, 0])
         doubt = xp.zeros((B,), "bool")
         if rules.doubtful is not None:
             for h in range(2, top_count + 1):
@@ -680,7 +688,6 @@ def fit_counts(
                 if mine.shape[0]:
                     doubt = xp.put(doubt, mine, rules.doubtful(states[h].take(xp, mine)))
         for h in range(1, top_count + 1):
-            every = xp.arange(B)
             cand = fitted[h] & suspicious(problem, states[h], rules.suspect(h, every))
             if rules.plausible is not None:
                 # A smaller count is worth more search where a better local minimum could make it acceptable: its
@@ -692,9 +699,14 @@ def fit_counts(
                 # acceptable: a wrong local minimum of it can pass the noise test yet lose the count test to a fit
                 # with one force too many.
                 below = (chosen == h + 1) & doubt
-                cand = (cand & ((chosen == h) | ((chosen > h) & (near | most)))) | (fitted[h] & below)
-                # The exchange (costlier) only for the chosen count and below a chosen fit that is poorly determined.
-                wide = (chosen == h) | below
+                # Above a chosen fit the verdict would call a misfit, likewise: a wrong local minimum of the count
+                # above (a near tie between the scan's intervals can lead to one) leaves the reading unexplained.
+                above = (chosen == h - 1) & misfit
+                forced = below | above
+                cand = (cand & ((chosen == h) | ((chosen > h) & (near | most)))) | (fitted[h] & forced)
+                # The exchange (costlier) only for the chosen count and next to a chosen fit found doubtful or
+                # unexplained.
+                wide = (chosen == h) | forced
             else:
                 cand = cand & (chosen >= h)
                 wide = chosen >= h
@@ -706,9 +718,9 @@ def fit_counts(
                 continue
             cur = states[h].take(xp, readings)
             limit = rules.suspect(h, readings)
-            if rules.plausible is not None:  # rows below a doubtful answer: every fit counts as suspicious
-                forced = below[readings]
-                limit = (xp.where(forced, 0.0, limit[0]), xp.where(forced, 0.0, limit[1]))
+            if rules.plausible is not None:  # rows next to a doubtful or unexplained answer: every fit is suspicious
+                here = forced[readings]
+                limit = (xp.where(here, 0.0, limit[0]), xp.where(here, 0.0, limit[1]))
             # The scan's other intervals for the count's last force.
             if scans[h][1] is not None and starts > 1:
                 more = _scan_starts(xp, scans[h], readings, B, range(1, starts))
