@@ -312,7 +312,9 @@ print("one reading", compiled.loaded())
 {load}
 print("loaded", compiled.loaded())
 after = est.estimate(u[1:])
-print("same", torch.equal(before.forces.s, after.forces.s) and torch.equal(before.loss, after.loss))
+same = before.statuses == after.statuses and torch.equal(before.evaluations, after.evaluations)
+same = same and torch.allclose(before.forces.s, after.forces.s, rtol=0, atol=1e-11)
+print("same", same and torch.allclose(before.forces.f, after.forces.f, rtol=0, atol=1e-9))
 """
 
 
@@ -321,7 +323,9 @@ print("same", torch.equal(before.forces.s, after.forces.s) and torch.equal(befor
 def test_the_compiled_march_loads_for_large_marches_and_warm_ups_only(load):
     """In a new process: one reading marches only small batches, which do not load Numba (half a second, more than
     the reading costs); a stream's warm-up, or a batch with a march too large for the Python numbers, loads it; and
-    the reading's answer is the same bit for bit before and after."""
+    the reading's answer is the same before and after: the same statuses and work, the fits to rounding (once
+    loaded, its Levenberg-Marquardt steps run compiled too, tests/test_lm_compiled.py, whose sums and solves
+    round differently from the array code's)."""
     import subprocess
     import sys
 

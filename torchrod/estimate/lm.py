@@ -23,6 +23,11 @@ The fitting model is the fast 4th-order march (relative accuracy ~1e-4 of the cu
 ``exact_steps`` Gauss-Newton steps on the residual of the simulator's model (accurate to ~1e-9) with the fitting
 model's Jacobian (a simplified Newton iteration: the two models' Jacobians differ by ~1e-4, so each step gains four
 digits), and reports that residual and its loss: what the count tests and the verdict judge is the physics.
+
+On the NumPy backend, for a straight rod, where the compiled marches run (:func:`torchrod.model.compiled.takes`),
+:func:`solve` runs :func:`start` and each :func:`_step` compiled (:mod:`._lm_compiled`): the same operations row by
+row, with this policy's numbers. The loop, the deadline and ``stop`` stay here. Tests hold the compiled steps to
+these (tests/test_lm_compiled.py); they agree to rounding, since sums and solves round in another order.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from . import _lm_compiled
 from .problem import Fits, Problem, bounds, evaluate, exact_residual, kink_slopes, near_bounds, sided, sigma2
 
 __all__ = ["LMPolicy", "LMState", "analyse", "finish", "finish_counted", "gauss_newton", "solve", "start"]
@@ -164,6 +170,12 @@ class LMState:
 
 _STATE_FIELDS = frozenset(f.name for f in dataclasses.fields(LMState))
 
+FLOOR = 1e-12
+"""Every damped system adds this fraction of its largest diagonal entry to its diagonal (:func:`_damped`)."""
+TINY = 1e-9
+"""The damping of the system whose solution gives the Gauss-Newton decrement (:func:`analyse`) and of the exact
+model's steps (:func:`finish`): next to none, so that a nearly singular system still solves."""
+
 
 def _every_row(xp: Any, idx: Any, rows: int) -> bool:
     """Whether the row indices ``idx`` are 0, 1, ..., rows - 1: every row, in order."""
@@ -179,7 +191,7 @@ def _damped(xp: Any, A: Any, free: Any, damping: Any, repeat: int = 1) -> Any:
         return xp.concat([A] * repeat) if repeat > 1 else A
     d = xp.diagonal(A)
     scale = xp.clip(xp.amax(d, 1), lo=1e-300)[:, None]
-    base = 1e-12 * scale + (1.0 - free) * scale
+    base = FLOOR * scale + (1.0 - free) * scale
     out = xp.concat([A] * repeat) if repeat > 1 else xp.copy(A)
     idx = xp.arange(P)
     # (k, R, P) -> (k R, P): the k dampings of each system against its one diagonal, broadcast
@@ -261,7 +273,7 @@ def analyse(problem: Problem, policy: LMPolicy, state: LMState) -> LMState:
         held = xp.zeros((R, h), "bool")
         free = xp.ones((R, 3 * h))
     A = xp.mT(J) @ J
-    both = _damped(xp, A, free, xp.concat([1e-9 + 0.0 * state.damping, state.damping]), repeat=2)
+    both = _damped(xp, A, free, xp.concat([TINY + 0.0 * state.damping, state.damping]), repeat=2)
     x, ok = xp.spd_solve(both, xp.concat([g, g]))
     dec = xp.where(ok[:R], (g * x[:R]).sum(1), math.inf)
     proposal = -x[R:]
@@ -400,12 +412,21 @@ def solve(
     ``done`` False (a later call may continue them). ``stop(state) -> (R,) bool``, checked on all rows at the
     start and after each step: the rows where it holds are done (the caller knows where they lead)."""
     xp = problem.xp
+
+    def late() -> bool:
+        return deadline is not None and time.perf_counter() > deadline
+
+    rows, h = fits.s.shape if isinstance(fits, Fits) else fits.fits.s.shape
+    if _lm_compiled.usable(problem, rows, h):
+        compiled_state = _lm_compiled.solve(problem, policy, fits, late, stop)
+        if compiled_state is not None:
+            return compiled_state
     state = start(problem, policy, fits) if isinstance(fits, Fits) else fits
     if stop is not None:
         state = state.replace(done=state.done | stop(state))
     while True:
         idx = xp.nonzero(~state.done)
-        if idx.shape[0] == 0 or (deadline is not None and time.perf_counter() > deadline):
+        if idx.shape[0] == 0 or late():
             return state
         if idx.shape[0] == state.done.shape[0]:  # every row still going: no need to gather and scatter
             state = _step(problem, policy, state)
@@ -438,7 +459,7 @@ def finish_counted(problem: Problem, policy: LMPolicy, state: LMState) -> tuple[
     free = _free(state.held, xp)
     going = xp.ones((R,), "bool")  # rows still moving as they would alone
     for _ in range(policy.exact_steps):
-        dx, dec = gauss_newton(xp, J, r, free, 1e-9)
+        dx, dec = gauss_newton(xp, J, r, free, TINY)
         # A step whose promise is far below the noise moves the fit by a sliver of its standard deviation: skip.
         worth = ~(dec <= policy.exact_tolerance * sigma2(problem, fits, loss))
         going = going & worth

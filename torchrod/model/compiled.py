@@ -18,6 +18,11 @@ spends marching. So they load (:func:`load`) when a march too large for the Pyth
 backend such marches always take them), or when a long-running process asks: a stream's warm-up and the worker
 processes do. Until then the small marches run on the Python numbers, which give the same numbers bit for bit,
 so an answer does not depend on whether they had loaded.
+
+Where they run, the estimator's Levenberg-Marquardt steps run compiled too (:mod:`torchrod.estimate._lm_compiled`,
+kernels in ``torchrod/estimate/_lm_kernels.py``, on this module's loading policy). Those agree with the array code
+to rounding rather than bit for bit, so a small one-shot estimate (kernels not loaded) and the same reading in a
+stream can differ in the last digits of the fit.
 """
 
 from __future__ import annotations

@@ -1,0 +1,197 @@
+"""The compiled Levenberg-Marquardt step (:mod:`torchrod.estimate._lm_compiled`) against the array code of
+:mod:`torchrod.estimate.lm` it restates: the same states step for step (crossings, held locations, the geodesic
+acceleration and the active set included), the same solves, and the estimator's same answers."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+import pytest
+import torch
+from test_lm import F64, clean, fits_at, problem_for
+
+import torchrod as tr
+from torchrod.backend import NUMPY, torch_backend
+from torchrod.estimate import _lm_compiled, lm
+from torchrod.estimate.problem import SNAP, Fits
+from torchrod.model import compiled
+
+pytestmark = pytest.mark.skipif(not compiled.available(), reason="the compiled step needs Numba")
+
+
+@pytest.fixture(autouse=True)
+def _loaded():
+    """Small solves take the compiled step once the kernels are loaded (:func:`.compiled.takes`)."""
+    assert compiled.load()
+
+
+FLOAT_FIELDS = ("r", "J", "loss", "damping", "ratio", "decrement", "noise2", "A", "g", "proposal")
+EXACT_FIELDS = ("steps", "held", "converged", "done")
+
+
+def assert_same_state(a, b, rtol=1e-7):
+    """The same discrete state (intervals, steps, held locations, stopping flags) and numbers that agree to
+    rounding: some of these systems have condition numbers near 1e20 (a force at the base barely bends the rod),
+    where two orders of the same sums part at about 1e-11 per step; ``rtol`` for the rest, and looser for whole
+    solves, whose steps compound it."""
+    assert np.array_equal(a.fits.reading, b.fits.reading)
+    assert np.array_equal(a.fits.interval, b.fits.interval)
+    np.testing.assert_allclose(b.fits.s, a.fits.s, rtol=0, atol=1e-3 * rtol)  # [m]
+    np.testing.assert_allclose(b.fits.f, a.fits.f, rtol=rtol, atol=1e-3 * rtol)  # [N]
+    for name in EXACT_FIELDS:
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    for name in FLOAT_FIELDS:
+        x, y = np.asarray(getattr(a, name)), np.asarray(getattr(b, name))
+        scale = np.nanmax(np.abs(x[np.isfinite(x)])) if np.isfinite(x).any() else 1.0
+        np.testing.assert_allclose(y, x, rtol=rtol, atol=1e-2 * rtol * scale, err_msg=name)
+
+
+def noisy_problem(rod, gen, B, h, noise=0.1):
+    s = 0.02 + 0.27 * torch.rand(B, h, dtype=F64, generator=gen)
+    f = 0.8 * torch.randn(B, h, 2, dtype=F64, generator=gen)
+    u = clean(rod, s.tolist(), f.tolist()) + noise * torch.randn(B, rod.num_gratings, 2, dtype=F64, generator=gen)
+    present = torch.rand(B, rod.num_gratings, generator=gen) > 0.15  # some gratings missing
+    return problem_for(NUMPY, rod, u, present, noise=noise)
+
+
+def starts_on_and_near_bounds(problem, gen, h):
+    """Starts of h forces: one in four on its interval's lower bound, one in four on its upper one, one in four
+    within SNAP of a bound, the rest inside; random loads."""
+    xp = NUMPY
+    B = problem.batch_size
+    m = np.asarray(problem.intervals)
+    j = (torch.rand(B, h, generator=gen).numpy() * m[:, None]).astype(np.int64)
+    reading = np.arange(B)
+    lo, hi = problem.lo[reading[:, None], j], problem.hi[reading[:, None], j]
+    kind = torch.randint(0, 4, (B, h), generator=gen).numpy()
+    frac = torch.rand(B, h, dtype=F64, generator=gen).numpy()
+    s = np.where(kind == 0, lo, np.where(kind == 1, hi, lo + (hi - lo) * np.where(kind == 2, 0.5 * SNAP, frac)))
+    f = 0.6 * torch.randn(B, h, 2, dtype=F64, generator=gen).numpy()
+    return Fits(xp.asarray(reading, "int"), s, f, j)
+
+
+@pytest.mark.parametrize("known", [True, False], ids=["noise-given", "noise-per-fit"])
+@pytest.mark.parametrize("h", [1, 2, 3])
+def test_the_compiled_step_takes_the_array_codes_steps(rod, gen, h, known):
+    """From the same state, one compiled step gives the array code's next state, for eight steps of 48 fits
+    started on, near and off their bounds, some with the geodesic acceleration; the run passes through
+    crossings, held locations and accelerated steps (checked, so that the comparison covers them). The noise
+    given, or estimated from each fit's loss."""
+    problem = noisy_problem(rod, gen, 48, h)
+    if not known:
+        problem = dataclasses.replace(problem, noise2=None)
+    policy = lm.LMPolicy()
+    fits = starts_on_and_near_bounds(problem, gen, h)
+    state = lm.start(problem, policy, fits)
+    assert_same_state(state, _lm_compiled.start(problem, policy, fits))
+    crossed = held = accelerated = 0
+    for k in range(8):
+        if k % 2:  # every other step: half the rows as if their last step had curved
+            state = state.replace(ratio=np.where(np.arange(48) % 2 == 0, 0.1, state.ratio))
+        ours = _lm_compiled.step(problem, policy, state)
+        theirs = lm._step(problem, policy, state)
+        assert_same_state(theirs, ours)
+        crossed += int((theirs.fits.interval != state.fits.interval).any(1).sum())
+        held += int(theirs.held.any(1).sum())
+        accelerated += int((state.ratio < policy.acceleration).sum())
+        state = theirs
+    assert crossed and held and accelerated
+
+
+def test_a_compiled_solve_is_the_array_codes_solve(rod, gen, monkeypatch):
+    """Whole solves, with a ``stop`` and from a state part-way: the same fits, losses and steps."""
+    problem = noisy_problem(rod, gen, 32, 2)
+    policy = lm.LMPolicy(iterations=12)
+    fits = starts_on_and_near_bounds(problem, gen, 2)
+
+    def stop(state):  # every other row stops after four steps
+        return (state.steps >= 4) & (np.arange(state.fits.rows) % 2 == 0)
+
+    ours = [lm.solve(problem, policy, fits, stop=stop), lm.solve(problem, policy, lm.start(problem, policy, fits))]
+    monkeypatch.setattr(_lm_compiled, "usable", lambda problem, rows, h: False)
+    theirs = [lm.solve(problem, policy, fits, stop=stop), lm.solve(problem, policy, lm.start(problem, policy, fits))]
+    for a, b in zip(theirs, ours, strict=True):
+        assert_same_state(a, b, rtol=1e-5)
+    assert int(ours[0].steps.sum()) < int(ours[1].steps.sum())  # the stop stopped some rows
+
+
+def test_a_compiled_solve_keeps_the_deadline_and_leaves_the_callers_state(rod, gen):
+    problem = noisy_problem(rod, gen, 8, 2)
+    policy = lm.LMPolicy()
+    state = lm.start(problem, policy, starts_on_and_near_bounds(problem, gen, 2))
+    before = {k: np.copy(getattr(state, k)) for k in FLOAT_FIELDS + EXACT_FIELDS}
+    late = lm.solve(problem, policy, state, deadline=time.perf_counter() - 1.0)
+    assert np.array_equal(late.steps, state.steps) and np.array_equal(late.done, state.done)
+    done = lm.solve(problem, policy, state)
+    assert done.steps.sum() > 0
+    for k, v in before.items():
+        assert np.array_equal(getattr(state, k), v, equal_nan=True), k
+
+
+def test_rows_the_compiled_march_cannot_take_are_solved_in_python(rod, monkeypatch):
+    """A start with a non-finite load: the compiled solve declines (None) and lm.solve answers as the array code
+    does; a precurved rod, the torch backend and TORCHROD_NUMBA=0 never take the compiled step."""
+    problem = problem_for(NUMPY, rod, clean(rod, [[0.1]], [[[0.5, 0.2]]]))
+    fits = fits_at(NUMPY, problem, [[0.12]], [[[np.nan, 0.2]]])
+    assert _lm_compiled.solve(problem, lm.LMPolicy(), fits, lambda: False, None) is None
+    ours = lm.solve(problem, lm.LMPolicy(), fits)
+    monkeypatch.setattr(_lm_compiled, "usable", lambda problem, rows, h: False)
+    theirs = lm.solve(problem, lm.LMPolicy(), fits)
+    assert np.array_equal(ours.loss, theirs.loss, equal_nan=True) and np.array_equal(ours.steps, theirs.steps)
+    monkeypatch.undo()
+    assert _lm_compiled.usable(problem, 1, 1)
+    assert not _lm_compiled.usable(problem_for(torch_backend(), rod, clean(rod, [[0.1]], [[[0.5, 0.2]]])), 1, 1)
+    monkeypatch.setenv("TORCHROD_NUMBA", "0")
+    assert not _lm_compiled.usable(problem, 1, 1)
+
+
+def stratified_readings(rod, gen, n):
+    """n noisy readings of 1-3 forces: a force near a grating, near the base, at the tip or anywhere, in turn;
+    every third reading with gratings missing."""
+    q = torch.tensor(rod.gratings, dtype=F64)
+    s, f, h = [], [], []
+    for i in range(n):
+        k = 1 + i % 3
+        where = 0.02 + 0.27 * torch.rand(k, dtype=F64, generator=gen)
+        kind = i % 4
+        if kind == 0:
+            where[0] = q[int(torch.randint(0, len(q), (1,), generator=gen))] + 4e-4 * (
+                torch.rand(1, generator=gen) - 0.5
+            )
+        elif kind == 1:
+            where[0] = 0.004 + 0.01 * torch.rand(1, dtype=F64, generator=gen)
+        elif kind == 2:
+            where[0] = rod.length - 1e-3
+        s.append(torch.cat([where, torch.zeros(3 - k, dtype=F64)]))
+        f.append(torch.cat([0.9 * torch.randn(k, 2, dtype=F64, generator=gen), torch.zeros(3 - k, 2, dtype=F64)]))
+        h.append(k)
+    s, f = torch.stack(s), torch.stack(f)
+    active = torch.arange(3)[None, :] < torch.tensor(h)[:, None]
+    u = tr.simulate(rod, tr.PointForces(s, f, active)).grating_curvature
+    u = u + 0.1 * torch.randn(u.shape, dtype=F64, generator=gen)
+    mask = torch.ones(n, rod.num_gratings, dtype=torch.bool)
+    mask[::3, 3] = False
+    mask[::3, 9] = False
+    return u, mask
+
+
+def test_the_estimator_answers_the_same_with_the_compiled_step(rod, gen, monkeypatch):
+    """48 stratified readings, one per call and as one batch: the same counts, statuses and evaluations, and
+    forces within 1e-9 N, with the compiled step and without."""
+    u, mask = stratified_readings(rod, gen, 48)
+    est = tr.Estimator(rod, tr.EstimatorOptions(noise=0.1))
+
+    def answers():
+        single = [est.estimate(u[i : i + 1], mask[i : i + 1]) for i in range(u.shape[0])]
+        return single + [est.estimate(u, mask)]
+
+    ours = answers()
+    monkeypatch.setattr(_lm_compiled, "usable", lambda problem, rows, h: False)
+    theirs = answers()
+    for a, b in zip(theirs, ours, strict=True):
+        assert a.statuses == b.statuses
+        assert torch.equal(a.num_forces, b.num_forces) and torch.equal(a.evaluations, b.evaluations)
+        torch.testing.assert_close(b.forces.f.nan_to_num(), a.forces.f.nan_to_num(), rtol=0, atol=1e-9)
+        torch.testing.assert_close(b.forces.s.nan_to_num(), a.forces.s.nan_to_num(), rtol=0, atol=1e-11)

@@ -1,0 +1,180 @@
+"""The Levenberg-Marquardt solve of :mod:`.lm` with its step compiled (Numba), for straight rods on the NumPy
+backend: the loop, the deadline and ``stop`` stay in Python; each step of every open row, and the start, run in
+:mod:`._lm_kernels`, which write :func:`.lm._step` and :func:`.lm.analyse` row by row.
+
+The policy's numbers come from the :class:`.lm.LMPolicy` passed in; the kernels restate its operations, not its
+choices. Tests hold the two to the same states step for step, and the estimator to the same answers
+(tests/test_lm_compiled.py). They agree to rounding, not bit for bit: the array code's sums and solves run in
+NumPy's and LAPACK's order."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from ..model import compiled
+from ..model.sensitivity import SCALAR_WORK, march_work
+from . import problem as _problem
+from .problem import Fits, Problem
+
+__all__ = ["solve", "start", "step", "usable"]
+
+
+class _Failed(Exception):
+    """A row whose march input was not finite: the caller solves in Python instead."""
+
+
+def usable(problem: Problem, rows: int, h: int) -> bool:
+    """Whether :func:`solve` runs for a solve of ``rows`` fits of ``h`` forces of ``problem``: a straight rod on
+    the NumPy backend, where the compiled marches run (:func:`torchrod.model.compiled.takes`, with the loading
+    policy of the marches: the kernels once loaded, or for a solve whose marches would load them)."""
+    if problem.xp.name != "numpy" or problem.precurved is not None:
+        return False
+    return compiled.takes(march_work(rows, 3 * h) > SCALAR_WORK)
+
+
+def _problem_args(problem: Problem) -> tuple:
+    noise2 = np.zeros(0) if problem.noise2 is None else np.ascontiguousarray(problem.noise2, np.float64)
+    return (
+        np.ascontiguousarray(problem.query, np.float64),
+        np.ascontiguousarray(problem.u, np.float64),
+        np.ascontiguousarray(problem.weight, np.float64),
+        np.ascontiguousarray(problem.lo, np.float64),
+        np.ascontiguousarray(problem.hi, np.float64),
+        np.ascontiguousarray(problem.lo_k, np.int64),
+        np.ascontiguousarray(problem.hi_k, np.int64),
+        np.ascontiguousarray(problem.intervals, np.int64),
+        noise2,
+        np.ascontiguousarray(problem.residuals, np.int64),
+        float(problem.floor2),
+        float(problem.length),
+        float(problem.stiffness),
+        float(problem.force_unit),
+        float(problem.step_angle),
+        int(problem.max_steps),
+        float(_problem.SNAP),
+    )
+
+
+def _policy_args(policy: Any) -> tuple:
+    from .lm import FLOOR, TINY
+
+    acceleration = -math.inf if policy.acceleration is None else float(policy.acceleration)
+    return (
+        float(policy.tolerance),
+        int(policy.iterations),
+        float(policy.max_damping),
+        float(policy.increase),
+        float(policy.decrease),
+        float(policy.min_damping),
+        float(policy.max_force_step),
+        acceleration,
+        float(policy.probe),
+        float(policy.acceleration_limit),
+        FLOOR,
+        TINY,
+    )
+
+
+_FIELDS = ("r", "J", "loss", "damping", "steps", "held", "A", "g", "proposal", "ratio", "decrement", "noise2",
+           "converged", "done")  # fmt: skip
+_DTYPES = {"steps": np.int64, "held": np.bool_, "converged": np.bool_, "done": np.bool_}
+
+
+def _arrays(state: Any) -> tuple:
+    """The kernels' state tuple: fresh C-contiguous copies (the caller's state is never changed)."""
+    fits = state.fits
+    out = [
+        np.array(fits.reading, np.int64),
+        np.array(fits.s, np.float64),
+        np.array(fits.f, np.float64),
+        np.array(fits.interval, np.int64),
+    ]
+    out += [np.array(getattr(state, k), _DTYPES.get(k, np.float64)) for k in _FIELDS]
+    out.append(np.zeros(fits.rows, np.bool_))  # failed
+    return tuple(out)
+
+
+def _state(S: tuple) -> Any:
+    from .lm import LMState
+
+    return LMState(Fits(S[0], S[1], S[2], S[3]), **dict(zip(_FIELDS, S[4:18], strict=True)))
+
+
+def _start(problem: Problem, policy: Any, fits: Fits, P_: tuple, O_: tuple) -> tuple:
+    R, h = fits.s.shape
+    n = problem.u.shape[1]
+    S = (
+        np.array(fits.reading, np.int64),
+        np.array(fits.s, np.float64),
+        np.array(fits.f, np.float64),
+        np.array(fits.interval, np.int64),
+        np.zeros((R, n)),
+        np.zeros((R, n, 3 * h)),
+        np.zeros(R),
+        np.full(R, float(policy.damping)),
+        np.zeros(R, np.int64),
+        np.zeros((R, h), np.bool_),
+        np.zeros((R, 3 * h, 3 * h)),
+        np.zeros((R, 3 * h)),
+        np.zeros((R, 3 * h)),
+        np.ones(R),
+        np.zeros(R),
+        np.zeros(R),
+        np.zeros(R, np.bool_),
+        np.zeros(R, np.bool_),
+        np.zeros(R, np.bool_),
+    )
+    from . import _lm_kernels
+
+    _lm_kernels.start_rows(P_, S, O_)
+    if S[18].any():
+        raise _Failed
+    return S
+
+
+def solve(problem: Problem, policy: Any, fits: Any, late: Any, stop: Any) -> Any:
+    """:func:`.lm.solve` with compiled steps (``late()``: whether its deadline has passed); None where it cannot
+    run (no force, a march input not finite, or the kernels failed to load): the caller then solves in Python."""
+    if (fits.h if isinstance(fits, Fits) else fits.fits.h) == 0:
+        return None
+    try:
+        from . import _lm_kernels
+    except Exception:  # noqa: BLE001 - as compiled._run: without the kernels, the Python solve
+        return None
+    P_, O_ = _problem_args(problem), _policy_args(policy)
+    try:
+        S = _start(problem, policy, fits, P_, O_) if isinstance(fits, Fits) else _arrays(fits)
+        done = S[17]
+        if stop is not None:
+            done |= np.asarray(stop(_state(S)), np.bool_)
+        while True:
+            rows = np.flatnonzero(~done)
+            if rows.shape[0] == 0 or late():
+                return _state(S)
+            _lm_kernels.step_rows(rows, P_, S, O_)
+            if S[18].any():
+                raise _Failed
+            if stop is not None:
+                done |= np.asarray(stop(_state(S)), np.bool_)
+    except _Failed:
+        return None
+
+
+def start(problem: Problem, policy: Any, fits: Fits) -> Any:
+    """:func:`.lm.start` compiled (None where it cannot run)."""
+    try:
+        return _state(_start(problem, policy, fits, _problem_args(problem), _policy_args(policy)))
+    except _Failed:
+        return None
+
+
+def step(problem: Problem, policy: Any, state: Any) -> Any:
+    """:func:`.lm._step` of every row of ``state`` compiled (None where it cannot run)."""
+    from . import _lm_kernels
+
+    S = _arrays(state)
+    _lm_kernels.step_rows(np.arange(state.fits.rows), _problem_args(problem), S, _policy_args(policy))
+    return None if S[18].any() else _state(S)
