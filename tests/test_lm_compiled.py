@@ -195,3 +195,25 @@ def test_the_estimator_answers_the_same_with_the_compiled_step(rod, gen, monkeyp
         assert torch.equal(a.num_forces, b.num_forces) and torch.equal(a.evaluations, b.evaluations)
         torch.testing.assert_close(b.forces.f.nan_to_num(), a.forces.f.nan_to_num(), rtol=0, atol=1e-9)
         torch.testing.assert_close(b.forces.s.nan_to_num(), a.forces.s.nan_to_num(), rtol=0, atol=1e-11)
+
+
+def test_kernels_that_cannot_run_cost_one_warning_and_the_array_code_solves(rod, monkeypatch):
+    """As with the marches: a kernel that raises (an incompatible Numba) is reported once, with the reason, and
+    every solve from then on runs the array code, to its answers."""
+    from torchrod.estimate import _lm_kernels
+
+    problem = problem_for(NUMPY, rod, clean(rod, [[0.1]], [[[0.5, 0.2]]]))
+    fits = fits_at(NUMPY, problem, [[0.12]], [[[0.3, 0.2]]])
+    monkeypatch.setattr(_lm_compiled, "usable", lambda problem, rows, h: False)
+    want = lm.solve(problem, lm.LMPolicy(), fits)
+    monkeypatch.undo()
+
+    def broken(*args):
+        raise TypeError("no such signature")
+
+    monkeypatch.setattr(_lm_kernels, "start_rows", broken)
+    monkeypatch.setattr(_lm_compiled, "_broken", None)
+    with pytest.warns(RuntimeWarning, match="no such signature"):
+        got = lm.solve(problem, lm.LMPolicy(), fits)
+    assert not _lm_compiled.usable(problem, 1, 1)
+    assert_same_state(want, got, rtol=0)

@@ -2,14 +2,17 @@
 backend: the loop, the deadline and ``stop`` stay in Python; each step of every open row, and the start, run in
 :mod:`._lm_kernels`, which write :func:`.lm._step` and :func:`.lm.analyse` row by row.
 
-The policy's numbers come from the :class:`.lm.LMPolicy` passed in; the kernels restate its operations, not its
-choices. Tests hold the two to the same states step for step, and the estimator to the same answers
-(tests/test_lm_compiled.py). They agree to rounding, not bit for bit: the array code's sums and solves run in
-NumPy's and LAPACK's order."""
+The kernels restate :mod:`.lm`'s operations row by row; its numbers (the :class:`.lm.LMPolicy` passed in, ``lm.FLOOR``,
+``lm.TINY``, ``problem.SNAP``) are passed to them. Tests hold the two to the same states step for step, and the
+estimator to the same answers (tests/test_lm_compiled.py). They agree to rounding, not bit for bit: the array
+code's sums and solves run in NumPy's and LAPACK's order. Where the kernels cannot run here (an incompatible
+Numba), one warning says so and every solve runs the array code, as :mod:`torchrod.model.compiled` does for the
+marches."""
 
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any
 
 import numpy as np
@@ -26,11 +29,14 @@ class _Failed(Exception):
     """A row whose march input was not finite: the caller solves in Python instead."""
 
 
+_broken: str | None = None  # why the kernels could not run here, once they could not
+
+
 def usable(problem: Problem, rows: int, h: int) -> bool:
     """Whether :func:`solve` runs for a solve of ``rows`` fits of ``h`` forces of ``problem``: a straight rod on
     the NumPy backend, where the compiled marches run (:func:`torchrod.model.compiled.takes`, with the loading
     policy of the marches: the kernels once loaded, or for a solve whose marches would load them)."""
-    if problem.xp.name != "numpy" or problem.precurved is not None:
+    if problem.xp.name != "numpy" or problem.precurved is not None or _broken is not None:
         return False
     return compiled.takes(march_work(rows, 3 * h) > SCALAR_WORK)
 
@@ -84,7 +90,10 @@ _DTYPES = {"steps": np.int64, "held": np.bool_, "converged": np.bool_, "done": n
 
 
 def _arrays(state: Any) -> tuple:
-    """The kernels' state tuple: fresh C-contiguous copies (the caller's state is never changed)."""
+    """The kernels' state tuple: fresh C-contiguous copies (the caller's state is never changed). A state not
+    analysed (no proposal) is left to the array code."""
+    if state.A is None or state.g is None or state.proposal is None:
+        raise _Failed
     fits = state.fits
     out = [
         np.array(fits.reading, np.int64),
@@ -127,9 +136,7 @@ def _start(problem: Problem, policy: Any, fits: Fits, P_: tuple, O_: tuple) -> t
         np.zeros(R, np.bool_),
         np.zeros(R, np.bool_),
     )
-    from . import _lm_kernels
-
-    _lm_kernels.start_rows(P_, S, O_)
+    _kernel("start_rows", P_, S, O_)
     if S[18].any():
         raise _Failed
     return S
@@ -139,10 +146,6 @@ def solve(problem: Problem, policy: Any, fits: Any, late: Any, stop: Any) -> Any
     """:func:`.lm.solve` with compiled steps (``late()``: whether its deadline has passed); None where it cannot
     run (no force, a march input not finite, or the kernels failed to load): the caller then solves in Python."""
     if (fits.h if isinstance(fits, Fits) else fits.fits.h) == 0:
-        return None
-    try:
-        from . import _lm_kernels
-    except Exception:  # noqa: BLE001 - as compiled._run: without the kernels, the Python solve
         return None
     P_, O_ = _problem_args(problem), _policy_args(policy)
     try:
@@ -154,13 +157,32 @@ def solve(problem: Problem, policy: Any, fits: Any, late: Any, stop: Any) -> Any
             rows = np.flatnonzero(~done)
             if rows.shape[0] == 0 or late():
                 return _state(S)
-            _lm_kernels.step_rows(rows, P_, S, O_)
+            _kernel("step_rows", rows, P_, S, O_)
             if S[18].any():
                 raise _Failed
             if stop is not None:
                 done |= np.asarray(stop(_state(S)), np.bool_)
     except _Failed:
         return None
+
+
+def _kernel(name: str, *args: Any) -> None:
+    """Run kernel ``name`` of :mod:`._lm_kernels`; where it cannot be imported or compiled here, warn once, stop
+    using the kernels (:func:`usable` False from then on) and raise :class:`_Failed`."""
+    global _broken
+    try:
+        from . import _lm_kernels
+
+        getattr(_lm_kernels, name)(*args)
+    except Exception as exc:  # noqa: BLE001 - whatever an incompatible Numba raises, the solves go on without it
+        _broken = f"{type(exc).__name__}: {exc}"
+        warnings.warn(
+            f"torchrod: the compiled Levenberg-Marquardt steps could not run ({_broken}); solving without them "
+            "(set TORCHROD_NUMBA=0 to skip them)",
+            RuntimeWarning,
+            stacklevel=4,
+        )
+        raise _Failed from None
 
 
 def start(problem: Problem, policy: Any, fits: Fits) -> Any:
@@ -173,8 +195,9 @@ def start(problem: Problem, policy: Any, fits: Fits) -> Any:
 
 def step(problem: Problem, policy: Any, state: Any) -> Any:
     """:func:`.lm._step` of every row of ``state`` compiled (None where it cannot run)."""
-    from . import _lm_kernels
-
-    S = _arrays(state)
-    _lm_kernels.step_rows(np.arange(state.fits.rows), _problem_args(problem), S, _policy_args(policy))
+    try:
+        S = _arrays(state)
+        _kernel("step_rows", np.arange(state.fits.rows), _problem_args(problem), S, _policy_args(policy))
+    except _Failed:
+        return None
     return None if S[18].any() else _state(S)

@@ -1,4 +1,4 @@
-"""The Numba kernels of :mod:`torchrod.estimate.compiled_lm` (imported only where they run: this imports Numba).
+"""The Numba kernels of :mod:`torchrod.estimate._lm_compiled` (imported only where they run: this imports Numba).
 
 One Levenberg-Marquardt step and one analysis of :mod:`.lm` per row, for the straight rod on the NumPy backend:
 :func:`.lm._step` and :func:`.lm.analyse` written row by row, each array operation of theirs a loop here, in their
