@@ -206,7 +206,8 @@ def stratified_readings(rod, gen, n):
 
 def test_the_estimator_answers_the_same_with_the_compiled_step(rod, gen, monkeypatch):
     """48 stratified readings, one per call and as one batch: the same counts, statuses and evaluations, and
-    forces within 1e-9 N, with the compiled step and without."""
+    forces within 1e-7 N and 1 nm (the exact model's last steps, at a damping of 1e-9, round the most), with the
+    compiled steps and without."""
     u, mask = stratified_readings(rod, gen, 48)
     est = tr.Estimator(rod, tr.EstimatorOptions(noise=0.1))
 
@@ -220,8 +221,8 @@ def test_the_estimator_answers_the_same_with_the_compiled_step(rod, gen, monkeyp
     for a, b in zip(theirs, ours, strict=True):
         assert a.statuses == b.statuses
         assert torch.equal(a.num_forces, b.num_forces) and torch.equal(a.evaluations, b.evaluations)
-        torch.testing.assert_close(b.forces.f.nan_to_num(), a.forces.f.nan_to_num(), rtol=0, atol=1e-9)
-        torch.testing.assert_close(b.forces.s.nan_to_num(), a.forces.s.nan_to_num(), rtol=0, atol=1e-11)
+        torch.testing.assert_close(b.forces.f.nan_to_num(), a.forces.f.nan_to_num(), rtol=0, atol=1e-7)
+        torch.testing.assert_close(b.forces.s.nan_to_num(), a.forces.s.nan_to_num(), rtol=0, atol=1e-9)
 
 
 def test_kernels_that_cannot_run_cost_one_warning_and_the_array_code_solves(rod, monkeypatch):
@@ -287,3 +288,26 @@ def test_the_compiled_step_on_random_rods_and_readings(gratings, tip, length, st
         rows = np.flatnonzero(condition(state) < 1e8)
         assert_same_state(theirs.take(NUMPY, rows), ours.take(NUMPY, rows), rtol=1e-6)
         state = theirs
+
+
+@pytest.mark.parametrize("known", [True, False], ids=["noise-given", "noise-per-fit"])
+def test_the_compiled_finish_is_the_array_codes_finish(rod, gen, known, monkeypatch):
+    """The exact model's steps after a solve (``lm.finish_counted``): the same fits, residuals and losses to
+    rounding, and the same evaluations per row, for fits converged and not (solves cut at 2 and at 30 steps), with
+    no step worth taking (``exact_tolerance`` huge) and with none allowed (``exact_steps=0``)."""
+    problem = noisy_problem(rod, gen, 40, 2)
+    if not known:
+        problem = dataclasses.replace(problem, noise2=None)
+    fits = starts_on_and_near_bounds(problem, gen, 2)
+    policies = [lm.LMPolicy(), lm.LMPolicy(iterations=2), lm.LMPolicy(exact_tolerance=1e9), lm.LMPolicy(exact_steps=0)]
+    used = []
+    for policy in policies:
+        state = lm.solve(problem, policy, fits)
+        ours = _lm_compiled.finish_counted(problem, policy, state)
+        with monkeypatch.context() as m:
+            m.setattr(_lm_compiled, "usable", lambda problem, rows, h: False)
+            theirs = lm.finish_counted(problem, policy, state)
+        assert np.array_equal(ours[1], theirs[1])
+        assert_same_state(theirs[0], ours[0], rtol=1e-6)  # steps at a damping of 1e-9: less well conditioned
+        used.append(int(ours[1].max()))
+    assert used[0] >= 2 and used[1] >= 3 and used[2] == 1 and used[3] == 1

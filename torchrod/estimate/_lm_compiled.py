@@ -22,7 +22,7 @@ from ..model.sensitivity import SCALAR_WORK, march_work
 from . import problem as _problem
 from .problem import Fits, Problem
 
-__all__ = ["solve", "start", "step", "usable"]
+__all__ = ["finish_counted", "solve", "start", "step", "usable"]
 
 
 class _Failed(Exception):
@@ -201,3 +201,30 @@ def step(problem: Problem, policy: Any, state: Any) -> Any:
     except _Failed:
         return None
     return None if S[18].any() else _state(S)
+
+
+def finish_counted(problem: Problem, policy: Any, state: Any) -> Any:
+    """:func:`.lm.finish_counted` compiled: (the finished state, (R,) evaluations), or None where it cannot run
+    (no force, a state not analysed, a march input not finite)."""
+    from ..model import body_frame
+    from ..model.compiled import _tableau_arrays
+
+    if state.fits.h == 0:
+        return None
+    exact = (
+        int(policy.exact_steps),
+        float(policy.exact_tolerance),
+        float(body_frame.DEFAULT_STEP_ANGLE),
+        int(body_frame.DEFAULT_MAX_STEPS),
+        _tableau_arrays(body_frame._method(None, "exact")),
+    )
+    used = np.zeros(state.fits.rows, np.int64)
+    try:
+        S = _arrays(state)
+        _kernel("finish_rows", _problem_args(problem), S, _policy_args(policy), exact, used)
+    except _Failed:
+        return None
+    if S[18].any():
+        return None
+    fits = Fits(state.fits.reading, S[1], S[2], state.fits.interval)
+    return state.replace(fits=fits, r=S[4], loss=S[6]), used

@@ -11,6 +11,7 @@ import math
 import numba
 import numpy as np
 
+from ..model._kernels import exact_rows as _exact_rows
 from ..model._kernels import row as _march_row
 from ..model._kernels import schedule as _schedule
 
@@ -514,3 +515,96 @@ def start_rows(P_, S_, O_):
         v = _sumsq(r[i], tmp)
         loss[i] = v if math.isfinite(v) else math.inf
         _analyse(i, P_, S_, O_, work)
+
+
+@_jit
+def _exact(query, s, f, u_b, w_b, length, ei, step_angle, max_steps, tableau, r, curv):
+    # problem.exact_residual of one row (straight rod, h >= 1): body_frame.march_curvature's compiled row. False
+    # where an input is not finite.
+    c, a, bp, bv, fsal = tableau
+    h = s.shape[0]
+    inv = 1.0 / ei
+    mag = np.empty((1, h))
+    jump = np.empty((1, h), np.complex128)
+    for j in range(h):
+        mag[0, j] = math.sqrt(f[j, 0] * f[j, 0] + f[j, 1] * f[j, 1]) / ei
+        jump[0, j] = complex(-f[j, 1] * inv, f[j, 0] * inv)
+    marched = np.zeros(1, np.bool_)
+    _exact_rows(query, s.reshape(1, h), mag, jump, length, step_angle, max_steps, c, a, bp, bv, fsal, curv, marched)
+    if not marched[0]:
+        return False
+    for q in range(query.shape[0]):
+        for k in range(2):
+            r[2 * q + k] = (curv[0, q, k] - u_b[2 * q + k]) * w_b[2 * q + k]
+    return True
+
+
+@_jit
+def finish_rows(P_, S_, O_, E_, used):
+    # lm.finish_counted of every row, in place: the exact model's residual, then its Gauss-Newton steps with the
+    # fitting model's Jacobian while they are worth taking and lower the loss; ``used`` (R,) out: the evaluations.
+    (query, u, weight, lo_all, hi_all, lok_all, hik_all, intervals, noise2, residuals, floor2, length, ei,
+     force_unit, step_angle, max_steps, snap) = P_  # fmt: skip
+    reading, s, f, interval, r, J, loss, held, failed = S_[0], S_[1], S_[2], S_[3], S_[4], S_[5], S_[6], S_[9], S_[18]
+    floor, tiny = O_[10], O_[11]
+    exact_steps, exact_tolerance, exact_angle, exact_max_steps, tableau = E_
+    R, h = s.shape
+    P = 3 * h
+    n = r.shape[1]
+    curv = np.empty((1, query.shape[0], 2))
+    tmp = np.empty(n)
+    lo = np.empty(h)
+    hi = np.empty(h)
+    Js = np.empty((n, P))
+    free = np.empty(P)
+    g = np.empty(P)
+    A = np.empty((P, P))
+    M = np.empty((P, P))
+    x = np.empty(P)
+    t = np.empty(P)
+    st = np.empty(h)
+    ft = np.empty((h, 2))
+    r_t = np.empty(n)
+    for i in range(R):
+        b = reading[i]
+        if not _exact(query, s[i], f[i], u[b], weight[b], length, ei, exact_angle, exact_max_steps, tableau, r[i],
+                      curv):  # fmt: skip
+            failed[i] = True
+            continue
+        loss[i] = _sumsq(r[i], tmp)
+        used[i] = 1
+        _bounds(lo_all[b], hi_all[b], interval[i], lo, hi)
+        _sided(J[i], s[i], hi, hik_all[b], interval[i], Js)
+        _free(held[i], free)
+        for k in range(n):
+            for p in range(P):
+                Js[k, p] = Js[k, p] * free[p]
+        _gram(Js, A)
+        for _ in range(exact_steps):
+            # lm.gauss_newton at damping TINY: the step and its decrement
+            _gradient(Js, r[i], g)
+            _damped(A, free, tiny, floor, M)
+            ok = _solve(M, g, x)
+            for p in range(P):
+                t[p] = g[p] * -x[p]
+            dec = -_sum(t, P) if ok else math.inf
+            worth = not (dec <= exact_tolerance * _noise2(loss[i], b, h, noise2, residuals, floor2))
+            if not worth:
+                break
+            for p in range(P):
+                x[p] = -x[p]
+            _moved(s[i], f[i], lo, hi, x, length, force_unit, st, ft)
+            if not _exact(query, st, ft, u[b], weight[b], length, ei, exact_angle, exact_max_steps, tableau, r_t,
+                          curv):  # fmt: skip
+                failed[i] = True
+                break
+            loss_t = _sumsq(r_t, tmp)
+            used[i] += 1
+            if not (math.isfinite(loss_t) and loss_t < loss[i]):
+                break
+            s[i, :] = st
+            f[i, :, :] = ft
+            r[i, :] = r_t
+            loss[i] = loss_t
+        if not math.isfinite(loss[i]):
+            loss[i] = math.inf

@@ -26,8 +26,9 @@ digits), and reports that residual and its loss: what the count tests and the ve
 
 On the NumPy backend, for a straight rod, where the compiled marches run (:func:`torchrod.model.compiled.takes`),
 :func:`solve` runs :func:`start` and each :func:`_step` compiled (:mod:`._lm_compiled`): the same operations row by
-row, with this policy's numbers. The loop, the deadline and ``stop`` stay here. Tests hold the compiled steps to
-these (tests/test_lm_compiled.py); they agree to rounding, since sums and solves round in another order.
+row, with this policy's numbers, and so does :func:`finish_counted`. The loop, the deadline and ``stop`` stay here.
+Tests hold the compiled forms to these (tests/test_lm_compiled.py); they agree to rounding, since sums and solves
+round in another order.
 """
 
 from __future__ import annotations
@@ -450,6 +451,10 @@ def finish_counted(problem: Problem, policy: LMPolicy, state: LMState) -> tuple[
     xp = problem.xp
     fits = state.fits
     R, h = fits.s.shape
+    if _lm_compiled.usable(problem, R, h):
+        compiled = _lm_compiled.finish_counted(problem, policy, state)
+        if compiled is not None:
+            return compiled
     r = exact_residual(problem, fits)
     loss = (r * r).sum(1)
     used = xp.ones((R,), "int")

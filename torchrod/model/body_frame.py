@@ -66,6 +66,9 @@ gratings within 5e-8 of a converged reference relative to max |u|, and within 1e
 help from the gratings' event spacing). On that tube the gratings (20 mm apart) already make every segment short
 enough for one step, so the cost is one 8-stage step per event."""
 
+DEFAULT_MAX_STEPS = 64
+"""Default cap on the steps of one segment between events (forces, gratings)."""
+
 Scheme = Literal["exact", "nodes"]
 
 
@@ -164,7 +167,7 @@ def step_counts(
     *,
     bending_stiffness: float | torch.Tensor | None = None,
     max_step_angle: float = DEFAULT_STEP_ANGLE,
-    max_steps: int = 64,
+    max_steps: int = DEFAULT_MAX_STEPS,
 ) -> torch.Tensor:
     """(B, E) steps per segment that :func:`grating_curvature` takes with the exact scheme (a diagnostic).
 
@@ -186,7 +189,7 @@ def integrate_curvature(
     *,
     max_step_angle: float = DEFAULT_STEP_ANGLE,
     steps: int | None = None,
-    max_steps: int = 64,
+    max_steps: int = DEFAULT_MAX_STEPS,
     return_force: bool = False,
     method: str | None = None,
     adjoint: bool = True,
@@ -268,7 +271,7 @@ def march_curvature(
         if compiled.takes(B > ROWS_MAX_BATCH):
             # The same march compiled (the small batches give the same numbers on either), every batch size; rows
             # with a non-finite input stay on Python numbers.
-            marched = compiled.exact_rows(query, s, fmag, jump, length, max_step_angle, 64, tab, out)
+            marched = compiled.exact_rows(query, s, fmag, jump, length, max_step_angle, DEFAULT_MAX_STEPS, tab, out)
             python = np.flatnonzero(~marched).tolist()
         if not len(python):
             return out
@@ -281,7 +284,7 @@ def march_curvature(
                 magnitudes[b],
                 length,
                 step_angle=max_step_angle,
-                max_steps=64,
+                max_steps=DEFAULT_MAX_STEPS,
                 rule="bound",
                 skip=True,
             )
@@ -301,7 +304,9 @@ def march_curvature(
             out[b, :, 0], out[b, :, 1] = z.real, z.imag
         return out
     pos, order, seg = schedule.events(xp, query, s, length)
-    steps = schedule.step_counts(xp, s, fmag, pos, seg, step_angle=max_step_angle, max_steps=64, rule="bound")
+    steps = schedule.step_counts(
+        xp, s, fmag, pos, seg, step_angle=max_step_angle, max_steps=DEFAULT_MAX_STEPS, rule="bound"
+    )
     steps = schedule.skip_unloaded(xp, order, steps, h)  # the zero state distal to every force: no steps
     # Arrays: every row runs K steps, its own step lengths then zero-length steps (as integrate_curvature). Slot j:
     # the state after j steps (0: the zero state before any).
