@@ -16,7 +16,7 @@ from test_lm import F64, clean, fits_at, problem_for
 
 import torchrod as tr
 from torchrod.backend import NUMPY, torch_backend
-from torchrod.estimate import _lm_compiled, lm
+from torchrod.estimate import _lm_compiled, lm, search
 from torchrod.estimate.problem import SNAP, Fits
 from torchrod.model import compiled
 
@@ -311,3 +311,63 @@ def test_the_compiled_finish_is_the_array_codes_finish(rod, gen, known, monkeypa
         assert_same_state(theirs[0], ours[0], rtol=1e-6)  # steps at a damping of 1e-9: less well conditioned
         used.append(int(ours[1].max()))
     assert used[0] >= 2 and used[1] >= 3 and used[2] == 1 and used[3] == 1
+
+
+@pytest.mark.parametrize(("h0", "from_state"), [(0, False), (1, False), (1, True), (2, False), (2, True), (3, True)])
+def test_the_compiled_scan_is_the_array_codes_scan(rod, gen, h0, from_state, monkeypatch):
+    """The scan's responses and Gauss-Newton models of one more force (``search._responses`` and
+    ``search._added_force``) compiled, from no force (the lever), from fits (the march's Jacobian) and from solver
+    states (their own, sided), readings with gratings missing: the same residuals and Jacobians, and at every
+    candidate whose system is well conditioned the same decrement and step; and the same starts from
+    ``search.scan`` where those candidates decide them. (At a candidate the base nearly spans, the Schur
+    complement is cancellation and its decrement and step mean nothing on either side.)"""
+    problem = noisy_problem(rod, gen, 24, max(h0, 1))
+    B = problem.batch_size
+    if h0 == 0:
+        base = Fits(np.arange(B), np.zeros((B, 0)), np.zeros((B, 0, 2)), np.zeros((B, 0), np.int64))
+    else:
+        base = starts_on_and_near_bounds(problem, gen, h0)
+        if from_state:
+            base = lm.solve(problem, lm.LMPolicy(iterations=3), base)
+    fits = base.fits if from_state else base
+    known = (base.r, lm.sided(problem, base.fits, base.J)) if from_state else None
+    cand, _, _ = search._candidates(problem, fits.reading, 2)
+    C = cand.shape[1]
+    r, J, dec, xc, yb, Y = _lm_compiled.scan(problem, fits, cand, known)
+    r0, J0, Jc0 = search._responses(problem, fits, cand, known)
+    dec0, steps0 = search._added_force(NUMPY, J0, r0, Jc0)
+    np.testing.assert_allclose(r, r0, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(J, J0, rtol=1e-12, atol=1e-12 * np.abs(J0).max(initial=1.0))
+    assert np.array_equal(np.isfinite(dec), np.isfinite(dec0))
+    # The condition of each candidate's system [J, Jc], its columns scaled to unit norm (its normal equations, which
+    # both solve, have the square of it).
+    cols = np.concatenate([np.broadcast_to(J0[:, None], (B, C) + J0.shape[1:]), Jc0], 3)
+    cols = cols / np.maximum(np.linalg.norm(cols, axis=2, keepdims=True), 1e-300)
+    well = np.isfinite(dec0) & (np.linalg.cond(cols) < 1e4)
+    assert well.mean() > 0.2
+    np.testing.assert_allclose(dec[well], dec0[well], rtol=1e-7, atol=1e-9 * np.abs(dec0[well]).max())
+    i, c = np.nonzero(well)
+    ours, theirs = search._steps(NUMPY, xc, yb, Y)(i, c), steps0(i, c)
+    np.testing.assert_allclose(ours, theirs, rtol=1e-6, atol=1e-9 * np.abs(theirs).max())
+    # The whole scan, on the readings whose four best intervals (the three starts and the next) come from
+    # well-conditioned candidates apart by more than 1e-6 of their decrements: the same intervals, starts, gains
+    # and predicted losses.
+    got = search.scan(problem, base, per_interval=2, top=3, trust=10.0)
+    with monkeypatch.context() as m:
+        m.setattr(_lm_compiled, "usable", lambda problem, rows, h: False)
+        want = search.scan(problem, base, per_interval=2, top=3, trust=10.0)
+    per = np.where(np.isfinite(dec0), dec0, -np.inf).reshape(B, -1, 2)  # (B, intervals, 2 candidates)
+    order = np.argsort(-per.max(2), axis=1, kind="stable")[:, :4]
+    top = np.take_along_axis(per.max(2), order, 1)
+    clear = np.take_along_axis(well.reshape(B, -1, 2).all(2), order, 1).all(1)
+    gaps = np.abs(np.diff(top, axis=1))
+    clear &= np.all((gaps > 1e-6 * np.abs(top[:, :1])) | ~np.isfinite(gaps), axis=1)
+    apart = np.flatnonzero(clear)
+    assert apart.shape[0] >= B // 4
+    rows = (apart[None, :] + B * np.arange(3)[:, None]).reshape(-1)  # their three starts (blocks of B)
+    assert np.array_equal(got.starts.interval[rows], want.starts.interval[rows])
+    np.testing.assert_allclose(got.starts.s[rows], want.starts.s[rows], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got.starts.f[rows], want.starts.f[rows], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(got.gain[apart], want.gain[apart], rtol=1e-7, atol=1e-12)
+    big = np.abs(want.predicted[np.isfinite(want.predicted)]).max()  # a loss less a decrement: cancellation
+    np.testing.assert_allclose(got.predicted[:, apart], want.predicted[:, apart], rtol=1e-7, atol=1e-9 * big)

@@ -22,7 +22,7 @@ from ..model.sensitivity import SCALAR_WORK, march_work
 from . import problem as _problem
 from .problem import Fits, Problem
 
-__all__ = ["finish_counted", "solve", "start", "step", "usable"]
+__all__ = ["finish_counted", "scan", "solve", "start", "step", "usable"]
 
 
 class _Failed(Exception):
@@ -228,3 +228,36 @@ def finish_counted(problem: Problem, policy: Any, state: Any) -> Any:
         return None
     fits = Fits(state.fits.reading, S[1], S[2], state.fits.interval)
     return state.replace(fits=fits, r=S[4], loss=S[6]), used
+
+
+def scan(problem: Problem, base: Fits, cand: Any, known: tuple[Any, Any] | None) -> Any:
+    """:func:`.search._responses` and :func:`.search._added_force` compiled for ``base`` (R0 fits) and candidates
+    ``cand`` (R0, C) [m] (``known``: the base's residuals and sided Jacobian): r (R0, n), J (R0, n, 3h), the
+    decrements (R0, C) and the pieces of the steps (:func:`.search._steps`); None where it cannot run (a march input
+    not finite, a singular propagator)."""
+    from .lm import FLOOR, TINY
+
+    R0, h = base.s.shape
+    C = cand.shape[1]
+    n, Pb = problem.u.shape[1], 3 * h
+    r, J = np.zeros((R0, n)), np.zeros((R0, n, Pb))
+    if known is not None:
+        r[:], J[:] = known
+    dec, xc, ok = np.empty((R0, C)), np.empty((R0, C, 2)), np.empty(R0, np.bool_)
+    yb, Y = np.zeros((R0, Pb)), np.zeros((R0, C, 2, Pb))
+    failed = np.zeros(1, np.bool_)
+    fits = (
+        np.ascontiguousarray(base.reading, np.int64),
+        np.ascontiguousarray(base.s, np.float64),
+        np.ascontiguousarray(base.f, np.float64),
+        np.ascontiguousarray(base.interval, np.int64),
+    )
+    cand = np.ascontiguousarray(cand, np.float64)
+    try:
+        _kernel("scan_rows", _problem_args(problem), fits, known is not None, cand, TINY, FLOOR, r, J, dec, xc, yb, Y,
+                ok, failed)  # fmt: skip
+    except _Failed:
+        return None
+    if failed[0]:
+        return None
+    return r, J, np.where(ok[:, None], dec, -math.inf), xc, yb, Y

@@ -608,3 +608,191 @@ def finish_rows(P_, S_, O_, E_, used):
             loss[i] = loss_t
         if not math.isfinite(loss[i]):
             loss[i] = math.inf
+
+
+@_jit
+def scan_rows(P_, base, known, cand, tiny, floor, r, J, dec, xc, yb, Y, ok, failed):
+    # search._responses and search._added_force of every base row (straight rod), in place: the residuals r
+    # (R0, n) and sided Jacobian J (R0, n, Pb) (given: ``known``), and the Gauss-Newton model of one more force
+    # at each candidate: decrements dec (R0, C), its solution's pieces xc (R0, C, 2), yb (R0, Pb), Y (R0, C, 2, Pb),
+    # ok (R0,) where the base block solved. ``failed``: a row this cannot take (the array code then scans).
+    (query, u, weight, lo_all, hi_all, lok_all, hik_all, intervals, noise2, residuals, floor2, length, ei,
+     force_unit, step_angle, max_steps, snap) = P_  # fmt: skip
+    reading, s, f, interval = base
+    R0, h = s.shape
+    G = query.shape[0]
+    C = cand.shape[1]
+    n = 2 * G
+    Pb = 3 * h
+    Q = G + C
+    inv = 1.0 / ei
+    order = np.empty(h + Q, np.int64)
+    seg = np.empty(h + Q)
+    steps = np.empty(h + Q, np.int64)
+    jump = np.empty(h, np.complex128)
+    active = np.ones(h, np.bool_)
+    at = np.empty(Q)
+    curv = np.empty((Q, 2))
+    jac = np.empty((Q, 2, Pb))
+    phi = np.empty((Q, 4, 4))
+    Jraw = np.empty((n, Pb))
+    lo = np.empty(h)
+    hi = np.empty(h)
+    Jc = np.empty((C, n, 2))
+    Mphi = np.empty((4, 4))
+    col = np.empty(4)
+    x = np.empty(4)
+    Msol = np.empty((4, 2))
+    Abb = np.empty((Pb, Pb))
+    K = np.empty((Pb, Pb))
+    Kinv = np.empty((Pb, Pb))
+    e = np.empty(Pb)
+    xk = np.empty(Pb)
+    gb = np.empty(Pb)
+    t = np.empty(max(Pb, 1))
+    for i in range(R0):
+        b = reading[i]
+        w = weight[b]
+        if h == 0:  # no force yet: the rod is straight, the response is the small-deflection lever
+            for k in range(n):
+                r[i, k] = -u[b, k] * w[k]
+            for c in range(C):
+                for g in range(G):
+                    lever = max(cand[i, c] - query[g], 0.0) * inv
+                    Jc[c, 2 * g, 0] = 0.0 * w[2 * g] * force_unit
+                    Jc[c, 2 * g, 1] = -lever * w[2 * g] * force_unit
+                    Jc[c, 2 * g + 1, 0] = lever * w[2 * g + 1] * force_unit
+                    Jc[c, 2 * g + 1, 1] = 0.0 * w[2 * g + 1] * force_unit
+        else:
+            for g in range(G):
+                at[g] = query[g]
+            for c in range(C):
+                at[G + c] = cand[i, c]
+            for j in range(h):
+                jump[j] = complex(-f[i, j, 1] * inv, f[i, j, 0] * inv)
+            if not (np.isfinite(at).all() and np.isfinite(s[i]).all() and np.isfinite(jump).all()):
+                failed[0] = True
+                return
+            F = 0 if known else Pb
+            _schedule(at, s[i], jump, length, step_angle, max_steps, False, order, seg, steps)
+            _march_row(order, seg, steps, jump, active, h, F, True, ei, curv, jac, phi)
+            if not known:
+                for g in range(G):
+                    for k in range(2):
+                        m = 2 * g + k
+                        r[i, m] = (curv[g, k] - u[b, m]) * w[m]
+                        for p in range(Pb):
+                            v = jac[g, k, p] * (length if p % 3 == 0 else force_unit)
+                            Jraw[m, p] = v * w[m]
+                _bounds(lo_all[b], hi_all[b], interval[i], lo, hi)
+                _sided(Jraw, s[i], hi, hik_all[b], interval[i], J[i])
+            for c in range(C):
+                # Phi(c)^-1 applied to the state's jump under a unit f_x and f_y at c: the rhs [0, 0; jumps]
+                for a_ in range(4):
+                    for b_ in range(4):
+                        Mphi[a_, b_] = phi[G + c, a_, b_]
+                for j in range(2):
+                    col[0] = 0.0
+                    col[1] = 0.0
+                    col[2] = 0.0 if j == 0 else -inv
+                    col[3] = inv if j == 0 else 0.0
+                    if not _solve(Mphi, col, x):
+                        failed[0] = True  # a singular propagator: the array code's least squares
+                        return
+                    for a_ in range(4):
+                        Msol[a_, j] = x[a_]
+                for g in range(G):
+                    prox = 1.0 if query[g] < cand[i, c] else 0.0
+                    for k in range(2):
+                        for j in range(2):
+                            v = 0.0
+                            for a_ in range(4):
+                                v += phi[g, k, a_] * Msol[a_, j]
+                            Jc[c, 2 * g + k, j] = (v * prox) * w[2 * g + k] * force_unit
+        # _added_force: the base block K inverted once, a 2 x 2 Schur complement per candidate
+        d_max = -math.inf
+        _gram(J[i], Abb)
+        for p in range(Pb):
+            d = Abb[p, p]
+            if d != d or d > d_max:
+                d_max = d
+        Acc = np.empty((C, 2, 2))
+        gc = np.empty((C, 2))
+        for c in range(C):
+            for a_ in range(2):
+                for b_ in range(2):
+                    v = 0.0
+                    for k in range(n):
+                        v += Jc[c, k, a_] * Jc[c, k, b_]
+                    Acc[c, a_, b_] = v
+                v = 0.0
+                for k in range(n):
+                    v += r[i, k] * Jc[c, k, a_]
+                gc[c, a_] = v
+                d = Acc[c, a_, a_]
+                if d != d or d > d_max:
+                    d_max = d
+        scale = d_max if (d_max != d_max or d_max >= 1e-300) else 1e-300
+        base_dec = 0.0
+        ok[i] = True
+        if Pb:
+            for p in range(Pb):
+                for q in range(Pb):
+                    K[p, q] = Abb[p, q] + (1.0 if p == q else 0.0) * (tiny * Abb[p, p] + floor * scale)
+            for q in range(Pb):
+                for p in range(Pb):
+                    e[p] = 1.0 if p == q else 0.0
+                if not _solve(K, e, xk):
+                    ok[i] = False
+                for p in range(Pb):
+                    Kinv[p, q] = xk[p]
+            if not ok[i]:
+                Kinv[:, :] = 0.0
+            _gradient(J[i], r[i], gb)
+            for p in range(Pb):
+                v = 0.0
+                for q in range(Pb):
+                    v += Kinv[p, q] * gb[q]
+                yb[i, p] = v
+                t[p] = gb[p] * v
+            base_dec = _sum(t, Pb)
+        for c in range(C):
+            S00, S01, S10, S11 = Acc[c, 0, 0], Acc[c, 0, 1], Acc[c, 1, 0], Acc[c, 1, 1]
+            z0, z1 = gc[c, 0], gc[c, 1]
+            if Pb:
+                Acb = np.empty((2, Pb))
+                for a_ in range(2):
+                    for p in range(Pb):
+                        v = 0.0
+                        for k in range(n):
+                            v += Jc[c, k, a_] * J[i, k, p]
+                        Acb[a_, p] = v
+                for a_ in range(2):
+                    for p in range(Pb):
+                        v = 0.0
+                        for q in range(Pb):
+                            v += Acb[a_, q] * Kinv[q, p]
+                        Y[i, c, a_, p] = v
+                s00 = s01 = s10 = s11 = 0.0
+                y0 = y1 = 0.0
+                for p in range(Pb):
+                    s00 += Y[i, c, 0, p] * Acb[0, p]
+                    s01 += Y[i, c, 0, p] * Acb[1, p]
+                    s10 += Y[i, c, 1, p] * Acb[0, p]
+                    s11 += Y[i, c, 1, p] * Acb[1, p]
+                    y0 += Y[i, c, 0, p] * gb[p]
+                    y1 += Y[i, c, 1, p] * gb[p]
+                S00, S01, S10, S11 = S00 - s00, S01 - s01, S10 - s10, S11 - s11
+                z0, z1 = z0 - y0, z1 - y1
+            a = S00 + (tiny * Acc[c, 0, 0] + floor * scale)
+            d = S11 + (tiny * Acc[c, 1, 1] + floor * scale)
+            bb = 0.5 * (S01 + S10)
+            det = a * d - bb * bb
+            adds = a > 0.0 and det > 0.0
+            if not adds:
+                det = 1.0
+            x0 = (d * z0 - bb * z1) / det if adds else 0.0
+            x1 = (a * z1 - bb * z0) / det if adds else 0.0
+            xc[i, c, 0] = x0
+            xc[i, c, 1] = x1
+            dec[i, c] = base_dec + (z0 * x0 + z1 * x1) if ok[i] else -math.inf

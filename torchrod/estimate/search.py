@@ -45,7 +45,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from . import lm
+from . import _lm_compiled, lm
 from .finish import refine_open
 from .problem import Fits, Problem, interval_of, march_fits, near_kink, sided
 from .refine import LBFGSOptions
@@ -262,8 +262,13 @@ def scan(problem: Problem, base: Fits | lm.LMState, *, per_interval: int, top: i
     R0, h0 = base.s.shape
     G = problem.query.shape[0]
     cand, cint, valid = _candidates(problem, base.reading, per_interval)
-    r, J, Jc = _responses(problem, base, cand, known)
-    dec, steps = _added_force(xp, J, r, Jc)
+    compiled = _lm_compiled.scan(problem, base, cand, known) if _lm_compiled.usable(problem, R0, h0) else None
+    if compiled is not None:  # the same, compiled (._lm_compiled)
+        r, J, dec, xc, yb, Y = compiled
+        steps = _steps(xp, xc, yb, Y)
+    else:
+        r, J, Jc = _responses(problem, base, cand, known)
+        dec, steps = _added_force(xp, J, r, Jc)
     dec = xp.where(valid & xp.isfinite(dec), dec, -math.inf)
     # The best candidate of each interval, then the `top` best intervals.
     K = per_interval
@@ -308,8 +313,8 @@ def _added_force(xp: Any, J: Any, r: Any, Jc: Any) -> tuple[Any, Any]:
     """The Gauss-Newton model of each base fit with one more force at each candidate, every unknown free.
 
     For base row i and candidate c the normal system of the columns [J_i, Jc_ic] is
-    ``[[Abb, Abc], [Acb, Acc]] x = [gb; gc]``, lightly damped (``1e-9`` of each diagonal entry plus ``1e-12`` of
-    the row's largest one, base and candidates alike). It is solved through the base block K, shared by a row's C
+    ``[[Abb, Abc], [Acb, Acc]] x = [gb; gc]``, lightly damped (``lm.TINY`` of each diagonal entry plus ``lm.FLOOR``
+    of the row's largest one, base and candidates alike). It is solved through the base block K, shared by a row's C
     candidates and inverted once, so that each candidate costs a 2 x 2 system, its Schur complement:
     ``S = Acc - Y Abc`` with ``Y = Acb K^-1``, ``S x_c = z = gc - Y gb``; then ``x_b = K^-1 gb - Y^T x_c`` and the
     decrement g.x is ``gb.K^-1 gb + z.x_c``. Where the base columns span a candidate's response to rounding (S is
@@ -326,6 +331,7 @@ def _added_force(xp: Any, J: Any, r: Any, Jc: Any) -> tuple[Any, Any]:
     """
     R0, C = Jc.shape[:2]
     Pb = J.shape[-1]
+    tiny, floor = lm.TINY, lm.FLOOR
     Abb = xp.mT(J) @ J  # (R0, Pb, Pb)
     Acc = xp.mT(Jc) @ Jc  # (R0, C, 2, 2)
     gc = (r[:, None, None, :] @ Jc)[:, :, 0, :]  # (R0, C, 2)
@@ -333,7 +339,7 @@ def _added_force(xp: Any, J: Any, r: Any, Jc: Any) -> tuple[Any, Any]:
     scale = xp.clip(xp.amax(xp.concat([d_b, d_c.reshape(R0, 2 * C)], 1), 1), lo=1e-300)[:, None]
     S, z = Acc, gc
     if Pb:
-        K = Abb + xp.eye(Pb) * (1e-9 * d_b + 1e-12 * scale)[:, :, None]
+        K = Abb + xp.eye(Pb) * (tiny * d_b + floor * scale)[:, :, None]
         K_inv, ok = xp.spd_solve(K, xp.expand(xp.eye(Pb), (R0, Pb, Pb)))  # (R0, Pb, Pb)
         gb = xp.einsum("rkp,rk->rp", J, r)
         yb = (K_inv @ gb[:, :, None])[..., 0]  # K^-1 gb
@@ -344,8 +350,9 @@ def _added_force(xp: Any, J: Any, r: Any, Jc: Any) -> tuple[Any, Any]:
         base_dec = (gb * yb).sum(1)[:, None]
     else:
         base_dec, ok = 0.0, xp.ones((R0,), "bool")
-    a = S[..., 0, 0] + (1e-9 * d_c[..., 0] + 1e-12 * scale)
-    d = S[..., 1, 1] + (1e-9 * d_c[..., 1] + 1e-12 * scale)
+        yb, Y = xp.zeros((R0, 0)), xp.zeros((R0, C, 2, 0))
+    a = S[..., 0, 0] + (tiny * d_c[..., 0] + floor * scale)
+    d = S[..., 1, 1] + (tiny * d_c[..., 1] + floor * scale)
     b = 0.5 * (S[..., 0, 1] + S[..., 1, 0])
     det = a * d - b * b
     adds = (a > 0.0) & (det > 0.0)
@@ -353,15 +360,21 @@ def _added_force(xp: Any, J: Any, r: Any, Jc: Any) -> tuple[Any, Any]:
     xc = xp.stack([(d * z[..., 0] - b * z[..., 1]) / det, (a * z[..., 1] - b * z[..., 0]) / det], 2)  # (R0, C, 2)
     xc = xp.where(adds[:, :, None], xc, 0.0)
     dec = xp.where(ok[:, None], base_dec + (z * xc).sum(2), -math.inf)
+    return dec, _steps(xp, xc, yb, Y)
+
+
+def _steps(xp: Any, xc: Any, yb: Any, Y: Any) -> Any:
+    """``steps(i, c)`` of :func:`_added_force` from the pieces of its solution: the new force's xc (R0, C, 2),
+    K^-1 gb yb (R0, Pb) and Y (R0, C, 2, Pb)."""
 
     def steps(i: Any, c: Any) -> Any:
         x_c = xc[i, c]  # (n, 2)
-        if not Pb:
+        if not yb.shape[1]:
             return -x_c
         x_b = yb[i] - (x_c[:, None, :] @ Y[i, c])[:, 0, :]
         return -xp.concat([x_b, x_c], 1)
 
-    return dec, steps
+    return steps
 
 
 def best_of(xp: Any, state: lm.LMState, B: int, slack: Any = None, layout: tuple[Any, int] | None = None) -> Any:
