@@ -99,6 +99,18 @@ def starts_on_and_near_bounds(problem, gen, h):
     return Fits(xp.asarray(reading, "int"), s, f, j)
 
 
+def started(problem, gen, h, known):
+    """The problem (its noise given, or estimated per fit), the default policy, and the array code's start from
+    starts on, near and off their bounds, checked against the compiled start."""
+    if not known:
+        problem = dataclasses.replace(problem, noise2=None)
+    policy = lm.LMPolicy()
+    fits = starts_on_and_near_bounds(problem, gen, h)
+    state = lm.start(problem, policy, fits)
+    assert_same_state(state, _lm_compiled.start(problem, policy, fits))
+    return problem, policy, state
+
+
 @pytest.mark.parametrize("known", [True, False], ids=["noise-given", "noise-per-fit"])
 @pytest.mark.parametrize("h", [1, 2, 3])
 def test_the_compiled_step_takes_the_array_codes_steps(rod, gen, h, known):
@@ -106,13 +118,7 @@ def test_the_compiled_step_takes_the_array_codes_steps(rod, gen, h, known):
     started on, near and off their bounds, some with the geodesic acceleration; the run passes through
     crossings, held locations and accelerated steps (checked, so that the comparison covers them). The noise
     given, or estimated from each fit's loss."""
-    problem = noisy_problem(rod, gen, 48, h)
-    if not known:
-        problem = dataclasses.replace(problem, noise2=None)
-    policy = lm.LMPolicy()
-    fits = starts_on_and_near_bounds(problem, gen, h)
-    state = lm.start(problem, policy, fits)
-    assert_same_state(state, _lm_compiled.start(problem, policy, fits))
+    problem, policy, state = started(noisy_problem(rod, gen, 48, h), gen, h, known)
     crossed = held = accelerated = 0
     for k in range(8):
         if k % 2:  # every other step: half the rows as if their last step had curved
@@ -272,13 +278,7 @@ def test_the_compiled_step_on_random_rods_and_readings(gratings, tip, length, st
     u = (3.0 / length) * torch.randn(B, G, 2, dtype=F64, generator=gen)
     present = torch.rand(B, G, generator=gen) >= missing
     present[:, 0] = True  # at least one interval
-    problem = problem_for(NUMPY, rod, u, present, noise=0.1 / length)
-    if not known:
-        problem = dataclasses.replace(problem, noise2=None)
-    policy = lm.LMPolicy()
-    fits = starts_on_and_near_bounds(problem, gen, h)
-    state = lm.start(problem, policy, fits)
-    assert_same_state(state, _lm_compiled.start(problem, policy, fits))
+    problem, policy, state = started(problem_for(NUMPY, rod, u, present, noise=0.1 / length), gen, h, known)
     for k in range(3):
         if k == 1:
             state = state.replace(ratio=np.where(np.arange(B) % 2 == 0, 0.1, state.ratio))

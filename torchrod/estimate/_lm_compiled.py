@@ -12,7 +12,6 @@ marches."""
 from __future__ import annotations
 
 import math
-import warnings
 from typing import Any
 
 import numpy as np
@@ -170,19 +169,9 @@ def _kernel(name: str, *args: Any) -> None:
     """Run kernel ``name`` of :mod:`._lm_kernels`; where it cannot be imported or compiled here, warn once, stop
     using the kernels (:func:`usable` False from then on) and raise :class:`_Failed`."""
     global _broken
-    try:
-        from . import _lm_kernels
-
-        getattr(_lm_kernels, name)(*args)
-    except Exception as exc:  # noqa: BLE001 - whatever an incompatible Numba raises, the solves go on without it
-        _broken = f"{type(exc).__name__}: {exc}"
-        warnings.warn(
-            f"torchrod: the compiled Levenberg-Marquardt steps could not run ({_broken}); solving without them "
-            "(set TORCHROD_NUMBA=0 to skip them)",
-            RuntimeWarning,
-            stacklevel=4,
-        )
-        raise _Failed from None
+    _broken = compiled.call(__name__.rpartition(".")[0] + "._lm_kernels", name, args, "search steps", "solving")
+    if _broken is not None:
+        raise _Failed
 
 
 def start(problem: Problem, policy: Any, fits: Fits) -> Any:

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["available", "exact_rows", "load", "loaded", "march_rows", "takes"]
+__all__ = ["available", "call", "exact_rows", "load", "loaded", "march_rows", "takes"]
 
 
 def load() -> bool:
@@ -80,21 +80,27 @@ def _run(name: str, rows: int, *args: Any) -> np.ndarray:
     False from then on) where the kernels cannot be imported or compiled here."""
     global _failure
     marched = np.zeros(rows, np.bool_)
-    if _failure is not None:
-        return marched
-    try:
-        from . import _kernels
+    if _failure is None:
+        _failure = call(__name__.rpartition(".")[0] + "._kernels", name, (*args, marched), "marches", "marching")
+    return marched
 
-        getattr(_kernels, name)(*args, marched)
-    except Exception as exc:  # noqa: BLE001 - whatever an incompatible Numba raises, the marches go on without it
-        _failure = f"{type(exc).__name__}: {exc}"
+
+def call(module: str, name: str, args: tuple, what: str, doing: str) -> str | None:
+    """Call kernel ``name`` of ``module`` with ``args``; where it cannot be imported or compiled here (whatever an
+    incompatible Numba raises), warn (``what``: the kernels, ``doing``: what goes on without them) and return why
+    (None: it ran). The callers stop using their kernels from then on."""
+    try:
+        getattr(importlib.import_module(module), name)(*args)
+    except Exception as exc:  # noqa: BLE001 - whatever an incompatible Numba raises, the work goes on without it
+        why = f"{type(exc).__name__}: {exc}"
         warnings.warn(
-            f"torchrod: the compiled marches could not run ({_failure}); marching without them "
+            f"torchrod: the compiled {what} could not run ({why}); {doing} without them "
             "(set TORCHROD_NUMBA=0 to skip them)",
             RuntimeWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
-    return marched
+        return why
+    return None
 
 
 @functools.cache
