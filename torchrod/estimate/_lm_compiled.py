@@ -249,4 +249,4 @@ def scan(problem: Problem, base: Fits, cand: Any, known: tuple[Any, Any] | None)
         return None
     if failed[0]:
         return None
-    return r, J, np.where(ok[:, None], dec, -math.inf), xc, yb, Y
+    return r, J, dec, xc, yb, Y  # dec: -inf where the base block failed (ok False)

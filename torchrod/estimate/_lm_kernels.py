@@ -650,6 +650,9 @@ def scan_rows(P_, base, known, cand, tiny, floor, r, J, dec, xc, yb, Y, ok, fail
     xk = np.empty(Pb)
     gb = np.empty(Pb)
     t = np.empty(max(Pb, 1))
+    Acc = np.empty((C, 2, 2))
+    gc = np.empty((C, 2))
+    Acb = np.empty((2, Pb))
     for i in range(R0):
         b = reading[i]
         w = weight[b]
@@ -716,8 +719,6 @@ def scan_rows(P_, base, known, cand, tiny, floor, r, J, dec, xc, yb, Y, ok, fail
             d = Abb[p, p]
             if d != d or d > d_max:
                 d_max = d
-        Acc = np.empty((C, 2, 2))
-        gc = np.empty((C, 2))
         for c in range(C):
             for a_ in range(2):
                 for b_ in range(2):
@@ -760,7 +761,6 @@ def scan_rows(P_, base, known, cand, tiny, floor, r, J, dec, xc, yb, Y, ok, fail
             S00, S01, S10, S11 = Acc[c, 0, 0], Acc[c, 0, 1], Acc[c, 1, 0], Acc[c, 1, 1]
             z0, z1 = gc[c, 0], gc[c, 1]
             if Pb:
-                Acb = np.empty((2, Pb))
                 for a_ in range(2):
                     for p in range(Pb):
                         v = 0.0
