@@ -90,6 +90,18 @@ def test_estimate_bad_option(capsys, tmp_path):
     assert "neither a rod file nor a preset" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command", [["estimate", "-"], ["stream"], ["bench", "stream", "--quick"]])
+def test_a_device_that_cannot_be_used_is_refused_at_once(command, capsys):
+    """A device torch does not know, or does not see here, is a bad option (exit 2, naming it) before any reading;
+    so are worker processes beside a GPU (tests/test_cuda.py runs that where there is one)."""
+    rod = [] if command[0] == "bench" else ["--rod", "nitinol290"]
+    assert main([*command, *rod, "--device", "gpu0"]) == 2
+    assert "'gpu0' is not a torch device" in capsys.readouterr().err
+    if not torch.cuda.is_available():
+        assert main([*command, *rod, "--device", "cuda"]) == 2
+        assert "no CUDA device" in capsys.readouterr().err
+
+
 def test_evaluate_prints_a_table(capsys):
     threads = torch.get_num_threads()
     try:

@@ -40,6 +40,10 @@ the same readings several ways, in one run:
   waited for idle processes. cpu ms is the child's and its workers'; readings per batch and evaluations are not
   reported (the answers do not carry them).
 
+``--device`` (default cpu) runs every row on that device (e.g. ``cuda``, the torch backend; the estimator's default
+there): the readings are moved to it, the CLI rows get the same ``--device``, and the row of P processes, which
+solve on CPU cores, is left out.
+
 The stream rows (and the CLI's) start each reading as the static estimator does; with ``--track`` they also start
 small batches from the last answer's forces (``StreamOptions(track=True)``; in ``one at a time`` always one frame
 old).
@@ -76,7 +80,7 @@ from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.workers import ParallelEstimator
 from ...io.stream import Reading, StreamOptions, StreamResult, StreamStats, stream, warm_up
 from ...presets import load as load_rod
-from ..commands import settle
+from ..commands import add_device_option, check_device, settle
 from . import SUITES
 from .pacer import ExternalStream, cpu_time, reading_line
 
@@ -113,6 +117,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="an EstimatorOptions field for every way (repeatable; e.g. starts=1, lbfgs.max_iter=10)",
     )
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    add_device_option(parser)
     parser.add_argument(
         "--workers",
         type=int,
@@ -145,6 +150,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--profile", action="store_true", help="where the time goes (a separate profiled pass)")
     parser.add_argument("--quick", action="store_true", help="a smoke run: 300 readings, 100 paced, 20 one at a time")
+
+
+def _device_name(device: torch.device) -> str:
+    """``cpu``, or a GPU's name beside its device (``cuda:0 (NVIDIA H100 80GB HBM3)``)."""
+    if device.type != "cuda":
+        return str(device)
+    index = device.index if device.index is not None else torch.cuda.current_device()
+    return f"cuda:{index} ({torch.cuda.get_device_name(index)})"
 
 
 def _network(spec: str | None, rod: Any) -> tuple[Any, str]:
@@ -191,10 +204,13 @@ def _timed(
     """Drain ``results`` into ``row``; ids are trajectory frame indices; ``pids``: worker processes whose CPU time
     counts too."""
     w0, c0 = time.perf_counter(), time.process_time() + cpu_time(pids)
+    batch, evaluations = None, []  # the last batch's result and its evaluations, read off the device once
     for r in results:
         row.stats.add(r, truth[r.id])
         if r._result is not None:  # (the batch's result: slicing it per reading would cost inside the timing)
-            row.evaluations += int(r._result.evaluations[r._index])
+            if r._result is not batch:
+                batch, evaluations = r._result, r._result.evaluations.tolist()
+            row.evaluations += evaluations[r._index]
     row.wall, row.cpu = time.perf_counter() - w0, time.process_time() + cpu_time(pids) - c0
 
 
@@ -220,7 +236,7 @@ def _external_rows(
         raise ValueError(f"--external-workers must be >= 0, got {args.external_workers}")
     checkpoint = "none" if network.startswith("none") else network
     base = ["--rod", args.rod, "--noise", f"{args.noise:g}", "--checkpoint", checkpoint]
-    base += ["--batch-size", str(args.batch_size), "--threads", str(args.threads)]
+    base += ["--batch-size", str(args.batch_size), "--threads", str(args.threads), "--device", args.device]
     if args.external_workers != 1:
         base += ["--workers", str(args.external_workers)]
     if args.track:
@@ -397,6 +413,9 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--count, --single, --paced, --batch-size and --threads must be >= 1")
     if args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    device = check_device(args)
+    if device.type != "cpu" and args.external_workers > 1:
+        raise ValueError(f"--external-workers {args.external_workers} solve on CPU processes, not on --device")
     pace = args.rate if args.pace is None else args.pace
     if not (pace > 0 and args.rate > 0 and args.max_latency_ms >= 0):
         raise ValueError("--pace and --rate must be positive, --max-latency-ms >= 0")
@@ -419,37 +438,38 @@ def run(args: argparse.Namespace) -> int:
         for k in range(count)
     ]
     B = args.batch_size
-    options = StreamOptions(batch_size=B, max_latency=args.max_latency_ms / 1e3, track=args.track)
+    options = StreamOptions(batch_size=B, max_latency=args.max_latency_ms / 1e3, track=args.track, device=device)
     counts = [len(t) for t in truth]
     print(
         f"# torchrod bench stream: {count} readings of a {args.rate:g} Hz trajectory "
         f"({', '.join(f'{sum(c == h for c in counts)} with {h}' for h in sorted(set(counts)))} forces), "
         f"noise {args.noise:g} 1/m (known but where a row says otherwise), "
         f"count chosen in 0..{estimator.options.max_forces}, "
-        f"network {network_name}, torch threads {torch.get_num_threads()}"
+        f"network {network_name}, torch threads {torch.get_num_threads()}, device {_device_name(device)}"
     )
     print(
         "# estimator options: "
         + ", ".join(f"{k}={v!r}" for k, v in dataclasses.asdict(estimator.options).items() if k != "lbfgs")
         + f"; lbfgs: {dataclasses.asdict(estimator.options.lbfgs)}"
     )
-    warm_up(estimator)
+    warm_up(estimator, device)
     settle()  # as `torchrod stream` does once it is set up (commands.settle)
     rows = []
 
     row = _Row(f"static, batched (B={B})")
-    _timed(row, _static_batched(estimator, curvature, mask, B), truth)
+    on_device = curvature.to(device), mask.to(device)
+    _timed(row, _static_batched(estimator, *on_device, B), truth)
     rows.append(row)
 
     row = _Row("static, one at a time")
-    _timed(row, _static_single(estimator, curvature, mask, window), truth)
+    _timed(row, _static_single(estimator, *on_device, window), truth)
     rows.append(row)
 
     row = _Row(f"stream, backlog (B<={B})")
     _timed(row, stream(estimator, items, options), truth)
     rows.append(row)
 
-    if args.workers > 1:
+    if args.workers > 1 and device.type == "cpu":
         # The same backlog over P processes (started and warmed up first: the timing is the solving's).
         with ParallelEstimator(estimator, args.workers) as parallel:
             parallel.warm(wait=True, spare=True)  # (a stream's first small batch would start the spare)
@@ -480,7 +500,7 @@ def run(args: argparse.Namespace) -> int:
 
     lock = _LockStep([items[k] for k in window])
     row = _Row("stream, one at a time")
-    single_options = StreamOptions(batch_size=1, max_latency=0.0, track=args.track)
+    single_options = StreamOptions(batch_size=1, max_latency=0.0, track=args.track, device=device)
     _timed(row, lock.answered(stream(estimator, lock, single_options)), truth)
     rows.append(row)
 

@@ -65,6 +65,41 @@ def time_budget(args: argparse.Namespace) -> float | None:
     return None if budget is None else budget / 1e3
 
 
+def add_device_option(parser: argparse.ArgumentParser) -> None:
+    """``--device``: where the readings are estimated (the CPU, or a GPU with the torch backend)."""
+    parser.add_argument(
+        "--device", default="cpu", help="torch device the readings are estimated on: cpu (default), cuda, cuda:1, ..."
+    )
+
+
+def check_device(args: argparse.Namespace, processes: int = 1):
+    """``--device`` as a :class:`torch.device`; ``ValueError`` for a name torch does not know, a device this
+    machine does not have (found now, not at the first reading), or worker ``processes`` (which solve on CPU cores)
+    asked for beside a device other than the CPU (where one process solves whole batches)."""
+    import torch
+
+    try:
+        dev = torch.device(args.device)
+    except (RuntimeError, ValueError):
+        raise ValueError(f"--device {args.device!r} is not a torch device (cpu, cuda, cuda:1, ...)") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"--device {args.device!r}: torch sees no CUDA device on this machine")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"--device {args.device!r}: this machine has {torch.cuda.device_count()} CUDA devices")
+    elif dev.type != "cpu":
+        try:
+            torch.zeros(1, device=dev)
+        except (RuntimeError, AssertionError) as exc:
+            raise ValueError(f"--device {args.device!r} cannot be used here: {exc}") from None
+    if dev.type != "cpu" and processes > 1:
+        raise ValueError(
+            f"--workers {processes} solves on CPU processes; with --device {args.device} one process solves whole "
+            "batches on the device: leave --workers at 1"
+        )
+    return dev
+
+
 def add_sensor_options(parser: argparse.ArgumentParser) -> None:
     """``--csv-quantity`` and ``--strain-noise``: readings from other sensors (:mod:`torchrod.sensors`)."""
     parser.add_argument(

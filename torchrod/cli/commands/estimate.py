@@ -70,7 +70,16 @@ from ...io.jsonl import LineWriter, check_input, open_output, until_interrupted
 from ...io.readings import FORMATS, Reading, ReadingSource, stack_readings
 from ...presets import load as load_rod
 from ...rod import Rod
-from . import add_sensor_options, add_time_budget_option, check_estimation_options, sensor_noise, settle, time_budget
+from . import (
+    add_device_option,
+    add_sensor_options,
+    add_time_budget_option,
+    check_device,
+    check_estimation_options,
+    sensor_noise,
+    settle,
+    time_budget,
+)
 
 HELP = "forces from FBG curvature readings (JSON lines in, JSON lines out)"
 
@@ -110,7 +119,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="FILE", help="write the answers to FILE (default: standard output)")
     parser.add_argument("--batch-size", type=int, default=1024, metavar="B", help="readings per batch (default 1024)")
     add_time_budget_option(parser, None)
-    parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    add_device_option(parser)
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     add_workers_option(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -206,12 +215,12 @@ def _run(args: argparse.Namespace) -> int:
     sensor_noise(args, rod)
     check_counts(args)
     processes = check_workers(args)
+    device = check_device(args, processes)
     if args.starts is not None and args.starts < 0:
         raise ValueError(f"--starts must be >= 0, got {args.starts}")
     check_input(args.readings, "READINGS")
     network = load_network(args.checkpoint, rod)
     estimator = Estimator(rod, trusting(options_from_args(args), network), warm_start=network)
-    device = torch.device(args.device)
     from ...estimate.workers import ParallelEstimator
 
     solver = ParallelEstimator(estimator, processes)

@@ -101,7 +101,16 @@ from ...io.readings import ReadingSource
 from ...io.stream import StreamOptions, StreamResult, StreamStats, stream, warm_up
 from ...presets import load as load_rod
 from ...rod import Rod
-from . import add_sensor_options, add_time_budget_option, check_estimation_options, sensor_noise, settle, time_budget
+from . import (
+    add_device_option,
+    add_sensor_options,
+    add_time_budget_option,
+    check_device,
+    check_estimation_options,
+    sensor_noise,
+    settle,
+    time_budget,
+)
 from .estimate import add_workers_option, check_counts, check_workers, load_network, trusting
 
 HELP = "amortised estimation on a stream of readings"
@@ -175,6 +184,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="STEPS",
         help="most Levenberg-Marquardt steps per fit before L-BFGS takes over (default %(default)s)",
     )
+    add_device_option(parser)
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     add_workers_option(parser)
     parser.add_argument("--summary", action="store_true", help="a short summary on stderr at the end")
@@ -244,6 +254,7 @@ def _run(args: argparse.Namespace) -> int:
     sensor_noise(args, rod)
     check_counts(args)
     processes = check_workers(args)
+    device = check_device(args, processes)
     if args.topic is not None and args.input == "-":
         raise ValueError("--topic reads a ROS bag: give its path with --input")
     if args.output_bag is not None:
@@ -276,13 +287,14 @@ def _run(args: argparse.Namespace) -> int:
         max_latency=args.max_latency_ms / 1e3,
         learn_noise=None if args.per_reading_noise else NoiseLearning(),
         track=args.track,
+        device=device,
     )
     # The workers start now, beside this process's warm-up (before the first reading: per-rod caches and first-call
     # costs would otherwise land on its latency), not once the stream begins: they are ready that much sooner.
     solver = ParallelEstimator(estimator, processes)
     solver.warm()
     with solver:
-        warm_up(estimator)
+        warm_up(estimator, device)
         settle()
         source = read_stream(args.input, rod, args.format, quantity=args.csv_quantity, topic=args.topic)
         with open_output(args.out, [args.input]) as out, _bag(args.output_bag, args.max_forces) as bag:
