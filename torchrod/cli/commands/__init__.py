@@ -68,7 +68,10 @@ def time_budget(args: argparse.Namespace) -> float | None:
 def add_device_option(parser: argparse.ArgumentParser) -> None:
     """``--device``: where the readings are estimated (the CPU, or a GPU with the torch backend)."""
     parser.add_argument(
-        "--device", default="cpu", help="torch device the readings are estimated on: cpu (default), cuda, cuda:1, ..."
+        "--device",
+        default="cpu",
+        help="torch device the readings are estimated on: cpu (default), cuda, cuda:1, ... (a GPU runs the torch "
+        "backend, at present far slower than the CPU: docs/results.md, 'On a GPU')",
     )
 
 

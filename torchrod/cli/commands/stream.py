@@ -52,6 +52,7 @@ at once with no fit): a batch of B readings stops searching B times it after it 
 short are answered with the best fit found so far and ``"status": "timeout"``. ``--checkpoint`` defaults to the
 shipped ``checkpoints/nitinol290.pt`` when the rod's grating layout matches it, else the stream runs without a
 network (said once on stderr); ``--checkpoint none`` turns the network off. ``--out FILE`` writes the answers to FILE.
+``--device cuda`` estimates on a GPU (one process; the same answers, far more slowly than the CPU at present).
 
 Every non-blank input line gets exactly one output line (a CSV header excepted). A line that cannot be used (bad
 JSON or CSV, a wrong number of gratings, NaN, a value out of bounds, all gratings missing) gives
