@@ -6,11 +6,13 @@ from the rod's second grating to the tip, bending <= 90 degrees), Gaussian noise
 1, 2, 3 and for a mix of the three. The estimator runs with its default options, the count chosen automatically among
 0..3, and is told the noise (as a calibrated sensor would).
 
-Per k: B = 1 (``--single`` readings estimated one after the other: mean, median and 90th percentile of the wall time
-per call, and the mean process CPU time, which a busy machine inflates less) and batched (``--batched`` readings in
-calls of ``--batch-size``: readings per second, wall and CPU). Count accuracy is printed as a sanity check. Every
-timing follows a warm-up call (per-rod caches: the grid bases of the starts) and the compiled march's load where
-Numba is installed (:func:`torchrod.model.compiled.load`); torch runs on ``--threads`` threads.
+Per k: B = 1 (``--single`` readings estimated one after the other: mean, median, 90th and 99th percentiles of the
+wall time per call, and the mean process CPU time, which a busy machine inflates less) and batched (``--batched``
+readings in calls of ``--batch-size``: readings per second, wall and CPU). Count accuracy is printed as a sanity
+check. Every timing follows a warm-up call (per-rod caches: the grid bases of the starts) and the compiled march's
+load where Numba is installed (:func:`torchrod.model.compiled.load`); torch runs on ``--threads`` threads.
+``--device`` estimates on that device (e.g. ``cuda``, the readings made on the CPU and moved there; a call's time
+includes reading its answers back); ``--forces`` picks the rows.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import torch
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...model import compiled
 from ...presets import load as load_rod
+from ..commands import add_device_option, check_device
 from . import SUITES
 
 HELP = SUITES["estimate"]
@@ -40,6 +43,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=int, default=500, help="readings per batched call (default 500)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the readings (default 0)")
+    parser.add_argument(
+        "--forces", default="1,2,3,1-3", metavar="K,...", help="the rows: counts 1, 2, 3 and the mix 1-3 (default all)"
+    )
+    add_device_option(parser)
     parser.add_argument("--quick", action="store_true", help="a smoke run: 3 single and 20 batched readings")
 
 
@@ -69,20 +76,25 @@ def run(args: argparse.Namespace) -> int:
         single, batched = 3, 20
     if min(single, batched, batch_size) < 1:
         raise ValueError("--single, --batched and --batch-size must be >= 1")
+    rows = {"1": 1, "2": 2, "3": 3, "1-3": None}
+    wanted = [x.strip() for x in args.forces.split(",")]
+    if not wanted or any(x not in rows for x in wanted):
+        raise ValueError(f"--forces takes some of 1, 2, 3 and 1-3, comma-separated, got {args.forces!r}")
+    device = check_device(args)
     torch.set_num_threads(args.threads)
     estimator = Estimator(rod, EstimatorOptions(noise=args.noise))
     print(
         f"# torchrod bench estimate: {rod.num_gratings} gratings, noise {args.noise:g} 1/m (known), "
-        f"count chosen in 0..3, torch threads {torch.get_num_threads()}"
+        f"count chosen in 0..3, torch threads {torch.get_num_threads()}, device {device}"
     )
     print(
-        f"{'forces':>6} | {'B=1 ms mean':>11} {'median':>7} {'p90':>7} {'cpu':>7} | {'batched rd/s':>12} "
+        f"{'forces':>6} | {'B=1 ms mean':>11} {'median':>7} {'p90':>7} {'p99':>7} {'cpu':>7} | {'batched rd/s':>12} "
         f"{'ms/rd':>7} {'cpu ms/rd':>9} | {'count ok':>8}"
     )
     compiled.load()
-    for k in (1, 2, 3, None):
+    for k in (rows[x] for x in wanted):
         data = readings(rod, k, max(single, batched), args.noise, args.seed + (k or 0))
-        curvature, mask = data.curvature, data.mask
+        curvature, mask = data.curvature.to(device), data.mask.to(device)
         truth = data.loads.count
         estimator.estimate(curvature[:1], mask[:1])  # warm-up
         walls, cpus, right = [], [], 0
@@ -91,19 +103,20 @@ def run(args: argparse.Namespace) -> int:
             res = estimator.estimate(curvature[b : b + 1], mask[b : b + 1])
             walls.append(time.perf_counter() - w0)
             cpus.append(time.process_time() - c0)
-            right += int(res.num_forces[0] == truth[b])
+            right += int(res.num_forces[0].cpu() == truth[b])
         w0, c0 = time.perf_counter(), time.process_time()
         for b0 in range(0, batched, batch_size):
             res = estimator.estimate(
                 curvature[b0 : min(batched, b0 + batch_size)], mask[b0 : min(batched, b0 + batch_size)]
             )
-            right += int((res.num_forces == truth[b0 : b0 + res.num_forces.shape[0]]).sum())
+            right += int((res.num_forces.cpu() == truth[b0 : b0 + res.num_forces.shape[0]]).sum())
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
         walls_ms = sorted(1e3 * w for w in walls)
-        p90 = walls_ms[min(len(walls_ms) - 1, math.ceil(0.9 * len(walls_ms)) - 1)]
+        p90, p99 = (walls_ms[min(len(walls_ms) - 1, math.ceil(q * len(walls_ms)) - 1)] for q in (0.9, 0.99))
         label = str(k) if k else "1-3"
         print(
             f"{label:>6} | {statistics.mean(walls_ms):>11.1f} {statistics.median(walls_ms):>7.1f} {p90:>7.1f} "
+            f"{p99:>7.1f} "
             f"{1e3 * statistics.mean(cpus):>7.1f} | {batched / wall:>12.0f} {1e3 * wall / batched:>7.2f} "
             f"{1e3 * cpu / batched:>9.2f} | {100 * right / (single + batched):>7.1f}%"
         )
