@@ -90,11 +90,20 @@ def test_estimate_bad_option(capsys, tmp_path):
     assert "neither a rod file nor a preset" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("command", [["estimate", "-"], ["stream"], ["bench", "stream", "--quick"]])
-def test_a_device_that_cannot_be_used_is_refused_at_once(command, capsys):
+@pytest.mark.parametrize(
+    "command",
+    [["estimate", "-"], ["stream"], ["bench", "stream", "--quick"], ["bench", "estimate"], ["simulate"], ["generate"]],
+)
+def test_a_device_that_cannot_be_used_is_refused_at_once(command, capsys, tmp_path):
     """A device torch does not know, or does not see here, is a bad option (exit 2, naming it) before any reading;
     so are worker processes beside a GPU (tests/test_cuda.py runs that where there is one)."""
     rod = [] if command[0] == "bench" else ["--rod", "nitinol290"]
+    if command == ["simulate"]:
+        forces = tmp_path / "forces.jsonl"
+        forces.write_text('{"forces": [{"s": 0.2, "fx": 0.1, "fy": 0.0}]}\n')
+        command = ["simulate", str(forces)]
+    elif command == ["generate"]:
+        command = ["generate", "--count", "1", "--out", str(tmp_path / "set.npz")]
     assert main([*command, *rod, "--device", "gpu0"]) == 2
     assert "'gpu0' is not a torch device" in capsys.readouterr().err
     if not torch.cuda.is_available():

@@ -65,14 +65,15 @@ def time_budget(args: argparse.Namespace) -> float | None:
     return None if budget is None else budget / 1e3
 
 
-def add_device_option(parser: argparse.ArgumentParser) -> None:
-    """``--device``: where the readings are estimated (the CPU, or a GPU with the torch backend)."""
-    parser.add_argument(
-        "--device",
-        default="cpu",
-        help="torch device the readings are estimated on: cpu (default), cuda, cuda:1, ... (a GPU runs the torch "
-        "backend, at present far slower than the CPU: docs/results.md, 'On a GPU')",
-    )
+ESTIMATION_DEVICE_HELP = (
+    "torch device the readings are estimated on: cpu (default), cuda, cuda:1, ... (a GPU runs the torch backend, at "
+    "present far slower than the CPU: docs/results.md, 'On a GPU')"
+)
+
+
+def add_device_option(parser: argparse.ArgumentParser, help: str = ESTIMATION_DEVICE_HELP) -> None:
+    """``--device`` (default cpu), checked by :func:`check_device`; ``help`` says what runs there."""
+    parser.add_argument("--device", default="cpu", help=help)
 
 
 def check_device(args: argparse.Namespace, processes: int = 1):

@@ -12,6 +12,8 @@ import math
 import sys
 import time
 
+from . import add_device_option, check_device
+
 HELP = "synthetic training sets (.npz) and synthetic reading streams (.jsonl)"
 
 
@@ -49,7 +51,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     g = parser.add_argument_group("sets")
     g.add_argument("--batch-size", type=int, default=4096, help="cases per forward pass (default: %(default)s)")
-    g.add_argument("--device", default=None, help="torch device for the forward model (default: cpu)")
+    add_device_option(g, "torch device the forward model runs on: cpu (default), cuda, cuda:1, ...")
     g.add_argument(
         "--progress",
         action=argparse.BooleanOptionalAction,
@@ -78,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
     rod = load_rod(args.rod)
     if args.count < 0:
         raise ValueError(f"--count must be >= 0, got {args.count}")
+    device = check_device(args)
     s_range = None
     if args.s_min is not None or args.s_max is not None:
         s_range = (
@@ -130,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         batch_size=args.batch_size,
         progress=progress,
-        device=args.device,
+        device=device,
     )
     data.save(args.out)
     seconds = time.perf_counter() - start

@@ -61,6 +61,7 @@ from ...model.body_frame import simulate
 from ...model.shape import bending_angle, shape
 from ...presets import load as load_rod
 from ...rod import Rod
+from . import add_device_option, check_device
 
 HELP = "curvature at the gratings for given point forces (JSON lines in, JSON lines out)"
 
@@ -100,7 +101,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="B",
         help="lines simulated per batched call (default 256)",
     )
-    parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    add_device_option(parser, "torch device the forward model runs on: cpu (default), cuda, cuda:1, ...")
     parser.add_argument(
         "--noise",
         type=float,
@@ -200,7 +201,7 @@ def run(args: argparse.Namespace) -> int:
     if args.seed is not None and args.noise == 0.0:
         raise ValueError("--seed sets the noise of --noise SIGMA; give both")
     check_input(args.forces, "FORCES")
-    device = torch.device(args.device)
+    device = check_device(args)
     options = {
         "samples": args.samples,
         "with_tip_angle": args.tip_angle,
