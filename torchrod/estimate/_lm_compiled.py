@@ -2,12 +2,12 @@
 backend: the loop, the deadline and ``stop`` stay in Python; each step of every open row, and the start, run in
 :mod:`._lm_kernels`, which write :func:`.lm._step` and :func:`.lm.analyse` row by row.
 
-The kernels restate :mod:`.lm`'s operations row by row; its numbers (the :class:`.lm.LMPolicy` passed in, ``lm.FLOOR``,
-``lm.TINY``, ``problem.SNAP``) are passed to them. Tests hold the two to the same states step for step, and the
-estimator to the same answers (tests/test_lm_compiled.py). They agree to rounding, not bit for bit: the array
-code's sums and solves run in NumPy's and LAPACK's order. Where the kernels cannot run here (an incompatible
-Numba), one warning says so and every solve runs the array code, as :mod:`torchrod.model.compiled` does for the
-marches."""
+The kernels restate :mod:`.lm`'s operations row by row; its numbers (the :class:`.lm.LMPolicy` passed in,
+``lm.FLOOR``, ``lm.TINY``, ``lm.SCALE_MIN``, ``problem.SNAP``) are passed to them. Tests hold the two to the same
+states step for step, and the estimator to the same answers (tests/test_lm_compiled.py). They agree to rounding, not
+bit for bit: the array code's sums and solves run in NumPy's and LAPACK's order. Where the kernels cannot run here
+(an incompatible Numba), one warning says so and every solve runs the array code, as :mod:`torchrod.model.compiled`
+does for the marches."""
 
 from __future__ import annotations
 
@@ -64,7 +64,7 @@ def _problem_args(problem: Problem) -> tuple:
 
 
 def _policy_args(policy: Any) -> tuple:
-    from .lm import FLOOR, TINY
+    from .lm import FLOOR, SCALE_MIN, TINY
 
     acceleration = -math.inf if policy.acceleration is None else float(policy.acceleration)
     return (
@@ -80,6 +80,7 @@ def _policy_args(policy: Any) -> tuple:
         float(policy.acceleration_limit),
         FLOOR,
         TINY,
+        SCALE_MIN,
     )
 
 
@@ -224,7 +225,7 @@ def scan(problem: Problem, base: Fits, cand: Any, known: tuple[Any, Any] | None)
     ``cand`` (R0, C) [m] (``known``: the base's residuals and sided Jacobian): r (R0, n), J (R0, n, 3h), the
     decrements (R0, C) and the pieces of the steps (:func:`.search._steps`); None where it cannot run (a march input
     not finite, a singular propagator)."""
-    from .lm import FLOOR, TINY
+    from .lm import FLOOR, SCALE_MIN, TINY
 
     R0, h = base.s.shape
     C = cand.shape[1]
@@ -243,8 +244,8 @@ def scan(problem: Problem, base: Fits, cand: Any, known: tuple[Any, Any] | None)
     )
     cand = np.ascontiguousarray(cand, np.float64)
     try:
-        _kernel("scan_rows", _problem_args(problem), fits, known is not None, cand, TINY, FLOOR, r, J, dec, xc, yb, Y,
-                ok, failed)  # fmt: skip
+        _kernel("scan_rows", _problem_args(problem), fits, known is not None, cand, TINY, FLOOR, SCALE_MIN, r, J,
+                dec, xc, yb, Y, ok, failed)  # fmt: skip
     except _Failed:
         return None
     if failed[0]:

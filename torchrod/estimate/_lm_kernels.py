@@ -134,7 +134,7 @@ def _solve(M, b, x):
 
 
 @_jit
-def _damped(A, free, damping, floor, out):
+def _damped(A, free, damping, floor, scale_min, out):
     # lm._damped of one system: A + damping diag A + floor max diag A, and the largest diagonal for fixed unknowns.
     P = A.shape[0]
     scale = A[0, 0] if P else 0.0
@@ -142,8 +142,8 @@ def _damped(A, free, damping, floor, out):
         d = A[p, p]
         if d != d or d > scale:
             scale = d
-    if not (scale != scale) and scale < 1e-300:
-        scale = 1e-300
+    if not (scale != scale) and scale < scale_min:
+        scale = scale_min
     out[:, :] = A
     for p in range(P):
         d = A[p, p]
@@ -206,7 +206,7 @@ def _analyse(i, P_, S_, O_, work):
      force_unit, step_angle, max_steps, snap) = P_  # fmt: skip
     (reading, s, f, interval, r, J, loss, damping, steps, held, A, g, proposal, ratio, decrement, noise2_out,
      converged, done, failed) = S_  # fmt: skip
-    tolerance, iterations, max_damping, floor, tiny = O_[0], O_[1], O_[2], O_[10], O_[11]
+    tolerance, iterations, max_damping, floor, tiny, scale_min = O_[0], O_[1], O_[2], O_[10], O_[11], O_[12]
     b = reading[i]
     h = s.shape[1]
     P = 3 * h
@@ -290,7 +290,7 @@ def _analyse(i, P_, S_, O_, work):
     g[i, :] = gi
     M = np.empty((P, P))
     x = np.empty(P)
-    _damped(Ai, free, tiny + 0.0 * damping[i], floor, M)
+    _damped(Ai, free, tiny + 0.0 * damping[i], floor, scale_min, M)
     ok = _solve(M, gi, x)
     if ok:
         t = np.empty(P)
@@ -299,7 +299,7 @@ def _analyse(i, P_, S_, O_, work):
         decrement[i] = _sum(t, P)
     else:
         decrement[i] = math.inf
-    _damped(Ai, free, damping[i], floor, M)
+    _damped(Ai, free, damping[i], floor, scale_min, M)
     _solve(M, gi, x)
     for p in range(P):
         proposal[i, p] = -x[p]
@@ -353,7 +353,7 @@ def _step(i, any_curved, P_, S_, O_, work):
     (reading, s, f, interval, r, J, loss, damping, steps, held, A, g, proposal, ratio, decrement, noise2_out,
      converged, done, failed) = S_  # fmt: skip
     (tolerance, iterations, max_damping, increase, decrease, min_damping, max_force_step, acceleration, probe,
-     acceleration_limit, floor, tiny) = O_  # fmt: skip
+     acceleration_limit, floor, tiny, scale_min) = O_  # fmt: skip
     b = reading[i]
     h = s.shape[1]
     P = 3 * h
@@ -381,7 +381,7 @@ def _step(i, any_curved, P_, S_, O_, work):
             for q in range(P):
                 Ai[p, q] = Ai[p, q] * free[p] * free[q]
             gi[p] = gi[p] * free[p]
-        _damped(Ai, free, damping[i], floor, M)
+        _damped(Ai, free, damping[i], floor, scale_min, M)
         _solve(M, gi, x)
         for p in range(P):
             prop[p] = -x[p]
@@ -420,7 +420,7 @@ def _step(i, any_curved, P_, S_, O_, work):
                 finite = finite and math.isfinite(r_vv[k])
             rhs = np.empty(P)
             _gradient(Jf, r_vv, rhs)
-            _damped(Ai, free, damping[i], floor, M)
+            _damped(Ai, free, damping[i], floor, scale_min, M)
             ok_a = _solve(M, rhs, x)
             na = _sumsq(x, np.empty(P))
             nv = _sumsq(v, np.empty(P))
@@ -546,7 +546,7 @@ def finish_rows(P_, S_, O_, E_, used):
     (query, u, weight, lo_all, hi_all, lok_all, hik_all, intervals, noise2, residuals, floor2, length, ei,
      force_unit, step_angle, max_steps, snap) = P_  # fmt: skip
     reading, s, f, interval, r, J, loss, held, failed = S_[0], S_[1], S_[2], S_[3], S_[4], S_[5], S_[6], S_[9], S_[18]
-    floor, tiny = O_[10], O_[11]
+    floor, tiny, scale_min = O_[10], O_[11], O_[12]
     exact_steps, exact_tolerance, exact_angle, exact_max_steps, tableau = E_
     R, h = s.shape
     P = 3 * h
@@ -583,7 +583,7 @@ def finish_rows(P_, S_, O_, E_, used):
         for _ in range(exact_steps):
             # lm.gauss_newton at damping TINY: the step and its decrement
             _gradient(Js, r[i], g)
-            _damped(A, free, tiny, floor, M)
+            _damped(A, free, tiny, floor, scale_min, M)
             ok = _solve(M, g, x)
             for p in range(P):
                 t[p] = g[p] * -x[p]
@@ -611,7 +611,7 @@ def finish_rows(P_, S_, O_, E_, used):
 
 
 @_jit
-def scan_rows(P_, base, known, cand, tiny, floor, r, J, dec, xc, yb, Y, ok, failed):
+def scan_rows(P_, base, known, cand, tiny, floor, scale_min, r, J, dec, xc, yb, Y, ok, failed):
     # search._responses and search._added_force of every base row (straight rod), in place: the residuals r
     # (R0, n) and sided Jacobian J (R0, n, Pb) (given: ``known``), and the Gauss-Newton model of one more force
     # at each candidate: decrements dec (R0, C), its solution's pieces xc (R0, C, 2), yb (R0, Pb), Y (R0, C, 2, Pb),
@@ -733,7 +733,7 @@ def scan_rows(P_, base, known, cand, tiny, floor, r, J, dec, xc, yb, Y, ok, fail
                 d = Acc[c, a_, a_]
                 if d != d or d > d_max:
                     d_max = d
-        scale = d_max if (d_max != d_max or d_max >= 1e-300) else 1e-300
+        scale = d_max if (d_max != d_max or d_max >= scale_min) else scale_min
         base_dec = 0.0
         ok[i] = True
         if Pb:

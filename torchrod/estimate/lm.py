@@ -173,6 +173,9 @@ _STATE_FIELDS = frozenset(f.name for f in dataclasses.fields(LMState))
 
 FLOOR = 1e-12
 """Every damped system adds this fraction of its largest diagonal entry to its diagonal (:func:`_damped`)."""
+SCALE_MIN = 1e-300
+"""The least scale (largest diagonal entry) :data:`FLOOR` is taken of, so that a system of zeros (unknowns no
+residual depends on) still gets a positive diagonal."""
 TINY = 1e-9
 """The damping of the system whose solution gives the Gauss-Newton decrement (:func:`analyse`) and of the exact
 model's steps (:func:`finish`): next to none, so that a nearly singular system still solves."""
@@ -191,7 +194,7 @@ def _damped(xp: Any, A: Any, free: Any, damping: Any, repeat: int = 1) -> Any:
     if P == 0:
         return xp.concat([A] * repeat) if repeat > 1 else A
     d = xp.diagonal(A)
-    scale = xp.clip(xp.amax(d, 1), lo=1e-300)[:, None]
+    scale = xp.clip(xp.amax(d, 1), lo=SCALE_MIN)[:, None]
     base = FLOOR * scale + (1.0 - free) * scale
     out = xp.concat([A] * repeat) if repeat > 1 else xp.copy(A)
     idx = xp.arange(P)

@@ -336,7 +336,7 @@ def _added_force(xp: Any, J: Any, r: Any, Jc: Any) -> tuple[Any, Any]:
     Acc = xp.mT(Jc) @ Jc  # (R0, C, 2, 2)
     gc = (r[:, None, None, :] @ Jc)[:, :, 0, :]  # (R0, C, 2)
     d_b, d_c = xp.diagonal(Abb), xp.diagonal(Acc)  # (R0, Pb), (R0, C, 2)
-    scale = xp.clip(xp.amax(xp.concat([d_b, d_c.reshape(R0, 2 * C)], 1), 1), lo=1e-300)[:, None]
+    scale = xp.clip(xp.amax(xp.concat([d_b, d_c.reshape(R0, 2 * C)], 1), 1), lo=lm.SCALE_MIN)[:, None]
     S, z = Acc, gc
     if Pb:
         K = Abb + xp.eye(Pb) * (tiny * d_b + floor * scale)[:, :, None]
