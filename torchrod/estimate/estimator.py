@@ -81,7 +81,9 @@ class EstimatorOptions:
         lbfgs: refinement of fits still unconverged after ``lm.iterations`` steps (:func:`torchrod.lbfgs`).
         max_step_angle: accuracy of the forward model used for fitting (:mod:`torchrod.model.sensitivity`).
         condition_limit: ``poorly_determined`` above this condition number (:mod:`.uncertainty`).
-        backend: ``"auto"`` (NumPy on the CPU, torch elsewhere), ``"numpy"`` (CPU only) or ``"torch"``.
+        backend: ``"auto"`` (NumPy on the CPU, torch elsewhere), ``"numpy"`` (CPU only) or ``"torch"``. On a GPU
+            the torch backend gives the CPU's answers but, at present, far more slowly than NumPy on the CPU (each
+            small operation of the march is a kernel of its own; docs/results.md, "On a GPU").
         trust_guesses: a count with guesses (a warm-start network's, ``extra_starts``) is first fitted from them
             alone; the scan's starts serve only a fit found suspicious (:mod:`.search`). Set by
             :meth:`Estimator.from_checkpoint` when the network's recorded quality is trusted; otherwise guesses
