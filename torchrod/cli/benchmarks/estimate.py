@@ -11,8 +11,8 @@ wall time per call, and the mean process CPU time, which a busy machine inflates
 readings in calls of ``--batch-size``: readings per second, wall and CPU). Count accuracy is printed as a sanity
 check. Every timing follows a warm-up call (per-rod caches: the grid bases of the starts) and the compiled march's
 load where Numba is installed (:func:`torchrod.model.compiled.load`); torch runs on ``--threads`` threads.
-``--device`` estimates on that device (e.g. ``cuda``, the readings made on the CPU and moved there; a call's time
-includes reading its answers back); ``--forces`` picks the rows.
+``--device`` estimates on that device (e.g. ``cuda``, the readings made on the CPU and moved there; the batched
+time includes reading the counts back); ``--forces`` picks the rows.
 """
 
 from __future__ import annotations

@@ -4,10 +4,16 @@ from __future__ import annotations
 
 import argparse
 import gc
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # (torch is imported where a command needs it: `torchrod --help` starts without it)
+    import torch
 
 __all__ = [
+    "add_device_option",
     "add_sensor_options",
     "add_time_budget_option",
+    "check_device",
     "check_estimation_options",
     "sensor_noise",
     "settle",
@@ -71,12 +77,12 @@ ESTIMATION_DEVICE_HELP = (
 )
 
 
-def add_device_option(parser: argparse.ArgumentParser, help: str = ESTIMATION_DEVICE_HELP) -> None:
-    """``--device`` (default cpu), checked by :func:`check_device`; ``help`` says what runs there."""
-    parser.add_argument("--device", default="cpu", help=help)
+def add_device_option(parser: argparse.ArgumentParser, text: str = ESTIMATION_DEVICE_HELP) -> None:
+    """``--device`` (default cpu), checked by :func:`check_device`; ``text``, its help, says what runs there."""
+    parser.add_argument("--device", default="cpu", help=text)
 
 
-def check_device(args: argparse.Namespace, processes: int = 1):
+def check_device(args: argparse.Namespace, processes: int = 1) -> torch.device:
     """``--device`` as a :class:`torch.device`; ``ValueError`` for a name torch does not know, a device this
     machine does not have (found now, not at the first reading), or worker ``processes`` (which solve on CPU cores)
     asked for beside a device other than the CPU (where one process solves whole batches)."""
@@ -98,8 +104,8 @@ def check_device(args: argparse.Namespace, processes: int = 1):
             raise ValueError(f"--device {args.device!r} cannot be used here: {exc}") from None
     if dev.type != "cpu" and processes > 1:
         raise ValueError(
-            f"--workers {processes} solves on CPU processes; with --device {args.device} one process solves whole "
-            "batches on the device: leave --workers at 1"
+            f"--workers {args.workers} asks for {processes} processes, which solve on CPU cores; with --device "
+            f"{args.device} one process solves whole batches on the device: leave --workers at 1"
         )
     return dev
 
