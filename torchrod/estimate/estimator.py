@@ -681,38 +681,34 @@ class Estimator:
         converged = converged & xp.isfinite(loss)
         status = verdict(xp, p_value, converged, unc.poorly_determined, opts.misfit_level, found.cut)
 
-        # Reported form: sorted by location, the location bias added, in the input's dtype and device.
+        # Reported form: sorted by location (padding, and a location that is not a number, last), the location bias
+        # added, then in the input's dtype and device.
+        order = xp.argsort_desc(xp.where(active & (s == s), -s, -math.inf))
+        act = xp.take(active, order, 1)
+        s_rep = xp.where(act, xp.take(s, order, 1) + rod.location_bias, 0.0)
+        f_rep = xp.where(act[:, :, None], xp.take(f, xp.expand(order[:, :, None], (B, W, 2)), 1), 0.0)
+        std = xp.where(act[:, :, None], xp.take(unc.std, xp.expand(order[:, :, None], (B, W, 3)), 1), nan)
+        by_count = xp.full((B, W + 1), nan)
+        by_count[:, list(counts)] = losses
+
         def to(x):
             return xp.to_torch(x, device)
 
-        s_t, f_t, act_t = to(s), to(f), to(active)
-        order = s_t.masked_fill(~act_t, float("inf")).argsort(dim=1)
-        s_t = s_t.gather(1, order)
-        f_t = f_t.gather(1, order.unsqueeze(-1).expand(-1, -1, 2))
-        act_t = act_t.gather(1, order)
-        std = to(unc.std).gather(1, order.unsqueeze(-1).expand(-1, -1, 3))
-        std = torch.where(act_t.unsqueeze(-1), std, torch.full_like(std, nan))
-        s_rep = torch.where(act_t, s_t + rod.location_bias, torch.zeros_like(s_t))
-        f_t = torch.where(act_t.unsqueeze(-1), f_t, torch.zeros_like(f_t))
-        by_count = torch.full((B, W + 1), nan, dtype=torch.float64, device=device)
-        for k, h in enumerate(counts):
-            by_count[:, h] = to(losses[:, k])
-
         def cast(x):
-            return x.to(out_dtype)
+            return to(x).to(out_dtype)
 
         return EstimateResult(
-            forces=PointForces(cast(s_rep), cast(f_t), act_t),
+            forces=PointForces(cast(s_rep), cast(f_rep), to(act)),
             num_forces=to(chosen).long(),
             status=to(status).long(),
-            p_value=cast(to(p_value)),
-            loss=cast(to(loss)),
+            p_value=cast(p_value),
+            loss=cast(loss),
             converged=to(converged),
             iterations=to(steps).long(),
             std=cast(std),
             poorly_determined=to(unc.poorly_determined),
             losses_by_count=cast(by_count),
-            noise=cast(to(sigma)),
+            noise=cast(sigma),
             evaluations=to(found.evaluations).long(),
         )
 
