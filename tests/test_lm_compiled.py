@@ -371,3 +371,47 @@ def test_the_compiled_scan_is_the_array_codes_scan(rod, gen, h0, from_state, mon
     np.testing.assert_allclose(got.gain[apart], want.gain[apart], rtol=1e-7, atol=1e-12)
     big = np.abs(want.predicted[np.isfinite(want.predicted)]).max()  # a loss less a decrement: cancellation
     np.testing.assert_allclose(got.predicted[:, apart], want.predicted[:, apart], rtol=1e-7, atol=1e-9 * big)
+
+
+def test_the_compiled_covariance_is_the_array_codes():
+    """``uncertainty.gauss_newton_covariance`` row by row (the kernel that fit_uncertainty runs where the steps run
+    compiled), against its array code: Jacobians with columns scaled over six orders, unknowns left out, a column of
+    zeros, two equal columns, two nearly equal ones, entries not finite, entries whose squares overflow, and no
+    unknown at all. The same conditions (infinite where infinite; to rounding where the matrix is well conditioned)
+    and the same covariances, NaN where NaN."""
+    from torchrod.estimate.uncertainty import gauss_newton_covariance
+
+    rng = np.random.default_rng(7)
+    B, n, P = 24, 28, 9
+    J = rng.standard_normal((B, n, P)) * 10.0 ** rng.uniform(-3, 3, (B, 1, P))
+    active = np.ones((B, P), bool)
+    active[10:15] = rng.random((5, P)) < 0.6
+    J[15, :, 4] = 0.0  # a column of zeros
+    J[16, :, 5] = J[16, :, 2]  # two equal columns: singular
+    J[17, :, 5] = J[17, :, 2] * (1 + 1e-6 * rng.standard_normal(n))  # nearly equal: ill conditioned
+    J[18, 3, 1] = np.nan
+    J[19, 7, 8] = -np.inf
+    J[20, :, 6] = 1e200  # its square overflows
+    active[21] = False
+    J[22, :, 3] = np.nan  # an inactive column not finite: the row still counts as not finite
+    active[22, 3] = False
+    sigma = rng.uniform(0.05, 0.3, B)
+    with np.errstate(all="ignore"):  # the array code's overflow, as in the estimator
+        want_cov, want_cond = gauss_newton_covariance(NUMPY, J, sigma, active)
+    got_cov, got_cond = gauss_newton_covariance(NUMPY, J, sigma, active, compiled=True)
+    # Two equal columns: the least eigenvalue is rounding, on either side of the cut that makes the condition
+    # infinite (checked below: beyond any limit on both sides).
+    other = np.arange(B) != 16
+    assert np.array_equal(np.isinf(got_cond[other]), np.isinf(want_cond[other]))
+    assert np.array_equal(np.isnan(got_cov), np.isnan(want_cov))
+    assert np.isinf(want_cond[[15, 18, 19, 20, 22]]).all() and np.isnan(want_cov[18]).all()
+    well = np.isfinite(want_cond) & (want_cond < 1e8)
+    assert well.sum() >= 15
+    np.testing.assert_allclose(got_cond[well], want_cond[well], rtol=1e-9)
+    for b in np.nonzero(well)[0]:
+        scale = np.abs(want_cov[b][np.isfinite(want_cov[b])]).max(initial=1.0)
+        np.testing.assert_allclose(got_cov[b], want_cov[b], rtol=1e-9, atol=1e-12 * scale, equal_nan=True)
+    # Singular and ill conditioned: both see a condition beyond any limit.
+    assert got_cond[16] > 1e12 and want_cond[16] > 1e12 and got_cond[17] > 1e8 and want_cond[17] > 1e8
+    none = gauss_newton_covariance(NUMPY, J[:, :, :0], sigma, active[:, :0], compiled=True)
+    assert none[0].shape == (B, 0, 0) and (none[1] == 1.0).all()

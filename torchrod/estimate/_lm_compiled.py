@@ -1,16 +1,19 @@
-"""The Levenberg-Marquardt solve of :mod:`.lm` with its step compiled (Numba), for straight rods on the NumPy
-backend: the loop, the deadline and ``stop`` stay in Python; each step of every open row, and the start, run in
-:mod:`._lm_kernels`, which write :func:`.lm._step` and :func:`.lm.analyse` row by row.
+"""The Levenberg-Marquardt solve of :mod:`.lm` with its step compiled (Numba), for straight rods on the NumPy backend:
+the loop, the deadline and ``stop`` stay in Python; each step of every open row, and the start, run in
+:mod:`._lm_kernels`, which write :func:`.lm._step` and :func:`.lm.analyse` row by row. So do the scan's models of one
+more force (:func:`scan`), the exact model's finish (:func:`finish_counted`) and the fits' Gauss-Newton covariance
+(:func:`covariance`, for :mod:`.uncertainty`).
 
-The kernels restate :mod:`.lm`'s operations row by row; its numbers (the :class:`.lm.LMPolicy` passed in,
-``lm.FLOOR``, ``lm.TINY``, ``lm.SCALE_MIN``, ``problem.SNAP``) are passed to them. Tests hold the two to the same
-states step for step, and the estimator to the same answers (tests/test_lm_compiled.py). They agree to rounding, not
-bit for bit: the array code's sums and solves run in NumPy's and LAPACK's order. Where the kernels cannot run here
-(an incompatible Numba), one warning says so and every solve runs the array code, as :mod:`torchrod.model.compiled`
-does for the marches."""
+The kernels restate the array code's operations row by row; its numbers (the :class:`.lm.LMPolicy` passed in,
+``lm.FLOOR``, ``lm.TINY``, ``lm.SCALE_MIN``, ``problem.SNAP``, the covariance's cut-offs) are passed to them. Tests hold
+the two to the same states step for step, and the estimator to the same answers (tests/test_lm_compiled.py). They agree
+to rounding, not bit for bit: the array code's sums and solves run in NumPy's and LAPACK's order. Where the kernels
+cannot run here (an incompatible Numba), one warning says so and every solve runs the array code, as
+:mod:`torchrod.model.compiled` does for the marches."""
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -21,7 +24,7 @@ from ..model.sensitivity import SCALAR_WORK, march_work
 from . import problem as _problem
 from .problem import Fits, Problem
 
-__all__ = ["finish_counted", "scan", "solve", "start", "step", "usable"]
+__all__ = ["covariance", "finish_counted", "scan", "solve", "start", "step", "usable"]
 
 
 class _Failed(Exception):
@@ -40,7 +43,22 @@ def usable(problem: Problem, rows: int, h: int) -> bool:
     return compiled.takes(march_work(rows, 3 * h) > SCALAR_WORK)
 
 
+_last_args: tuple[Any, tuple] = (None, ())  # the last problem's arguments (a solve makes many calls of one)
+
+
 def _problem_args(problem: Problem) -> tuple:
+    """The kernels' view of ``problem``; kept for the last problem (a frozen dataclass, its arrays never written),
+    whose searches call the kernels a dozen times per reading."""
+    global _last_args
+    last, args = _last_args
+    if last is problem:
+        return args
+    args = _make_problem_args(problem)
+    _last_args = (problem, args)
+    return args
+
+
+def _make_problem_args(problem: Problem) -> tuple:
     noise2 = np.zeros(0) if problem.noise2 is None else np.ascontiguousarray(problem.noise2, np.float64)
     return (
         np.ascontiguousarray(problem.query, np.float64),
@@ -63,6 +81,7 @@ def _problem_args(problem: Problem) -> tuple:
     )
 
 
+@functools.cache
 def _policy_args(policy: Any) -> tuple:
     from .lm import FLOOR, SCALE_MIN, TINY
 
@@ -196,18 +215,9 @@ def step(problem: Problem, policy: Any, state: Any) -> Any:
 def finish_counted(problem: Problem, policy: Any, state: Any) -> Any:
     """:func:`.lm.finish_counted` compiled: (the finished state, (R,) evaluations), or None where it cannot run
     (no force, a state not analysed, a march input not finite)."""
-    from ..model import body_frame
-    from ..model.compiled import _tableau_arrays
-
     if state.fits.h == 0:
         return None
-    exact = (
-        int(policy.exact_steps),
-        float(policy.exact_tolerance),
-        float(body_frame.DEFAULT_STEP_ANGLE),
-        int(body_frame.DEFAULT_MAX_STEPS),
-        _tableau_arrays(body_frame._method(None, "exact")),
-    )
+    exact = _exact_args(policy)
     used = np.zeros(state.fits.rows, np.int64)
     try:
         S = _arrays(state)
@@ -218,6 +228,21 @@ def finish_counted(problem: Problem, policy: Any, state: Any) -> Any:
         return None
     fits = Fits(state.fits.reading, S[1], S[2], state.fits.interval)
     return state.replace(fits=fits, r=S[4], loss=S[6]), used
+
+
+@functools.cache
+def _exact_args(policy: Any) -> tuple:
+    """The exact march's settings as :func:`finish_counted`'s kernel takes them."""
+    from ..model import body_frame
+    from ..model.compiled import _tableau_arrays
+
+    return (
+        int(policy.exact_steps),
+        float(policy.exact_tolerance),
+        float(body_frame.DEFAULT_STEP_ANGLE),
+        int(body_frame.DEFAULT_MAX_STEPS),
+        _tableau_arrays(body_frame._method(None, "exact")),
+    )
 
 
 def scan(problem: Problem, base: Fits, cand: Any, known: tuple[Any, Any] | None) -> Any:
@@ -251,3 +276,18 @@ def scan(problem: Problem, base: Fits, cand: Any, known: tuple[Any, Any] | None)
     if failed[0]:
         return None
     return r, J, dec, xc, yb, Y  # dec: -inf where the base block failed (ok False)
+
+
+def covariance(J: np.ndarray, sigma: np.ndarray, active: np.ndarray, diag_min: float, eps: float) -> Any:
+    """:func:`.uncertainty.gauss_newton_covariance` compiled: (covariance (B, P, P), condition (B,)); None where it
+    cannot run (the kernels failed to load)."""
+    if _broken is not None:
+        return None
+    B, _, P = J.shape
+    cov, condition = np.empty((B, P, P)), np.empty(B)
+    try:
+        _kernel("covariance_rows", np.ascontiguousarray(J, np.float64), np.ascontiguousarray(sigma, np.float64),
+                np.ascontiguousarray(active, np.bool_), diag_min, eps, cov, condition)  # fmt: skip
+    except _Failed:
+        return None
+    return cov, condition

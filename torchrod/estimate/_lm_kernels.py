@@ -2,7 +2,8 @@
 
 One Levenberg-Marquardt step and one analysis of :mod:`.lm` per row, for the straight rod on the NumPy backend:
 :func:`.lm._step` and :func:`.lm.analyse` written row by row, each array operation of theirs a loop here, in their
-order. Module-level functions, so that Numba's on-disk cache finds them again in a new process."""
+order; likewise the scan's models, the exact model's finish and the Gauss-Newton covariance of :mod:`.uncertainty`.
+Module-level functions, so that Numba's on-disk cache finds them again in a new process."""
 
 from __future__ import annotations
 
@@ -796,3 +797,69 @@ def scan_rows(P_, base, known, cand, tiny, floor, scale_min, r, J, dec, xc, yb, 
             xc[i, c, 0] = x0
             xc[i, c, 1] = x1
             dec[i, c] = base_dec + (z0 * x0 + z1 * x1) if ok[i] else -math.inf
+
+
+@_jit
+def covariance_rows(J, sigma, active, diag_min, eps, cov, condition):
+    # uncertainty.gauss_newton_covariance row by row, into cov (B, P, P) and condition (B,).
+    B, n, P = J.shape
+    Jm = np.empty((n, P))
+    Cm = np.empty((P, P))
+    d = np.empty(P)
+    scale_ok = np.empty(P, np.bool_)
+    inv = np.empty(P)
+    for b in range(B):
+        finite_row = True
+        for k in range(n):
+            for p in range(P):
+                v = J[b, k, p]
+                if not math.isfinite(v):
+                    finite_row = False
+                    v = 0.0
+                Jm[k, p] = v
+        finite = True  # the scaled matrix (the eigensolver's input)
+        any_unscaled = False
+        for p in range(P):  # the diagonal and the scales (the array code zeroes inactive columns: they have none)
+            acc = 0.0
+            if active[b, p]:
+                for k in range(n):
+                    acc += Jm[k, p] * Jm[k, p]
+            scale_ok[p] = active[b, p] and acc > diag_min and math.isfinite(acc)
+            d[p] = 1.0 / math.sqrt(max(acc, diag_min)) if scale_ok[p] else 0.0
+            any_unscaled = any_unscaled or (active[b, p] and not scale_ok[p])
+        for p in range(P):
+            for q in range(p + 1):
+                if not (scale_ok[p] and scale_ok[q]):
+                    v = 1.0 if p == q else 0.0
+                else:
+                    acc = 0.0
+                    for k in range(n):
+                        acc += Jm[k, p] * Jm[k, q]
+                    v = acc * d[p] * d[q]
+                finite = finite and math.isfinite(v)
+                Cm[p, q] = v
+                Cm[q, p] = v
+        ok = finite
+        w, V = np.zeros(P), np.zeros((P, P))
+        if ok:
+            try:
+                w, V = np.linalg.eigh(Cm)
+            except Exception:  # the eigensolver failed on this row: as the array code, not determined
+                ok = False
+        lo, hi = w[0], w[P - 1]
+        if ok and lo > eps * abs(hi) and not any_unscaled and finite_row:
+            condition[b] = hi / (lo if lo > 0 else 1.0)
+        else:
+            condition[b] = math.inf
+        for p in range(P):
+            inv[p] = 1.0 / (w[p] if w[p] != 0 else 1.0) if w[p] > eps * abs(hi) else 0.0
+        s2 = sigma[b] * sigma[b]
+        for p in range(P):
+            for q in range(P):
+                if ok and finite_row and scale_ok[p] and scale_ok[q]:
+                    acc = 0.0
+                    for k in range(P):
+                        acc += V[p, k] * inv[k] * V[q, k]
+                    cov[b, p, q] = acc * d[p] * d[q] * s2
+                else:
+                    cov[b, p, q] = math.nan

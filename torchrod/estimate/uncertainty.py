@@ -24,14 +24,21 @@ eigenvalues of the unit-diagonal matrix D J^T J D measure identifiability indepe
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
+
+from . import _lm_compiled
+from .problem import bounds, kink_sides, near_kink
 
 __all__ = ["CONDITION_LIMIT", "Uncertainty", "fit_uncertainty", "gauss_newton_covariance", "uncertainty"]
 
 CONDITION_LIMIT = 1e8
 """Default limit on the condition number of the unit-diagonal Gauss-Newton matrix."""
+
+_DIAG_MIN = 1e-300  # an unknown whose J^T J diagonal is not above this has no scale: not determined
+_EPS = 2.220446049250313e-16  # float64's machine epsilon: eigenvalues below eps x the largest count as zero
 
 
 @dataclass(frozen=True)
@@ -51,7 +58,7 @@ class Uncertainty:
     poorly_determined: Any
 
 
-def gauss_newton_covariance(xp: Any, J: Any, sigma: Any, active: Any) -> tuple[Any, Any]:
+def gauss_newton_covariance(xp: Any, J: Any, sigma: Any, active: Any, *, compiled: bool = False) -> tuple[Any, Any]:
     """``sigma^2 (J^T J)^-1`` per sample over the active unknowns, guarded: a sample whose matrix is not finite or
     whose eigensolver fails gets NaN and an infinite condition number (never an exception).
 
@@ -59,6 +66,8 @@ def gauss_newton_covariance(xp: Any, J: Any, sigma: Any, active: Any) -> tuple[A
         J: (B, n, P) residual Jacobian (rows of missing residuals zero), any units per column.
         sigma: (B,) noise standard deviation per residual.
         active: (B, P) bool, unknowns to include (others get NaN).
+        compiled: run the same, row by row, in the kernel of :mod:`._lm_compiled` (NumPy arrays only; where it
+            cannot run, the array code does).
     Returns:
         covariance (B, P, P) in the columns' units and the condition number (B,).
     """
@@ -66,6 +75,10 @@ def gauss_newton_covariance(xp: Any, J: Any, sigma: Any, active: Any) -> tuple[A
     B, _, P = J.shape
     if P == 0:  # no unknowns: nothing to be uncertain about
         return xp.zeros((B, 0, 0)), xp.ones((B,))
+    if compiled and xp.name == "numpy":
+        out = _lm_compiled.covariance(J, sigma, active, _DIAG_MIN, _EPS)
+        if out is not None:
+            return out
     act = xp.astype(active, "float")
     # A row whose Jacobian is not finite (a diverged fit, an absurd reading) gets NaN: sanitised here, flagged below.
     finite_rows = xp.all(xp.isfinite(J.reshape(B, -1)), 1)
@@ -73,8 +86,8 @@ def gauss_newton_covariance(xp: Any, J: Any, sigma: Any, active: Any) -> tuple[A
     Jm = J * act[:, None, :]
     A = xp.mT(Jm) @ Jm  # (B, P, P)
     diag = xp.diagonal(A)
-    scale_ok = active & (diag > 1e-300) & xp.isfinite(diag)
-    d = xp.where(scale_ok, 1.0 / lib.sqrt(xp.clip(diag, lo=1e-300)), 0.0)
+    scale_ok = active & (diag > _DIAG_MIN) & xp.isfinite(diag)
+    d = xp.where(scale_ok, 1.0 / lib.sqrt(xp.clip(diag, lo=_DIAG_MIN)), 0.0)
     Cm = A * d[:, :, None] * d[:, None, :]
     # Inactive unknowns: identity rows, so the matrix stays invertible; they are NaN-ed below.
     inactive = ~scale_ok
@@ -82,7 +95,7 @@ def gauss_newton_covariance(xp: Any, J: Any, sigma: Any, active: Any) -> tuple[A
     Cm = xp.where(inactive[:, :, None] | inactive[:, None, :], xp.expand(eye, (B, P, P)), Cm)
     evals, evecs, ok = xp.eigh(Cm)
     lo, hi = evals[:, 0], evals[:, -1]
-    eps = 2.220446049250313e-16
+    eps = _EPS
     condition = xp.where(ok & (lo > eps * abs(hi)), hi / xp.where(lo > 0, lo, 1.0), math.inf)
     condition = xp.where(xp.any(active & ~scale_ok, 1), math.inf, condition)
     inv = xp.where(evals > eps * abs(hi)[:, None], 1.0 / xp.where(evals != 0, evals, 1.0), 0.0)
@@ -109,6 +122,7 @@ def uncertainty(
     length: float,
     force_unit: float,
     condition_limit: float = CONDITION_LIMIT,
+    compiled: bool = False,
 ) -> Uncertainty:
     """Uncertainty and the poorly-determined verdict of B fits (module docstring).
 
@@ -121,11 +135,12 @@ def uncertainty(
         residuals: (B,) present residuals n; informative: (B,) those of the gratings proximal to the most
             distal force.
         length: L [m]; force_unit: F = EI / L^2 [N] (the scales of J's columns).
+        compiled: as :func:`gauss_newton_covariance`.
     """
     B, h = active.shape
     lib = xp.lib
     act = xp.expand(active[:, :, None], (B, h, 3)).reshape(B, 3 * h)
-    cov, condition = gauss_newton_covariance(xp, J, sigma, act)
+    cov, condition = gauss_newton_covariance(xp, J, sigma, act, compiled=compiled)
     unit = xp.asarray([length, force_unit, force_unit] * h)
     cov = cov * unit[None, :, None] * unit[None, None, :]
     var = xp.diagonal(cov).reshape(B, h, 3)
@@ -151,13 +166,11 @@ def fit_uncertainty(
 ) -> Uncertainty:
     """:func:`uncertainty` of B fits of a :class:`.problem.Problem` (row b: reading b): ``fits`` (B, W) with
     ``active`` (B, W) their real forces, J (B, 2G, 3W) their sided Jacobians, sigma (B,) [1/m]. A force on a
-    grating (a kink of the loss) is judged from both one-sided Jacobians; the worse one counts."""
-    import dataclasses
-
-    from .problem import bounds, kink_sides, near_kink
-
+    grating (a kink of the loss) is judged from both one-sided Jacobians; the worse one counts. The covariance runs
+    compiled where the solver's steps do (:func:`._lm_compiled.usable`)."""
     xp = problem.xp
     B, W = active.shape
+    compiled = _lm_compiled.usable(problem, B, W)
     G = problem.query.shape[0]
     lo, hi = bounds(problem, fits)
     distal = xp.amax(xp.where(active, fits.s, -1.0), 1) if W else xp.zeros((B,)) - 1.0
@@ -178,6 +191,7 @@ def fit_uncertainty(
             length=problem.length,
             force_unit=problem.force_unit,
             condition_limit=condition_limit,
+            compiled=compiled,
         )
         for Jk in sides
     ]
