@@ -394,9 +394,8 @@ class Estimator:
         curvature, mask = check_readings(curvature, mask, self.rod.num_gratings)
         if curvature.shape[0] == 0:
             raise ValueError(f"curvature must hold at least one reading, got shape {tuple(curvature.shape)}")
-        empty = ~mask.any(dim=1)
-        if bool(empty.any()):
-            rows = empty.nonzero().squeeze(1).tolist()
+        if not bool(mask.any(dim=1).all()):
+            rows = (~mask.any(dim=1)).nonzero().squeeze(1).tolist()
             raise ValueError(f"readings {rows[:10]} have no present grating (mask all False)")
         return curvature, mask
 
@@ -443,16 +442,16 @@ class Estimator:
         u = curvature.to(torch.float64)
         if opts.relative and rod.precurved:  # readings of the change from the unloaded shape: add the shape back
             u = u + rod.unloaded_curvature(torch.float64, u.device)
-        u = torch.where(mask.unsqueeze(-1), u, torch.zeros((), dtype=torch.float64))
         floor2 = float(opts.noise_floor) ** 2
         noise2 = None if opts.noise is None else xp.full((B,), float(opts.noise) ** 2 + floor2)
+        present = xp.asarray(mask, "bool")
         problem = make_problem(
             xp,
             rod.length,
             rod.bending_stiffness,
             rod.gratings,
-            xp.asarray(u.to(device)),
-            xp.asarray(mask, "bool"),
+            xp.where(present[:, :, None], xp.asarray(u), 0.0),  # a missing grating's value (NaN, say) never read
+            present,
             noise2=noise2,
             floor2=floor2,
             step_angle=opts.max_step_angle,
