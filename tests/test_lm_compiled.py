@@ -5,6 +5,7 @@ acceleration and the active set included), the same solves, and the estimator's 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 
 import numpy as np
@@ -161,6 +162,36 @@ def test_a_compiled_solve_keeps_the_deadline_and_leaves_the_callers_state(rod, g
     assert done.steps.sum() > 0
     for k, v in before.items():
         assert np.array_equal(getattr(state, k), v, equal_nan=True), k
+
+
+def _late_after(looks, n):
+    looks.append(None)
+    return len(looks) > n
+
+
+def _record_steps(rounds, state):
+    rounds.append(int(state.steps.max()))
+    return np.zeros(state.fits.rows, bool)
+
+
+def test_the_compiled_solve_looks_at_the_deadline_every_few_row_steps(rod, gen):
+    """Between two looks at the deadline the compiled solve takes rounds of steps (every open row once each) while
+    their row steps stay within ``STEPS_PER_CHECK``, at least one round: one row takes that many steps per look,
+    sixteen rows one step each; a deadline that passes after the first look ends the solve there, and a ``stop``
+    is looked at after every round."""
+    policy = lm.LMPolicy(tolerance=1e-300)  # no row converges: each goes on for its whole iteration budget
+    K = _lm_compiled.STEPS_PER_CHECK
+    for rows, per_look in ((1, K), (2, K // 2), (16, 1)):
+        problem = noisy_problem(rod, gen, rows, 2)
+        fits = starts_on_and_near_bounds(problem, gen, 2)
+        looks: list[None] = []
+        late = functools.partial(_late_after, looks, 1)  # late at the second look
+        state = _lm_compiled.solve(problem, policy, fits, late, None)
+        assert len(looks) == 2 and (state.steps == per_look).all() and not state.done.any()
+        rounds: list[int] = []
+        stop = functools.partial(_record_steps, rounds)
+        state = _lm_compiled.solve(problem, policy, fits, lambda r=rounds: len(r) > 3, stop)
+        assert rounds == [0, 1, 2, 3] and (state.steps == 3).all()
 
 
 def test_rows_the_compiled_march_cannot_take_are_solved_in_python(rod, monkeypatch):

@@ -33,6 +33,12 @@ class _Failed(Exception):
 
 _broken: str | None = None  # why the kernels could not run here, once they could not
 
+STEPS_PER_CHECK = 8
+"""The compiled solve runs its rounds of steps (one step of every open row each, as :func:`.lm.solve`) without
+returning to Python while their row steps stay within this many (at least one round): a solve of a few rows pays
+the loop's Python costs once per several steps, and looks at its deadline after this many row steps at most, or
+after one round where more rows are open. A ``stop``, when given, is looked at after every round."""
+
 
 def usable(problem: Problem, rows: int, h: int) -> bool:
     """Whether :func:`solve` runs for a solve of ``rows`` fits of ``h`` forces of ``problem``: a straight rod on
@@ -173,10 +179,9 @@ def solve(problem: Problem, policy: Any, fits: Any, late: Any, stop: Any) -> Any
         if stop is not None:
             done |= np.asarray(stop(_state(S)), np.bool_)
         while True:
-            rows = np.flatnonzero(~done)
-            if rows.shape[0] == 0 or late():
+            if done.all() or late():
                 return _state(S)
-            _kernel("step_rows", rows, P_, S, O_)
+            _kernel("steps_rows", P_, S, O_, 0 if stop is not None else STEPS_PER_CHECK)
             if S[18].any():
                 raise _Failed
             if stop is not None:

@@ -863,3 +863,34 @@ def covariance_rows(J, sigma, active, diag_min, eps, cov, condition):
                     cov[b, p, q] = acc * d[p] * d[q] * s2
                 else:
                     cov[b, p, q] = math.nan
+
+
+@_jit
+def steps_rows(P_, S_, O_, most):
+    # Rounds of lm._step, each on the rows not done at its start (in place), as lm.solve's loop takes them: at least
+    # one round, then more while their row steps together stay within ``most``; stops early once every row is done
+    # or a row failed.
+    h = S_[1].shape[1]
+    work = _buffers(h, P_[0].shape[0])
+    acceleration = O_[7]
+    done, failed = S_[17], S_[18]
+    R = done.shape[0]
+    rows = np.empty(R, np.int64)
+    spent = 0
+    while True:
+        n = 0
+        for i in range(R):
+            if not done[i]:
+                rows[n] = i
+                n += 1
+        if n == 0 or (spent > 0 and spent + n > most):
+            return
+        any_curved = False
+        for k in range(n):
+            any_curved = any_curved or S_[13][rows[k]] < acceleration
+        for k in range(n):
+            _step(rows[k], any_curved, P_, S_, O_, work)
+        spent += n
+        for k in range(n):
+            if failed[rows[k]]:
+                return
