@@ -98,8 +98,9 @@ class EstimatorOptions:
         time_budget: [s] per reading, None: no limit. A call on B readings stops searching ``B * time_budget``
             after it began; the readings whose search it cut get the best fit found so far and the status
             ``timeout`` (:mod:`.status`). For real time, where an answer late is worth less than an answer
-            less sure. It is checked between solver steps, so a call overruns it by about one step of its batch,
-            the exact residual of the fits it keeps and the report (a few ms at one reading per call).
+            less sure. It is checked between solver steps (a compiled solve of a few rows: every few steps,
+            ``_lm_compiled.STEPS_PER_CHECK`` row steps at most), so a call overruns it by about one step of its
+            batch, the exact residual of the fits it keeps and the report (a few ms at one reading per call).
     """
 
     max_forces: int = 3
@@ -494,13 +495,13 @@ class Estimator:
         ``extra_starts`` (location bias removed), then the warm start's guesses. A guess that is not finite for a
         reading becomes, for that reading, a force at the middle of its first interval with no load."""
         B = curvature.shape[0]
-        found: dict[int, list[PointForces]] = {h: [] for h in range(1, top + 1)}
+        xp = problem.xp
+        # per count: (the guess, its location shift [m], the readings it starts: None for all)
+        found: dict[int, list[tuple[PointForces, float, Any]]] = {h: [] for h in range(1, top + 1)}
         if extra_starts:
             for h, pf in extra_starts.items():
                 if h in found:
-                    found[h].append(self._check_guess(pf, B, h, shift=-self.rod.location_bias))
-        # per guess: the readings it starts (None: all)
-        where: dict[int, list[torch.Tensor | None]] = {h: [None] * len(found[h]) for h in found}
+                    found[h].append((self._check_guess(pf, B, h), -self.rod.location_bias, None))
         if self.warm_start is not None:
             net = (
                 self.warm_start.guess(curvature, mask)
@@ -508,31 +509,30 @@ class Estimator:
                 else self.warm_start(curvature, mask)
             )
             probs = getattr(net, "count_probs", None)
+            probs = None if probs is None else xp.asarray(probs.detach())
             for h, pf in (net.forces if hasattr(net, "forces") else net).items():
                 if h in found:
-                    found[h].append(self._check_guess(pf, B, h, shift=0.0))
                     likely = None
                     if probs is not None and opts.starts > 0 and opts.guess_probability > 0 and h <= probs.shape[1]:
-                        likely = probs[:, h - 1].detach() >= opts.guess_probability
-                        likely = None if bool(likely.all()) else likely.nonzero()[:, 0].to(curvature.device)
-                    where[h].append(likely)
-        xp = problem.xp
+                        likely = probs[:, h - 1] >= opts.guess_probability
+                        likely = None if bool(xp.all(likely)) else xp.nonzero(likely)
+                    found[h].append((self._check_guess(pf, B, h), 0.0, likely))
         reading = xp.arange(B)
+        first = 0.5 * (problem.lo[:, :1] + problem.hi[:, :1])  # (B, 1) the first interval's middle
         out: dict[int, list[Fits]] = {}
-        for h, pfs in found.items():
-            for pf, rows in zip(pfs, where[h], strict=True):
+        for h, guesses in found.items():
+            for pf, shift, rows in guesses:
                 if rows is not None and rows.shape[0] == 0:
                     continue
-                ok = (pf.active & torch.isfinite(pf.s) & torch.isfinite(pf.f).all(-1)).all(dim=1, keepdim=True)
-                s = torch.where(ok, pf.s.to(torch.float64), torch.zeros((), dtype=torch.float64))
-                f = torch.where(ok.unsqueeze(-1), pf.f.to(torch.float64), torch.zeros((), dtype=torch.float64))
-                s_x = xp.asarray(s.to(curvature.device))
-                mid = 0.5 * (problem.lo[:, :1] + problem.hi[:, :1])  # the first interval's middle
-                s_x = xp.where(xp.asarray(ok.to(curvature.device), "bool"), s_x, xp.expand(mid, (B, h)))
-                j, s_x = interval_of(problem, reading, s_x)
-                fits = Fits(reading, s_x, xp.asarray(f.to(curvature.device)), j)
+                s = xp.clip(xp.asarray(pf.s.detach()) + shift, lo=0.0, hi=self.rod.length)
+                f = xp.asarray(pf.f.detach())
+                ok = xp.all(xp.asarray(pf.active, "bool") & xp.isfinite(s) & xp.all(xp.isfinite(f), 2), 1)
+                s = xp.where(ok[:, None], s, xp.expand(first, (B, h)))
+                f = xp.where(ok[:, None, None], f, 0.0)
+                j, s = interval_of(problem, reading, s)
+                fits = Fits(reading, s, f, j)
                 if rows is not None:
-                    fits = fits.take(xp.asarray(rows, "int"))
+                    fits = fits.take(rows)
                 out.setdefault(h, []).append(fits)
         return out
 
@@ -711,10 +711,9 @@ class Estimator:
             evaluations=to(found.evaluations).long(),
         )
 
-    def _check_guess(self, pf: Any, B: int, h: int, shift: float) -> PointForces:
+    def _check_guess(self, pf: Any, B: int, h: int) -> PointForces:
         if not isinstance(pf, PointForces):
             raise TypeError(f"a start for h = {h} must be PointForces, got {type(pf).__name__}")
         if pf.s.shape != (B, h):
             raise ValueError(f"the starts for h = {h} must have shape (B, h) = {(B, h)}, got {tuple(pf.s.shape)}")
-        s = (pf.s.detach() + shift).clamp(0.0, self.rod.length)
-        return PointForces(s, pf.f.detach(), pf.mask)
+        return pf
