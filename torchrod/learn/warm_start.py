@@ -207,9 +207,9 @@ class WarmStartNet(nn.Module):
         dtype = self.out.weight.dtype
         present = mask.to(torch.bool)
         x = torch.where(present.unsqueeze(-1), reading.to(dtype), torch.zeros((), dtype=dtype, device=reading.device))
-        cos, sin, sign = _canonical_frame(x, present)
-        xc = _rotate(x, cos.unsqueeze(1), -sin.unsqueeze(1))
-        xc = torch.stack((xc[..., 0], xc[..., 1] * sign.unsqueeze(1)), dim=-1)
+        turn, sign = _canonical_frame(x, present)
+        zc = torch.view_as_complex(x) * turn.unsqueeze(1)
+        xc = torch.stack((zc.real, zc.imag * sign.unsqueeze(1)), dim=-1)
         # Shape and size apart: the reading divided by its RMS over the read gratings, and the log of that RMS.
         # In the small-deflection regime forces are linear in the reading, so forces are predicted relative to it.
         pf = present.to(dtype)
@@ -227,6 +227,7 @@ class WarmStartNet(nn.Module):
         s_out: list[torch.Tensor] = []
         f_out: list[torch.Tensor] = []
         start = 0
+        back = turn.conj().resolve_conj().unsqueeze(1)  # the rotation back to the reading's frame
         for h, size in zip(range(1, H + 1), _head_sizes(H), strict=False):
             chunk = rest[:, start : start + size]
             start += size
@@ -236,7 +237,7 @@ class WarmStartNet(nn.Module):
             fc = chunk[:, h + 1 :].reshape(-1, h, 2) * force_unit
             # Undo the reflection (u_y -> -u_y is f_x -> -f_x), then the rotation (forces turn with the curvature).
             fc = torch.stack((fc[..., 0] * sign.unsqueeze(1), fc[..., 1]), dim=-1)
-            f_out.append(_rotate(fc, cos.unsqueeze(1), sin.unsqueeze(1)))
+            f_out.append(torch.view_as_real(torch.view_as_complex(fc) * back))
         return NetOutput(count_logits, tuple(s_out), tuple(f_out))
 
     def _load_density(self, xc: torch.Tensor, pf: torch.Tensor, rms: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -256,26 +257,18 @@ class WarmStartNet(nn.Module):
         return r.flatten(1), valid
 
 
-def _rotate(v: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
-    """(..., 2) vectors turned by the angle whose cosine and sine are given (broadcast over the last dim)."""
-    x, y = v[..., 0], v[..., 1]
-    return torch.stack((cos * x - sin * y, sin * x + cos * y), dim=-1)
-
-
-def _canonical_frame(x: torch.Tensor, present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Rotation (cos, sin) (B,) taking the largest read curvature to +x, and the reflection sign (B,) that then
-    makes the sum of u_y over the read gratings non-negative. No gradient flows through the frame."""
+def _canonical_frame(x: torch.Tensor, present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The unit complex number turn (B,) whose product with the reading (as u_x + i u_y) takes its largest read
+    curvature to +x, and the reflection sign (B,) that then makes the sum of u_y over the read gratings
+    non-negative. No gradient flows through the frame."""
     with torch.no_grad():
-        mag = torch.linalg.vector_norm(x, dim=-1).masked_fill(~present, -1.0)  # (B, G)
-        ref = x.gather(1, mag.argmax(dim=1).view(-1, 1, 1).expand(-1, 1, 2)).squeeze(1)  # (B, 2)
-        norm = torch.linalg.vector_norm(ref, dim=-1)
-        ok = norm > 0
-        safe = torch.where(ok, norm, torch.ones_like(norm))
-        cos = torch.where(ok, ref[:, 0] / safe, torch.ones_like(norm))
-        sin = torch.where(ok, ref[:, 1] / safe, torch.zeros_like(norm))
-        yc = -sin.unsqueeze(1) * x[..., 0] + cos.unsqueeze(1) * x[..., 1]
-        sign = torch.where(yc.sum(dim=1) >= 0, 1.0, -1.0).to(x.dtype)
-    return cos, sin, sign
+        z = torch.view_as_complex(x)  # (B, G)
+        mag = z.abs().masked_fill(~present, -1.0)
+        ref = z.gather(1, mag.argmax(dim=1, keepdim=True)).squeeze(1)  # (B,)
+        norm = ref.abs()
+        turn = torch.where(norm > 0, ref.conj() / norm.clamp(min=torch.finfo(norm.dtype).tiny), torch.ones_like(ref))
+        sign = torch.where((z * turn.unsqueeze(1)).imag.sum(dim=1) >= 0, 1.0, -1.0).to(x.dtype)
+    return turn, sign
 
 
 # ---------------------------------------------------------------------------------------------------- dimensionless
