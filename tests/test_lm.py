@@ -541,3 +541,21 @@ def test_a_solve_checks_its_stop_at_the_start(rod):
     assert out.done.all() and (out.steps[even] == 0).all() and not out.converged[even].any()
     assert (alone.steps[even] > 0).all()
     assert np.array_equal(out.steps[~even], alone.steps[~even]) and np.allclose(out.loss[~even], alone.loss[~even])
+
+
+def test_per_problem_keeps_the_last_problems_results_and_only_its(rod):
+    """``problem.per_problem``: one call per problem and arguments while that problem lasts; another problem (even
+    an equal copy) is computed afresh, and the first one's results are not kept beside it."""
+    from torchrod.estimate.problem import per_problem
+
+    calls = []
+
+    @per_problem
+    def width(problem, k):
+        calls.append(k)
+        return problem.batch_size * k
+
+    a = problem_for(NUMPY, rod, clean(rod, [[0.1]], [[[0.5, 0.2]]]))
+    b = dataclasses.replace(a)
+    assert [width(a, 2), width(a, 2), width(a, 3), width(b, 2), width(a, 2)] == [2, 2, 3, 2, 2]
+    assert calls == [2, 3, 2, 2]

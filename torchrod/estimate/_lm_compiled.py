@@ -49,22 +49,9 @@ def usable(problem: Problem, rows: int, h: int) -> bool:
     return compiled.takes(march_work(rows, 3 * h) > SCALAR_WORK)
 
 
-_last_args: tuple[Any, tuple] = (None, ())  # the last problem's arguments (a solve makes many calls of one)
-
-
+@_problem.per_problem
 def _problem_args(problem: Problem) -> tuple:
-    """The kernels' view of ``problem``; kept for the last problem (a frozen dataclass, its arrays never written),
-    whose searches call the kernels a dozen times per reading."""
-    global _last_args
-    last, args = _last_args
-    if last is problem:
-        return args
-    args = _make_problem_args(problem)
-    _last_args = (problem, args)
-    return args
-
-
-def _make_problem_args(problem: Problem) -> tuple:
+    """The kernels' view of ``problem`` (kept: the search calls the kernels a dozen times per reading)."""
     noise2 = np.zeros(0) if problem.noise2 is None else np.ascontiguousarray(problem.noise2, np.float64)
     return (
         np.ascontiguousarray(problem.query, np.float64),

@@ -24,6 +24,8 @@ force on a bound sits exactly on the grating's position.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -94,6 +96,25 @@ class Problem:
     @property
     def batch_size(self) -> int:
         return self.u.shape[0]
+
+
+def per_problem(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``fn(problem, *args)`` kept for the last problem it was called with (by identity: a :class:`Problem` is
+    frozen and its arrays are never written), one result per ``args``: a search calls such functions of one
+    problem many times per reading. The problem and its results are held until another problem comes."""
+    last: list[tuple[Any, dict]] = [(None, {})]
+
+    @functools.wraps(fn)
+    def cached(problem: Problem, *args: Any) -> Any:
+        held, memo = last[0]  # one read: the memo is always this problem's, whatever other threads do
+        if held is not problem:
+            memo = {}
+            last[0] = (problem, memo)
+        if args not in memo:
+            memo[args] = fn(problem, *args)
+        return memo[args]
+
+    return cached
 
 
 def make_problem(

@@ -47,7 +47,7 @@ from typing import Any
 
 from . import _lm_compiled, lm
 from .finish import refine_open
-from .problem import Fits, Problem, interval_of, march_fits, near_kink, sided
+from .problem import Fits, Problem, interval_of, march_fits, near_kink, per_problem, sided
 from .refine import LBFGSOptions
 
 __all__ = ["SearchOptions", "best_of", "exchange", "scan"]
@@ -180,15 +180,23 @@ class Scan:
 
 
 def _candidates(problem: Problem, reading: Any, per_interval: int) -> tuple[Any, Any, Any]:
-    """Candidate locations (R0, C) [m], their intervals (R0, C) and validity (R0, C), C = per_interval x G."""
+    """Candidate locations (R0, C) [m], their intervals (R0, C) and validity (R0, C), C = per_interval x G, of the
+    readings ``reading`` (R0,)."""
+    s, j, valid = _all_candidates(problem, per_interval)
+    return s[reading], j[reading], valid[reading]
+
+
+@per_problem
+def _all_candidates(problem: Problem, per_interval: int) -> tuple[Any, Any, Any]:
+    """:func:`_candidates` of every reading (the scan of each count asks for them again)."""
     xp = problem.xp
-    lo, hi = problem.lo[reading], problem.hi[reading]  # (R0, G)
-    R0, G = lo.shape
+    lo, hi = problem.lo, problem.hi  # (B, G)
+    B, G = lo.shape
     frac = xp.asarray([(k + 0.5) / per_interval for k in range(per_interval)])  # (K,)
-    s = (lo[:, :, None] + (hi - lo)[:, :, None] * frac).reshape(R0, G * per_interval)
+    s = (lo[:, :, None] + (hi - lo)[:, :, None] * frac).reshape(B, G * per_interval)
     j = xp.expand(xp.arange(G)[:, None], (G, per_interval)).reshape(G * per_interval)
-    j = xp.expand(j[None, :], (R0, G * per_interval))
-    valid = j < problem.intervals[reading][:, None]
+    j = xp.expand(j[None, :], (B, G * per_interval))
+    valid = j < problem.intervals[:, None]
     return s, j, valid
 
 
@@ -274,7 +282,7 @@ def scan(problem: Problem, base: Fits | lm.LMState, *, per_interval: int, top: i
     K = per_interval
     dec_i = dec.reshape(R0, G, K)
     best_k = xp.argmin(-dec_i, 2)  # (R0, G)
-    dec_g = xp.take(dec_i, best_k[:, :, None], 2)[:, :, 0]  # (R0, G)
+    dec_g = xp.amax(dec_i, 2)  # (R0, G), the best candidate's: dec holds no NaN
     order = xp.argsort_desc(dec_g)[:, :top]  # (R0, top) intervals
     if order.shape[1] < top:  # fewer gratings than starts: the best interval fills the rest (repeated below too)
         order = xp.concat([order] + [order[:, :1]] * (top - order.shape[1]), 1)
