@@ -96,6 +96,19 @@ def test_guess_shapes_sorted_locations_probabilities_and_dtype(rod, gen):
             assert not p.s.requires_grad
 
 
+def test_a_reading_in_any_memory_layout_gets_the_same_guesses(rod, gen):
+    """A transposed or strided reading (a (B, 2, G) array turned, every other row of a larger one) is guessed as its
+    contiguous copy is: the network views the reading as complex numbers, which needs its own contiguous copy."""
+    ws = WarmStart(_net(rod), rod)
+    u = _readings(rod, gen, B=8)
+    for odd in (u.transpose(1, 2).contiguous().transpose(1, 2), u.repeat_interleave(2, dim=0)[::2]):
+        assert not odd.is_contiguous()
+        want, got = ws.guess(u), ws.guess(odd)
+        torch.testing.assert_close(got.count_probs, want.count_probs, rtol=0, atol=0)
+        for h in want.forces:
+            torch.testing.assert_close(got.forces[h].f, want.forces[h].f, rtol=0, atol=0)
+
+
 def test_one_network_serves_any_length_and_stiffness_with_the_same_layout(rod, gen):
     ws = WarmStart(_net(rod), rod)
     other = tr.Rod(length=0.5, bending_stiffness=0.02, gratings=tuple(0.5 * x for x in rod.relative_gratings))

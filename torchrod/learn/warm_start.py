@@ -207,6 +207,7 @@ class WarmStartNet(nn.Module):
         dtype = self.out.weight.dtype
         present = mask.to(torch.bool)
         x = torch.where(present.unsqueeze(-1), reading.to(dtype), torch.zeros((), dtype=dtype, device=reading.device))
+        x = x.contiguous()  # viewed as complex below (any layout of the reading: a transposed one keeps its strides)
         turn, sign = _canonical_frame(x, present)
         zc = torch.view_as_complex(x) * turn.unsqueeze(1)
         xc = torch.stack((zc.real, zc.imag * sign.unsqueeze(1)), dim=-1)
