@@ -486,16 +486,21 @@ def _buffers(h, Q):
 
 
 @_jit
-def step_rows(rows, P_, S_, O_):
-    # lm._step of the state's ``rows``, in place.
-    h = S_[1].shape[1]
-    work = _buffers(h, P_[0].shape[0])
+def _round(rows, P_, S_, O_, work):
+    # One lm._step of the rows ``rows`` as one batch, in place: ``any_curved`` (some row's last step curved, its ratio
+    # below the policy's acceleration) is the batch's, as lm._step sees it.
     acceleration = O_[7]
     any_curved = False
     for i in rows:
         any_curved = any_curved or S_[13][i] < acceleration
     for i in rows:
         _step(i, any_curved, P_, S_, O_, work)
+
+
+@_jit
+def step_rows(rows, P_, S_, O_):
+    # lm._step of the state's ``rows``, in place.
+    _round(rows, P_, S_, O_, _buffers(S_[1].shape[1], P_[0].shape[0]))
 
 
 @_jit
@@ -870,9 +875,7 @@ def steps_rows(P_, S_, O_, most):
     # Rounds of lm._step, each on the rows not done at its start (in place), as lm.solve's loop takes them: at least
     # one round, then more while their row steps together stay within ``most``; stops early once every row is done
     # or a row failed.
-    h = S_[1].shape[1]
-    work = _buffers(h, P_[0].shape[0])
-    acceleration = O_[7]
+    work = _buffers(S_[1].shape[1], P_[0].shape[0])
     done, failed = S_[17], S_[18]
     R = done.shape[0]
     rows = np.empty(R, np.int64)
@@ -885,11 +888,7 @@ def steps_rows(P_, S_, O_, most):
                 n += 1
         if n == 0 or (spent > 0 and spent + n > most):
             return
-        any_curved = False
-        for k in range(n):
-            any_curved = any_curved or S_[13][rows[k]] < acceleration
-        for k in range(n):
-            _step(rows[k], any_curved, P_, S_, O_, work)
+        _round(rows[:n], P_, S_, O_, work)
         spent += n
         for k in range(n):
             if failed[rows[k]]:
