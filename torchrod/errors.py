@@ -1,0 +1,35 @@
+"""The exceptions torchrod raises for input it cannot use.
+
+Every error torchrod raises on purpose derives from :class:`TorchrodError`, so a program can catch the library's
+own complaints apart from bugs. The subclasses also derive from the built-in exception a Python user expects for
+the same mistake (a bad value is a :class:`ValueError`, a missing file a :class:`FileNotFoundError`), so code
+written against the built-in types keeps working. Messages name the offending value and say what to do.
+
+A reading the estimator cannot fit is not an exception: it is answered with a status (:class:`torchrod.Status`).
+"""
+
+from __future__ import annotations
+
+__all__ = ["MissingFileError", "OptionsError", "ReadingError", "RodError", "TorchrodError"]
+
+
+class TorchrodError(Exception):
+    """Base class of the errors torchrod raises for input it cannot use."""
+
+
+class ReadingError(TorchrodError, ValueError):
+    """A reading (curvature, strain, wavelengths, a line of a file) cannot be used: wrong shape, not a number,
+    beyond a physical bound, an unknown column."""
+
+
+class RodError(TorchrodError, ValueError):
+    """A rod description cannot be used: a missing or implausible value (units other than SI, say), gratings
+    outside the rod, a fibre that cannot give curvature."""
+
+
+class OptionsError(TorchrodError, ValueError):
+    """An option is out of its range or does not fit the other options."""
+
+
+class MissingFileError(TorchrodError, FileNotFoundError):
+    """A file the caller named does not exist (a checkpoint, a rod file, an input)."""
