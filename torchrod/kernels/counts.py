@@ -1,0 +1,189 @@
+"""Choosing the number of forces (0 included) from the best loss of each count, for one reading.
+
+The loss of a fit of h forces to n residuals is ``loss_h`` [1/m^2]; ``loss_0`` is the reading's own energy. Two
+rules (``Options.rule``):
+
+``RULE_THRESHOLD`` (the paper's): the first h with ``loss_h < threshold``, else the largest h fitted. The
+    threshold has units and ignores the number of gratings and the noise; kept to reproduce the paper.
+
+``RULE_NOISE`` (the default): nested likelihood-ratio tests, smallest h first. Adding k forces to a model that
+    already holds the true ones lowers the loss by sigma^2 times a chi-square variable with 3k degrees of freedom,
+    except that the added locations are free: the drop is a maximum over locations, whose tail is heavier, so the
+    test takes the Bonferroni bound over the G grating intervals. h is accepted when, for every larger fitted h',
+    ``loss_h - loss_h' <= sigma^2 chi2_{1 - alpha/G}(3 (h' - h))``, and (a guard against gross misfit) ``loss_h <=
+    sigma^2 chi2_{1 - alpha/50}(n - 3h)``. The smallest accepted h wins; if none is, the fewest forces that no
+    larger count improves on beyond noise; failing that, the largest fitted count. With sigma unknown it is
+    estimated from the largest fit, ``sigma^2 = loss_H / (n - 3 H)``, and the drops are tested with the F law (no
+    misfit guard: the misfit is what estimates sigma). sigma^2 includes the floor^2 in both cases.
+
+The quantiles come from tables the caller makes once (:class:`torchrod.kernels.layout.Tables`, indexed by the
+count difference and by the degrees of freedom): the kernels compute no special functions.
+"""
+
+import math
+
+from .views import tables_of
+
+RULE_NOISE = 0
+RULE_THRESHOLD = 1
+
+MISFIT_FACTOR = 50.0
+"""The count tests' misfit guard runs at ``alpha / MISFIT_FACTOR``: it only rejects fits far worse than noise."""
+
+SETTLE_SAFETY = 2.0
+"""A count is settled when even ``loss_last - SETTLE_SAFETY x gain`` (the scan's promise for one more force, a
+local estimate) would not make the next count chosen."""
+
+
+def dof_index(k, d):
+    """A degrees-of-freedom count as an index into the tables (row 0 holds the values for d <= 0)."""
+    return d if d > 0 else 0
+
+
+def largest_fitted(losses, C):
+    """The largest count with a loss (0 where none has)."""
+    last = 0
+    for h in range(C):
+        if losses[h] == losses[h]:
+            last = h
+    return last
+
+
+def test_sigma2(k, losses, C):
+    """sigma^2 [1/m^2] of the count tests, and the degrees of freedom the F law takes (0 with the noise known)."""
+    info = k.info[0]
+    if info.known:
+        return info.noise2, 0
+    last = largest_fitted(losses, C)
+    dof = info.residuals - 3 * last
+    s2 = k.opt.floor2
+    if dof > 0:
+        s2 += losses[last] / dof
+    return s2, dof if dof > 1 else 1
+
+
+def drop_limit(k, dh, dof_ref):
+    """The largest drop of the loss [units of sigma^2] that adding dh > 0 forces may make by fitting noise."""
+    if k.info[0].known:
+        return tables_of(k).drop_chi2[dh]
+    return tables_of(k).drop_f[dh, dof_ref]
+
+
+def misfit_limit(k, h):
+    """The largest loss_h / sigma^2 the tests accept (-1 where no degree of freedom is left; inf with the noise
+    unknown)."""
+    d = k.info[0].residuals - 3 * h
+    if d <= 0:
+        return -1.0
+    if not k.info[0].known:
+        return math.inf
+    return tables_of(k).misfit[d]
+
+
+def passes_drops(k, losses, C, h, s2, dof_ref):
+    """Whether no larger fitted count improves on h beyond noise."""
+    for h2 in range(h + 1, C):
+        if losses[h] - losses[h2] > drop_limit(k, h2 - h, dof_ref) * s2:  # NaN (not fitted) passes
+            return False
+    return True
+
+
+def select_count(k, losses, C):
+    """The chosen count among 0..C-1 (losses NaN where not fitted), and sigma [1/m] (module docstring)."""
+    info = k.info[0]
+    last = largest_fitted(losses, C)
+    if k.opt.rule == RULE_THRESHOLD:
+        chosen = last
+        for h in range(C):
+            if losses[h] == losses[h] and losses[h] < k.opt.threshold:
+                chosen = h
+                break
+        if info.known:
+            return chosen, math.sqrt(info.noise2)
+        d = info.residuals - 3 * chosen
+        s2 = k.opt.floor2
+        if d > 0:
+            s2 += losses[chosen] / d
+        return chosen, math.sqrt(s2)
+    s2, dof_ref = test_sigma2(k, losses, C)
+    fewest = -1
+    for h in range(C):
+        if not losses[h] == losses[h]:
+            continue
+        if not passes_drops(k, losses, C, h, s2, dof_ref):
+            continue
+        if fewest < 0:
+            fewest = h
+        if losses[h] <= misfit_limit(k, h) * s2 and info.residuals - 3 * h > 0:
+            return h, math.sqrt(s2)
+    return (fewest if fewest >= 0 else last), math.sqrt(s2)
+
+
+def ceiling(k, losses, C, h):
+    """The largest loss [1/m^2] at which count h passes the tests, the other counts' losses as they are: a fit of h
+    forces that no better local minimum could bring below it cannot be chosen."""
+    if k.opt.rule == RULE_THRESHOLD:
+        return k.opt.threshold
+    s2, dof_ref = test_sigma2(k, losses, C)
+    best = math.inf
+    for h2 in range(h + 1, C):
+        v = losses[h2] + drop_limit(k, h2 - h, dof_ref) * s2
+        if v == v and v < best:
+            best = v
+    guard = misfit_limit(k, h) * s2
+    return guard if guard < best else best
+
+
+def settled(k, losses, C, gain):
+    """Whether the count among 0..C-1 is decided whatever count C would reach, given the scan's promised ``gain``
+    [1/m^2] of one more force: with a known noise, or the threshold rule; never with the noise unknown (every
+    count is needed to estimate it). Uses losses[C] as scratch."""
+    if k.opt.rule == RULE_THRESHOLD:
+        for h in range(C):
+            if losses[h] == losses[h] and losses[h] < k.opt.threshold:
+                return True
+        return False
+    if not k.info[0].known:
+        return False
+    nxt = losses[C - 1] - SETTLE_SAFETY * gain
+    losses[C] = nxt if nxt > 0.0 else 0.0
+    chosen, _ = select_count(k, losses, C + 1)
+    losses[C] = math.nan
+    return chosen <= C - 1
+
+
+def quantile_scale(k):
+    """The sigma^2 [1/m^2] the search's quantiles are taken at: the given noise, or (unknown) the floor."""
+    info = k.info[0]
+    return info.noise2 if info.known else k.opt.floor2
+
+
+def suspect_limits(k, h):
+    """The losses [1/m^2] above which a fit of h forces is searched further, in general and with a force on a
+    grating: the ``suspect`` and ``kink_suspect`` quantiles of a correct fit's loss."""
+    d = dof_index(k, k.info[0].residuals - 3 * h)
+    scale = quantile_scale(k)
+    return tables_of(k).suspect[d] * scale, tables_of(k).kink[d] * scale
+
+
+def plausible_limit(k, losses, C, h):
+    """A count below the chosen one is searched further only under this loss [1/m^2]: ``hopeless`` times the
+    smaller of its ceiling and the misfit guard's quantile at the noise."""
+    d = dof_index(k, k.info[0].residuals - 3 * h)
+    guard = tables_of(k).guard[d] * quantile_scale(k)
+    c = ceiling(k, losses, C, h)
+    return k.opt.hopeless * (guard if guard < c else c)
+
+
+def unexplained(k, h, loss):
+    """Whether a fit of h forces with this loss is a misfit (its chi-square p-value at the given noise, or at the
+    largest believed, below ``misfit_level``): the loss over that sigma^2 above the level's quantile, or a loss
+    that is not a number."""
+    if not math.isfinite(loss):
+        return True
+    d = k.info[0].residuals - 3 * h
+    if d <= 0:
+        return False
+    info = k.info[0]
+    s2 = info.noise2 if info.known else k.opt.max_noise2
+    return loss / s2 > tables_of(k).verdict[d]

@@ -1,0 +1,273 @@
+"""The host's side of the kernels: the records, the model and the count tests' tables of an estimator, and the walk
+of a batch over CPU threads or GPU threads.
+
+Nothing here is numerical beyond setting up: the answers come from the kernels (:mod:`.search`). The count tests'
+quantiles are made once here (SciPy), so that the kernels compute no special functions.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+import threading
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import numpy as np
+
+from .counts import MISFIT_FACTOR, RULE_NOISE, RULE_THRESHOLD
+from .layout import OPTIONS, ROD, Arenas, Batch, Outputs, Setup, Sizes, allocate, constants, layout, record
+
+__all__ = ["Plan", "chi2_quantile", "count_tables", "f_quantile", "options_record", "rod_setup", "setup_of"]
+
+
+@functools.lru_cache(maxsize=8192)
+def chi2_quantile(p: float, dof: int) -> float:
+    """The p-quantile of the chi-square law with ``dof`` degrees of freedom (inf for dof <= 0)."""
+    if dof <= 0:
+        return math.inf
+    from scipy import special
+
+    return float(special.chdtri(dof, 1.0 - p))
+
+
+@functools.lru_cache(maxsize=8192)
+def f_quantile(p: float, d1: int, d2: int) -> float:
+    """The p-quantile of Fisher's F law with (d1, d2) degrees of freedom."""
+    from scipy import special
+
+    return float(special.fdtri(d1, max(d2, 1), p))
+
+
+@functools.lru_cache(maxsize=64)
+def _count_tables(
+    num_gratings: int, max_forces: int, significance: float, suspect: float, kink_suspect: float, misfit_level: float
+) -> tuple[tuple[str, np.ndarray], ...]:
+    a = significance / max(1, num_gratings)
+    K = max_forces + 2
+    D = 2 * num_gratings + 1
+    guard_p = 1.0 - significance / MISFIT_FACTOR
+    drop_chi2 = np.array([math.inf] + [chi2_quantile(1.0 - a, 3 * k) for k in range(1, K)])
+    drop_f = np.full((K, D), math.inf)
+    for k in range(1, K):
+        for d in range(D):
+            drop_f[k, d] = 3 * k * f_quantile(1.0 - a, 3 * k, max(d, 1))
+
+    def by_dof(p: float, at_zero: float) -> np.ndarray:
+        return np.array([at_zero] + [chi2_quantile(p, d) for d in range(1, D)])
+
+    return (
+        ("tables_drop_chi2", drop_chi2),
+        ("tables_drop_f", drop_f),
+        ("tables_misfit", by_dof(guard_p, -1.0)),
+        ("tables_guard", by_dof(guard_p, math.inf)),
+        ("tables_suspect", by_dof(suspect, math.inf)),
+        ("tables_kink", by_dof(kink_suspect, math.inf)),
+        ("tables_verdict", by_dof(1.0 - misfit_level, math.inf)),
+    )
+
+
+def count_tables(
+    num_gratings: int, max_forces: int, significance: float, suspect: float, kink_suspect: float, misfit_level: float
+) -> dict[str, np.ndarray]:
+    """The quantiles of the count tests and the search (the ``tables`` group of :data:`.layout.SPEC`) for a rod of
+    ``num_gratings`` gratings and counts up to ``max_forces``: the drop limits at ``significance / num_gratings``
+    (Bonferroni over the intervals), the misfit guard at ``significance / MISFIT_FACTOR``, the ``suspect`` and
+    ``kink_suspect`` quantiles, and the verdict's at ``1 - misfit_level``; by degrees of freedom 0..2G."""
+    return dict(_count_tables(num_gratings, max_forces, significance, suspect, kink_suspect, misfit_level))
+
+
+def rod_setup(
+    *,
+    length: float,
+    ei: float,
+    gj: float,
+    bias: float,
+    gratings: Sequence[float],
+    segments: Sequence[tuple[float, float, float, float]],
+    breakpoints: Sequence[float],
+    step_angle: float,
+    max_steps: int,
+    exact_angle: float,
+    exact_max_steps: int,
+    method: Any,
+) -> tuple[np.recarray, dict[str, np.ndarray]]:
+    """The :data:`.layout.ROD` record and the parts of the ``model`` group of :data:`.layout.SPEC` of a rod (SI
+    units): ``segments`` its intrinsic curvature (from, to, u*_x, u*_y), ``breakpoints`` where u* may jump,
+    ``method`` the exact model's tableau (c, a, bp, bv, as :class:`torchrod.model.nystrom.Tableau` holds them)."""
+    extra = np.array([0.0, *breakpoints], np.float64)
+    rod = record(
+        ROD,
+        length=length,
+        ei=ei,
+        gj=gj,
+        force_unit=ei / (length * length),
+        bias=bias,
+        num_gratings=len(gratings),
+        precurved=len(segments) > 0,
+        nseg=len(segments),
+        nextra=extra.shape[0],
+        step_angle=step_angle,
+        max_steps=max_steps,
+        exact_angle=exact_angle,
+        exact_max_steps=exact_max_steps,
+    )
+    seg = np.zeros((max(len(segments), 1), 4))
+    for i, row in enumerate(segments):
+        seg[i] = row
+    return rod, {
+        "model_query": np.asarray(gratings, np.float64),
+        "model_tab_c": np.asarray(method.c, np.float64),
+        "model_tab_a": np.asarray(method.matrix(), np.float64),
+        "model_tab_bp": np.asarray(method.bp, np.float64),
+        "model_tab_bv": np.asarray(method.bv, np.float64),
+        "model_segments": seg,
+        "model_extra": extra,
+    }
+
+
+def options_record(**values: Any) -> np.recarray:
+    """The :data:`.layout.OPTIONS` record from its fields (``rule`` as "noise" or "threshold"; ``acceleration``
+    None for never)."""
+    values = dict(values)
+    values["rule"] = {"noise": RULE_NOISE, "threshold": RULE_THRESHOLD}[values["rule"]]
+    if values.get("acceleration") is None:
+        values["acceleration"] = -math.inf
+    return record(OPTIONS, **values)
+
+
+def setup_of(rod: np.recarray, model: dict, opt: np.recarray, tables: dict, guess_counts: Sequence[int]) -> Setup:
+    """The batch's :class:`.layout.Setup` (and its arenas' :class:`.layout.Sizes` as ``setup_sizes``): the records,
+    the constants' arena holding ``model`` and ``tables``, and the counts of the guess blocks."""
+    counts = [int(h) for h in guess_counts]
+    o, r = opt[0], rod[0]
+    z = Sizes(
+        G=int(r.num_gratings),
+        H=int(o.max_forces),
+        starts=int(o.starts),
+        per_interval=int(o.per_interval),
+        exchange_top=int(o.exchange_top),
+        guess_rows=max([counts.count(h) for h in set(counts)] + [0]),
+        stages=int(np.asarray(model["model_tab_c"]).shape[0]),
+        nseg=int(r.nseg),
+        nextra=int(r.nextra),
+    )
+    lay, _ = layout(z)
+    const = constants(lay, {**model, **tables})
+    return Setup(rod, opt, lay, const, np.asarray(counts, np.int64).reshape(-1)), z
+
+
+def outputs(B: int, W: int, empty: Any = np.empty) -> Outputs:
+    """The outputs of B readings of result width W, made by ``empty(shape, dtype)``."""
+    return Outputs(
+        count=empty((B,), np.int64),
+        s=empty((B, W), np.float64),
+        f=empty((B, W, 2), np.float64),
+        std=empty((B, W, 3), np.float64),
+        loss=empty((B,), np.float64),
+        converged=empty((B,), np.bool_),
+        iterations=empty((B,), np.int64),
+        poorly=empty((B,), np.bool_),
+        losses=empty((B, W + 1), np.float64),
+        sigma=empty((B,), np.float64),
+        evaluations=empty((B,), np.int64),
+        cut=empty((B,), np.bool_),
+    )
+
+
+_local = threading.local()
+
+
+@functools.cache
+def _pool(workers: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="torchrod-kernel")
+
+
+def cpu_threads(threads: int | None) -> int:
+    """The CPU threads a batch runs on: ``threads``, or every core for None."""
+    return max(1, threads if threads is not None else (os.cpu_count() or 1))
+
+
+class Plan:
+    """A batch's walk through the kernels of one target (:mod:`.targets`): per reading, ``estimate_one``."""
+
+    def __init__(self, target: str, setup: Setup, sizes: Sizes) -> None:
+        from . import targets
+
+        self.target = target
+        self.compiled = targets.get(target)
+        self.setup = setup
+        self.sizes = sizes
+
+    def _work(self) -> Arenas:
+        """This thread's scratch for these sizes (made once per thread, reused)."""
+        cache = getattr(_local, "work", None)
+        if cache is None:
+            cache = _local.work = {}
+        if self.sizes not in cache:
+            cache[self.sizes] = allocate(self.sizes)
+        return cache[self.sizes]
+
+    def run(self, batch: Batch, flag: np.ndarray, threads: int | None = None) -> None:
+        """Estimate every reading of ``batch`` into its outputs (CPU and Python: NumPy arrays; CUDA: device arrays).
+        ``flag`` (1,) int64: set it non-zero (from another thread) to stop every search where it stands; ``threads``:
+        CPU threads (None: every core)."""
+        self.compiled.ready()
+        B = batch.u.shape[0]
+        if self.target == "cuda":
+            self._run_cuda(batch, flag)
+            return
+        entry = self.compiled.entry
+        workers = 1 if self.target == "python" else min(cpu_threads(threads), B)
+        if workers <= 1:
+            entry(0, B, self.setup, batch, self._work(), flag)
+            return
+        # Readings differ in cost (a hard one can take many times an easy one's time): small chunks taken in turn.
+        chunk = max(1, B // (4 * workers))
+        lock = threading.Lock()
+        state = [0]
+
+        def worker() -> None:
+            work = self._work()
+            while True:
+                with lock:
+                    first = state[0]
+                    state[0] = min(B, first + chunk)
+                if first >= B:
+                    return
+                entry(first, min(B, first + chunk), self.setup, batch, work, flag)
+
+        futures = [_pool(max(1, (os.cpu_count() or 1))).submit(worker) for _ in range(workers - 1)]
+        try:
+            worker()
+        finally:
+            for f in futures:
+                f.result()
+
+    def _run_cuda(self, batch: Batch, flag: Any) -> None:
+        from numba import cuda
+
+        B = batch.u.shape[0]
+        _, lengths = layout(self.sizes)
+        per_reading = sum(n * np.dtype(dtype).itemsize for n, dtype in zip(
+            (lengths["f"], lengths["i"], lengths["c"], lengths["b"]), (np.float64, np.int64, np.complex128, np.bool_),
+            strict=True))  # fmt: skip
+        free, _ = cuda.current_context().get_memory_info()
+        chunk = int(max(1, min(B, (free // 4) // max(per_reading, 1))))
+        setup = _device_setup(self.setup)
+        arenas = allocate(self.sizes, (chunk,), empty=lambda shape, dtype: cuda.device_array(shape, dtype))
+        threads = 64
+        for offset in range(0, B, chunk):
+            count = min(chunk, B - offset)
+            blocks = (count + threads - 1) // threads
+            self.compiled.entry[blocks, threads](setup, batch, arenas, flag, offset, count)
+        cuda.synchronize()
+
+
+def _device_setup(setup: Setup) -> Setup:
+    """The setup's arrays copied to the GPU (small)."""
+    from numba import cuda
+
+    return Setup(*(cuda.to_device(np.ascontiguousarray(v)) for v in setup))

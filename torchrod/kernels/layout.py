@@ -1,0 +1,287 @@
+"""The kernels' data: named records for the settings, and one reading's scratch in a few arenas whose named parts
+are described once here (:data:`SPEC`), so that every target allocates it alike and every kernel function reads it
+by name.
+
+Records (NumPy structured arrays, read as ``k.rod.length``):
+
+* :data:`ROD`: the rod and its models' accuracy settings;
+* :data:`OPTIONS`: the estimator's options, flattened (:class:`torchrod.EstimatorOptions` fills it);
+* :data:`INFO`: one reading's own numbers while it is estimated (its intervals, noise, evaluations, whether its
+  search was cut);
+* :data:`LAYOUT`: the sizes of the problem and where each named part of the arenas starts.
+
+A reading's scratch is four arenas (float64, int64, complex128, bool), and the constants it reads (the grating
+positions, the exact model's tableau, the count tests' quantiles) one float64 arena. A kernel function takes a small
+:class:`Kit` (the records, the arenas) and makes the views it needs with the accessors of :mod:`.views` (``rows =
+rows_of(k)``, then ``rows.loss[i]``): passed between functions, a few arenas cost the compiler far less than a
+tuple of a hundred arrays would.
+"""
+
+from collections import namedtuple
+
+import numpy as np
+
+ROD = np.dtype(
+    [
+        ("length", np.float64),  # L [m]
+        ("ei", np.float64),  # EI [N m^2]
+        ("gj", np.float64),  # GJ [N m^2] (precurved rods)
+        ("force_unit", np.float64),  # F = EI / L^2 [N]
+        ("bias", np.float64),  # the location bias added to reported locations [m]
+        ("num_gratings", np.int64),
+        ("precurved", np.bool_),
+        ("nseg", np.int64),  # intrinsic-curvature segments
+        ("nextra", np.int64),  # events besides forces and queries (the base and the segment ends)
+        ("step_angle", np.float64),  # the fitting model's bound on (rate) x (step)
+        ("max_steps", np.int64),  # the fitting model's most steps per segment
+        ("exact_angle", np.float64),  # the exact model's
+        ("exact_max_steps", np.int64),
+    ]
+)
+
+OPTIONS = np.dtype(
+    [
+        ("max_forces", np.int64),  # H: counts 0..H are fitted
+        ("fixed", np.int64),  # the fixed count, or -1: chosen
+        ("starts", np.int64),
+        ("settle", np.bool_),
+        ("trusted", np.bool_),
+        ("twins", np.bool_),
+        ("rule", np.int64),  # counts.RULE_NOISE or RULE_THRESHOLD
+        ("threshold", np.float64),  # [1/m^2]
+        ("floor2", np.float64),  # [1/m^2]
+        ("max_noise2", np.float64),  # (max_noise^2 + floor^2) [1/m^2]: the misfit test's sigma^2, noise unknown
+        ("hopeless", np.float64),
+        ("explained", np.float64),
+        ("per_interval", np.int64),
+        ("exchange_top", np.int64),
+        ("rounds", np.int64),
+        ("explore", np.int64),
+        ("condition_limit", np.float64),
+        ("max_evaluations", np.int64),  # 0: no budget
+        ("damping", np.float64),
+        ("increase", np.float64),
+        ("decrease", np.float64),
+        ("min_damping", np.float64),
+        ("max_damping", np.float64),
+        ("max_force_step", np.float64),
+        ("tolerance", np.float64),
+        ("iterations", np.int64),
+        ("refine_iterations", np.int64),
+        ("exact_steps", np.int64),
+        ("exact_tolerance", np.float64),
+        ("acceleration", np.float64),  # -inf: never
+        ("probe", np.float64),
+        ("acceleration_limit", np.float64),
+    ]
+)
+
+INFO = np.dtype(
+    [
+        ("intervals", np.int64),
+        ("residuals", np.int64),
+        ("noise2", np.float64),  # (sigma^2 + floor^2) [1/m^2] where known
+        ("known", np.bool_),
+        ("evaluations", np.int64),
+        ("cut", np.bool_),
+        ("home_known", np.bool_),
+    ]
+)
+
+DIMS = ("G", "H", "n", "P", "P2", "W", "C", "Q", "R", "NT", "TE", "E", "NC", "S", "NSEG", "NX", "KT", "D")
+"""The sizes the arenas' parts follow from (:func:`dims`)."""
+
+# The arenas' parts: group -> {name: (shape in DIMS or numbers, kind)}; kinds: f float64, i int64, c complex128,
+# b bool, k the constants' float64 arena. Each group becomes a named tuple of views (:mod:`.views`).
+SPEC = {
+    "model": {  # the rod: grating positions [m], the exact model's tableau, the intrinsic curvature
+        "query": (("G",), "k"), "tab_c": (("S",), "k"), "tab_a": (("S", "S"), "k"), "tab_bp": (("S",), "k"),
+        "tab_bv": (("S",), "k"), "segments": (("NSEG", 4), "k"), "extra": (("NX",), "k"),
+    },
+    "tables": {  # the count tests' quantiles (:class:`torchrod.kernels.host.count_tables`)
+        "drop_chi2": (("KT",), "k"), "drop_f": (("KT", "D"), "k"), "misfit": (("D",), "k"), "guard": (("D",), "k"),
+        "suspect": (("D",), "k"), "kink": (("D",), "k"), "verdict": (("D",), "k"),
+    },
+    "reading": {  # the reading's intervals between present gratings: bounds [m] and their gratings (-1: none)
+        "lo": (("G",), "f"), "hi": (("G",), "f"), "lo_k": (("G",), "i"), "hi_k": (("G",), "i"),
+    },
+    "rows": {  # fit states: rows 0..H the best fit of each count, the rest the search's work rows
+        "s": (("R", "W"), "f"), "f": (("R", "W", 2), "f"), "interval": (("R", "W"), "i"), "held": (("R", "W"), "b"),
+        "r": (("R", "n"), "f"), "J": (("R", "n", "P"), "f"), "A": (("R", "P", "P"), "f"), "g": (("R", "P"), "f"),
+        "proposal": (("R", "P"), "f"), "loss": (("R",), "f"), "damping": (("R",), "f"), "steps": (("R",), "i"),
+        "ratio": (("R",), "f"), "decrement": (("R",), "f"), "noise2": (("R",), "f"), "converged": (("R",), "b"),
+        "done": (("R",), "b"), "count": (("R",), "i"),
+    },
+    "march": {  # the marches' outputs and their straight-rod work
+        "curv": (("Q", 2), "f"), "jac": (("Q", 2, "P"), "f"), "phi": (("Q", 8, 6), "f"),
+        "order": (("E",), "i"), "seg": (("E",), "f"), "steps": (("E",), "i"), "jump": (("W",), "c"),
+        "mag": (("W",), "f"), "du": (("NC",), "c"), "dw": (("NC",), "c"), "carried": (("NC",), "b"),
+        "ys": (("S",), "c"), "gs": (("S",), "c"),
+    },
+    "precurved": {  # the precurved march's state and Runge-Kutta stages
+        "yn": ((3, "NC"), "f"), "ym": ((3, "NC"), "f"), "tn": ((3, "NC"), "f"), "tm": ((3, "NC"), "f"),
+        "kn": ((3, "NC"), "f"), "km": ((3, "NC"), "f"), "an": ((3, "NC"), "f"), "am": ((3, "NC"), "f"),
+    },
+    "lm": {  # one Levenberg-Marquardt step's work
+        "lo": (("W",), "f"), "hi": (("W",), "f"), "Js": (("n", "P"), "f"), "free": (("P",), "f"),
+        "gi": (("P",), "f"), "near_lo": (("W",), "b"), "near_hi": (("W",), "b"), "new_int": (("W",), "i"),
+        "new_s": (("W",), "f"), "M": (("P", "P"), "f"), "L": (("P", "P"), "f"), "x": (("P",), "f"),
+        "A": (("P", "P"), "f"), "prop": (("P",), "f"), "v": (("P",), "f"), "dx": (("P",), "f"), "pv": (("P",), "f"),
+        "st": (("W",), "f"), "ft": (("W", 2), "f"), "rt": (("n",), "f"), "Jt": (("n", "P"), "f"),
+        "taken": (("P",), "f"), "rv": (("n",), "f"), "rhs": (("P",), "f"),
+    },
+    "scan": {  # the scan's candidates, responses and Gauss-Newton models
+        "cand": (("C",), "f"), "cint": (("C",), "i"), "valid": (("C",), "b"), "at": (("Q",), "f"),
+        "r": (("n",), "f"), "J": (("n", "P"), "f"), "Jraw": (("n", "P"), "f"), "Jc": (("C", "n", 2), "f"),
+        "Mphi": ((6, 6), "f"), "LU": ((6, 6), "f"), "piv": ((6,), "i"), "col": ((6,), "f"), "xcol": ((6,), "f"),
+        "Msol": ((6, 2), "f"), "Abb": (("P", "P"), "f"), "Acc": (("C", 2, 2), "f"), "gc": (("C", 2), "f"),
+        "Kb": (("P", "P"), "f"), "Lb": (("P", "P"), "f"), "e": (("P",), "f"), "xk": (("P",), "f"),
+        "Kinv": (("P", "P"), "f"), "gb": (("P",), "f"), "yb": (("P",), "f"), "Acb": ((2, "P"), "f"),
+        "Y": (("C", 2, "P"), "f"), "xc": (("C", 2), "f"), "dec": (("C",), "f"), "best_c": (("G",), "i"),
+        "order": (("G",), "i"), "st": (("P2",), "f"),
+    },
+    "cov": {  # the covariance's work
+        "Jm": (("n", "P"), "f"), "ok": (("P",), "b"), "d": (("P",), "f"), "C": (("P", "P"), "f"),
+        "w": (("P",), "f"), "V": (("P", "P"), "f"), "a": (("P", "P"), "f"), "inv": (("P",), "f"),
+        "cov": (("P", "P"), "f"), "active": (("P",), "b"), "Js": (("n", "P"), "f"), "std2": (("W", 3), "f"),
+    },
+    "search": {  # the search's bookkeeping: counts fitted, scans kept, exchange starts, stop rules, the report
+        "fitted": (("R",), "b"), "have_scan": (("R",), "b"), "unscanned": (("R",), "b"), "losses": (("R",), "f"),
+        "near_limit": (("R",), "f"), "sc_s": (("R", "NT", "W"), "f"), "sc_f": (("R", "NT", "W", 2), "f"),
+        "sc_int": (("R", "NT", "W"), "i"), "sc_pred": (("R", "NT"), "f"), "ex_s": (("TE", "W"), "f"),
+        "ex_f": (("TE", "W", 2), "f"), "ex_int": (("TE", "W"), "i"), "ex_pred": (("TE",), "f"),
+        "taken": (("TE",), "b"), "keys": (("R", "W"), "i"), "flags": (("R",), "b"), "ids": (("R",), "i"),
+        "going": (("R",), "i"), "home": (("W",), "i"), "bs": (("W",), "f"), "bf": (("W", 2), "f"),
+        "bint": (("W",), "i"), "Jrep": (("n", "P"), "f"), "std": (("W", 3), "f"), "slot_s": (("W",), "f"),
+        "slot_f": (("W", 2), "f"), "slot_int": (("W",), "i"), "order": (("W",), "i"),
+    },
+}  # fmt: skip
+
+KINDS = {"f": np.float64, "i": np.int64, "c": np.complex128, "b": np.bool_, "k": np.float64}
+
+LAYOUT = np.dtype(
+    [(d, np.int64) for d in DIMS] + [(f"{g}_{name}", np.int64) for g, parts in SPEC.items() for name in parts]
+)
+
+Sizes = namedtuple("Sizes", "G H starts per_interval exchange_top guess_rows stages nseg nextra")
+"""What the arenas' sizes follow from: G gratings, H the largest count, the search's settings, the most guess
+blocks for one count, the exact model's stages, the intrinsic-curvature segments and the precurved rod's extra
+events."""
+
+Kit = namedtuple("Kit", "rod opt lay info const f i c b u w flag")
+"""Everything a kernel function of one reading reads: the :data:`ROD`, :data:`OPTIONS` and :data:`LAYOUT` records,
+the reading's :data:`INFO`, the constants' arena, the four scratch arenas, the reading's u (2G,) [1/m] and w (2G,)
+(1.0 where present), and the caller's stop flag (1,)."""
+
+Setup = namedtuple("Setup", "rod opt lay const gcount")
+"""What the batch shares: the :data:`ROD`, :data:`OPTIONS` and :data:`LAYOUT` records (one element each), the
+constants' arena and gcount (K,), the count of each guess block."""
+
+Outputs = namedtuple("Outputs", "count s f std loss converged iterations poorly losses sigma evaluations cut")
+"""Per reading (batch first, W = the result width): count (B,), s (B, W) [m] by location with the bias, f (B, W, 2)
+[N], std (B, W, 3), loss (B,) [1/m^2], converged (B,), iterations (B,), poorly (B,), losses (B, W + 1) by count,
+sigma (B,) [1/m], evaluations (B,), cut (B,)."""
+
+Batch = namedtuple("Batch", "u w noise2 gs gf guse out")
+"""Per reading: u (B, 2G) the readings [1/m] (zero at missing gratings), w (B, 2G) 1.0 where present, noise2 (B,)
+sigma^2 + floor^2 [1/m^2] or -1 (unknown), the guesses gs (B, K, H) [m], gf (B, K, H, 2) [N], guse (B, K), and the
+:class:`Outputs`."""
+
+Arenas = namedtuple("Arenas", "f i c b info")
+"""Scratch arenas (one reading's, or one per thread along a leading axis) and the :data:`INFO` records."""
+
+
+def dims(z: Sizes) -> dict:
+    """The values of :data:`DIMS` for these sizes."""
+    H = z.H
+    W = max(H, 1)
+    G = z.G
+    C = z.per_interval * G
+    return {
+        "G": G,
+        "H": H,
+        "n": 2 * G,
+        "P": max(3 * H, 1),
+        "P2": 3 * H + 2,
+        "W": W,
+        "C": C,
+        "Q": G + C,
+        "R": (H + 2) + max(z.guess_rows + 1, z.starts - 1, z.exchange_top, 1),
+        "NT": max(z.starts, 1),
+        "TE": (z.exchange_top + 1) * W,
+        "E": H + G + C + z.nextra,
+        "NC": 1 + 3 * H + 6,
+        "S": max(z.stages, 1),
+        "NSEG": max(z.nseg, 1),
+        "NX": max(z.nextra, 1),
+        "KT": H + 2,
+        "D": 2 * G + 1,
+    }
+
+
+def _size(shape: tuple, d: dict) -> int:
+    out = 1
+    for x in shape:
+        out *= d[x] if isinstance(x, str) else x
+    return out
+
+
+def layout(z: Sizes) -> tuple[np.recarray, dict]:
+    """The :data:`LAYOUT` record of these sizes and the length of each arena ({kind: length})."""
+    d = dims(z)
+    lay = np.zeros(1, LAYOUT).view(np.recarray)
+    for name, value in d.items():
+        lay[name] = value
+    ends = dict.fromkeys(KINDS, 0)
+    for group, parts in SPEC.items():
+        for name, (shape, kind) in parts.items():
+            lay[f"{group}_{name}"] = ends[kind]
+            ends[kind] += _size(shape, d)
+    return lay, {kind: max(n, 1) for kind, n in ends.items()}
+
+
+def allocate(z: Sizes, lead: tuple = (), empty=np.empty) -> Arenas:
+    """One reading's scratch arenas (``lead`` (): one; (N,): N of them), made by ``empty(shape, dtype)``."""
+    _, lengths = layout(z)
+    info = empty(lead + (1,), INFO)
+    if isinstance(info, np.ndarray):
+        info = info.view(np.recarray)
+    return Arenas(*(empty(lead + (lengths[kind],), KINDS[kind]) for kind in "ficb"), info)
+
+
+def record(dtype: np.dtype, **values) -> np.recarray:
+    """A one-element record array of ``dtype`` with ``values`` (every field must be given)."""
+    missing = set(dtype.names) - set(values)
+    if missing or set(values) - set(dtype.names):
+        raise KeyError(f"record fields missing {sorted(missing)} or unknown {sorted(set(values) - set(dtype.names))}")
+    out = np.zeros(1, dtype).view(np.recarray)
+    for name, value in values.items():
+        out[name] = value
+    return out
+
+
+def constants(lay: np.recarray, parts: dict) -> np.ndarray:
+    """The constants' arena of :data:`LAYOUT` ``lay`` holding ``parts`` ({"model_query": array, ...}: every part
+    of the groups of kind k)."""
+    d = {name: int(lay[0][name]) for name in DIMS}
+    length = sum(_size(shape, d) for g in SPEC.values() for shape, kind in g.values() if kind == "k")
+    out = np.zeros(max(length, 1))
+    for group, fields in SPEC.items():
+        for name, (shape, kind) in fields.items():
+            if kind != "k":
+                continue
+            key = f"{group}_{name}"
+            value = np.asarray(parts[key], np.float64)
+            want = tuple(d[x] if isinstance(x, str) else x for x in shape)
+            start = int(lay[0][key])
+            block = np.zeros(want)
+            block[tuple(slice(0, s) for s in value.shape)] = value
+            out[start : start + block.size] = block.ravel()
+    return out
+
+
+for _dtype in (ROD, OPTIONS, INFO, LAYOUT):  # a field must not hide an attribute of NumPy's records (as T does)
+    _clash = [name for name in _dtype.names if name in dir(np.record)]
+    if _clash:
+        raise ValueError(f"record fields {_clash} hide attributes of numpy.record")
+del _dtype

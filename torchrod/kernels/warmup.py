@@ -1,0 +1,69 @@
+"""A tiny estimate that compiles (or loads) a target's kernels: one reading of a two-grating rod, every kind of
+argument the real calls pass, so the compiled code is the one they use."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .layout import Batch, Setup
+
+
+class _Euler:
+    """A one-stage method (the warm-up's answer does not matter, only the arguments' types)."""
+
+    c = np.zeros(1)
+    bp = np.full(1, -0.25)
+    bv = np.full(1, -0.5)
+
+    @staticmethod
+    def matrix() -> np.ndarray:
+        return np.zeros((1, 1))
+
+
+def tiny_setup() -> tuple[Setup, Any]:
+    """A setup for a straight two-grating rod with counts up to 1, and its sizes."""
+    from .host import count_tables, options_record, rod_setup, setup_of
+
+    rod, model = rod_setup(
+        length=1.0, ei=1.0, gj=1.0, bias=0.0, gratings=[0.2, 0.6], segments=[], breakpoints=[], step_angle=0.3,
+        max_steps=4, exact_angle=0.8, exact_max_steps=4, method=_Euler(),
+    )  # fmt: skip
+    opt = options_record(
+        max_forces=1, fixed=-1, starts=2, settle=True, trusted=False, twins=True, rule="noise", threshold=3.0,
+        floor2=1e-6, max_noise2=1.0, hopeless=3.0, explained=0.01, per_interval=2, exchange_top=2, rounds=2,
+        explore=8, condition_limit=1e8, max_evaluations=0, damping=1e-3, increase=4.0, decrease=3.0,
+        min_damping=1e-9, max_damping=1e9, max_force_step=10.0, tolerance=1e-3, iterations=5, refine_iterations=5,
+        exact_steps=1, exact_tolerance=1e-4, acceleration=0.5, probe=0.1, acceleration_limit=0.75,
+    )  # fmt: skip
+    return setup_of(rod, model, opt, count_tables(2, 1, 0.05, 0.95, 0.5, 1e-3), [1])
+
+
+def tiny_batch(empty: Any = np.empty) -> Batch:
+    """One reading for :func:`tiny_setup`."""
+    from .host import outputs
+
+    u = np.array([[-0.3, 0.1, -0.1, 0.05]])
+    return Batch(u=u, w=np.ones((1, 4)), noise2=np.full(1, 0.01), gs=np.full((1, 1, 1), 0.5),
+                 gf=np.zeros((1, 1, 1, 2)), guse=np.ones((1, 1), np.bool_), out=outputs(1, 1, empty))  # fmt: skip
+
+
+def warm_up(target: str, entry: Any) -> None:
+    """Run ``entry`` of ``target`` once on the tiny problem (compiling or loading it)."""
+    from .layout import allocate
+
+    setup, sizes = tiny_setup()
+    if target == "cuda":
+        from numba import cuda
+
+        from .host import _device_setup
+
+        batch = tiny_batch()
+        out = type(batch.out)(*(cuda.to_device(x) for x in batch.out))
+        dev = Batch(*(cuda.to_device(x) for x in batch[:-1]), out=out)
+        arenas = allocate(sizes, (1,), empty=lambda shape, dtype: cuda.device_array(shape, dtype))
+        entry[1, 1](_device_setup(setup), dev, arenas, cuda.to_device(np.zeros(1, np.int64)), 0, 1)
+        cuda.synchronize()
+        return
+    entry(0, 1, setup, tiny_batch(), allocate(sizes), np.zeros(1, np.int64))
