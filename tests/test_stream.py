@@ -20,6 +20,7 @@ import torch
 
 import torchrod as tr
 from torchrod.cli import main
+from torchrod.data import path as shipped_file
 from torchrod.io.stream import Reading, StreamOptions, StreamResult, StreamStats, stream
 
 NOISE = 0.05
@@ -602,7 +603,7 @@ def test_cli_hostile_lines_and_out(rod, tmp_path, capsys):
 
 
 def test_cli_truth_summary(tmp_path, capsys):
-    root = os.path.join(os.path.dirname(__file__), "..", "data")
+    root = shipped_file("example_stream.jsonl").parent
     stream_path = os.path.join(root, "example_stream.jsonl")
     if not os.path.exists(stream_path):
         pytest.skip("no shipped example stream")

@@ -15,10 +15,20 @@ __all__ = [
     "add_time_budget_option",
     "check_device",
     "check_estimation_options",
+    "rod_help",
     "sensor_noise",
     "settle",
     "time_budget",
 ]
+
+
+def rod_help(default: str | None = None, what: str = "") -> str:
+    """The help of a ``--rod`` option: a rod file, or one of the presets, every one named (:data:`torchrod.presets.
+    PRESETS`); ``what`` says more about the rod, ``default`` its default."""
+    from ...presets import PRESETS
+
+    text = f"rod JSON file or preset name{what} (presets: {', '.join(PRESETS)})"
+    return text if default is None else f"{text[:-1]}; default {default})"
 
 
 def settle() -> None:
