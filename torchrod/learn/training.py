@@ -681,8 +681,7 @@ def train(
     finally:
         if owns_group:
             # Without a collection here, a process of a two-process gloo run now and then aborted at exit (SIGABRT,
-            # "terminate called without an active exception"); with it, none did (docs/results.md, "DDP runs that
-            # aborted at exit"). Why is not established.
+            # "terminate called without an active exception"); with it, none did. Why is not established.
             gc.collect()
             dist.destroy_process_group()
 

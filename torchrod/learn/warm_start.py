@@ -680,8 +680,8 @@ estimator without a network: trusting exists to save work, and the search's guar
 answers accurate, at the price of more evaluations. A weaker network is said to be weak, once, by
 :meth:`torchrod.Estimator.from_checkpoint`, which then uses its guesses beside the scan's starts, so it cannot make
 results worse. The network alone is not the test: on readings whose forces the noise hides, no estimator can count
-them, and the prior a network learns can count better than any fit without being a good start (docs/results.md,
-"When to trust the network")."""
+them, and the prior a network learns can count better than any fit without being a good start
+(docs/guides/network.md)."""
 
 
 def quality_verdict(meta: Mapping[str, Any]) -> str:
