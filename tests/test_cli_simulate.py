@@ -14,10 +14,11 @@ from rod_reference import reference_solution
 
 import torchrod as tr
 from torchrod.cli import main
+from torchrod.data import path as shipped_file
 
 ROOT = Path(__file__).resolve().parents[1]
-ROD_FILE = ROOT / "data" / "nitinol290.json"
-EXAMPLE = ROOT / "data" / "example_forces.jsonl"
+ROD_FILE = shipped_file("nitinol290.json")
+EXAMPLE = shipped_file("example_forces.jsonl")
 
 
 def run_cli(capsys, *argv: str) -> tuple[int, list[dict], str]:
@@ -233,7 +234,7 @@ def test_stdin_dash_is_read(capsys, monkeypatch):
         (["--rod", "nosuchrod", str(EXAMPLE)], "neither a rod file nor a preset"),
         (["--rod", "nitinol290", "--samples", "-1", str(EXAMPLE)], "--samples"),
         (["--rod", "nitinol290", "--batch-size", "0", str(EXAMPLE)], "--batch-size"),
-        (["--rod", "nitinol290", "/no/such/file.jsonl"], "No such file"),
+        (["--rod", "nitinol290", "/no/such/file.jsonl"], "no such file"),
     ],
 )
 def test_bad_options_exit_2(capsys, argv, message):

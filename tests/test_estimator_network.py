@@ -6,16 +6,16 @@ import dataclasses
 import json
 import shutil
 import warnings
-from pathlib import Path
 
 import pytest
 import torch
 
 import torchrod as tr
+from torchrod.data import path as shipped_file
 from torchrod.estimate.estimator import Estimator, EstimatorOptions
 from torchrod.learn.warm_start import QUALITY_KEYS, TRUST_TOLERANCE, WarmStart, load_checkpoint, quality_verdict
 
-CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "nitinol290.pt"
+CHECKPOINT = shipped_file("nitinol290.pt")
 
 
 def _readings(rod, cases):

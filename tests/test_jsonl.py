@@ -8,6 +8,7 @@ import sys
 
 import pytest
 
+from torchrod.errors import MissingFileError
 from torchrod.io.jsonl import (
     LineWriter,
     as_number,
@@ -282,7 +283,8 @@ def test_output_and_input_paths_are_checked_with_clear_errors(tmp_path):
     assert (tmp_path / "out.jsonl").read_text() == '{"a": 1}\n'
     with open_output("-") as fh:
         assert fh is None
-    with pytest.raises(ValueError, match="READINGS .*No such file"):
+    # A missing input is the library's MissingFileError (a FileNotFoundError), naming the option and the path.
+    with pytest.raises(MissingFileError, match="READINGS .*missing: no such file"):
         check_input(str(tmp_path / "missing"), "READINGS")
     with pytest.raises(ValueError, match="READINGS .*Is a directory"):
         check_input(str(tmp_path), "READINGS")

@@ -11,10 +11,11 @@ import torch
 
 import torchrod as tr
 from torchrod.cli import main
+from torchrod.data import path as shipped_file
 from torchrod.eval import plots
 
 PNG = b"\x89PNG\r\n\x1a\n"
-DATA = Path(__file__).resolve().parents[1] / "data"
+DATA = shipped_file("nitinol290.json").parent
 
 
 def _is_png(path: Path) -> bool:
@@ -59,7 +60,7 @@ def _write(path: Path, rows) -> Path:
     return path
 
 
-def test_plot_command_one_figure_per_reading_and_by_id(tmp_path, capsys):
+def test_plot_command_one_file_unless_asked_for_more(tmp_path, capsys):
     rod = tr.presets.nitinol290()
     forces = [[(0.15, 0.4, 0.1)], [(0.1, -0.3, 0.2), (0.24, 0.2, 0.2)], [(0.2, 0.0, -0.6)]]
     u = tr.grating_curvature(rod, tr.PointForces.from_lists(forces))
@@ -76,17 +77,28 @@ def test_plot_command_one_figure_per_reading_and_by_id(tmp_path, capsys):
     estimates.write_text(capsys.readouterr().out)
     out = tmp_path / "figs"
     plot = ["plot", str(readings), str(estimates), "--rod", "nitinol290"]
+    # By default one file: the first reading's figure, and a word on how to get the others.
     assert main([*plot, "--truth", str(truth), "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert [Path(p).name for p in captured.out.split()] == ["reading-case_0.png"]
+    assert sorted(p.name for p in out.iterdir()) == ["reading-case_0.png"]
+    assert "first of 3 readings" in captured.err and "--all" in captured.err
+    # --all: one figure per reading.
+    assert main([*plot, "--truth", str(truth), "--out", str(out), "--all"]) == 0
     written = capsys.readouterr().out.split()
     names = sorted(Path(p).name for p in written)
     assert names == ["reading-case_0.png", "reading-case_1.png", "reading-case_2.png"]
     assert all(_is_png(Path(p)) for p in written)
+    # The default's one figure may go to a file name.
+    first = tmp_path / "first.png"
+    assert main([*plot, "--out", str(first)]) == 0
+    assert capsys.readouterr().out.strip() == str(first) and _is_png(first)
     # --id: one figure, to a file name.
     one = tmp_path / "one.png"
     assert main([*plot, "--id", "case/1", "--out", str(one)]) == 0
     assert capsys.readouterr().out.strip() == str(one) and _is_png(one)
     # Several figures cannot go to one file; an unknown id is an error.
-    assert main([*plot, "--out", str(tmp_path / "x.png")]) == 2
+    assert main([*plot, "--all", "--out", str(tmp_path / "x.png")]) == 2
     assert "one file" in capsys.readouterr().err
     assert main([*plot, "--id", "nope", "--out", str(out)]) == 2
     assert "no reading with id" in capsys.readouterr().err

@@ -10,9 +10,11 @@ import pytest
 import torch
 
 import torchrod as tr
+from torchrod.data import path as shipped_file
+from torchrod.errors import MissingFileError
 from torchrod.rod import Rod
 
-DATA = Path(__file__).resolve().parents[1] / "data"
+DATA = shipped_file("nitinol290.json").parent
 
 GEOMETRY = {"length": 0.29, "outer_diameter": 1.397e-3, "inner_diameter": 1.118e-3, "youngs_modulus": 67e9}
 GRATINGS = [0.01, 0.03, 0.05]
@@ -220,8 +222,11 @@ def test_a_directory_or_an_unreadable_path_is_a_value_error(tmp_path):
     link.symlink_to(tmp_path / "nowhere.json")
     with pytest.raises(ValueError, match="cannot read the rod file"):
         tr.presets.load(str(link))
-    with pytest.raises(ValueError, match="neither a rod file nor a preset"):
+    # A path that does not exist is a missing file (a FileNotFoundError), naming the presets too.
+    with pytest.raises(MissingFileError, match="no such rod file.*nitinol290, ctr250"):
         tr.presets.load(str(tmp_path / "missing.json"))
+    with pytest.raises(ValueError, match="neither a rod file nor a preset"):
+        tr.presets.load("missing")
 
 
 def test_huge_values_are_quoted_briefly():

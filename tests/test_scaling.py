@@ -1,5 +1,5 @@
-"""The estimator scales with the rod: a 1.0 m rod with 40 gratings (``data/tube1000.json``) estimates 1 to 3 forces
-in bounded memory, with work per grating comparable to the 290 mm rod's.
+"""The estimator scales with the rod: a 1.0 m rod with 40 gratings (``torchrod/data/tube1000.json``) estimates 1 to 3
+forces in bounded memory, with work per grating comparable to the 290 mm rod's.
 
 Work is counted, not timed (the machine is shared): forward-model evaluations per reading, each a march whose cost
 grows linearly with the gratings. Wall times per grating are in docs/results.md (``torchrod bench estimate``).
@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 
 import torchrod as tr
+from torchrod.data import path as shipped_file
 from torchrod.estimate.estimator import Estimator, EstimatorOptions
 from torchrod.eval import recovery as R
 
@@ -39,7 +40,7 @@ def _noisy(rod, count, seed, noise=0.1):
 
 def test_long_rod_bounded_memory_and_work():
     short = tr.presets.nitinol290()
-    long = tr.Rod.from_json(ROOT / "data" / "tube1000.json")
+    long = tr.Rod.from_json(shipped_file("tube1000.json"))
     assert long.length == 1.0 and long.num_gratings == 40
     work, accuracy = {}, {}
     for name, rod in (("short", short), ("long", long)):
@@ -67,7 +68,7 @@ def test_long_rod_bounded_memory_and_work():
 
 def test_long_rod_clean_recovery():
     """Clean readings on the long rod: the same recovery verdicts as on the short one (no silent local minima)."""
-    rod = tr.Rod.from_json(ROOT / "data" / "tube1000.json")
+    rod = tr.Rod.from_json(shipped_file("tube1000.json"))
     rows = R.run(rod, 60, seed=5)
     verdicts = [r["verdict"] for r in rows]
     assert "wrong" not in verdicts and "missed" not in verdicts, [

@@ -20,6 +20,7 @@ import torch
 
 import torchrod as tr
 from torchrod.cli import main
+from torchrod.data import path as shipped_file
 from torchrod.io.stream import Reading, StreamOptions, StreamResult, StreamStats, stream
 
 NOISE = 0.05
@@ -602,7 +603,7 @@ def test_cli_hostile_lines_and_out(rod, tmp_path, capsys):
 
 
 def test_cli_truth_summary(tmp_path, capsys):
-    root = os.path.join(os.path.dirname(__file__), "..", "data")
+    root = shipped_file("example_stream.jsonl").parent
     stream_path = os.path.join(root, "example_stream.jsonl")
     if not os.path.exists(stream_path):
         pytest.skip("no shipped example stream")
@@ -648,10 +649,44 @@ def test_cli_default_checkpoint_is_refused_for_another_layout(tmp_path, capsys):
     u = tr.simulate(rod, loads).grating_curvature[0].tolist()
     path = tmp_path / "in.jsonl"
     path.write_text(json.dumps({"id": 1, "curvature": u}) + "\n" + json.dumps({"id": 2, "curvature": u}) + "\n")
-    assert main(["stream", "--rod", str(rod_path), "--max-forces", "1", "--input", str(path)]) == 0
-    cap = capsys.readouterr()
-    assert cap.err.count("no warm-start network") == 1
-    assert [json.loads(x)["num_forces"] for x in cap.out.splitlines()] == [1, 1]
+    # stream and estimate pick the shipped network the same way: none fits this layout, said once on stderr.
+    for argv in (["stream", "--input", str(path)], ["estimate", str(path)]):
+        assert main([*argv, "--rod", str(rod_path), "--max-forces", "1"]) == 0
+        cap = capsys.readouterr()
+        assert cap.err.count("no shipped warm-start network fits this rod's grating layout") == 1, argv
+        assert [json.loads(x)["num_forces"] for x in cap.out.splitlines()] == [1, 1]
+
+
+def test_cli_estimate_and_stream_use_the_shipped_network_alike(tmp_path, capsys, monkeypatch):
+    """Without --checkpoint, estimate and stream both take the network shipped for the rod's layout; with
+    --checkpoint none, neither does."""
+    from torchrod.cli.commands import estimate as estimate_command
+
+    chosen = []
+    original = estimate_command.choose_network
+
+    def spy(checkpoint, rod, command):
+        network = original(checkpoint, rod, command)
+        chosen.append((command, checkpoint, network is not None))
+        return network
+
+    monkeypatch.setattr(estimate_command, "choose_network", spy)
+    from torchrod.cli.commands import stream as stream_command
+
+    monkeypatch.setattr(stream_command, "choose_network", spy)
+    u = tr.grating_curvature(tr.presets.nitinol290(), tr.PointForces.from_lists([[(0.2, 0.3, 0.1)]]))[0].tolist()
+    path = tmp_path / "in.jsonl"
+    path.write_text(json.dumps({"id": 1, "curvature": u}) + "\n")
+    for extra in ([], ["--checkpoint", "none"]):
+        assert main(["estimate", "--rod", "nitinol290", "--noise", "0.01", str(path), *extra]) == 0
+        assert main(["stream", "--rod", "nitinol290", "--noise", "0.01", "--input", str(path), *extra]) == 0
+    capsys.readouterr()
+    assert chosen == [
+        ("estimate", None, True),
+        ("stream", None, True),
+        ("estimate", "none", False),
+        ("stream", "none", False),
+    ]
 
 
 def _unread(pipe) -> int:

@@ -13,6 +13,7 @@ import torch
 
 import torchrod as tr
 from torchrod.cli import main
+from torchrod.data import path as shipped_file
 from torchrod.learn import synthetic as sy
 
 
@@ -377,7 +378,7 @@ def test_cli_generates_the_set_of_the_api(tmp_path, rod, capsys):
 
 def test_cli_reads_rod_files_and_reports_errors(tmp_path, capsys):
     out = tmp_path / "cli.npz"
-    rod_file = os.path.join(os.path.dirname(__file__), "..", "data", "nitinol290.json")
+    rod_file = str(shipped_file("nitinol290.json"))
     assert main(["generate", "--rod", rod_file, "--count", "5", "--out", str(out)]) == 0
     assert main(["generate", "--rod", "no-such-rod", "--count", "5", "--out", str(out)]) == 2
     assert "neither a rod file nor a preset" in capsys.readouterr().err
@@ -514,7 +515,7 @@ def test_cli_writes_a_stream(tmp_path, capsys):
 
 
 def test_shipped_example_stream():
-    root = os.path.join(os.path.dirname(__file__), "..", "data")
+    root = shipped_file("example_stream.jsonl").parent
     readings_path = os.path.join(root, "example_stream.jsonl")
     truth_path = os.path.join(root, "example_stream_truth.jsonl")
     if not os.path.exists(readings_path):

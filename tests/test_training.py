@@ -322,6 +322,38 @@ def test_cli_trains_logs_and_saves(tmp_path):
     assert "val/fits" in events.Tags()["images"]
 
 
+def test_cli_train_reports_the_held_back_quality_once_with_and_without_the_network(tmp_path, capsys):
+    """The network report: one quality block (on stdout, not again in the progress on stderr), the estimator's
+    accuracy without the network, with its guesses beside the scan and with its guesses alone side by side, and
+    what to do when the network is not trusted."""
+    from torchrod.learn.training import QUALITY_ROWS, format_quality
+
+    ckpt = tmp_path / "ws.pt"
+    small = ["--generate", "256", "--validation", "32", "--epochs", "1", "--batch-size", "64", "--hidden", "16"]
+    small += ["--depth", "1", "--physics-batch", "8", "--logdir", "none", "--checkpoint", str(ckpt)]
+    assert cli_main(["train", *small]) == 0  # with progress lines on stderr
+    captured = capsys.readouterr()
+    assert (captured.out + captured.err).count("held-back quality") == 1
+    block = captured.out[captured.out.index("held-back quality") :]
+    rows = {who: line for line in block.splitlines() for _, who in QUALITY_ROWS if line.strip().startswith(who)}
+    assert set(rows) == {who for _, who in QUALITY_ROWS}
+    # Every estimator row has its count accuracy and errors: with and without the network, side by side.
+    for who in ("estimator without the network", "estimator, guesses beside the scan"):
+        assert rows[who].count("%") == 2 and " mm" in rows[who], rows[who]
+    quality = WarmStart.load(ckpt, tr.presets.nitinol290()).meta["quality"]
+    assert 0.0 <= quality["plain_count_accuracy"] <= 1.0 and quality["readings"] == 32.0
+    assert block.rstrip("\n") == format_quality(quality)
+    # A one-epoch, 16-unit network is not trusted, and the report says what to do about it.
+    assert "trusted: no" in block and "What to do" in block and "--checkpoint none" in block
+    # A record the verdict trusts ends with that, and no advice.
+    trusted = dict(quality, trusted_worse_fits=0.0, trusted_evaluations=1.0, plain_evaluations=2.0)
+    for key in ("count_accuracy", "force_error_median", "location_error_median"):
+        trusted[f"trusted_{key}"] = trusted[f"search_{key}"]
+    text = format_quality(trusted)
+    assert text.endswith("trusted: yes: the estimator starts its fits from the network's guesses alone")
+    assert "What to do" not in text
+
+
 def test_cli_train_refuses_a_rod_that_contradicts_the_data_set_and_accepts_one_that_agrees(tiny_set, tmp_path, capsys):
     data = tmp_path / "set.npz"
     tiny_set.save(data)

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import torchrod as tr
+from torchrod.data import path as shipped_file
 from torchrod.learn.warm_start import (
     LAYOUT_TOLERANCE,
     NetConfig,
@@ -222,12 +223,11 @@ def test_layout_mismatch(rod, tmp_path):
 
 
 def test_the_shipped_checkpoint_guesses_well_on_fresh_readings(rod):
-    from pathlib import Path
 
     from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
     from torchrod.learn.training import evaluate_guess
 
-    path = Path(__file__).resolve().parents[1] / "checkpoints" / "nitinol290.pt"
+    path = shipped_file("nitinol290.pt")
     ws = WarmStart.load(path, rod)
     assert ws.meta["torchrod_version"] and ws.meta["step"] > 0
     # Readings the network never saw (another seed), at the sensor noise it was trained for.

@@ -5,6 +5,9 @@ E = 67 GPa (EI about 7.39e-3 N m^2), FBG gratings every 20 mm at 10, 30, ..., 27
 Its calibrated location bias is -3.12 mm; the preset ships with ``location_bias=0`` (an uncalibrated rod) and
 ``nitinol290(calibrated=True)`` carries the paper's value.
 
+Each preset also ships as a rod file (:func:`rod_file`, in :mod:`torchrod.data`): the start of a rod file of your
+own.
+
 ``ctr250`` is a precurved tube of a concentric-tube robot: the same Nitinol cross-section, L = 250 mm, straight
 for the first 150 mm and then curved at 12 1/m about its d1 axis (u* = (12, 0) 1/m) to the tip, nu = 0.33 (GJ =
 EI / 1.33), gratings every 20 mm at 10, 30, ..., 230 mm (12 gratings).
@@ -13,10 +16,12 @@ EI / 1.33), gratings every 20 mm at 10, 30, ..., 230 mm (12 gratings).
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
+from .errors import MissingFileError, RodError
 from .rod import Rod
 
-__all__ = ["PAPER_LOCATION_BIAS", "PRESETS", "ctr250", "get", "load", "nitinol290"]
+__all__ = ["PAPER_LOCATION_BIAS", "PRESETS", "ctr250", "get", "load", "nitinol290", "rod_file"]
 
 PAPER_LOCATION_BIAS = -3.12e-3  # [m], the paper's calibrated s_bias
 
@@ -48,6 +53,20 @@ def ctr250() -> Rod:
 PRESETS = {"nitinol290": nitinol290, "ctr250": ctr250}
 
 
+ROD_FILES = {"nitinol290": "nitinol290.json", "ctr250": "ctr250.json"}
+"""The rod file each preset ships as (in :mod:`torchrod.data`)."""
+
+
+def rod_file(name: str) -> Path:
+    """The path of the shipped rod file of preset ``name``: the same rod as :func:`get`, as JSON, a template to
+    copy for a rod of your own. Raises :class:`~torchrod.errors.RodError` naming the presets for another name."""
+    from .data import path
+
+    if name not in ROD_FILES:
+        raise RodError(f"unknown rod preset {name!r}; known presets: {', '.join(PRESETS)}")
+    return path(ROD_FILES[name])
+
+
 def get(name: str) -> Rod:
     """A preset by name; raises ``ValueError`` listing the known names."""
     try:
@@ -61,7 +80,8 @@ def load(spec: str | os.PathLike) -> Rod:
 
     A path that exists is read as a rod file (:meth:`Rod.from_json`: a directory, an unreadable file or a bad
     description is a ``ValueError`` naming the file and the problem). Otherwise ``spec`` must name a preset; if it
-    does not, the ``ValueError`` names both possibilities.
+    does not, a ``spec`` that reads as a path (a folder separator, or ending in ``.json``) raises
+    :class:`~torchrod.errors.MissingFileError`, and any other a :class:`~torchrod.errors.RodError` naming the presets.
     """
     if not isinstance(spec, (str, os.PathLike)):
         raise ValueError(f"a rod must be given as a rod file or a preset name, got {type(spec).__name__}")  # noqa: TRY004
@@ -71,4 +91,6 @@ def load(spec: str | os.PathLike) -> Rod:
     if name in PRESETS:
         return PRESETS[name]()
     shown = name if len(name) <= 100 else name[:97] + "..."
-    raise ValueError(f"--rod {shown!r} is neither a rod file nor a preset (presets: {sorted(PRESETS)})")
+    if os.sep in name or "/" in name or name.lower().endswith(".json"):  # meant as a file: the file is missing
+        raise MissingFileError(f"--rod {shown!r}: no such rod file (check the path; presets: {', '.join(PRESETS)})")
+    raise RodError(f"--rod {shown!r} is neither a rod file nor a preset (presets: {', '.join(PRESETS)})")

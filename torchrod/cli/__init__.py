@@ -13,8 +13,9 @@ import importlib
 import sys
 import textwrap
 from collections.abc import Sequence
+from types import ModuleType
 
-__all__ = ["COMMANDS", "DESCRIPTION", "main"]
+__all__ = ["COMMANDS", "DESCRIPTION", "command_parser", "help_pages", "main"]
 
 DESCRIPTION = (
     "Where a thin elastic rod (catheter, needle, concentric tube) is touched, and how hard,\n"
@@ -35,9 +36,10 @@ COMMANDS: dict[str, str] = {
 }
 
 EPILOG = (
-    "ROD (the --rod option) is a rod JSON file or a preset name (nitinol290).\n"
+    "ROD (the --rod option) is a rod JSON file or a preset name ({presets}).\n"
     "Units are SI: m, N, 1/m. 'torchrod COMMAND --help' lists a command's options."
 )
+"""The end of ``torchrod --help``; ``{presets}`` becomes every preset's name (:data:`torchrod.presets.PRESETS`)."""
 
 
 def _command_list(width: int = 88) -> str:
@@ -51,11 +53,12 @@ def _command_list(width: int = 88) -> str:
 
 def _build_parser() -> argparse.ArgumentParser:
     from .. import __version__
+    from ..presets import PRESETS
 
     parser = argparse.ArgumentParser(
         prog="torchrod",
         description=DESCRIPTION,
-        epilog=f"{_command_list()}\n\n{EPILOG}",
+        epilog=f"{_command_list()}\n\n{EPILOG.format(presets=', '.join(PRESETS))}",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"torchrod {__version__}")
@@ -63,6 +66,42 @@ def _build_parser() -> argparse.ArgumentParser:
     for name in COMMANDS:
         sub.add_parser(name, add_help=False)
     return parser
+
+
+def command_parser(name: str, module: ModuleType | None = None) -> argparse.ArgumentParser:
+    """The argument parser of ``torchrod NAME`` (``module``: the command's module, imported when not given)."""
+    if module is None:
+        module = importlib.import_module(f".commands.{name}", __package__)
+    parser = argparse.ArgumentParser(prog=f"torchrod {name}", description=COMMANDS[name])
+    module.configure(parser)
+    return parser
+
+
+def help_pages(width: int = 100) -> dict[str, str]:
+    """What ``--help`` prints for ``torchrod``, each command and each benchmark suite, keyed by the command line
+    (``"torchrod"``, ``"torchrod estimate"``, ``"torchrod bench stream"``, ...), wrapped at ``width`` columns: the
+    source of the documentation's CLI reference, so that it is never copied by hand. Imports every command."""
+    import os
+
+    from .benchmarks import SUITES
+    from .commands.bench import load_suite, suite_parser
+
+    saved = os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = str(width)  # argparse wraps at the terminal's width
+    try:
+        pages = {"torchrod": _build_parser().format_help()}
+        for name in COMMANDS:
+            pages[f"torchrod {name}"] = command_parser(name).format_help()
+        for suite in SUITES:
+            module = load_suite(suite)
+            if module is not None:
+                pages[f"torchrod bench {suite}"] = suite_parser(suite, module).format_help()
+    finally:
+        if saved is None:
+            del os.environ["COLUMNS"]
+        else:
+            os.environ["COLUMNS"] = saved
+    return pages
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -85,8 +124,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"torchrod {name}: not available in this version", file=sys.stderr)
             return 2
         raise
-    sub = argparse.ArgumentParser(prog=f"torchrod {name}", description=COMMANDS[name])
-    module.configure(sub)
+    sub = command_parser(name, module)
     args = sub.parse_args(argv[1:])
     try:
         return int(module.run(args) or 0)

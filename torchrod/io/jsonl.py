@@ -48,6 +48,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import IO, Any, Generic, TypeVar
 
+from ..errors import MissingFileError
 from .readings import HugeInteger, as_number, check_id, describe, id_problem, int_digit_limit, quote
 
 __all__ = [
@@ -286,10 +287,13 @@ def read_records(source: str | os.PathLike | IO[str], parse: Callable[[dict[str,
 
 
 def check_input(path: str, what: str) -> None:
-    """``ValueError`` naming ``what`` when ``path`` (not ``"-"``) cannot be opened for reading (missing, a folder,
-    no permission), before any output is made."""
+    """An error naming ``what`` when ``path`` (not ``"-"``) cannot be opened for reading, before any output is made:
+    :class:`~torchrod.errors.MissingFileError` when it does not exist, ``ValueError`` otherwise (a folder, no
+    permission)."""
     if path == "-":
         return
+    if not os.path.lexists(path):
+        raise MissingFileError(f"{what} {path}: no such file (check the path)")
     try:
         with open(path, "rb"):
             pass

@@ -47,6 +47,7 @@ import torch.nn.functional as F
 
 from ..loads import PointForces
 from ..model.body_frame import grating_curvature
+from ..presets import PRESETS
 from ..presets import load as load_rod
 from ..rod import Rod
 from .warm_start import (
@@ -429,7 +430,9 @@ def held_back_quality(
     fits alone (``trust_guesses``); with the estimator's evaluations per reading in both ways, and without a
     network, and the share of readings whose answer from the guesses alone fits worse than the full search's (its
     loss higher by more than sigma^2). They decide whether the network is trusted
-    (:func:`torchrod.learn.warm_start.quality_verdict`)."""
+    (:func:`torchrod.learn.warm_start.quality_verdict`). The estimator's accuracy without a network
+    (``plain_count_accuracy``, ``plain_force_error_median``, ``plain_location_error_median``) is recorded beside
+    them, for the report (:func:`format_quality`) to show what the network changes."""
     from ..estimate.estimator import Estimator, EstimatorOptions
 
     truth = truth.sorted().to(device="cpu", dtype=torch.float64)
@@ -444,8 +447,6 @@ def held_back_quality(
         r = est.estimate(curvature, mask)
         quality[f"{prefix}evaluations"] = float(r.evaluations.double().mean())
         losses[prefix] = r.loss
-        if net is None:
-            continue
         found = r.forces
 
         def forces_of(h: int, found: PointForces = found) -> PointForces:
@@ -463,36 +464,71 @@ def held_back_quality(
     return quality
 
 
+QUALITY_ROWS = (
+    ("plain_", "estimator without the network"),
+    ("search_", "estimator, guesses beside the scan"),
+    ("trusted_", "estimator, guesses alone (trusted)"),
+    ("", "the network alone"),
+)
+"""The rows of :func:`format_quality`: the prefix of the recorded keys, and what answered."""
+
+
 def format_quality(quality: Mapping[str, float]) -> str:
-    """A checkpoint's recorded quality as readable lines, ending with whether the estimator trusts the network."""
+    """A checkpoint's recorded held-back quality as one block: the estimator's accuracy without the network, with
+    its guesses beside the scan and with its guesses alone, and the network's own, side by side; then whether the
+    estimator trusts the network and, when it does not, what to do."""
     from .warm_start import quality_verdict
 
+    def cell(key: str, scale: float, unit: str, digits: int) -> str:
+        value = quality.get(key)
+        return f"{scale * value:.{digits}f}{unit}" if isinstance(value, (int, float)) and math.isfinite(value) else "-"
+
     lines = [
-        f"held-back quality ({int(quality['readings'])} readings, noise {quality['noise']:g} 1/m): count accuracy, "
-        "median force error, median location error"
+        f"held-back quality: {int(quality['readings'])} readings the network never saw, noise {quality['noise']:g} 1/m "
+        "(errors: medians over the readings whose count is right)",
+        f"  {'':<36}{'count right':>12}{'force error':>13}{'location error':>16}{'evaluations':>13}",
     ]
-    for prefix, who in (
-        ("", "the network alone"),
-        ("search_", "estimator, guesses beside the scan"),
-        ("trusted_", "estimator, guesses alone"),
-    ):
-        if f"{prefix}count_accuracy" in quality:
-            lines.append(
-                f"  {who}: {100 * quality[f'{prefix}count_accuracy']:.1f} %, "
-                f"{100 * quality[f'{prefix}force_error_median']:.1f} %, "
-                f"{1e3 * quality[f'{prefix}location_error_median']:.2f} mm"
-                + (f", {quality[f'{prefix}evaluations']:.1f} evaluations" if f"{prefix}evaluations" in quality else "")
-            )
-    if "plain_evaluations" in quality:
-        lines.append(f"  estimator without the network: {quality['plain_evaluations']:.1f} evaluations")
+    for prefix, who in QUALITY_ROWS:
+        if f"{prefix}count_accuracy" not in quality and f"{prefix}evaluations" not in quality:
+            continue
+        lines.append(
+            f"  {who:<36}{cell(f'{prefix}count_accuracy', 100, ' %', 1):>12}"
+            f"{cell(f'{prefix}force_error_median', 100, ' %', 1):>13}"
+            f"{cell(f'{prefix}location_error_median', 1e3, ' mm', 2):>16}"
+            f"{cell(f'{prefix}evaluations', 1, '', 1) if prefix else '':>13}"
+        )
+    if "plain_evaluations" in quality and "plain_count_accuracy" not in quality:
+        lines.append(
+            "  (this checkpoint records no accuracy without the network: `torchrod train --evaluate CHECKPOINT --rod "
+            "ROD` measures it)"
+        )
+    alone, search = quality.get("count_accuracy"), quality.get("search_count_accuracy")
+    if alone is not None and search is not None and alone > search:
+        lines.append(
+            "  The network alone counts more readings right than the estimator: held-back readings include forces "
+            "too weak for\n  the gratings to show, which the estimator leaves out (it adds a force only when the "
+            "reading needs it) and the\n  network's prior need not. The estimator's count is the one the data "
+            "support."
+        )
     if "trusted_worse_fits" in quality:
         lines.append(
-            f"  readings whose fit from the guesses alone is worse by more than sigma^2: "
+            f"  readings whose fit from the guesses alone is worse than the full search's by more than sigma^2: "
             f"{100 * quality['trusted_worse_fits']:.1f} %"
         )
     weak = quality_verdict({"quality": quality})
-    lines.append(f"  trusted: no ({weak})" if weak else "  trusted: yes")
-    return "\n".join(lines)
+    if not weak:
+        lines.append("  trusted: yes: the estimator starts its fits from the network's guesses alone")
+        return "\n".join(line.rstrip() for line in lines)
+    lines.append(f"  trusted: no ({weak})")
+    lines.append(
+        "  What to do: nothing is required. An untrusted network's guesses are only starts beside the scan's, so the\n"
+        "  estimator answers as accurately as without it (compare the first two rows), at the cost of the evaluations\n"
+        "  shown. To leave it out, pass `--checkpoint none` to torchrod estimate and stream (or make the Estimator\n"
+        "  without it). For a network that is trusted and saves work, train on more cases and for longer\n"
+        "  (--generate, --epochs) at your sensor's noise (--noise), then measure it again with\n"
+        "  `torchrod train --evaluate CHECKPOINT --rod ROD`."
+    )
+    return "\n".join(line.rstrip() for line in lines)
 
 
 def fit_figure(rod: Rod, curvature: torch.Tensor, mask: torch.Tensor, guess: WarmStartGuess, truth: PointForces):
@@ -645,8 +681,7 @@ def train(
     finally:
         if owns_group:
             # Without a collection here, a process of a two-process gloo run now and then aborted at exit (SIGABRT,
-            # "terminate called without an active exception"); with it, none did (docs/results.md, "DDP runs that
-            # aborted at exit"). Why is not established.
+            # "terminate called without an active exception"); with it, none did. Why is not established.
             gc.collect()
             dist.destroy_process_group()
 
@@ -824,7 +859,6 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
             metrics=metrics,
             quality=quality,
         )
-        say(format_quality(quality))
     return TrainResult(net=net, step=step, epoch=epoch, metrics=metrics, history=history, quality=quality)
 
 
@@ -864,7 +898,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a(
         "--rod",
         default=None,
-        help=f"preset name or rod JSON file (default {DEFAULT_ROD} when generating; with "
+        help=f"preset name ({', '.join(PRESETS)}) or rod JSON file (default {DEFAULT_ROD} when generating; with "
         "--data the set's rod, which a --rod given must match)",
     )
     a(

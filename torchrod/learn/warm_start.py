@@ -26,22 +26,20 @@ import numbers
 import os
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from importlib import resources
 from typing import Any, NamedTuple
 
 import torch
 from torch import nn
 
+from ..errors import MissingFileError
 from ..io.readings import check_readings
 from ..loads import PointForces
 from ..rod import Rod
 
-SHIPPED_CHECKPOINT = os.path.join(
-    os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
-    "checkpoints",
-    "nitinol290.pt",
-)
-"""The shipped warm-start network, trained for the ``nitinol290`` grating layout (in the repository's checkpoints/;
-present with an editable install from the repository)."""
+SHIPPED_CHECKPOINT = os.fspath(resources.files("torchrod.data").joinpath("nitinol290.pt"))
+"""The shipped warm-start network, trained for the ``nitinol290`` grating layout (``torchrod/data/nitinol290.pt``,
+installed with the package; :func:`shipped_network` finds it for a rod)."""
 
 __all__ = [
     "CHECKPOINT_FORMAT",
@@ -54,6 +52,7 @@ __all__ = [
     "WarmStartNet",
     "load_checkpoint",
     "save_checkpoint",
+    "shipped_network",
     "to_dimensionless",
     "unit_rod",
 ]
@@ -411,7 +410,10 @@ def _read_checkpoint(name: str, map_location: str | torch.device | None) -> Any:
     if os.path.isdir(name):
         raise ValueError(f"{name}: is a directory, not a checkpoint")
     if not os.path.lexists(name):
-        raise FileNotFoundError(f"no such checkpoint: {name}")
+        raise MissingFileError(
+            f"no such checkpoint: {name} (give the path of a file `torchrod train` wrote; the shipped network is "
+            "torchrod.learn.warm_start.SHIPPED_CHECKPOINT)"
+        )
     try:
         with open(name, "rb") as fh:
             empty = fh.read(1) == b""
@@ -678,8 +680,8 @@ estimator without a network: trusting exists to save work, and the search's guar
 answers accurate, at the price of more evaluations. A weaker network is said to be weak, once, by
 :meth:`torchrod.Estimator.from_checkpoint`, which then uses its guesses beside the scan's starts, so it cannot make
 results worse. The network alone is not the test: on readings whose forces the noise hides, no estimator can count
-them, and the prior a network learns can count better than any fit without being a good start (docs/results.md,
-"When to trust the network")."""
+them, and the prior a network learns can count better than any fit without being a good start
+(docs/guides/network.md)."""
 
 
 def quality_verdict(meta: Mapping[str, Any]) -> str:
@@ -720,3 +722,28 @@ def is_trusted(network: Any) -> bool:
 
 def _finite(value: Any) -> bool:
     return isinstance(value, (int, float)) and math.isfinite(value)
+
+
+SHIPPED_NETWORKS = ("nitinol290.pt",)
+"""The warm-start networks shipped in :mod:`torchrod.data`, each for one grating layout."""
+
+
+def shipped_network(rod: Rod) -> tuple[WarmStart | None, str]:
+    """The shipped warm-start network that serves ``rod``'s grating layout, or None; with a line that says which
+    (or why there is none). ``torchrod estimate`` and ``torchrod stream`` use it when no ``--checkpoint`` is given.
+
+    A network serves every rod whose gratings sit at its layout's positions relative to the length, whatever the
+    rod's length and stiffness (the network works in dimensionless form).
+    """
+    from ..data import path
+
+    for name in SHIPPED_NETWORKS:
+        net, meta = load_checkpoint(path(name))
+        try:
+            return WarmStart(net, rod, meta), f"the shipped warm-start network {name}"
+        except ValueError:  # another grating layout (WarmStart.matches)
+            continue
+    return None, (
+        "no shipped warm-start network fits this rod's grating layout; estimating without one (as accurate, "
+        "slower: `torchrod train` makes one)"
+    )

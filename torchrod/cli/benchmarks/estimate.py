@@ -27,7 +27,7 @@ import torch
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...model import compiled
 from ...presets import load as load_rod
-from ..commands import add_device_option, check_device
+from ..commands import add_device_option, check_device, rod_help
 from . import SUITES
 
 HELP = SUITES["estimate"]
@@ -36,7 +36,7 @@ __all__ = ["HELP", "configure", "readings", "run"]
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)")
+    parser.add_argument("--rod", default="nitinol290", help=rod_help("nitinol290"))
     parser.add_argument("--noise", type=float, default=0.1, help="sensor sigma [1/m] (default 0.1)")
     parser.add_argument("--single", type=int, default=40, help="readings timed one at a time per k (default 40)")
     parser.add_argument("--batched", type=int, default=1000, help="readings timed batched per k (default 1000)")

@@ -26,6 +26,7 @@ import torch
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...learn.warm_start import SHIPPED_CHECKPOINT
 from ...presets import load as load_rod
+from ..commands import rod_help
 from ..commands.evaluate import cell_metrics
 from . import SUITES
 from .estimate import readings
@@ -36,7 +37,7 @@ __all__ = ["HELP", "configure", "run"]
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)")
+    parser.add_argument("--rod", default="nitinol290", help=rod_help("nitinol290"))
     parser.add_argument("--checkpoint", default=SHIPPED_CHECKPOINT, help="warm-start checkpoint")
     parser.add_argument("--noise", type=float, default=0.1, help="sensor sigma [1/m] (default 0.1)")
     parser.add_argument("--count", type=int, default=300, help="held-back readings per k (default 300)")

@@ -37,9 +37,11 @@ import numpy as np
 import torch
 
 from ... import presets
+from ...errors import MissingFileError
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...eval import paper as P
 from ...learn.warm_start import SHIPPED_CHECKPOINT
+from ..commands import rod_help
 from . import SUITES
 
 HELP = SUITES["paper"]
@@ -60,7 +62,7 @@ def _ints(text: str) -> list[int]:
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.epilog = "\n\n".join((__doc__ or "").split("\n\n")[1:]).replace("``", "")
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("--rod", default=None, help="rod JSON file or preset (default: nitinol290, calibrated)")
+    parser.add_argument("--rod", default=None, help=rod_help("nitinol290, calibrated"))
     parser.add_argument(
         "--location-bias",
         type=float,
@@ -85,7 +87,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=[30, 50, 90, 150, 250],
         help="q of the paper's method in the accuracy study (the last: its threshold rule too)",
     )
-    parser.add_argument("--checkpoint", default=SHIPPED_CHECKPOINT, help="warm-start network for torchrod")
+    parser.add_argument(
+        "--checkpoint", default=SHIPPED_CHECKPOINT, help="warm-start network for torchrod ('none': without one)"
+    )
     parser.add_argument("--no-network", action="store_true", help="torchrod without the warm-start network")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the readings (default 0)")
@@ -95,22 +99,26 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="a tiny configuration (seconds): a smoke test")
 
 
-def _checkpoint_path(path: str) -> str | None:
-    return path if os.path.exists(path) else None
+def _checkpoint_path(path: str) -> str:
+    """``--checkpoint``'s file; :class:`~torchrod.errors.MissingFileError` when it does not exist (a path named
+    is an error, never silently skipped: ``--checkpoint none`` runs without a network)."""
+    if not os.path.exists(path):
+        raise MissingFileError(f"--checkpoint {path}: no such file (give a checkpoint file, or 'none')")
+    return path
 
 
 def default_estimator(rod, noise: float, checkpoint: str | None, **options) -> tuple[Estimator, str]:
     """torchrod's default estimator for ``rod`` told the sensor ``noise``, with the warm-start network of
     ``checkpoint`` when it exists and fits the rod; returns it and a line saying which."""
     opts = EstimatorOptions(noise=noise, **options)
-    path = _checkpoint_path(checkpoint) if checkpoint else None
-    if path is None:
-        return Estimator(rod, opts), "without a warm-start network (none given or found)"
+    if not checkpoint or checkpoint.lower() == "none":
+        return Estimator(rod, opts), "without a warm-start network (none given)"
+    path = _checkpoint_path(checkpoint)
     from ...learn.warm_start import WarmStart
 
     try:
         net = WarmStart.load(path, rod)
-    except (ValueError, OSError, RuntimeError, KeyError) as exc:
+    except (ValueError, RuntimeError, KeyError) as exc:
         return Estimator(rod, opts), f"without a warm-start network ({path} unusable: {exc})"
     return Estimator(rod, opts, warm_start=net), f"with the warm-start network {path}"
 

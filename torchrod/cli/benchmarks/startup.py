@@ -28,6 +28,7 @@ import tempfile
 import time
 from collections.abc import Sequence
 
+from ..commands import rod_help
 from . import SUITES
 
 HELP = SUITES["startup"]
@@ -45,7 +46,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--rod",
         default="nitinol290",
-        help="rod of the one-reading estimate: rod file or preset (default nitinol290)",
+        help=rod_help("nitinol290", " of the one-reading estimate"),
     )
     parser.add_argument(
         "--min-ms",

@@ -80,7 +80,7 @@ from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.workers import ParallelEstimator
 from ...io.stream import Reading, StreamOptions, StreamResult, StreamStats, stream, warm_up
 from ...presets import load as load_rod
-from ..commands import add_device_option, check_device, settle
+from ..commands import add_device_option, check_device, rod_help, settle
 from . import SUITES
 from .pacer import ExternalStream, cpu_time, reading_line
 
@@ -90,7 +90,7 @@ __all__ = ["HELP", "configure", "run"]
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)")
+    parser.add_argument("--rod", default="nitinol290", help=rod_help("nitinol290"))
     parser.add_argument("--count", type=int, default=10_000, help="readings in the trajectory (default 10000)")
     parser.add_argument("--rate", type=float, default=100.0, help="trajectory frame rate [Hz] (default 100)")
     parser.add_argument("--noise", type=float, default=0.1, help="sensor sigma [1/m] (default 0.1)")

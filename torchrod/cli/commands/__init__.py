@@ -15,20 +15,30 @@ __all__ = [
     "add_time_budget_option",
     "check_device",
     "check_estimation_options",
+    "rod_help",
     "sensor_noise",
     "settle",
     "time_budget",
 ]
 
 
+def rod_help(default: str | None = None, what: str = "") -> str:
+    """The help of a ``--rod`` option: a rod file, or one of the presets, every one named (:data:`torchrod.presets.
+    PRESETS`); ``what`` says more about the rod, ``default`` its default."""
+    from ...presets import PRESETS
+
+    text = f"rod JSON file or preset name{what} (presets: {', '.join(PRESETS)})"
+    return text if default is None else f"{text[:-1]}; default {default})"
+
+
 def settle() -> None:
     """Move everything the command has made so far (torch, the rod, the estimator and its network) out of reach
     of the garbage collector (:func:`gc.freeze`), once it is set up and before the readings come. Each reading's
     records and results are many small objects, which set off collections; a full one walked every object torch
-    made at its import, and in a stream that cost as much per reading as making the records
-    (docs/results.md, "The garbage collector in a long run"). :func:`torchrod.cli.main` gives them back
-    (:func:`gc.unfreeze`) when the command returns, so a program or test that calls it goes on as before; the
-    library's own functions never freeze: they do not change the interpreter of the program that calls them."""
+    made at its import, and in a stream that cost as much per reading as making the records.
+    :func:`torchrod.cli.main` gives them back (:func:`gc.unfreeze`) when the command returns, so a program or test
+    that calls it goes on as before; the library's own functions never freeze: they do not change the interpreter of
+    the program that calls them."""
     gc.freeze()
 
 

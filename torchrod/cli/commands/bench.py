@@ -15,7 +15,7 @@ from ..benchmarks import SUITES
 
 HELP = "speed and accuracy benchmarks, measured side by side (startup, forward, estimate, stream, ...)"
 
-__all__ = ["HELP", "configure", "load_suite", "run"]
+__all__ = ["HELP", "configure", "load_suite", "run", "suite_parser"]
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -50,6 +50,12 @@ def run(args: argparse.Namespace) -> int:
     if module is None:
         print(f"torchrod bench {name}: not available in this version", file=sys.stderr)
         return 2
+    parser = suite_parser(name, module)
+    return int(module.run(parser.parse_args(args.options)) or 0)
+
+
+def suite_parser(name: str, module: ModuleType) -> argparse.ArgumentParser:
+    """The argument parser of ``torchrod bench NAME`` (``module``: the suite's, from :func:`load_suite`)."""
     parser = argparse.ArgumentParser(prog=f"torchrod bench {name}", description=module.HELP)
     module.configure(parser)
-    return int(module.run(parser.parse_args(args.options)) or 0)
+    return parser

@@ -1,7 +1,7 @@
 """``torchrod calibrate``: fit the location bias and the bending stiffness from readings with known forces.
 
 Usage: ``torchrod calibrate --rod ROD READINGS.jsonl [--out NEW_ROD.json] [--directions known|free]`` ('-' reads
-the readings from standard input). ROD is a rod JSON file or a preset name such as ``nitinol290``.
+the readings from standard input). ROD is a rod JSON file or a preset name (the presets are listed under --rod).
 
 Input: READINGS.jsonl holds one reading with its known forces per line::
 
@@ -26,6 +26,8 @@ import argparse
 import json
 import sys
 
+from . import rod_help
+
 HELP = "fit the location bias and bending stiffness from readings with known forces"
 
 
@@ -37,7 +39,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="READINGS.jsonl",
         help="readings with known forces, one JSON object a line (format below); '-' for stdin",
     )
-    parser.add_argument("--rod", required=True, help="rod JSON file or preset name (e.g. nitinol290)")
+    parser.add_argument("--rod", required=True, help=rod_help())
     parser.add_argument("--out", default="-", help="calibrated rod JSON file (default: standard output)")
     parser.add_argument(
         "--directions",

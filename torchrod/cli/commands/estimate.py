@@ -1,7 +1,7 @@
 """``torchrod estimate``: contact forces from FBG curvature readings (JSON lines in, JSON lines out).
 
 Usage: ``torchrod estimate --rod ROD READINGS.jsonl [--out FILE]`` ('-' reads standard input). ROD is a rod
-JSON file (see torchrod.Rod.from_json) or a preset name such as ``nitinol290``.
+JSON file (see torchrod.Rod.from_json) or a preset name (the presets are listed under --rod).
 
 Each input line is one reading, as ``torchrod simulate`` writes them::
 
@@ -36,8 +36,12 @@ standard deviations; ``loss`` the sum of squared curvature residuals [1/m^2]; ``
 line's batch divided by its readings. The count is chosen among 0 to ``--max-forces`` (or fixed by ``--num-forces``) by
 the rule of ``--selection``; with ``--noise`` (the sensor's sigma per component [1/m]) the tests know the noise, without
 it they estimate it from each reading (slower and weaker).
-``--checkpoint PATH`` adds the starts of a trained warm-start network (as ``Estimator.from_checkpoint``: its
-guesses are starts beside the scan's, so a weak network cannot make results worse); by default there is none.
+The starts of a trained warm-start network join the scan's: by default the network shipped for the rod's grating
+layout (``nitinol290`` and every rod with its gratings at the same positions relative to the length; for another
+layout the command says once on stderr that it runs without one), ``--checkpoint PATH`` names another, and
+``--checkpoint none`` turns it off. As in ``Estimator.from_checkpoint``, a network that its checkpoint does not
+show to be trustworthy only adds starts beside the scan's, so it cannot make results worse. ``torchrod stream``
+chooses its network the same way.
 
 Every non-blank input line gets exactly one output line, in order, whatever it holds. A line that cannot be used
 (bad JSON, a wrong number of gratings, a non-numeric, non-finite or out-of-bound value, all gratings missing, an id
@@ -64,6 +68,7 @@ from typing import Any
 
 import torch
 
+from ...errors import MissingFileError
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.selection import RULES
 from ...io.jsonl import LineWriter, check_input, open_output, until_interrupted
@@ -76,6 +81,7 @@ from . import (
     add_time_budget_option,
     check_device,
     check_estimation_options,
+    rod_help,
     sensor_noise,
     settle,
     time_budget,
@@ -83,14 +89,14 @@ from . import (
 
 HELP = "forces from FBG curvature readings (JSON lines in, JSON lines out)"
 
-__all__ = ["HELP", "configure", "load_network", "options_from_args", "run", "trusting"]
+__all__ = ["HELP", "choose_network", "configure", "load_network", "options_from_args", "run", "trusting"]
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.epilog = "\n\n".join((__doc__ or "").split("\n\n")[1:]).replace("``", "").replace("::", ":")
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("readings", metavar="READINGS.jsonl", help="readings, one JSON object a line; '-' for stdin")
-    parser.add_argument("--rod", required=True, help="rod JSON file or preset name (e.g. nitinol290)")
+    parser.add_argument("--rod", required=True, help=rod_help())
     count = parser.add_mutually_exclusive_group()
     count.add_argument("--max-forces", type=int, default=3, metavar="H", help="choose the count in 0..H (default 3)")
     count.add_argument("--num-forces", type=int, metavar="N", help="fit exactly N forces")
@@ -112,7 +118,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--checkpoint",
         default=None,
         metavar="PATH",
-        help="warm-start network checkpoint whose guesses start the fit ('none' or default: no network)",
+        help="warm-start network checkpoint whose guesses start the fits (default: the network shipped for the rod's "
+        "grating layout, if any; 'none': no network)",
     )
     parser.add_argument("--format", choices=FORMATS, default="jsonl", help="input format: jsonl (default), csv or auto")
     add_sensor_options(parser)
@@ -178,15 +185,30 @@ def trusting(options: EstimatorOptions, network: Any) -> EstimatorOptions:
     return dataclasses.replace(options, trust_guesses=is_trusted(network))
 
 
+def choose_network(checkpoint: str | None, rod: Rod, command: str) -> Any:
+    """The warm-start network ``--checkpoint`` asks for, the same way in ``estimate`` and ``stream``: by default
+    (None) the network shipped for ``rod``'s grating layout (:func:`torchrod.learn.warm_start.shipped_network`; when
+    none fits, said once on stderr and None), ``none`` for no network, else the file (:func:`load_network`)."""
+    if checkpoint is not None:
+        return load_network(checkpoint, rod)
+    from ...learn.warm_start import shipped_network
+
+    network, line = shipped_network(rod)
+    if network is None:
+        print(f"torchrod {command}: {line}", file=sys.stderr)
+    return network
+
+
 def load_network(checkpoint: str | None, rod: Rod) -> Any:
-    """The warm-start network of ``--checkpoint`` (None for None or ``none``); ``ValueError`` naming the file when
-    it cannot be used (missing, not a checkpoint, another grating layout)."""
+    """The warm-start network of ``--checkpoint`` (None for None or ``none``); :class:`MissingFileError` when the
+    file does not exist, ``ValueError`` naming the file when it cannot be used (not a checkpoint, another grating
+    layout)."""
     if checkpoint is None or checkpoint.lower() == "none":
         return None
     from ...learn.warm_start import WarmStart, quality_verdict
 
     if not os.path.exists(checkpoint):
-        raise ValueError(f"--checkpoint {checkpoint}: no such file (give a checkpoint file, or 'none')")
+        raise MissingFileError(f"--checkpoint {checkpoint}: no such file (give a checkpoint file, or 'none')")
     try:
         network = WarmStart.load(checkpoint, rod)  # its errors name the file and what is wrong
     except Exception as exc:  # noqa: BLE001 - an unreadable file is a bad option, not a crash
@@ -219,7 +241,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.starts is not None and args.starts < 0:
         raise ValueError(f"--starts must be >= 0, got {args.starts}")
     check_input(args.readings, "READINGS")
-    network = load_network(args.checkpoint, rod)
+    network = choose_network(args.checkpoint, rod, "estimate")
     estimator = Estimator(rod, trusting(options_from_args(args), network), warm_start=network)
     from ...estimate.workers import ParallelEstimator
 

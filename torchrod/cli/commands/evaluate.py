@@ -57,6 +57,7 @@ import torch
 from ...estimate.estimator import EstimateResult, Estimator, EstimatorOptions
 from ...presets import load as load_rod
 from ...rod import Rod
+from . import rod_help
 
 HELP = "accuracy of the estimator on simulated readings over a realistic envelope"
 
@@ -95,7 +96,7 @@ def _floats(text: str) -> list[float]:
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.epilog = "\n\n".join((__doc__ or "").split("\n\n")[1:]).replace("``", "")
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("--rod", default="nitinol290", help="rod JSON file or preset name (default nitinol290)")
+    parser.add_argument("--rod", default="nitinol290", help=rod_help("nitinol290"))
     parser.add_argument("--count-per-cell", type=int, default=200, metavar="N", help="readings per cell (default 200)")
     parser.add_argument("--noise", type=_floats, default=[0.0, 0.1, 0.3], help="sigmas [1/m] (default 0,0.1,0.3)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the load cases and noise (default 0)")

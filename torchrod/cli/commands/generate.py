@@ -12,7 +12,7 @@ import math
 import sys
 import time
 
-from . import add_device_option, check_device
+from . import add_device_option, check_device, rod_help
 
 HELP = "synthetic training sets (.npz) and synthetic reading streams (.jsonl)"
 
@@ -21,7 +21,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     from ...learn.synthetic import ContactModel, LoadSampler, SensorModel
 
     ls, sm, cm = LoadSampler(), SensorModel(), ContactModel()
-    parser.add_argument("--rod", required=True, help="rod JSON file or preset name (e.g. nitinol290)")
+    parser.add_argument("--rod", required=True, help=rod_help())
     parser.add_argument("--count", type=int, required=True, help="number of load cases (or readings with --trajectory)")
     parser.add_argument("--out", required=True, help="output file: .npz set, or .jsonl stream with --trajectory")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")

@@ -1,20 +1,25 @@
 """``torchrod plot``: figures of readings and their estimates (PNG).
 
-Usage: ``torchrod plot READINGS.jsonl ESTIMATES.jsonl --rod ROD [--truth TRUTH.jsonl] [--id ID] [--out DIR|FILE]``.
+Usage: ``torchrod plot READINGS.jsonl ESTIMATES.jsonl --rod ROD [--truth TRUTH.jsonl] [--id ID | --all]
+[--out DIR|FILE]``.
 
 READINGS: the input of ``torchrod estimate``/``torchrod stream`` (``{"id", "curvature": [[ux, uy] or null, ...]}``,
 ``"t"`` [s] for a stream). ESTIMATES: their output, one JSON line per reading (``{"id", "forces": [{"s", "fx",
 "fy"}, ...]}``; error lines are skipped). Estimates are matched to readings by id when every reading has a distinct
 id, else by line order. TRUTH (optional): the true forces, ``{"id", "t", "forces": [{"s", "fx", "fy"}, ...]}`` per
-line (the format of ``data/example_stream_truth.jsonl``), matched by id.
+line (the format of the shipped ``example_stream_truth.jsonl``: torchrod.data), matched by id.
 
 Figures:
 
-* per reading (all of them, or the one named by ``--id``): the rod's 3-D shape from the estimated forces with the
-  forces drawn as arrows at their locations (and the true ones, dashed, when TRUTH is given), the measured and the
-  fitted curvature at each grating, and the residuals; written as ``reading-ID.png``;
-* for a stream (readings with ``"t"``) without ``--id``: the estimated forces' magnitudes and locations against
-  time, with the ground truth of those readings when given; written as ``stream.png``.
+* for a stream (readings with ``"t"``): the estimated forces' magnitudes and locations against time, with the
+  ground truth of those readings when given; written as ``stream.png``;
+* per reading: the rod's 3-D shape from the estimated forces with the forces drawn as arrows at their locations
+  (and the true ones, dashed, when TRUTH is given), the measured and the fitted curvature at each grating, and the
+  residuals; written as ``reading-ID.png``.
+
+One file is written unless more are asked for: readings without ``"t"`` give the figure of the first reading (and
+say on stderr how many more there are); ``--id ID`` draws the reading with that id instead (of a stream too), and
+``--all`` one figure per reading.
 
 ``--out`` is a folder (default: the current one) or, for a single figure, a file name ending in ``.png``. The paths
 written are printed, one a line. The rod (``--rod``, a rod file or preset name) must be the one the estimates were
@@ -29,11 +34,13 @@ import argparse
 import math
 import os
 import re
+import sys
 from typing import Any
 
-from ...io.jsonl import as_number, get_list, read_records
+from ...io.jsonl import as_number, check_input, get_list, read_records
 from ...presets import load as load_rod
 from ...rod import Rod
+from . import rod_help
 
 HELP = "figures of readings and their estimates"
 
@@ -47,10 +54,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("estimates", metavar="ESTIMATES.jsonl", help="their estimates (torchrod estimate/stream)")
     parser.add_argument(
         "--rod",
-        help="rod JSON file or preset name the estimates were made with (required unless the inputs say)",
+        help=rod_help(what=" the estimates were made with, required unless the inputs say"),
     )
     parser.add_argument("--truth", metavar="TRUTH.jsonl", help="true forces per reading (optional)")
-    parser.add_argument("--id", dest="ident", metavar="ID", help="only the reading with this id")
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument("--id", dest="ident", metavar="ID", help="the figure of the reading with this id")
+    which.add_argument("--all", action="store_true", help="one figure per reading (default: one file in all)")
     parser.add_argument("--out", default=".", help="output folder, or a .png file for one figure (default .)")
     parser.add_argument("--dpi", type=int, default=90, help="resolution of the PNGs (default 90)")
 
@@ -129,6 +138,9 @@ def _file_name(ident: Any, line: int) -> str:
 def run(args: argparse.Namespace) -> int:
     from ...eval import plots
 
+    for path, what in ((args.readings, "READINGS"), (args.estimates, "ESTIMATES"), (args.truth, "--truth")):
+        if path is not None:
+            check_input(path, what)
     rod = load_rod(args.rod) if args.rod is not None else _rod_named_in(args.readings, args.estimates)
     if args.dpi < 10:
         raise ValueError(f"--dpi must be >= 10, got {args.dpi}")
@@ -156,13 +168,21 @@ def run(args: argparse.Namespace) -> int:
         if not chosen:
             raise ValueError(f"no reading with id {args.ident!r} in {args.readings}")
         jobs = [("reading", k) for k in chosen[:1]]
+    elif args.all:
+        jobs = [("reading", k) for k in range(len(readings))]
     elif stream:
         jobs = [("stream", None)]
     else:
-        jobs = [("reading", k) for k in range(len(readings))]
+        jobs = [("reading", 0)]
+        if len(readings) > 1:
+            print(
+                f"torchrod plot: the figure of the first of {len(readings)} readings; --all draws one per reading, "
+                "--id ID the one with that id",
+                file=sys.stderr,
+            )
     single_file = args.out.lower().endswith(".png")
     if single_file and len(jobs) > 1:
-        raise ValueError(f"--out {args.out} names one file but {len(jobs)} figures are due: give a folder or --id")
+        raise ValueError(f"--out {args.out} names one file but --all asks for {len(jobs)} figures: give a folder")
 
     def target(name: str) -> str:
         return args.out if single_file else os.path.join(args.out, name)

@@ -1,7 +1,7 @@
 """``torchrod simulate``: FBG curvature readings for given point forces (JSON lines in, JSON lines out).
 
 Usage: ``torchrod simulate --rod ROD FORCES.jsonl`` (``-`` reads standard input). ROD is a rod JSON file
-(see torchrod.Rod.from_json) or a preset name such as ``nitinol290``.
+(see torchrod.Rod.from_json) or a preset name (the presets are listed under --rod).
 
 Each input line is a load case::
 
@@ -61,7 +61,7 @@ from ...model.body_frame import simulate
 from ...model.shape import bending_angle, shape
 from ...presets import load as load_rod
 from ...rod import Rod
-from . import add_device_option, check_device
+from . import add_device_option, check_device, rod_help
 
 HELP = "curvature at the gratings for given point forces (JSON lines in, JSON lines out)"
 
@@ -82,7 +82,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.epilog = "\n\n".join(__doc__.split("\n\n")[1:]).replace("``", "").replace("::", ":")
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("forces", metavar="FORCES.jsonl", help="load cases, one JSON object a line; '-' for stdin")
-    parser.add_argument("--rod", required=True, help="rod JSON file or preset name (e.g. nitinol290)")
+    parser.add_argument("--rod", required=True, help=rod_help())
     parser.add_argument(
         "--samples", type=int, default=0, metavar="N", help="also output the curvature profile at N positions"
     )

@@ -1,7 +1,7 @@
 """``torchrod stream``: forces from a live stream of FBG readings, answered as they arrive.
 
 Usage: ``torchrod stream --rod ROD [--checkpoint C] [--input FILE]`` (default: standard input). ROD is a rod JSON
-file or a preset name such as ``nitinol290``.
+file or a preset name (the presets are listed under --rod).
 
 Input, one reading a line, read as it arrives (a pipe from an interrogator is fine):
 
@@ -50,8 +50,9 @@ uses the learned sigma as a known noise and its answers carry it as ``"noise"`` 
 estimating it per reading instead. Each reading has a time budget, ``--time-budget-ms`` (default 50; 0 answers
 at once with no fit): a batch of B readings stops searching B times it after it began, and the readings it cut
 short are answered with the best fit found so far and ``"status": "timeout"``. ``--checkpoint`` defaults to the
-shipped ``checkpoints/nitinol290.pt`` when the rod's grating layout matches it, else the stream runs without a
-network (said once on stderr); ``--checkpoint none`` turns the network off. ``--out FILE`` writes the answers to FILE.
+network shipped for the rod's grating layout (``nitinol290``'s, as in ``torchrod estimate``), else the stream runs
+without a network (said once on stderr); ``--checkpoint none`` turns the network off. ``--out FILE`` writes the
+answers to FILE.
 ``--device cuda`` estimates on a GPU (one process; the same answers, far more slowly than the CPU at present).
 
 Every non-blank input line gets exactly one output line (a CSV header excepted). A line that cannot be used (bad
@@ -108,17 +109,18 @@ from . import (
     add_time_budget_option,
     check_device,
     check_estimation_options,
+    rod_help,
     sensor_noise,
     settle,
     time_budget,
 )
-from .estimate import add_workers_option, check_counts, check_workers, load_network, trusting
+from .estimate import add_workers_option, check_counts, check_workers, choose_network, trusting
 
 HELP = "amortised estimation on a stream of readings"
 
 DEFAULT_TIME_BUDGET_MS = 50.0
-"""The stream's default time budget per reading [ms] (``--time-budget-ms``): docs/results.md has how it was
-chosen, from what shorter budgets cost in count accuracy on this project's machine."""
+"""The stream's default time budget per reading [ms] (``--time-budget-ms``): long enough that few readings are cut
+short on a 2-core CPU, short enough to bound the slow tail of one reading's search."""
 
 __all__ = ["HELP", "configure", "load_truth", "read_stream", "run"]
 
@@ -126,12 +128,13 @@ __all__ = ["HELP", "configure", "load_truth", "read_stream", "run"]
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.epilog = "\n\n".join((__doc__ or "").split("\n\n")[1:]).replace("``", "").replace("::", ":")
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("--rod", required=True, help="rod JSON file or preset name (e.g. nitinol290)")
+    parser.add_argument("--rod", required=True, help=rod_help())
     parser.add_argument(
         "--checkpoint",
         default=None,
         metavar="C",
-        help="warm-start network checkpoint, or 'none' (default: the shipped one if the layout matches)",
+        help="warm-start network checkpoint, or 'none' (default: the network shipped for the rod's grating layout, if "
+        "any, as in torchrod estimate)",
     )
     parser.add_argument("--input", default="-", metavar="FILE", help="readings file (default '-': stdin)")
     parser.add_argument("--format", choices=("auto", "jsonl", "csv"), default="auto", help="input format")
@@ -229,22 +232,6 @@ def load_truth(path: str) -> dict[str, list[tuple[float, float, float]]]:
 
 
 # ---------------------------------------------------------------------------------------------------- the command
-def _warm_start(args: argparse.Namespace, rod: Rod) -> Any:
-    """The network the options ask for, or None (the default checkpoint only when it fits the rod)."""
-    from ...learn.warm_start import SHIPPED_CHECKPOINT, WarmStart
-
-    if args.checkpoint is not None:
-        return load_network(args.checkpoint, rod)
-    if not os.path.exists(SHIPPED_CHECKPOINT):
-        print(f"torchrod stream: no warm-start network ({SHIPPED_CHECKPOINT} not found)", file=sys.stderr)
-        return None
-    try:
-        return WarmStart.load(SHIPPED_CHECKPOINT, rod)
-    except ValueError as exc:
-        print(f"torchrod stream: no warm-start network: {exc}", file=sys.stderr)
-        return None
-
-
 def run(args: argparse.Namespace) -> int:
     return until_interrupted(lambda: _run(args))
 
@@ -271,7 +258,7 @@ def _run(args: argparse.Namespace) -> int:
     truth = load_truth(args.truth) if args.truth is not None else None
     if args.topic is None:
         check_input(args.input, "--input")
-    network = _warm_start(args, rod)
+    network = choose_network(args.checkpoint, rod, "stream")
     if args.iterations < 0:
         raise ValueError(f"--iterations must be >= 0, got {args.iterations}")
     # As Estimator.from_checkpoint: a trusted network's guesses start the fits alone, a weak one's are beside.

@@ -1,6 +1,6 @@
 """``torchrod train``: train the warm-start network (the same entry as ``python train/train_warm_start.py``).
 
-``torchrod train --rod nitinol290 --generate 150000 --epochs 20 --checkpoint checkpoints/nitinol290.pt``; under
+``torchrod train --rod nitinol290 --generate 150000 --epochs 20 --checkpoint my_network.pt``; under
 ``torchrun --nproc_per_node=N -m torchrod train ...`` it trains with DistributedDataParallel. See
 :mod:`torchrod.learn.training` for the options and what is logged.
 

@@ -1,0 +1,70 @@
+"""The scripts in examples/ run, at a small size, and print what they promise."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
+
+
+def run(script: str, *args: str, cwd: Path) -> str:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    done = subprocess.run(
+        [sys.executable, str(EXAMPLES / script), *args], capture_output=True, text=True, timeout=300, cwd=cwd, env=env
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done.stdout
+
+
+def test_every_example_is_tested():
+    assert {p.name for p in EXAMPLES.glob("*.py")} == {
+        "simulate_and_estimate.py",
+        "estimate_file.py",
+        "stream_sensor.py",
+        "own_rod.py",
+    }
+
+
+def test_simulate_and_estimate(tmp_path):
+    out = run("simulate_and_estimate.py", "--count", "2", "--seed", "3", cwd=tmp_path)
+    assert out.count("reading ") == 2 and out.count("estimate: ") == 2
+    assert "s = " in out and " mm" in out and " N" in out
+
+
+def test_estimate_file_writes_one_answer_per_reading(tmp_path):
+    answers = tmp_path / "answers.jsonl"
+    out = run("estimate_file.py", "--count", "6", "--out", str(answers), cwd=tmp_path)
+    assert "6 readings" in out and "the shipped warm-start network" in out and "statuses:" in out
+    records = [json.loads(line) for line in answers.read_text().splitlines()]
+    assert [r["id"] for r in records] == [f"f{k:06d}" for k in range(6)]
+    assert all(r["status"] in ("ok", "misfit", "unconverged", "poorly_determined", "timeout") for r in records)
+
+
+def test_estimate_file_reports_a_bad_line_and_goes_on(tmp_path):
+    readings = tmp_path / "r.jsonl"
+    good = (ROOT / "torchrod" / "data" / "example_stream.jsonl").read_text().splitlines()[0]
+    readings.write_text(good + "\n" + '{"id": "bad", "curvature": [[1, 2]]}\n')
+    out = run("estimate_file.py", str(readings), cwd=tmp_path)
+    assert "skipped: line 2" in out and "1 readings" in out
+
+
+def test_stream_sensor(tmp_path):
+    out = run("stream_sensor.py", "--count", "8", "--rate", "400", cwd=tmp_path)
+    lines = [line for line in out.splitlines() if line.startswith("f0000")]
+    assert [line.split()[0] for line in lines] == [f"f{k:06d}" for k in range(8)]
+    assert "latency median" in out
+
+
+def test_own_rod_writes_a_rod_file_the_cli_reads(tmp_path):
+    rod_file = tmp_path / "my_rod.json"
+    out = run("own_rod.py", "--out", str(rod_file), "--count", "2", cwd=tmp_path)
+    assert f"rod file: {rod_file}" in out and out.count("true ") == 2
+    import torchrod as tr
+
+    rod = tr.presets.load(str(rod_file))
+    assert rod.length == 0.4 and rod.num_gratings == 8 and rod.youngs_modulus == 193e9
