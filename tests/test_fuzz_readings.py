@@ -205,7 +205,7 @@ def test_parser_reads_every_json_line_into_one_reading(lines):
 @SETTINGS
 @given(csv_lines(max_lines=8, per=3))
 def test_parser_reads_every_csv_strain_row_into_one_reading(lines):
-    header = ",".join(["id", "t"] + [f"eps{k}_{c}" for k in range(G) for c in range(3)])
+    header = ",".join(["id", "t"] + [f"eps_{k}_{c}" for k in range(1, G + 1) for c in range(1, 4)])
     text = header + "\n" + "".join(line + "\n" for line, _ in lines)
     got = list(iter_readings(io.StringIO(text), G, ROD.gratings, "csv", quantity="strain", fibre=FIBRE))
     expected = [(number + 1, ident) for number, ident in expected_lines(lines)]
@@ -217,7 +217,7 @@ def test_parser_reads_every_csv_strain_row_into_one_reading(lines):
 @SETTINGS
 @given(csv_lines(max_lines=8))
 def test_parser_reads_every_csv_row_into_one_reading(lines):
-    header = ",".join(["id", "t"] + [f"{c}{k}" for k in range(G) for c in ("ux", "uy")])
+    header = ",".join(["id", "t"] + [f"{c}{k}" for k in range(1, G + 1) for c in ("ux", "uy")])
     text = header + "\n" + "".join(line + "\n" for line, _ in lines)
     got = list(iter_readings(io.StringIO(text), G, ROD.gratings, "csv"))
     expected = [(number + 1, ident) for number, ident in expected_lines(lines)]
@@ -308,7 +308,7 @@ def test_cli_answers_every_line_once_in_order(command, fmt, data):
     text = "".join(line + "\n" for line, _ in lines)
     expected = expected_lines(lines)
     if fmt == "csv":
-        text = "id,t,curvature\n" + text
+        text = ",".join(["id", "t"] + [f"{c}_{k}" for k in range(1, G + 1) for c in ("ux", "uy")]) + "\n" + text
         expected = [(number + 1, ident) for number, ident in expected]
     module = f"torchrod.cli.commands.{command}.Estimator"
     with mock.patch(module, _CheckingEstimator):
