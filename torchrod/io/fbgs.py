@@ -140,16 +140,15 @@ def parse_record(
     return sample, t, [[x * scale, p] for x, p in zip(kappa, phi, strict=True)]
 
 
-def _reading(sample: Any, t: float | None, pairs: list[list[float]], G: int, number: int) -> Reading:
+def _reading(sample: Any, t: float | None, pairs: list[list[float]], G: int) -> Reading:
     """A record's values as a checked reading (the polar rules of :mod:`torchrod.io.readings`: kappa >= 0, bounds)."""
-    return _checked(Reading(sample, curvature_tensor(polar_curvature(pairs, G), G), t, None, number))
+    return _checked(Reading(sample, curvature_tensor(polar_curvature(pairs, G), G), t))
 
 
 def read_records(read: Callable[[int], bytes | None], num_gratings: int, unit: str | None = None) -> Iterator[Reading]:
     """The readings of a byte stream of records (module docstring): ``read(n)`` gives up to ``n`` bytes, ``b""`` at
     the end, None when the reading is to stop (a flush: a partial record is then dropped). One :class:`Reading` per
-    record, in order, its ``line`` the record's number (1-based); an error reading for a record that cannot be
-    used."""
+    record, in order; an error reading, ``"record N: ..."`` (N 1-based), for a record that cannot be used."""
     buf = bytearray()
     number = 0
     days, last = 0, None
@@ -159,16 +158,13 @@ def read_records(read: Callable[[int], bytes | None], num_gratings: int, unit: s
             return
         if len(buf) < 4:
             if buf:
-                yield Reading(
-                    error=f"record {number}: truncated: the stream ended inside its 4-byte length", line=number
-                )
+                yield Reading(error=f"record {number}: truncated: the stream ended inside its 4-byte length")
             return
         size = int.from_bytes(buf[:4], "big")
         if not 0 < size <= MAX_RECORD_BYTES:
             yield Reading(
                 error=f"record {number}: announces {size} bytes (the limit is {MAX_RECORD_BYTES}): the stream is not "
                 "4-byte big-endian length-prefixed records, or is out of step; reading stops here",
-                line=number,
             )
             return
         if _fill(read, buf, 4 + size) is None:
@@ -177,7 +173,6 @@ def read_records(read: Callable[[int], bytes | None], num_gratings: int, unit: s
             yield Reading(
                 error=f"record {number}: truncated: {size} bytes announced, {len(buf) - 4} received before the stream "
                 "ended",
-                line=number,
             )
             return
         payload = bytes(buf[4 : 4 + size])
@@ -189,9 +184,9 @@ def read_records(read: Callable[[int], bytes | None], num_gratings: int, unit: s
                     days += 1
                 last = t
                 t += 86400.0 * days
-            yield _reading(sample, t, pairs, num_gratings, number)
+            yield _reading(sample, t, pairs, num_gratings)
         except ValueError as exc:
-            yield Reading(error=f"record {number}: {exc}", line=number)
+            yield Reading(error=f"record {number}: {exc}")
 
 
 def _fill(read: Callable[[int], bytes | None], buf: bytearray, size: int) -> bool | None:

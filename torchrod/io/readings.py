@@ -840,23 +840,24 @@ def stack_readings(readings: Sequence[Reading]) -> tuple[torch.Tensor, torch.Ten
 
 
 # ---------------------------------------------------------------------------------------------------- CSV
-_ID_INTEGER = re.compile(r"[+-]?(?:0|[1-9][0-9]*)")
+_JSON_NUMBER = re.compile(r"-?(?:0|[1-9][0-9]*)(\.[0-9]+)?([eE][+-]?[0-9]+)?")
 
 
 def csv_id(text: str) -> Any:
-    """A CSV id cell as JSON reads the same text: empty -> None, an integer without leading zeros -> int (``"7"`` ->
-    7, ``"007"`` stays a string), another CSV number -> float, anything else -> the text (spaces around it
-    dropped)."""
+    """A CSV id cell as JSON reads the same text: empty -> None; a JSON number -> an int when it has neither point
+    nor exponent (``"7"`` -> 7), else a float (``"1.5"``); anything else -> the text with the spaces around it
+    dropped (``"007"``, ``"+5"`` and ``"r1"`` are not JSON numbers and stay strings)."""
     cell = text.strip()
     if not cell:
         return None
-    if _ID_INTEGER.fullmatch(cell):
-        if len(cell.lstrip("+-")) > int_digit_limit():
+    match = _JSON_NUMBER.fullmatch(cell)
+    if match is None:
+        return cell
+    if match.group(1) is None and match.group(2) is None:
+        if len(cell.lstrip("-")) > int_digit_limit():
             return HugeInteger(cell)
         return int(cell)
-    if _CSV_NUMBER.fullmatch(cell):
-        return float(cell)
-    return cell
+    return float(cell)
 
 
 _COLUMN = re.compile(r"(ux|uy|kappa|phi|eps|lambda|dlambda|s|fx|fy)_?([0-9]+)(?:_([0-9]+))?")
