@@ -894,7 +894,7 @@ def _per_grating(key: str, fibre: Any, where: str) -> int:
     if key == "strain":
         if fibre is None or not fibre.cores:
             raise ReadingError(f'{where} give core strains: add "fibre": {{"cores": [[x, y], ...]}} to the rod file')
-    elif fibre is None or fibre.wavelength is None:
+    elif fibre is None or fibre.num_cores == 0:
         raise ReadingError(f'{where} give wavelengths: add "fibre": {{"wavelength": {{...}}}} to the rod file')
     return fibre.num_cores
 
