@@ -449,6 +449,9 @@ class Fibre:
         nm = WAVELENGTH_UNITS["nm"]
         C = wl.num_cores
         reference = None if wl.reference is None else [[x * nm for x in row] for row in wl.reference]
+        # The shift [m] per unit of strain on each core, lambda_ref,c (1 - p_e): the one definition of the physics
+        # route's strain <-> shift relation, used both ways (maps, bending_shift, temperature_shift).
+        per_strain = None if reference is None else [[x * (1.0 - wl.photoelastic) for x in row] for row in reference]
         maps = []
         if wl.calibration is not None:
             for mat in wl.calibration:
@@ -460,10 +463,10 @@ class Fibre:
                 maps.append(rows)
         else:
             p = self._derived["pinv"]
-            scale = 1.0 - wl.photoelastic
-            for row in reference:
-                maps.append([[p[j][c] / (row[c] * scale) for c in range(C)] for j in range(2)])
+            for row in per_strain:
+                maps.append([[p[j][c] / row[c] for c in range(C)] for j in range(2)])
         self._derived["reference"] = reference
+        self._derived["per_strain"] = per_strain
         self._derived["maps"] = maps
 
     # ------------------------------------------------------------------ the rod file
@@ -642,9 +645,8 @@ class Fibre:
 
         dtype, device = curvature.dtype, curvature.device
         if self.route == "physics":
-            ref = torch.tensor(self._derived["reference"], dtype=dtype, device=device)  # (G, C)
-            strain = self.strain(curvature)  # (..., G, C)
-            return strain * ref * (1.0 - self.wavelength.photoelastic)
+            per_strain = torch.tensor(self._derived["per_strain"], dtype=dtype, device=device)  # (G, C)
+            return self.strain(curvature) * per_strain
         m = torch.tensor(self._maps(), dtype=dtype, device=device)
         inverse = torch.linalg.pinv(m)  # (G, C, 2)
         return torch.einsum("gcj,...gj->...gc", inverse, curvature)
@@ -658,15 +660,15 @@ class Fibre:
 
         common = torch.as_tensor(common)
         G, C = len(self._maps()), self.num_cores
-        ref = self._derived["reference"]
-        ref_t = (
-            torch.full((G, C), NOMINAL_WAVELENGTH, dtype=common.dtype, device=common.device)
-            if ref is None
-            else torch.tensor(ref, dtype=common.dtype, device=common.device)
-        )
+        per_strain = self._derived["per_strain"]
+        if per_strain is None:
+            nominal = NOMINAL_WAVELENGTH * (1.0 - self.wavelength.photoelastic)
+            per = torch.full((G, C), nominal, dtype=common.dtype, device=common.device)
+        else:
+            per = torch.tensor(per_strain, dtype=common.dtype, device=common.device)
         if self.route == "calibration":
-            ref_t = ref_t.mean(-1, keepdim=True).expand(G, C)
-        return common[..., None] * ref_t * (1.0 - self.wavelength.photoelastic)
+            per = per.mean(-1, keepdim=True).expand(G, C)
+        return common[..., None] * per
 
     def wavelength_sigmas(self, sigma: float) -> list[float]:
         """Per grating, the curvature sigma [1/m] that independent wavelength noise ``sigma`` [m] per core implies:

@@ -13,11 +13,20 @@ A reading
     echoed. ``gratings`` (optional, JSON): the grating positions [m]; when given they must be the rod's (within
     1e-9 m), which catches readings meant for another rod. Other keys are ignored.
 
-    Instead of ``curvature`` a reading may give one of (:mod:`torchrod.sensors`; exactly one of the three):
-    ``strain``: per grating the C core strains ``[eps_1, ..., eps_C]`` of the rod file's multicore ``fibre``
-    (dimensionless: 1e-6 is one microstrain; ``|eps| <= MAX_STRAIN``), or null; ``curvature_polar``: per grating
-    ``[kappa, phi]``, the curvature magnitude (>= 0) [1/m] and the bend angle [rad] from d1 towards d2, or null.
-    Both are turned into (ux, uy) here, so everything downstream sees curvature.
+    Instead of ``curvature`` a reading may give one of (:mod:`torchrod.sensors`; exactly one of
+    :data:`QUANTITIES`' keys): ``strain``: per grating the C core strains ``[eps_1, ..., eps_C]`` of the rod file's
+    multicore ``fibre`` (``|eps| <= MAX_STRAIN``), or null; ``curvature_polar``: per grating ``[kappa, phi]``, the
+    curvature magnitude (>= 0) and the bend angle [rad] from d1 towards d2, or null; ``wavelength``: per grating the
+    C peak wavelengths, the rod's ``fibre.wavelength.reference`` subtracted here, or null; ``wavelength_shift``: the
+    C shifts from the reference, or null. All are turned into (ux, uy) [1/m] here, so everything downstream sees
+    curvature.
+
+Units
+    Values are read in the units the rod's fibre says (:class:`torchrod.sensors.Fibre`: ``curvature_unit``,
+    ``strain_unit``, ``wavelength_unit``; the commands' options set them), SI (and nm) without one, and converted
+    to SI here; the bounds hold in SI (:data:`MAX_CURVATURE`, :data:`torchrod.sensors.MAX_STRAIN`, a peak within
+    :data:`torchrod.sensors.WAVELENGTH_RANGE_NM`, a shift within :data:`torchrod.sensors.MAX_WAVELENGTH_SHIFT`).
+    Tensors handed to the estimator (:func:`check_readings`) are always curvature in 1/m.
 
 Numbers
     A number is a JSON number (Python: ``int``, ``float`` or another real number; never a boolean or a string). It
@@ -26,10 +35,17 @@ Numbers
     no rod or fibre bends that much, so such a value is a unit or scaling error). Finite values within the bound
     are passed on as they are, however implausible (1e4 1/m reaches the estimator, which flags a bad fit).
 
-CSV rows (``--format csv``)
-    ``id, t`` and then, per grating in order, ``ux, uy`` (``quantity="curvature"``), ``kappa, phi``
-    (``"polar"``) or the C core strains (``"strain"``); all the cells of a missing grating are empty. A first row
-    of names is a header and skipped.
+CSV rows (``--format csv``, :class:`CsvLayout`)
+    A first row of at least two cells, none of them a number, is a header naming the columns (case ignored):
+    ``id`` and ``t`` (optional), ``ux_K``/``uy_K`` (grating K, 1-based), ``kappa_K``/``phi_K``, ``eps_K_C`` (core C,
+    1-based), ``lambda_K_C`` or ``dlambda_K_C`` for every grating of exactly one quantity, in any order; ``s_J``,
+    ``fx_J``, ``fy_J`` and ``jig_curvature``, ``jig_angle``, ``jig`` for the calibrations; other columns are ignored.
+    A header that cannot be used raises :class:`~torchrod.errors.ReadingError` listing what was expected. Without a
+    header a row is, by its width, ``id, t`` then the values, ``t`` then the values, or the values alone, per
+    grating in order ``ux, uy`` (``quantity="curvature"``), ``kappa, phi`` (``"polar"``) or the C core values
+    (``"strain"``, ``"wavelength"``, ``"wavelength-shift"``). All the cells of a missing grating are empty. An id
+    cell is read as JSON reads the same text (:func:`csv_id`: ``7`` is an integer). A row becomes the reading's JSON
+    object and passes the same checks as a JSON line.
 
 CSV numbers
     ``[+-]? (digits [. digits?] | . digits) ([eE] [+-]? digits)?`` with ASCII digits, spaces around the cell
@@ -1134,6 +1150,11 @@ def _csv_records(
                 continue
         ident = None
         try:
+            if layout is None:
+                # a row without a header whose width fits no layout is named by its first cell when that is text
+                # (it can only be an id)
+                lead = csv_id(cells[0]) if cells else None
+                ident = lead if isinstance(lead, str) and id_problem(lead) is None else None
             row_layout = layout or CsvLayout.positional(len(cells), num_gratings, quantity, fibre)
             ident = row_layout.ident(cells)
             obj = row_layout.reading_object(cells)

@@ -31,9 +31,9 @@ the jig::
 jig's curvature magnitude in the curvature unit, 1/m by default, and its bend direction [rad] from d1 towards d2;
 ``name`` optional, else the jig is known by its curvature). CSV: the columns ``lambda_K_C`` or ``dlambda_K_C``,
 ``jig_curvature``, ``jig_angle``, ``jig``. Each grating's 2 x C matrix (u = A (d - mean d), 1/m per nm) is fitted by
-least squares; standard error gets, per grating, the residual [1/m], the leave-one-jig-out prediction error [1/m]
-and the gain [1/m per nm] against the gratings' median and the physics route (with the rod file's cores), and a
-warning for each gain off by more than ``--gain-tolerance`` (default 0.25). The rod file with
+least squares. Standard error shows, per grating, the residual [1/m], the leave-one-jig-out prediction error
+[1/m] and the gain [1/m per nm] against the gratings' median and the physics route (with the rod file's cores),
+and a warning for each gain off by more than ``--gain-tolerance`` (default 0.25). The rod file with
 ``fibre.wavelength.calibration`` (and, when it had no reference, the straight jig's mean as the reference) goes to
 ``--out``. See torchrod.jig for the method.
 
