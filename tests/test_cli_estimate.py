@@ -307,7 +307,8 @@ def test_counts_must_not_be_negative_and_csv_is_read(rod, tmp_path, capsys):
     assert out[1] == {
         "id": "b",
         "error": f"line 2: expected {2 + 2 * rod.num_gratings} cells (id, t, then ux, uy "
-        f"for {rod.num_gratings} gratings), got 3",
+        f"for {rod.num_gratings} gratings), {1 + 2 * rod.num_gratings} (t, then the values) or "
+        f"{2 * rod.num_gratings} (the values alone), got 3; or give a header row naming the columns",
     }
 
 

@@ -205,7 +205,7 @@ def test_parser_reads_every_json_line_into_one_reading(lines):
 @SETTINGS
 @given(csv_lines(max_lines=8, per=3))
 def test_parser_reads_every_csv_strain_row_into_one_reading(lines):
-    header = ",".join(["id", "t"] + [f"eps{k}_{c}" for k in range(G) for c in range(3)])
+    header = ",".join(["id", "t"] + [f"eps_{k}_{c}" for k in range(1, G + 1) for c in range(1, 4)])
     text = header + "\n" + "".join(line + "\n" for line, _ in lines)
     got = list(iter_readings(io.StringIO(text), G, ROD.gratings, "csv", quantity="strain", fibre=FIBRE))
     expected = [(number + 1, ident) for number, ident in expected_lines(lines)]
@@ -217,13 +217,65 @@ def test_parser_reads_every_csv_strain_row_into_one_reading(lines):
 @SETTINGS
 @given(csv_lines(max_lines=8))
 def test_parser_reads_every_csv_row_into_one_reading(lines):
-    header = ",".join(["id", "t"] + [f"{c}{k}" for k in range(G) for c in ("ux", "uy")])
+    header = ",".join(["id", "t"] + [f"{c}{k}" for k in range(1, G + 1) for c in ("ux", "uy")])
     text = header + "\n" + "".join(line + "\n" for line, _ in lines)
     got = list(iter_readings(io.StringIO(text), G, ROD.gratings, "csv"))
     expected = [(number + 1, ident) for number, ident in expected_lines(lines)]
     assert len(got) == len(expected)
     for reading, (number, ident) in zip(got, expected, strict=False):
         check_reading(reading, number, ident)
+
+
+WAVE_FIBRE = Fibre(
+    cores=FIBRE.cores, wavelength={"reference": [[1530.0 + 2.5 * k] * 3 for k in range(G)]}, wavelength_unit="nm"
+)
+peak_cells = st.one_of(
+    st.floats(1520.0, 1570.0).map(lambda x: f"{x:.4f}"),
+    st.sampled_from(["", " ", "nan", "1_530", "1530.0.1", "-", "1e999"]),
+    st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\n\r,:"), max_size=6),
+)
+
+
+@st.composite
+def peak_lines(draw: Any, max_lines: int = 6) -> list[str]:
+    """Peak log lines: a time stamp (mostly valid), a colon and about G x C values (mostly a valid count)."""
+    out = []
+    for _ in range(draw(st.integers(0, max_lines))):
+        time = draw(
+            st.one_of(
+                st.sampled_from(["10-00-00.5", "23:59:59.9", "2024-01-02 00:00:01", "3.5"]),
+                st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\n\r"), max_size=8),
+            )
+        )
+        count = draw(st.sampled_from([3 * G] * 4 + [3 * G - 1, 3 * G + 1, 0]))
+        cells = draw(st.lists(peak_cells, min_size=count, max_size=count))
+        out.append(f"{time}: " + ", ".join(cells))
+    return out
+
+
+@SETTINGS
+@given(peak_lines(max_lines=8))
+def test_parser_reads_every_peak_log_line_into_one_reading(lines):
+    text = "".join(line + "\n" for line in lines)
+    got = list(iter_readings(io.StringIO(text), G, ROD.gratings, "peaks", fibre=WAVE_FIBRE))
+    expected = expected_lines([(line, UNKNOWN) for line in lines])
+    assert len(got) == len(expected)
+    for reading, (number, _) in zip(got, expected, strict=False):
+        check_reading(reading, number, UNKNOWN)
+
+
+@SETTINGS
+@given(st.lists(st.one_of(st.binary(max_size=40), st.integers(0, 300).map(lambda n: n.to_bytes(4, "big"))), max_size=8))
+def test_fbgs_reader_never_raises_on_any_bytes(chunks):
+    """Whatever bytes arrive, each record read becomes one reading or one error naming it, and reading ends."""
+    from torchrod.io.fbgs import read_records
+
+    rest = list(chunks)
+    got = list(read_records(lambda n: rest.pop(0) if rest else b"", G))
+    for number, reading in enumerate(got, start=1):
+        assert reading.ok or reading.error.startswith(f"record {number}: ")
+        if reading.ok:
+            check_readings(reading.curvature.unsqueeze(0), None, G)
 
 
 python_values = st.recursive(
@@ -308,7 +360,7 @@ def test_cli_answers_every_line_once_in_order(command, fmt, data):
     text = "".join(line + "\n" for line, _ in lines)
     expected = expected_lines(lines)
     if fmt == "csv":
-        text = "id,t,curvature\n" + text
+        text = ",".join(["id", "t"] + [f"{c}_{k}" for k in range(1, G + 1) for c in ("ux", "uy")]) + "\n" + text
         expected = [(number + 1, ident) for number, ident in expected]
     module = f"torchrod.cli.commands.{command}.Estimator"
     with mock.patch(module, _CheckingEstimator):

@@ -97,7 +97,7 @@ def test_rod_file_with_fibre(tmp_path, fibre_rod):
     data = fibre_rod.to_dict()
     for bad, message in (
         ({"cores": THREE, "radius": 1}, "unknown fibre keys"),
-        ({}, "missing 'cores'"),
+        ({}, "fibre is empty"),
         ([THREE], "must be an object"),
     ):
         with pytest.raises(ValueError, match=message):

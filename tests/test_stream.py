@@ -466,7 +466,7 @@ def test_cli_freezes_what_it_set_up_and_gives_it_back(rod, tmp_path, capsys, mon
 def test_cli_csv_with_header_and_missing_gratings(rod, tmp_path, capsys):
     good = _one_force_lines(rod, 3)
     G = rod.num_gratings
-    header = ",".join(["id", "t"] + [f"{c}{k}" for k in range(G) for c in ("ux", "uy")])
+    header = ",".join(["id", "t"] + [f"{c}{k + 1}" for k in range(G) for c in ("ux", "uy")])
 
     def row(line, missing=()):
         cells = [line["id"], str(line["t"])]
@@ -510,7 +510,7 @@ def test_cli_csv_with_header_and_missing_gratings(rod, tmp_path, capsys):
     assert [o["id"] for o in out] == ["r0", "r1", "r1", "x", "r1", "r2", "r2"]
     assert [("error" in o) for o in out] == [False, True, False, True, True, True, False]
     assert "curvature[1][1] must be a number" in out[1]["error"] and out[1]["error"].startswith("line 3:")
-    assert "expected 30 cells" in out[3]["error"]
+    assert "the row has 3 cells, the header (line 1) names 30 columns" in out[3]["error"]
     assert "curvature[1][0] must be a number, got null" in out[4]["error"]
     assert "curvature[6][0] must be finite" in out[5]["error"]
     assert out[2]["forces"][0]["s"] == pytest.approx(0.152, abs=0.03) and out[2]["t"] == pytest.approx(0.01)

@@ -149,8 +149,9 @@ class Rod:
         intrinsic_curvature: the unloaded rod's body-frame curvature u* [1/m], piecewise constant: segments
             ``(from, to, ux, uy)`` ([m], [m], [1/m], [1/m]), sorted and not overlapping, zero elsewhere; JSON
             ``[{"from": s0, "to": s1, "u": [ux, uy]}, ...]``. A rod without any is straight.
-        fibre: a multicore shape-sensing fibre (:class:`torchrod.sensors.Fibre`, or its JSON form
-            ``{"cores": [[x, y], ...]}``), optional: needed only for readings given as core strains.
+        fibre: the sensor (:class:`torchrod.sensors.Fibre`, or its JSON form ``{"cores": [[x, y], ...],
+            "wavelength": {...}, "curvature_unit": ..., ...}``), optional: needed only for readings given as core
+            strains or peak wavelengths, or in units other than SI (docs/sensors.md).
 
     Build one with :meth:`from_geometry`, the constructor (stiffness given directly), :meth:`from_dict` or
     :meth:`from_json`. The constructor validates everything strictly (a bool, a string or null is not a number;
@@ -213,6 +214,7 @@ class Rod:
 
             if not isinstance(self.fibre, Fibre):
                 set_(self, "fibre", Fibre.from_dict(self.fibre))
+            self.fibre.check_gratings(len(self.gratings))
         if self.torsional_stiffness is not None:
             if self.poisson_ratio is not None:
                 raise ValueError(
@@ -258,8 +260,9 @@ class Rod:
         """From the JSON form (SI units): ``length``, ``gratings``, ``location_bias`` (optional), and
         ``bending_stiffness`` or ``outer_diameter`` + ``inner_diameter`` + ``youngs_modulus`` (or both, if they
         agree to ``AGREEMENT``), ``poisson_ratio`` or ``torsional_stiffness`` (optional), ``fibre`` (optional:
-        ``{"cores": [[x, y], ...]}``), ``intrinsic_curvature`` (optional: ``[{"from", "to", "u": [ux, uy]}, ...]``).
-        Unknown keys are refused (a misspelt key would otherwise be ignored)."""
+        :meth:`torchrod.sensors.Fibre.from_dict`), ``intrinsic_curvature`` (optional:
+        ``[{"from", "to", "u": [ux, uy]}, ...]``). Unknown keys are refused (a misspelt key would otherwise be
+        ignored)."""
         if not isinstance(data, Mapping):
             raise ValueError(f"a rod description must be a JSON object, got {type(data).__name__}")  # noqa: TRY004 (a bad file)
         known = {f.name for f in dataclasses.fields(cls)}

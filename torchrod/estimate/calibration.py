@@ -24,7 +24,7 @@ estimated from the residuals (n observed curvature components, p unknowns). The 
 its covariance includes b's column, so the stiffness's error carries the bias's uncertainty (with b held exactly,
 it would come out about 25 % too small: the two are correlated through the forces' lever arms).
 
-Input readings (JSON lines, :func:`read_readings`): ``{"id": ..., "curvature": [[u_x, u_y] or null, ...],
+Input readings (JSON lines or CSV, :func:`read_readings`): ``{"id": ..., "curvature": [[u_x, u_y] or null, ...],
 "forces": [{"s": ..., "fx": ..., "fy": ...}, ...]}``, one curvature pair per grating [1/m] (null for a grating
 without a reading), the known forces with ``s`` [m] in the true coordinate and components [N] in the body frame.
 The reading follows the rules of every reading (:mod:`torchrod.io.readings`: finite numbers, curvature within
@@ -172,18 +172,25 @@ def read_readings(
     *,
     dtype: torch.dtype = torch.float64,
     device: torch.device | str | None = None,
+    fmt: str = "auto",
+    quantity: str = "curvature",
 ) -> CalibrationData:
-    """Read a JSON-lines file of readings with known forces (format in the module docstring); ``"-"`` reads
-    standard input.
+    """Read a file of readings with known forces (format in the module docstring; ``"-"`` reads standard input):
+    JSON lines, or CSV (:data:`torchrod.io.readings.FORMATS`; the known forces in the columns ``s_J, fx_J, fy_J``,
+    J = 1, 2, ..., all three empty for a force a row does not have), in the units the rod's fibre says.
 
     Every line is checked; raises ``ValueError`` naming the bad lines (the first five, and how many there are)
     when any line cannot be used, or when no reading is found.
     """
-    from ..io.jsonl import read_records
+    from ..io.readings import iter_records
 
     name = "standard input" if os.fspath(path) == "-" else os.fspath(path)
     rows, forces, ids, bad = [], [], [], []
-    for record in read_records(path, lambda obj: parse_reading(obj, rod.num_gratings, rod.gratings, rod.fibre)):
+
+    def parse(obj: Any) -> Any:
+        return parse_reading(obj, rod.num_gratings, rod.gratings, rod.fibre)
+
+    for record in iter_records(path, rod.num_gratings, parse, fmt, quantity=quantity, fibre=rod.fibre):
         if not record.ok or record.value is None:
             bad.append(record.error)
             continue

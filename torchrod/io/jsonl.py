@@ -50,6 +50,7 @@ from typing import IO, Any, Generic, TypeVar
 
 from ..errors import MissingFileError
 from .readings import HugeInteger, as_number, check_id, describe, id_problem, int_digit_limit, quote
+from .tcp import TcpReader, is_tcp
 
 __all__ = [
     "MAX_LINE_BYTES",
@@ -67,6 +68,7 @@ __all__ = [
     "interrupt_status",
     "open_output",
     "parse_records",
+    "parsed_record",
     "quiet_closed_pipe",
     "read_lines",
     "read_records",
@@ -127,8 +129,9 @@ class ReadControl:
 def read_lines(source: str | os.PathLike | IO[str], control: ReadControl | None = None) -> Iterator[tuple[int, str]]:
     """Non-blank lines of ``source`` with their 1-based numbers, lazily.
 
-    ``source`` is a path, ``"-"`` for standard input (looked up when reading starts, so tests may replace it), or an
-    open text stream (not closed here). Paths and standard input are read as bytes from the file descriptor (no
+    ``source`` is a path, ``"-"`` for standard input (looked up when reading starts, so tests may replace it),
+    ``tcp://HOST:PORT`` (a server that sends the lines, :mod:`torchrod.io.tcp`), or an open text stream (not closed
+    here). Paths and standard input are read as bytes from the file descriptor (no
     buffer lock is held while waiting, so a reader thread blocked on a pipe never hangs the interpreter's exit) and
     decoded line by line as UTF-8 (module docstring); a path is closed when the iterator is exhausted or closed.
     Raises FileNotFoundError for a missing path when iteration starts. A line over :data:`MAX_LINE_BYTES` comes as
@@ -143,6 +146,9 @@ def read_lines(source: str | os.PathLike | IO[str], control: ReadControl | None 
             yield from _numbered(stdin, control)
         else:
             yield from _numbered_bytes(lambda n: os.read(fd, n), control)
+    elif is_tcp(source):
+        with TcpReader(str(source), control.halted) as conn:
+            yield from _numbered_bytes(conn.read, control)
     elif isinstance(source, (str, os.PathLike)):
         with open(source, "rb", buffering=0) as fh:
             yield from _numbered_bytes(fh.read, control)
@@ -166,10 +172,11 @@ def _numbered(stream: IO[str], control: ReadControl) -> Iterator[tuple[int, str]
             yield number, text
 
 
-def _raw_lines(read: Callable[[int], bytes], control: ReadControl, chunk: int = 2**16) -> Iterator[bytes | None]:
+def _raw_lines(read: Callable[[int], bytes | None], control: ReadControl, chunk: int = 2**16) -> Iterator[bytes | None]:
     """Lines (with their newline) from an unbuffered ``read``, as soon as each is complete; None for a line over
     :data:`MAX_LINE_BYTES` (dropped as it is read, so memory stays bounded). Once ``control`` is halted, ends when
-    the complete lines in memory are out (a partial line is dropped)."""
+    the complete lines in memory are out (a partial line is dropped); a ``read`` that returns None (it saw the halt
+    while waiting) ends it the same way."""
     buf = bytearray()
     pos = 0  # start of the current line in buf
     scanned = 0  # buf[pos:scanned] holds no newline
@@ -194,6 +201,8 @@ def _raw_lines(read: Callable[[int], bytes], control: ReadControl, chunk: int = 
             data = read(chunk)
         finally:
             control.waiting.clear()
+        if data is None:
+            return
         if not data:
             if overlong:
                 yield None
@@ -203,7 +212,7 @@ def _raw_lines(read: Callable[[int], bytes], control: ReadControl, chunk: int = 
         buf += data
 
 
-def _numbered_bytes(read: Callable[[int], bytes], control: ReadControl) -> Iterator[tuple[int, str]]:
+def _numbered_bytes(read: Callable[[int], bytes | None], control: ReadControl) -> Iterator[tuple[int, str]]:
     for number, raw in enumerate(_raw_lines(read, control), start=1):
         if raw is None:
             yield number, Overlong("")
@@ -264,6 +273,14 @@ def _record(number: int, text: str, parse: Callable[[dict[str, Any]], T]) -> Rec
         return Record(number, None, None, at + str(exc))
     if not isinstance(obj, dict):
         return Record(number, None, None, f"{at}expected a JSON object, got {describe(obj)}")
+    return parsed_record(number, obj, parse)
+
+
+def parsed_record(number: int, obj: Mapping[str, Any], parse: Callable[[Any], T]) -> Record[T]:
+    """The :class:`Record` of line ``number`` whose reading object (a decoded JSON object, or one a CSV row or peak
+    log line was made into) is ``obj``: ``parse(obj)``, or the error it raised (the exceptions
+    :func:`parse_records` catches), with ``obj``'s id when JSON can echo it."""
+    at = f"line {number}: "
     ident = obj.get("id")
     try:
         check_id(ident)
@@ -289,8 +306,14 @@ def read_records(source: str | os.PathLike | IO[str], parse: Callable[[dict[str,
 def check_input(path: str, what: str) -> None:
     """An error naming ``what`` when ``path`` (not ``"-"``) cannot be opened for reading, before any output is made:
     :class:`~torchrod.errors.MissingFileError` when it does not exist, ``ValueError`` otherwise (a folder, no
-    permission)."""
+    permission). A TCP address (``tcp://HOST:PORT``) is checked for its form only: the connection opens when
+    reading starts."""
     if path == "-":
+        return
+    if is_tcp(path):
+        from .tcp import tcp_address
+
+        tcp_address(path)
         return
     if not os.path.lexists(path):
         raise MissingFileError(f"{what} {path}: no such file (check the path)")

@@ -13,11 +13,20 @@ A reading
     echoed. ``gratings`` (optional, JSON): the grating positions [m]; when given they must be the rod's (within
     1e-9 m), which catches readings meant for another rod. Other keys are ignored.
 
-    Instead of ``curvature`` a reading may give one of (:mod:`torchrod.sensors`; exactly one of the three):
-    ``strain``: per grating the C core strains ``[eps_1, ..., eps_C]`` of the rod file's multicore ``fibre``
-    (dimensionless: 1e-6 is one microstrain; ``|eps| <= MAX_STRAIN``), or null; ``curvature_polar``: per grating
-    ``[kappa, phi]``, the curvature magnitude (>= 0) [1/m] and the bend angle [rad] from d1 towards d2, or null.
-    Both are turned into (ux, uy) here, so everything downstream sees curvature.
+    Instead of ``curvature`` a reading may give one of (:mod:`torchrod.sensors`; exactly one of
+    :data:`QUANTITIES`' keys): ``strain``: per grating the C core strains ``[eps_1, ..., eps_C]`` of the rod file's
+    multicore ``fibre`` (``|eps| <= MAX_STRAIN``), or null; ``curvature_polar``: per grating ``[kappa, phi]``, the
+    curvature magnitude (>= 0) and the bend angle [rad] from d1 towards d2, or null; ``wavelength``: per grating the
+    C peak wavelengths, the rod's ``fibre.wavelength.reference`` subtracted here, or null; ``wavelength_shift``: the
+    C shifts from the reference, or null. All are turned into (ux, uy) [1/m] here, so everything downstream sees
+    curvature.
+
+Units
+    Values are read in the units the rod's fibre says (:class:`torchrod.sensors.Fibre`: ``curvature_unit``,
+    ``strain_unit``, ``wavelength_unit``; the commands' options set them), SI (and nm) without one, and converted
+    to SI here; the bounds hold in SI (:data:`MAX_CURVATURE`, :data:`torchrod.sensors.MAX_STRAIN`, a peak within
+    :data:`torchrod.sensors.WAVELENGTH_RANGE_NM`, a shift within :data:`torchrod.sensors.MAX_WAVELENGTH_SHIFT`).
+    Tensors handed to the estimator (:func:`check_readings`) are always curvature in 1/m.
 
 Numbers
     A number is a JSON number (Python: ``int``, ``float`` or another real number; never a boolean or a string). It
@@ -26,10 +35,17 @@ Numbers
     no rod or fibre bends that much, so such a value is a unit or scaling error). Finite values within the bound
     are passed on as they are, however implausible (1e4 1/m reaches the estimator, which flags a bad fit).
 
-CSV rows (``--format csv``)
-    ``id, t`` and then, per grating in order, ``ux, uy`` (``quantity="curvature"``), ``kappa, phi``
-    (``"polar"``) or the C core strains (``"strain"``); all the cells of a missing grating are empty. A first row
-    of names is a header and skipped.
+CSV rows (``--format csv``, :class:`CsvLayout`)
+    A first row of at least two cells, none of them a number, is a header naming the columns (case ignored):
+    ``id`` and ``t`` (optional), ``ux_K``/``uy_K`` (grating K, 1-based), ``kappa_K``/``phi_K``, ``eps_K_C`` (core C,
+    1-based), ``lambda_K_C`` or ``dlambda_K_C`` for every grating of exactly one quantity, in any order; ``s_J``,
+    ``fx_J``, ``fy_J`` and ``jig_curvature``, ``jig_angle``, ``jig`` for the calibrations; other columns are ignored.
+    A header that cannot be used raises :class:`~torchrod.errors.ReadingError` listing what was expected. Without a
+    header a row is, by its width, ``id, t`` then the values, ``t`` then the values, or the values alone, per
+    grating in order ``ux, uy`` (``quantity="curvature"``), ``kappa, phi`` (``"polar"``) or the C core values
+    (``"strain"``, ``"wavelength"``, ``"wavelength-shift"``). All the cells of a missing grating are empty. An id
+    cell is read as JSON reads the same text (:func:`csv_id`: ``7`` is an integer). A row becomes the reading's JSON
+    object and passes the same checks as a JSON line.
 
 CSV numbers
     ``[+-]? (digits [. digits?] | . digits) ([eE] [+-]? digits)?`` with ASCII digits, spaces around the cell
@@ -55,21 +71,26 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 import re
 import sys
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
+
+from ..errors import ReadingError
 
 __all__ = [
     "MAX_CURVATURE",
     "MAX_ID_CHARS",
     "MAX_ID_DEPTH",
     "MAX_INT_DIGITS",
+    "FORMATS",
     "QUANTITIES",
     "QUOTE_CHARS",
+    "CsvLayout",
     "HugeInteger",
     "Reading",
     "ReadingSource",
@@ -78,11 +99,14 @@ __all__ = [
     "check_id",
     "check_readings",
     "check_time",
+    "csv_id",
     "csv_number",
     "curvature_tensor",
     "describe",
+    "detect_format",
     "id_problem",
     "iter_readings",
+    "iter_records",
     "parse_csv_row",
     "parse_reading",
     "polar_curvature",
@@ -91,6 +115,9 @@ __all__ = [
     "stack_readings",
     "strain_curvature",
     "to_reading",
+    "wavelength_curvature",
+    "wavelength_shifts",
+    "wavelength_values",
 ]
 
 MAX_CURVATURE = 1e6
@@ -442,13 +469,25 @@ def _missing_hint(what: str) -> str:
     return f"(for a grating without a reading give null in place of the pair {what})"
 
 
-def curvature_tensor(value: Any, num_gratings: int, what: str = "curvature") -> torch.Tensor:
+def _units(fibre: Any, key: str) -> tuple[float, str]:
+    """The readings' unit ``key`` (``"curvature_unit"``, ...) as (factor to SI, name): the fibre's, else SI."""
+    from ..sensors import DEFAULT_UNITS, UNIT_TABLES
+
+    name = DEFAULT_UNITS[key] if fibre is None else getattr(fibre, key)
+    return UNIT_TABLES[key][name], name
+
+
+def curvature_tensor(
+    value: Any, num_gratings: int, what: str = "curvature", *, scale: float = 1.0, unit: str = "1/m"
+) -> torch.Tensor:
     """A reading's curvature as a (G, 2) float64 CPU tensor [1/m], a row of NaN per missing grating.
 
     Args:
         value: a list or tuple of G entries, each ``[ux, uy]`` or None; or a (G, 2) real tensor or array (a row
             of NaN marks a missing grating; a half-NaN row and infinities are refused).
         num_gratings: G.
+        scale, unit: the values' unit (``unit``, named in messages) and its factor to 1/m; the bound
+            :data:`MAX_CURVATURE` applies to the value in 1/m.
     Raises:
         ValueError: naming the entry and quoting its value (module docstring: the rules).
     """
@@ -456,16 +495,18 @@ def curvature_tensor(value: Any, num_gratings: int, what: str = "curvature") -> 
     if isinstance(value, torch.Tensor) or (
         hasattr(value, "__array__") and hasattr(value, "shape") and not isinstance(value, (list, tuple))
     ):
-        return _tensor_rows(value, G, what)
+        return _tensor_rows(value, G, what, scale, unit)
     if not isinstance(value, (list, tuple)):
         raise ValueError(  # noqa: TRY004 (bad data, one kind of error)
-            f"{what} must be an array of {G} [ux, uy] pairs [1/m] (null for a missing grating), got {describe(value)}"
+            f"{what} must be an array of {G} [ux, uy] pairs [{unit}] (null for a missing grating), got "
+            f"{describe(value)}"
         )
     if len(value) != G:
         raise ValueError(
             f"{what} holds {len(value)} gratings, the rod has {G}: give one [ux, uy] pair or null per grating, "
             "in the rod file's order"
         )
+    limit = MAX_CURVATURE / scale
     nan = math.nan
     rows: list[tuple[float, float]] = []
     for k, row in enumerate(value):
@@ -474,16 +515,16 @@ def curvature_tensor(value: Any, num_gratings: int, what: str = "curvature") -> 
             continue
         if type(row) is list and len(row) == 2:  # the usual case, checked fast
             a, b = row
-            if type(a) is float and type(b) is float and abs(a) <= MAX_CURVATURE and abs(b) <= MAX_CURVATURE:
+            if type(a) is float and type(b) is float and abs(a) <= limit and abs(b) <= limit:
                 rows.append((a, b))
                 continue
         where = f"{what}[{k}]"
         if not isinstance(row, (list, tuple)) or len(row) != 2:
-            raise ValueError(f"{where} must be a pair [ux, uy] of numbers [1/m] or null, got {describe(row)}")
+            raise ValueError(f"{where} must be a pair [ux, uy] of numbers [{unit}] or null, got {describe(row)}")
         pair = []
         for j, x in enumerate(row):
             try:
-                pair.append(as_number(x, f"{where}[{j}]", bound=MAX_CURVATURE, unit="1/m"))
+                pair.append(as_number(x, f"{where}[{j}]", bound=limit, unit=unit))
             except ValueError as exc:
                 if isinstance(x, float) and math.isnan(x):
                     raise ValueError(f"{exc} {_missing_hint(where)}") from None
@@ -491,10 +532,11 @@ def curvature_tensor(value: Any, num_gratings: int, what: str = "curvature") -> 
         rows.append((pair[0], pair[1]))
     if len(rows) == 0 or all(math.isnan(r[0]) for r in rows):
         raise ValueError(f"all gratings are missing: {what} needs at least one [ux, uy] pair")
-    return torch.tensor(rows, dtype=torch.float64).reshape(G, 2)
+    out = torch.tensor(rows, dtype=torch.float64).reshape(G, 2)
+    return out if scale == 1.0 else out * scale
 
 
-def _tensor_rows(value: Any, G: int, what: str) -> torch.Tensor:
+def _tensor_rows(value: Any, G: int, what: str, scale: float = 1.0, unit: str = "1/m") -> torch.Tensor:
     if not isinstance(value, torch.Tensor):
         try:
             value = torch.as_tensor(value)
@@ -505,9 +547,10 @@ def _tensor_rows(value: Any, G: int, what: str) -> torch.Tensor:
     if tuple(value.shape) != (G, 2):
         raise ValueError(f"{what} must have shape ({G}, 2) for this rod, got {tuple(value.shape)}")
     t = value.detach().to("cpu", torch.float64)
+    limit = MAX_CURVATURE / scale
     present = 0
     for k, (a, b) in enumerate(t.tolist()):  # (G, 2) values: a Python loop is cheaper than tensor checks
-        if abs(a) <= MAX_CURVATURE and abs(b) <= MAX_CURVATURE:
+        if abs(a) <= limit and abs(b) <= limit:
             present += 1
         elif math.isnan(a) and math.isnan(b):
             continue
@@ -515,13 +558,19 @@ def _tensor_rows(value: Any, G: int, what: str) -> torch.Tensor:
             raise ValueError(f"{what}[{k}] has one NaN component: a missing grating is a row of NaN")
         else:
             for j, x in enumerate((a, b)):
-                as_number(x, f"{what}[{k}][{j}]", bound=MAX_CURVATURE, unit="1/m")
+                as_number(x, f"{what}[{k}][{j}]", bound=limit, unit=unit)
     if not present:
         raise ValueError(f"all gratings are missing: {what} needs at least one finite row")
-    return t
+    return t if scale == 1.0 else t * scale
 
 
-QUANTITIES = {"curvature": "curvature", "strain": "strain", "polar": "curvature_polar"}
+QUANTITIES = {
+    "curvature": "curvature",
+    "strain": "strain",
+    "polar": "curvature_polar",
+    "wavelength": "wavelength",
+    "wavelength-shift": "wavelength_shift",
+}
 """What a reading may give, by its name in options (``--csv-quantity``) and its JSON key."""
 
 
@@ -543,15 +592,18 @@ def _converted(pair: tuple[float, float], where: str, source: str) -> list[float
 
 
 def strain_curvature(value: Any, num_gratings: int, fibre: Any, what: str = "strain") -> list[Any]:
-    """A reading's core strains (one list of C per grating, or None) -> its G (ux, uy) pairs [1/m] or None, by
-    the fibre's least squares (:class:`torchrod.sensors.Fibre`). ``ValueError`` naming the entry."""
+    """A reading's core strains (one list of C per grating, or None; in the fibre's ``strain_unit``) -> its G
+    (ux, uy) pairs [1/m] or None, by the fibre's least squares (:class:`torchrod.sensors.Fibre`). ``ValueError``
+    naming the entry."""
     from ..sensors import MAX_STRAIN
 
-    if fibre is None:
+    if fibre is None or not fibre.cores:
         raise ValueError(
             f'{what} needs the rod\'s multicore fibre: add "fibre": {{"cores": [[x, y], ...]}} (core positions [m]) '
             "to the rod file"
         )
+    scale, unit = _units(fibre, "strain_unit")
+    hint = "strain is dimensionless: 1e-6 is one microstrain" if scale == 1.0 else f"strains are read in {unit}"
     C = fibre.num_cores
     rows: list[Any] = []
     for k, entry in enumerate(_entries(value, num_gratings, what, f"list of {C} core strains")):
@@ -566,19 +618,21 @@ def strain_curvature(value: Any, num_gratings: int, fibre: Any, what: str = "str
         eps = []
         for c, x in enumerate(entry):
             try:
-                eps.append(as_number(x, f"{where}[{c}]", bound=MAX_STRAIN))
+                eps.append(as_number(x, f"{where}[{c}]", bound=MAX_STRAIN / scale) * scale)
             except ValueError as exc:
                 if isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(float(x)):
-                    raise ValueError(f"{exc} (strain is dimensionless: 1e-6 is one microstrain)") from None
+                    raise ValueError(f"{exc} ({hint})") from None
                 raise
         rows.append(_converted(fibre.strain_to_curvature(eps), where, "strains"))
     return rows
 
 
-def polar_curvature(value: Any, num_gratings: int, what: str = "curvature_polar") -> list[Any]:
-    """A reading's (kappa [1/m], phi [rad]) per grating, or None -> its G (ux, uy) pairs [1/m] or None."""
+def polar_curvature(value: Any, num_gratings: int, what: str = "curvature_polar", fibre: Any = None) -> list[Any]:
+    """A reading's (kappa, phi [rad]) per grating, or None -> its G (ux, uy) pairs [1/m] or None; kappa in the
+    fibre's ``curvature_unit`` (1/m without a fibre)."""
     from ..sensors import polar_to_curvature
 
+    scale, unit = _units(fibre, "curvature_unit")
     rows: list[Any] = []
     for k, entry in enumerate(_entries(value, num_gratings, what, "[kappa, phi] pair")):
         if entry is None:
@@ -586,33 +640,131 @@ def polar_curvature(value: Any, num_gratings: int, what: str = "curvature_polar"
             continue
         where = f"{what}[{k}]"
         if not isinstance(entry, (list, tuple)) or len(entry) != 2:
-            raise ValueError(f"{where} must be a pair [kappa, phi] ([1/m], [rad]) or null, got {describe(entry)}")
-        kappa = as_number(entry[0], f"{where}[0]", bound=MAX_CURVATURE, unit="1/m")
+            raise ValueError(f"{where} must be a pair [kappa, phi] ([{unit}], [rad]) or null, got {describe(entry)}")
+        kappa = as_number(entry[0], f"{where}[0]", bound=MAX_CURVATURE / scale, unit=unit)
         if kappa < 0.0:
-            raise ValueError(f"{where}[0] is a curvature magnitude and must be >= 0 [1/m], got {quote(entry[0])}")
+            raise ValueError(f"{where}[0] is a curvature magnitude and must be >= 0 [{unit}], got {quote(entry[0])}")
         phi = as_number(entry[1], f"{where}[1]", bound=1e6, unit="rad")
-        rows.append(_converted(polar_to_curvature(kappa, phi), where, "curvature"))
+        rows.append(_converted(polar_to_curvature(kappa * scale, phi), where, "curvature"))
     return rows
 
 
+def wavelength_values(
+    value: Any, num_gratings: int, num_cores: int, fibre: Any, what: str = "wavelength", *, shift: bool = False
+) -> list[Any]:
+    """A reading's peak wavelengths (``shift`` False) or wavelength shifts (True), one list of C per grating or
+    None, in the fibre's ``wavelength_unit`` -> per grating the C values [m], or None. ``ValueError`` naming the
+    entry for a value that is not a finite number, a wavelength outside
+    :data:`torchrod.sensors.WAVELENGTH_RANGE_NM` or a shift beyond :data:`torchrod.sensors.MAX_WAVELENGTH_SHIFT`
+    (both unit errors)."""
+    from ..sensors import MAX_WAVELENGTH_SHIFT, WAVELENGTH_RANGE_NM, WAVELENGTH_UNITS
+
+    scale, unit = _units(fibre, "wavelength_unit")
+    nm = WAVELENGTH_UNITS["nm"]
+    low, high = (x * nm for x in WAVELENGTH_RANGE_NM)
+    C = num_cores
+    rows: list[Any] = []
+    for k, entry in enumerate(_entries(value, num_gratings, what, f"list of {C} values [{unit}]")):
+        if entry is None:
+            rows.append(None)
+            continue
+        where = f"{what}[{k}]"
+        if not isinstance(entry, (list, tuple)) or len(entry) != C:
+            raise ValueError(
+                f"{where} must be a list of {C} values [{unit}] (one per core, in the calibration's column order), "
+                f"got {describe(entry)}"
+            )
+        values = []
+        for c, x in enumerate(entry):
+            v = as_number(x, f"{where}[{c}]") * scale
+            if shift and not abs(v) <= MAX_WAVELENGTH_SHIFT:
+                raise ValueError(
+                    f"{where}[{c}] = {quote(x)} {unit} is a shift beyond {MAX_WAVELENGTH_SHIFT / scale:g} {unit}, "
+                    "which no fibre survives: check the wavelength unit (--wavelength-unit nm or pm)"
+                )
+            if not shift and not low <= v <= high:
+                raise ValueError(
+                    f"{where}[{c}] = {quote(x)} {unit} is not a peak wavelength (FBGs reflect between "
+                    f"{low / scale:g} and {high / scale:g} {unit}): check the wavelength unit (--wavelength-unit nm "
+                    "or pm), or give shifts as wavelength_shift"
+                )
+            values.append(v)
+        rows.append(values)
+    return rows
+
+
+def wavelength_shifts(
+    value: Any, num_gratings: int, fibre: Any, what: str = "wavelength", absolute: bool | None = None
+) -> list[Any]:
+    """A reading's peak wavelengths (``what`` ``"wavelength"``: absolute, the rod's reference subtracted here) or
+    shifts (``"wavelength_shift"``; ``absolute`` says which when ``what`` is another name), one list of C per
+    grating or None, in the fibre's ``wavelength_unit`` -> per grating the C shifts [m], or None
+    (:func:`wavelength_values` checks the values; a wavelength further than
+    :data:`torchrod.sensors.MAX_WAVELENGTH_SHIFT` from its reference is refused too)."""
+    from ..sensors import MAX_WAVELENGTH_SHIFT
+
+    if fibre is None or fibre.wavelength is None:
+        raise ValueError(
+            f'{what} needs the rod file\'s "fibre": {{"wavelength": {{...}}}} section (a reference with the cores, or '
+            "a calibration): docs/sensors.md"
+        )
+    absolute = what == "wavelength" if absolute is None else absolute
+    reference = fibre.reference_m() if absolute else None
+    if absolute and reference is None:
+        raise ValueError(
+            f"{what} gives peak wavelengths, and the rod file's fibre.wavelength has no reference to subtract: add "
+            "fibre.wavelength.reference [nm], or give the shifts as wavelength_shift"
+        )
+    rows = wavelength_values(value, num_gratings, fibre.num_cores, fibre, what, shift=not absolute)
+    if reference is None:
+        return rows
+    scale, unit = _units(fibre, "wavelength_unit")
+    for k, row in enumerate(rows):
+        if row is None:
+            continue
+        for c, v in enumerate(row):
+            d = v - reference[k][c]
+            if not abs(d) <= MAX_WAVELENGTH_SHIFT:
+                raise ValueError(
+                    f"{what}[{k}][{c}] lies {d / scale:g} {unit} from its reference {reference[k][c] / scale:g} "
+                    f"{unit}, a shift beyond {MAX_WAVELENGTH_SHIFT / scale:g} {unit} that no fibre survives: check the "
+                    "reference, the peak layout and the wavelength unit"
+                )
+            row[c] = d
+    return rows
+
+
+def wavelength_curvature(value: Any, num_gratings: int, fibre: Any, what: str = "wavelength") -> list[Any]:
+    """:func:`wavelength_shifts`, then each grating's curvature [1/m] through the fibre's map
+    (:meth:`torchrod.sensors.Fibre.shift_to_curvature`): G pairs or None."""
+    shifts = wavelength_shifts(value, num_gratings, fibre, what)
+    return [
+        None if d is None else _converted(fibre.shift_to_curvature(k, d), f"{what}[{k}]", "wavelengths")
+        for k, d in enumerate(shifts)
+    ]
+
+
 def reading_curvature(obj: Mapping[str, Any], num_gratings: int, fibre: Any = None) -> torch.Tensor:
-    """The (G, 2) curvature [1/m] of a reading object that gives ``curvature``, ``strain`` or
-    ``curvature_polar`` (exactly one)."""
+    """The (G, 2) curvature [1/m] of a reading object that gives exactly one of :data:`QUANTITIES`' keys, in the
+    units the fibre says (SI without one)."""
     given = [key for key in QUANTITIES.values() if key in obj]
     if len(given) > 1:
         raise ValueError(f"a reading gives {' and '.join(given)}: give exactly one of {', '.join(QUANTITIES.values())}")
     if not given:
         raise ValueError(
-            f"missing 'curvature' (an array of {num_gratings} [ux, uy] pairs [1/m], one per grating; or 'strain' "
-            "or 'curvature_polar')"
+            f"missing 'curvature' (an array of {num_gratings} [ux, uy] pairs [1/m], one per grating; or one of "
+            f"{', '.join(list(QUANTITIES.values())[1:])})"
         )
     key = given[0]
     if key == "strain":
         rows = strain_curvature(obj[key], num_gratings, fibre)
     elif key == "curvature_polar":
-        rows = polar_curvature(obj[key], num_gratings)
+        rows = polar_curvature(obj[key], num_gratings, fibre=fibre)
+    elif key in ("wavelength", "wavelength_shift"):
+        rows = wavelength_curvature(obj[key], num_gratings, fibre, key)
     else:
-        return curvature_tensor(obj[key], num_gratings)
+        scale, unit = _units(fibre, "curvature_unit")
+        return curvature_tensor(obj[key], num_gratings, scale=scale, unit=unit)
     if all(r is None for r in rows):
         raise ValueError(f"all gratings are missing: {key} needs at least one grating's values")
     return curvature_tensor(rows, num_gratings)
@@ -704,6 +856,245 @@ def stack_readings(readings: Sequence[Reading]) -> tuple[torch.Tensor, torch.Ten
 
 
 # ---------------------------------------------------------------------------------------------------- CSV
+_JSON_NUMBER = re.compile(r"-?(?:0|[1-9][0-9]*)(\.[0-9]+)?([eE][+-]?[0-9]+)?")
+
+
+def csv_id(text: str) -> Any:
+    """A CSV id cell as JSON reads the same text: empty -> None; a JSON number -> an int when it has neither point
+    nor exponent (``"7"`` -> 7), else a float (``"1.5"``); anything else -> the text with the spaces around it
+    dropped (``"007"``, ``"+5"`` and ``"r1"`` are not JSON numbers and stay strings)."""
+    cell = text.strip()
+    if not cell:
+        return None
+    match = _JSON_NUMBER.fullmatch(cell)
+    if match is None:
+        return cell
+    if match.group(1) is None and match.group(2) is None:
+        if len(cell.lstrip("-")) > int_digit_limit():
+            return HugeInteger(cell)
+        return int(cell)
+    return float(cell)
+
+
+_COLUMN = re.compile(r"(ux|uy|kappa|phi|eps|lambda|dlambda|s|fx|fy)_?([0-9]+)(?:_([0-9]+))?")
+_PAIRS = {
+    "ux": ("curvature", 0),
+    "uy": ("curvature", 1),
+    "kappa": ("curvature_polar", 0),
+    "phi": ("curvature_polar", 1),
+}
+_PER_CORE = {"eps": "strain", "lambda": "wavelength", "dlambda": "wavelength_shift"}
+_FORCE_FIELDS = ("s", "fx", "fy")
+_JIG_COLUMNS = {"jig": "name", "jig_curvature": "curvature", "jig_angle": "angle"}
+_COLUMN_NAMES = {  # the JSON key of each quantity and how its columns are named, for messages
+    "curvature": "ux_K, uy_K",
+    "curvature_polar": "kappa_K, phi_K",
+    "strain": "eps_K_C",
+    "wavelength": "lambda_K_C",
+    "wavelength_shift": "dlambda_K_C",
+}
+
+
+def _expected_columns(G: int) -> str:
+    return (
+        f"id and t (both optional), then the columns of one quantity for gratings K = 1..{G} (cores C = 1..C): "
+        "ux_K and uy_K (curvature), kappa_K and phi_K (curvature magnitude and bend angle), eps_K_C (core strains), "
+        "lambda_K_C (peak wavelengths) or dlambda_K_C (wavelength shifts)"
+    )
+
+
+def _per_grating(key: str, fibre: Any, where: str) -> int:
+    """Values per grating of quantity ``key``: 2, or the fibre's C (``ValueError`` when the rod has no such fibre)."""
+    if key in ("curvature", "curvature_polar"):
+        return 2
+    if key == "strain":
+        if fibre is None or not fibre.cores:
+            raise ReadingError(f'{where} give core strains: add "fibre": {{"cores": [[x, y], ...]}} to the rod file')
+    elif fibre is None or fibre.num_cores == 0:
+        raise ReadingError(f'{where} give wavelengths: add "fibre": {{"wavelength": {{...}}}} to the rod file')
+    return fibre.num_cores
+
+
+@dataclass(frozen=True)
+class CsvLayout:
+    """Where each cell of a CSV row goes: from a header row (:meth:`from_header`) or by position
+    (:meth:`positional`). :meth:`reading_object` turns a row into the JSON object of the same reading, which the
+    one reading parser then checks.
+
+    Attributes:
+        key: the quantity's JSON key (:data:`QUANTITIES`).
+        per: values per grating.
+        width: cells a row holds.
+        id_column, t_column: their column (0-based), or None.
+        data: (column, grating, index) of every value cell, 0-based.
+        forces: per known force (0-based), its ``s``, ``fx``, ``fy`` columns (``torchrod calibrate``).
+        jig: the jig's ``name``, ``curvature``, ``angle`` columns (``torchrod calibrate --fibre``).
+        header: the header row's line, None for a positional layout.
+    """
+
+    key: str
+    per: int
+    width: int
+    id_column: int | None
+    t_column: int | None
+    data: tuple[tuple[int, int, int], ...]
+    forces: tuple[tuple[int, int, int], ...] = ()
+    jig: tuple[tuple[str, int], ...] = ()
+    header: int | None = None
+
+    @classmethod
+    def from_header(cls, cells: Sequence[str], num_gratings: int, fibre: Any = None, line: int = 1) -> CsvLayout:
+        """The layout a header row names (module docstring); :class:`~torchrod.errors.ReadingError` naming the
+        line when it names no reading column, two quantities, a column twice, or not every grating's columns."""
+        G = num_gratings
+        at = f"line {line}: the CSV header"
+        names = [c.strip().lower() for c in cells]
+        seen: dict[str, int] = {}
+        twice = sorted({n for n in names if n and names.count(n) > 1})
+        if twice:
+            raise ReadingError(f"{at} names {', '.join(repr(n) for n in twice)} more than once")
+        id_col = t_col = None
+        values: dict[str, dict[tuple[int, int], int]] = {}
+        forces: dict[int, dict[str, int]] = {}
+        jig: dict[str, int] = {}
+        for col, name in enumerate(names):
+            seen[name] = col
+            match = _COLUMN.fullmatch(name)
+            if name == "id":
+                id_col = col
+            elif name == "t":
+                t_col = col
+            elif name in _JIG_COLUMNS:
+                jig[_JIG_COLUMNS[name]] = col
+            elif match is not None:
+                stem, k, c = match.group(1), int(match.group(2)), match.group(3)
+                if stem in _PER_CORE:
+                    if c is None:
+                        raise ReadingError(f"{at}: column {name!r} needs a core number too ({stem}_K_C, 1-based)")
+                    values.setdefault(_PER_CORE[stem], {})[(k, int(c))] = col
+                elif c is not None:
+                    raise ReadingError(f"{at}: column {name!r} has a core number, which {stem}_K does not take")
+                elif stem in _FORCE_FIELDS:
+                    forces.setdefault(k, {})[stem] = col
+                else:
+                    key, j = _PAIRS[stem]
+                    values.setdefault(key, {})[(k, j + 1)] = col
+        if not values:
+            shown = ", ".join(repr(c.strip()) for c in cells[:12]) + (" ..." if len(cells) > 12 else "")
+            raise ReadingError(f"{at} names no reading column ({shown}); expected {_expected_columns(G)}")
+        if len(values) > 1:
+            raise ReadingError(
+                f"{at} names columns of {' and '.join(sorted(values))}: a file gives exactly one quantity"
+            )
+        ((key, cols),) = values.items()
+        per = _per_grating(key, fibre, f"{at}'s {_COLUMN_NAMES[key]} columns")
+        stems = {"curvature": ("ux", "uy"), "curvature_polar": ("kappa", "phi")}.get(key)
+
+        def column_name(k: int, j: int) -> str:
+            return f"{stems[j - 1]}_{k}" if stems else f"{_COLUMN_NAMES[key].split('_')[0]}_{k}_{j}"
+
+        beyond = sorted((k, j) for k, j in cols if not (1 <= k <= G and 1 <= j <= per))
+        if beyond:
+            k, j = beyond[0]
+            raise ReadingError(
+                f"{at} names column {column_name(k, j)!r}, outside the rod's gratings 1..{G}"
+                + (f" and the fibre's cores 1..{per}" if not stems else "")
+                + " (numbers are 1-based)"
+            )
+        missing = [column_name(k, j) for k in range(1, G + 1) for j in range(1, per + 1) if (k, j) not in cols]
+        if missing:
+            more = f" and {len(missing) - 6} more" if len(missing) > 6 else ""
+            raise ReadingError(
+                f"{at} lacks the columns {', '.join(missing[:6])}{more}: give every grating's columns (leave a "
+                "missing grating's cells empty in its rows)"
+            )
+        force_cols = []
+        for j in sorted(forces):
+            lack = [f for f in _FORCE_FIELDS if f not in forces[j]]
+            if lack:
+                raise ReadingError(f"{at}: force {j} lacks the column(s) {', '.join(f'{f}_{j}' for f in lack)}")
+            force_cols.append(tuple(forces[j][f] for f in _FORCE_FIELDS))
+        data = tuple((col, k - 1, j - 1) for (k, j), col in sorted(cols.items()))
+        return cls(key, per, len(cells), id_col, t_col, data, tuple(force_cols), tuple(sorted(jig.items())), line)
+
+    @classmethod
+    def positional(cls, width: int, num_gratings: int, quantity: str = "curvature", fibre: Any = None) -> CsvLayout:
+        """The layout of a row without a header, by its width: ``id, t`` then the values; ``t`` then the values; or
+        the values alone (per grating in order ``ux, uy`` / ``kappa, phi`` / the C core values);
+        ``ValueError`` for any other width."""
+        if quantity not in QUANTITIES:
+            raise ValueError(f"quantity must be one of {', '.join(QUANTITIES)}, got {quantity!r}")
+        key = QUANTITIES[quantity]
+        per = _per_grating(key, fibre, f"rows of --csv-quantity {quantity}")
+        G = num_gratings
+        values = per * G
+        names = {"curvature": "ux, uy", "curvature_polar": "kappa, phi"}.get(key, f"{per} {key.replace('_', ' ')}s")
+        if width not in (values, values + 1, values + 2):
+            raise ValueError(
+                f"expected {values + 2} cells (id, t, then {names} for {G} gratings), {values + 1} (t, then the "
+                f"values) or {values} (the values alone), got {width}; or give a header row naming the columns"
+            )
+        lead = width - values
+        data = tuple((lead + per * k + j, k, j) for k in range(G) for j in range(per))
+        return cls(key, per, width, 0 if lead == 2 else None, lead - 1 if lead else None, data)
+
+    def ident(self, cells: Sequence[str]) -> Any:
+        """The row's id (:func:`csv_id`), or None when it has none or one JSON cannot echo."""
+        if self.id_column is None or self.id_column >= len(cells):
+            return None
+        ident = csv_id(cells[self.id_column])
+        return ident if id_problem(ident) is None else None
+
+    def reading_object(self, cells: Sequence[str]) -> dict[str, Any]:
+        """One row as the reading's JSON object (``id``, ``t``, the quantity's key; ``forces`` and ``jig`` where
+        the header names them). ``ValueError`` naming the cell as the JSON field (``curvature[3][0]``)."""
+        n = len(cells)
+        if n < self.width or any(c.strip() for c in cells[self.width :]):
+            where = f"the header (line {self.header}) names {self.width} columns" if self.header else f"{self.width}"
+            raise ValueError(f"the row has {n} cells, {where}")
+        obj: dict[str, Any] = {}
+        if self.id_column is not None:
+            obj["id"] = csv_id(cells[self.id_column])
+        if self.t_column is not None:
+            obj["t"] = csv_number(cells[self.t_column], "t")
+        key = self.key
+        rows: list[Any] = [[None] * self.per for _ in range(max((k for _, k, _ in self.data), default=-1) + 1)]
+        for col, k, j in self.data:
+            rows[k][j] = csv_number(cells[col], f"{key}[{k}][{j}]")
+        for k, row in enumerate(rows):
+            if all(x is None for x in row):
+                rows[k] = None
+                continue
+            for j, x in enumerate(row):
+                if x is None:
+                    raise ValueError(
+                        f"{key}[{k}][{j}] must be a number, got null (an empty cell): leave all the cells of a "
+                        "missing grating empty"
+                    )
+        obj[key] = rows
+        if self.forces:
+            forces = []
+            for j, cols in enumerate(self.forces, start=1):
+                got = [csv_number(cells[c], f"{name}_{j}") for c, name in zip(cols, _FORCE_FIELDS, strict=True)]
+                if all(x is None for x in got):
+                    continue
+                if any(x is None for x in got):
+                    raise ValueError(f"force {j} has an empty cell: give s_{j}, fx_{j} and fy_{j}, or none of them")
+                forces.append(dict(zip(_FORCE_FIELDS, got, strict=True)))
+            obj["forces"] = forces
+        if self.jig:
+            jig: dict[str, Any] = {}
+            for name, col in self.jig:
+                if name == "name":
+                    value = csv_id(cells[col])
+                else:
+                    value = csv_number(cells[col], f"jig_{name}")
+                if value is not None:
+                    jig[name] = value
+            obj["jig"] = jig
+        return obj
+
+
 def parse_csv_row(
     cells: Sequence[str],
     num_gratings: int,
@@ -711,40 +1102,16 @@ def parse_csv_row(
     line: int | None = None,
     quantity: str = "curvature",
     fibre: Any = None,
+    layout: CsvLayout | None = None,
 ) -> Reading:
-    """One CSV row ``id, t``, then per grating ``ux, uy`` (``quantity="curvature"``), ``kappa, phi``
-    (``"polar"``) or the fibre's C core strains (``"strain"``) -> a checked :class:`Reading` (``ValueError``
-    naming the cell as the JSON field, ``curvature[k][j]``, so messages match the JSON ones). All the cells of a
-    missing grating are empty."""
-    if quantity not in QUANTITIES:
-        raise ValueError(f"quantity must be one of {', '.join(QUANTITIES)}, got {quantity!r}")
-    G = num_gratings
-    key = QUANTITIES[quantity]
-    if quantity == "strain" and fibre is None:
-        strain_curvature([], G, None)  # raises: the rod has no fibre
-    per = fibre.num_cores if quantity == "strain" else 2
-    names = {"curvature": "ux, uy", "polar": "kappa, phi", "strain": f"{per} core strains"}[quantity]
-    width = 2 + per * G
-    if len(cells) != width:
-        raise ValueError(f"expected {width} cells (id, t, then {names} for {G} gratings), got {len(cells)}")
-    ident = check_id(cells[0].strip() or None)
-    t = csv_number(cells[1], "t")
-    rows: list[Any] = []
-    for k in range(G):
-        group = cells[2 + per * k : 2 + per * (k + 1)]
-        if not any(c.strip() for c in group):
-            rows.append(None)
-            continue
-        where = f"{key}[{k}]"
-        values = [csv_number(c, f"{where}[{j}]") for j, c in enumerate(group)]
-        for j, x in enumerate(values):
-            if x is None:
-                raise ValueError(
-                    f"{where}[{j}] must be a number, got null (an empty cell): leave all the cells of a missing "
-                    "grating empty"
-                )
-        rows.append(values)
-    return _checked(Reading(ident, reading_curvature({key: rows}, G, fibre), t, None, line))
+    """One CSV row -> a checked :class:`Reading`: by ``layout`` (a header's), else by position
+    (:meth:`CsvLayout.positional`: ``id, t``, or ``t``, or nothing, then per grating ``ux, uy``
+    (``quantity="curvature"``), ``kappa, phi`` (``"polar"``) or the fibre's C core values (``"strain"``,
+    ``"wavelength"``, ``"wavelength-shift"``)). ``ValueError`` naming the cell as the JSON field
+    (``curvature[k][j]``), so messages match the JSON ones. All the cells of a missing grating are empty."""
+    if layout is None:
+        layout = CsvLayout.positional(len(cells), num_gratings, quantity, fibre)
+    return parse_reading(layout.reading_object(cells), num_gratings, line=line, fibre=fibre)
 
 
 def _csv_cells(text: str) -> list[str]:
@@ -754,61 +1121,99 @@ def _csv_cells(text: str) -> list[str]:
 
 
 def _is_csv_header(cells: Sequence[str]) -> bool:
-    """A first row whose non-empty cells after the id are all non-numbers (at least one)."""
-    rest = [c.strip() for c in cells[1:] if c.strip()]
-    if not rest:
+    """A first row of at least two non-empty cells, none of them a number."""
+    rest = [c.strip() for c in cells if c.strip()]
+    if len(rest) < 2:
         return False
     return not any(_CSV_NUMBER.fullmatch(c) or _CSV_NONFINITE.fullmatch(c) for c in rest)
 
 
-def _csv_readings(
-    lines: Iterable[tuple[int, str]], num_gratings: int, quantity: str = "curvature", fibre: Any = None
-) -> Iterator[Reading]:
+def _csv_records(
+    lines: Iterable[tuple[int, str]], num_gratings: int, quantity: str, fibre: Any, parse: Callable[[Any], Any]
+) -> Iterator[Any]:
     import csv
 
+    from .jsonl import Record, parsed_record
+
+    layout: CsvLayout | None = None
     first = True
     for number, text in lines:
         try:
             cells = _csv_cells(text)
         except csv.Error as exc:
-            yield Reading(error=f"line {number}: not valid CSV ({quote(str(exc))})", line=number)
+            yield Record(number, None, None, f"line {number}: not valid CSV ({quote(str(exc))})")
             continue
         if first:
             first = False
             if _is_csv_header(cells):
+                layout = CsvLayout.from_header(cells, num_gratings, fibre, number)
                 continue
-        ident = (cells[0].strip() or None) if cells else None
-        ident = ident if id_problem(ident) is None else None
+        ident = None
         try:
-            yield parse_csv_row(cells, num_gratings, line=number, quantity=quantity, fibre=fibre)
+            if layout is None:
+                # a row without a header whose width fits no layout is named by its first cell when that is text
+                # (it can only be an id)
+                lead = csv_id(cells[0]) if cells else None
+                ident = lead if isinstance(lead, str) and id_problem(lead) is None else None
+            row_layout = layout or CsvLayout.positional(len(cells), num_gratings, quantity, fibre)
+            ident = row_layout.ident(cells)
+            obj = row_layout.reading_object(cells)
         except ValueError as exc:
-            yield Reading(ident, error=f"line {number}: {exc}", line=number)
+            yield Record(number, ident, None, f"line {number}: {exc}")
+            continue
+        yield parsed_record(number, obj, parse)
 
 
 # ---------------------------------------------------------------------------------------------------- files
-FORMATS = ("auto", "jsonl", "csv")
+FORMATS = ("auto", "jsonl", "csv", "peaks")
+"""Input formats of a readings file: JSON lines, CSV, an interrogator's peak log (:mod:`torchrod.io.peaklog`), or
+``auto``: by the file's extension (``.csv``; ``.jsonl``, ``.json``, ``.ndjson``), else by its first non-blank line
+(``{`` opens JSON lines, ``TIME: number, ...`` a peak log, anything else is CSV)."""
 
 
-def iter_readings(
+def detect_format(source: Any, head: str | None) -> str:
+    """The format ``auto`` reads ``source`` as, given its first non-blank line ``head`` (:data:`FORMATS`)."""
+    from .peaklog import is_peak_line
+
+    name = os.fspath(source) if isinstance(source, (str, os.PathLike)) else str(getattr(source, "name", ""))
+    ext = os.path.splitext(name)[1].lower()
+    if ext == ".csv":
+        return "csv"
+    if ext in (".jsonl", ".json", ".ndjson"):
+        return "jsonl"
+    if head is None:
+        return "jsonl"
+    text = head.lstrip("\ufeff").lstrip()
+    if text.startswith(("{", "[")):
+        return "jsonl"
+    if is_peak_line(text):
+        return "peaks"
+    return "csv"
+
+
+def iter_records(
     source: Any,
     num_gratings: int,
-    gratings: Sequence[float] | None = None,
+    parse: Callable[[Any], Any],
     fmt: str = "jsonl",
     control: Any = None,
     *,
     quantity: str = "curvature",
     fibre: Any = None,
-) -> Iterator[Reading]:
-    """Readings from ``source`` (a path, ``"-"`` for standard input, or an open text stream), lazily, one
-    :class:`Reading` per non-blank line in order (a CSV header row excepted): checked, or with ``error`` set
-    (``"line N: ..."``) for a line that cannot be used.
+    peaks: Any = None,
+) -> Iterator[Any]:
+    """Each non-blank line of ``source`` (a path, ``"-"``, ``tcp://HOST:PORT`` or an open text stream) as the
+    reading's JSON object (a JSON line decoded, a CSV row or a peak log line made into one), handed to ``parse``:
+    one :class:`torchrod.io.jsonl.Record` per line (a CSV header excepted), in order, lazily; a line that cannot be
+    used is an error record (``"line N: ..."``). A CSV header that cannot be used raises
+    :class:`~torchrod.errors.ReadingError` (no row can be read without it).
 
     Args:
-        fmt: ``"jsonl"``, ``"csv"`` (module docstring), or ``"auto"``: JSON lines when the first non-blank line
-            starts with ``{``, else CSV.
+        fmt: one of :data:`FORMATS`.
         control: a :class:`torchrod.io.jsonl.ReadControl` to end the reading at the lines already read.
-        quantity: what a CSV row gives per grating (:data:`QUANTITIES`); a JSON line says it by its key.
-        fibre: the rod's multicore fibre, for strains.
+        quantity: what a CSV row without a header gives per grating (:data:`QUANTITIES`).
+        fibre: the rod's :class:`torchrod.sensors.Fibre` (cores, wavelength section, units).
+        peaks: a peak log's layout, overriding the rod file's (:meth:`torchrod.sensors.Fibre.peak_layout`).
     """
     from .jsonl import parse_records, read_lines
 
@@ -821,12 +1226,37 @@ def iter_readings(
         head = next(lines, None)
         if head is None:
             return
-        fmt = "jsonl" if head[1].lstrip().startswith("{") else "csv"
+        fmt = detect_format(source, head[1])
         lines = _chain(head, lines)
     if fmt == "csv":
-        yield from _csv_readings(lines, num_gratings, quantity, fibre)
-        return
-    for record in parse_records(lines, lambda obj: parse_reading(obj, num_gratings, gratings, fibre=fibre)):
+        yield from _csv_records(lines, num_gratings, quantity, fibre, parse)
+    elif fmt == "peaks":
+        from .peaklog import PeakLog
+
+        yield from PeakLog(fibre, num_gratings, peaks).records(lines, parse)
+    else:
+        yield from parse_records(lines, parse)
+
+
+def iter_readings(
+    source: Any,
+    num_gratings: int,
+    gratings: Sequence[float] | None = None,
+    fmt: str = "jsonl",
+    control: Any = None,
+    *,
+    quantity: str = "curvature",
+    fibre: Any = None,
+    peaks: Any = None,
+) -> Iterator[Reading]:
+    """Readings from ``source`` (:func:`iter_records`), lazily, one :class:`Reading` per non-blank line in order (a
+    CSV header row excepted): checked, or with ``error`` set (``"line N: ..."``) for a line that cannot be used."""
+
+    def parse(obj: Any) -> Reading:
+        return parse_reading(obj, num_gratings, gratings, fibre=fibre)
+
+    records = iter_records(source, num_gratings, parse, fmt, control, quantity=quantity, fibre=fibre, peaks=peaks)
+    for record in records:
         if record.ok and record.value is not None:
             yield _checked(replace(record.value, line=record.line))
         else:
@@ -834,10 +1264,10 @@ def iter_readings(
 
 
 class ReadingSource:
-    """The readings of a file or standard input (:func:`iter_readings`), as an iterable that the flush after an
-    interrupt can end at the lines already read: :meth:`halt` makes it yield the readings of the complete lines it
-    holds in memory and then end instead of reading more; :attr:`waiting` is true while it waits on the input
-    (holding no complete line). :func:`torchrod.io.stream.stream` uses both when its source has them."""
+    """The readings of a file, standard input or a TCP connection (:func:`iter_readings`), as an iterable that the
+    flush after an interrupt can end at the lines already read: :meth:`halt` makes it yield the readings of the
+    complete lines it holds in memory and then end instead of reading more; :attr:`waiting` is true while it waits
+    on the input (holding no complete line). :func:`torchrod.io.stream.stream` uses both when its source has them."""
 
     def __init__(
         self,
@@ -848,6 +1278,7 @@ class ReadingSource:
         *,
         quantity: str = "curvature",
         fibre: Any = None,
+        peaks: Any = None,
     ) -> None:
         from .jsonl import ReadControl
 
@@ -855,7 +1286,7 @@ class ReadingSource:
             raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
         self.control = ReadControl()
         self._readings = iter_readings(
-            source, num_gratings, gratings, fmt, self.control, quantity=quantity, fibre=fibre
+            source, num_gratings, gratings, fmt, self.control, quantity=quantity, fibre=fibre, peaks=peaks
         )
 
     def __iter__(self) -> Iterator[Reading]:

@@ -11,12 +11,15 @@ if TYPE_CHECKING:  # (torch is imported where a command needs it: `torchrod --he
 
 __all__ = [
     "add_device_option",
+    "add_input_options",
     "add_sensor_options",
     "add_time_budget_option",
     "check_device",
     "check_estimation_options",
     "rod_help",
+    "reading_source",
     "sensor_noise",
+    "sensor_rod",
     "settle",
     "time_budget",
 ]
@@ -120,21 +123,58 @@ def check_device(args: argparse.Namespace, processes: int = 1) -> torch.device:
     return dev
 
 
-def add_sensor_options(parser: argparse.ArgumentParser) -> None:
-    """``--csv-quantity`` and ``--strain-noise``: readings from other sensors (:mod:`torchrod.sensors`)."""
+def add_sensor_options(parser: argparse.ArgumentParser, *, estimating: bool = True) -> None:
+    """The options of readings from other sensors and in other units (:mod:`torchrod.sensors`): ``--csv-quantity``,
+    ``--peaks``, the unit options, and for an estimating command ``--strain-noise``, ``--wavelength-noise`` and
+    ``--relative``. :func:`sensor_rod` and :func:`sensor_noise` apply them."""
+    from ...io.peaklog import parse_peaks_option
+    from ...io.readings import QUANTITIES
+    from ...sensors import CURVATURE_UNITS, STRAIN_UNITS, WAVELENGTH_UNITS
+
     parser.add_argument(
         "--csv-quantity",
-        choices=("curvature", "polar", "strain"),
+        choices=tuple(QUANTITIES),
         default="curvature",
-        help="what a CSV row gives per grating: ux, uy [1/m] (default); kappa [1/m], phi [rad]; or the fibre's "
-        "core strains (JSON lines say it by their key: curvature, curvature_polar, strain)",
+        help="what a CSV row without a header gives per grating: ux, uy (default); kappa, phi [rad]; the fibre's "
+        "core strains; its peak wavelengths; or its wavelength shifts (a header row names its columns instead; JSON "
+        "lines say it by their key: curvature, curvature_polar, strain, wavelength, wavelength_shift)",
     )
+    parser.add_argument(
+        "--peaks",
+        type=_peaks_option(parse_peaks_option),
+        metavar="LAYOUT",
+        help="which (grating, core) each value of a peak log line is: by-core (core 1's gratings, then core 2's, "
+        "...), by-grating, or per peak GRATING:CORE (1-based) or - for a peak not read, comma-separated "
+        "(default: the rod file's fibre.wavelength.peaks, else by-core)",
+    )
+    units = (
+        ("--curvature-unit", CURVATURE_UNITS, "curvature and curvature magnitude", "1/m"),
+        ("--strain-unit", STRAIN_UNITS, "core strains", "strain (dimensionless)"),
+        ("--wavelength-unit", WAVELENGTH_UNITS, "peak wavelengths and shifts", "nm"),
+    )
+    for option, table, what, default in units:
+        parser.add_argument(
+            option,
+            choices=tuple(table),
+            default=None,
+            help=f"unit of the readings' {what} (default: the rod file's fibre.{option[2:].replace('-', '_')}, "
+            f"else {default}); converted to SI as they are read",
+        )
+    if not estimating:
+        return
     parser.add_argument(
         "--strain-noise",
         type=float,
         metavar="SIGMA",
         help="strain noise sigma per core (dimensionless) of the rod's multicore fibre, instead of --noise: the "
         "curvature noise it implies weighs the fit",
+    )
+    parser.add_argument(
+        "--wavelength-noise",
+        type=float,
+        metavar="SIGMA",
+        help="peak wavelength noise sigma per core [pm], instead of --noise: the curvature noise it implies through "
+        "each grating's conversion (calibration matrix or physics) weighs the fit (the largest over the gratings)",
     )
     parser.add_argument(
         "--relative",
@@ -144,16 +184,118 @@ def add_sensor_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _peaks_option(parse):
+    """``--peaks`` for argparse: a bad layout is a usage error naming it."""
+
+    def parse_option(text: str):
+        try:
+            return parse(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    return parse_option
+
+
+def sensor_rod(args: argparse.Namespace, rod):
+    """``rod`` with its fibre's units as the unit options say (a fibre of units alone for a rod without one), and
+    ``--peaks`` checked against its wavelength section; ``ValueError`` when they do not fit."""
+    from ...sensors import UNIT_TABLES, Fibre
+
+    units = {key: getattr(args, key) for key in UNIT_TABLES if getattr(args, key, None) is not None}
+    if units:
+        rod = rod.with_(fibre=rod.fibre.with_(**units) if rod.fibre is not None else Fibre(**units))
+    peaks = getattr(args, "peaks", None)
+    if peaks is not None:
+        if rod.fibre is None or rod.fibre.wavelength is None:
+            raise ValueError(
+                '--peaks maps a peak log onto the rod file\'s "fibre": {"wavelength": ...}, which it lacks'
+            )
+        try:
+            rod.fibre.peak_layout(peaks)
+        except ValueError as exc:
+            raise ValueError(str(exc)) from None
+    return rod
+
+
 def sensor_noise(args: argparse.Namespace, rod) -> None:
-    """Turn ``--strain-noise`` into ``args.noise`` (the curvature sigma it implies through the rod's fibre);
+    """Turn ``--strain-noise`` or ``--wavelength-noise`` into ``args.noise`` (the curvature sigma it implies through
+    the rod's fibre; for wavelengths the largest over the gratings, said on stderr when they differ);
     ``ValueError`` when it cannot be used."""
+    import sys
+
+    from ...sensors import WAVELENGTH_UNITS
+
     strain = getattr(args, "strain_noise", None)
-    if strain is None:
-        return
-    if args.noise is not None:
-        raise ValueError("give --noise (curvature sigma) or --strain-noise (core strain sigma), not both")
-    if rod.fibre is None:
-        raise ValueError('--strain-noise needs the rod file\'s multicore fibre ("fibre": {"cores": [[x, y], ...]})')
-    if not strain >= 0.0 or strain == float("inf"):
-        raise ValueError(f"--strain-noise must be >= 0 and finite, got {strain}")
-    args.noise = rod.fibre.curvature_sigma(strain)
+    wavelength = getattr(args, "wavelength_noise", None)
+    given = [
+        name
+        for name, v in (("--noise", args.noise), ("--strain-noise", strain), ("--wavelength-noise", wavelength))
+        if v is not None
+    ]
+    if len(given) > 1:
+        raise ValueError(
+            f"give one of --noise (curvature sigma), --strain-noise and --wavelength-noise, not both "
+            f"({' and '.join(given)})"
+        )
+    if strain is not None:
+        if rod.fibre is None or not rod.fibre.cores:
+            raise ValueError('--strain-noise needs the rod file\'s multicore fibre ("fibre": {"cores": [[x, y], ...]})')
+        if not strain >= 0.0 or strain == float("inf"):
+            raise ValueError(f"--strain-noise must be >= 0 and finite, got {strain}")
+        args.noise = rod.fibre.curvature_sigma(strain)
+    if wavelength is not None:
+        if rod.fibre is None or rod.fibre.wavelength is None:
+            raise ValueError('--wavelength-noise needs the rod file\'s "fibre": {"wavelength": {...}} section')
+        if not wavelength >= 0.0 or wavelength == float("inf"):
+            raise ValueError(f"--wavelength-noise must be >= 0 and finite [pm], got {wavelength}")
+        sigmas = rod.fibre.wavelength_sigmas(wavelength * WAVELENGTH_UNITS["pm"])
+        args.noise = max(sigmas)
+        low = min(sigmas)
+        if low < 0.9 * args.noise:
+            print(
+                f"torchrod: --wavelength-noise {wavelength:g} pm implies a curvature sigma of {low:.3g} to "
+                f"{args.noise:.3g} 1/m over the gratings; the fit is weighed with the largest",
+                file=sys.stderr,
+            )
+
+
+def reading_source(args: argparse.Namespace, rod, path: str):
+    """The readings of ``path`` as the options ask: FBGS records (``--protocol fbgs``, :mod:`torchrod.io.fbgs`), or
+    lines in ``--format`` (:class:`torchrod.io.readings.ReadingSource`)."""
+    if getattr(args, "protocol", "lines") == "fbgs":
+        from ...io.fbgs import FbgsSource
+
+        return FbgsSource(path, rod.num_gratings, unit=getattr(args, "curvature_unit", None))
+    from ...io.readings import ReadingSource
+
+    return ReadingSource(
+        path,
+        rod.num_gratings,
+        rod.gratings,
+        args.format,
+        quantity=args.csv_quantity,
+        fibre=rod.fibre,
+        peaks=getattr(args, "peaks", None),
+    )
+
+
+def add_input_options(parser: argparse.ArgumentParser, *, protocol: bool = True) -> None:
+    """``--format`` (and ``--protocol``): how a readings input is read."""
+    from ...io.readings import FORMATS
+
+    parser.add_argument(
+        "--format",
+        choices=FORMATS,
+        default="auto",
+        help="input format: jsonl, csv, peaks (an interrogator's peak log), or auto (default): by the extension "
+        "(.csv; .jsonl, .json), else by the first line ({ for JSON lines, TIME: numbers for a peak log, else CSV)",
+    )
+    if protocol:
+        parser.add_argument(
+            "--protocol",
+            choices=("lines", "fbgs"),
+            default="lines",
+            help="lines (default: one reading a line, in --format) or fbgs: length-prefixed records of curvature "
+            "[1/cm] and bend angle per grating from shape-sensing software (a tcp://HOST:PORT server, a recording, or "
+            "stdin)",
+        )

@@ -1,34 +1,55 @@
-"""``torchrod calibrate``: fit the location bias and the bending stiffness from readings with known forces.
+"""``torchrod calibrate``: fit a rod from readings with known loads: its location bias and bending stiffness, or
+(``--fibre``) its fibre's wavelength-to-curvature matrices from jig readings.
 
-Usage: ``torchrod calibrate --rod ROD READINGS.jsonl [--out NEW_ROD.json] [--directions known|free]`` ('-' reads
-the readings from standard input). ROD is a rod JSON file or a preset name (the presets are listed under --rod).
+Usage: ``torchrod calibrate --rod ROD READINGS [--out NEW_ROD.json] [--directions known|free]`` ('-' reads the readings
+from standard input), or ``torchrod calibrate --fibre --rod ROD JIG_READINGS --out NEW_ROD.json``. ROD is a rod JSON
+file or a preset name (the presets are listed under --rod). READINGS are JSON lines or CSV (``--format``; the unit
+options as for ``torchrod estimate``).
 
-Input: READINGS.jsonl holds one reading with its known forces per line::
+Location bias and stiffness: READINGS holds one reading with its known forces per line::
 
     {"id": "c1", "curvature": [[ux, uy], null, ...], "forces": [{"s": 0.12, "fx": 0.3, "fy": -0.1}, ...]}
 
 ``curvature``: one [ux, uy] pair [1/m] per grating in the rod file's order, ``null`` for a grating without a
 reading (the rules of ``torchrod estimate``: finite numbers, at most 1e6 1/m; optional ``id``, ``t`` [s] and
-``gratings``, which must be the rod's; other keys are ignored). ``forces``: the known forces, ``s`` [m] in the true
-(fibre's) coordinate, ``fx``, ``fy`` [N] in the body frame, nonzero; ``[]`` for a reading without load.
-``torchrod simulate`` output with a ``forces`` key added is such a line. Every line must be usable: the command
-stops with status 2 naming the bad lines (a calibration from a silently thinned set would mislead).
+``gratings``, which must be the rod's; other keys are ignored; ``strain``, ``curvature_polar``, ``wavelength`` or
+``wavelength_shift`` may stand for ``curvature``). ``forces``: the known forces, ``s`` [m] in the true (fibre's)
+coordinate, ``fx``, ``fy`` [N] in the body frame, nonzero; ``[]`` for a reading without load. In CSV the forces are
+the columns ``s_J, fx_J, fy_J`` (J = 1, 2, ...). ``torchrod simulate`` output with a ``forces`` key added is such a
+line. Every line must be usable: the command stops with status 2 naming the bad lines (a calibration from a
+silently thinned set would mislead). The calibrated rod (``location_bias``, and the stiffness: a rod given by its
+geometry keeps it and gets a new ``youngs_modulus``; a rod given by ``bending_stiffness`` gets a new one) goes to
+``--out`` (default: standard output); the fitted values with their standard errors go to standard error. See
+torchrod.estimate.calibration for the method.
 
-Output: the calibrated rod (``location_bias``, and the stiffness: a rod given by its geometry keeps it and gets a
-new ``youngs_modulus``; a rod given by ``bending_stiffness`` gets a new one) goes to ``--out`` (default: standard
-output); the fitted values with their standard errors go to standard error. See torchrod.estimate.calibration for
-the method.
+Fibre (``--fibre``): JIG_READINGS holds readings of the fibre on jigs of known constant curvature, each tagged with
+the jig::
+
+    {"id": 1, "wavelength": [[l_1, ..., l_C] or null, ...], "jig": {"curvature": 10.0, "angle": 1.5708, "name": "J10"}}
+
+(``wavelength`` [nm] with the rod file's ``fibre.wavelength.reference`` subtracted, or ``wavelength_shift``; the
+jig's curvature magnitude in the curvature unit, 1/m by default, and its bend direction [rad] from d1 towards d2;
+``name`` optional, else the jig is known by its curvature). CSV: the columns ``lambda_K_C`` or ``dlambda_K_C``,
+``jig_curvature``, ``jig_angle``, ``jig``. Each grating's 2 x C matrix (u = A (d - mean d), 1/m per nm) is fitted by
+least squares. Standard error shows, per grating, the residual [1/m], the leave-one-jig-out prediction error
+[1/m] and the gain [1/m per nm] against the gratings' median and the physics route (with the rod file's cores),
+and a warning for each gain off by more than ``--gain-tolerance`` (default 0.25). The rod file with
+``fibre.wavelength.calibration`` (and, when it had no reference, the straight jig's mean as the reference) goes to
+``--out``. See torchrod.jig for the method.
+
+``--out`` never overwrites the rod file or the readings it was made from.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
-from . import rod_help
+from . import add_input_options, add_sensor_options, rod_help, sensor_rod
 
-HELP = "fit the location bias and bending stiffness from readings with known forces"
+HELP = "fit a rod's location bias and stiffness from known forces, or its fibre's calibration from jig readings"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -36,11 +57,24 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument(
         "readings",
-        metavar="READINGS.jsonl",
-        help="readings with known forces, one JSON object a line (format below); '-' for stdin",
+        metavar="READINGS",
+        help="readings with known forces (or, with --fibre, jig readings), JSON lines or CSV; '-' for stdin",
     )
     parser.add_argument("--rod", required=True, help=rod_help())
     parser.add_argument("--out", default="-", help="calibrated rod JSON file (default: standard output)")
+    parser.add_argument(
+        "--fibre",
+        action="store_true",
+        help="fit the fibre's wavelength-to-curvature matrices from jig readings instead (see below)",
+    )
+    parser.add_argument(
+        "--gain-tolerance",
+        type=float,
+        default=None,
+        metavar="F",
+        help="--fibre: warn about a grating whose gain differs from the median's or the physics route's by more than "
+        "this fraction (default 0.25)",
+    )
     parser.add_argument(
         "--directions",
         choices=("known", "free"),
@@ -48,31 +82,68 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="stiffness step: use the known force components, or only their magnitudes (default: %(default)s)",
     )
     parser.add_argument("--initial-bias", type=float, default=0.0, help="start of the bias fit [m] (default: 0)")
+    add_input_options(parser, protocol=False)
+    add_sensor_options(parser, estimating=False)
+
+
+def _check_out(out: str, inputs: list[str]) -> None:
+    """``ValueError`` when ``--out`` names one of the inputs (a calibration never overwrites what it came from)."""
+    if out == "-":
+        return
+    for source in inputs:
+        if source == "-" or not os.path.exists(source):
+            continue
+        if os.path.abspath(out) == os.path.abspath(source) or (os.path.exists(out) and os.path.samefile(out, source)):
+            raise ValueError(f"--out {out} is the input {source}: write the calibrated rod to a new file")
+
+
+def _write(rod, out: str) -> None:
+    if out == "-":
+        json.dump(rod.to_dict(), sys.stdout, indent=2)
+        sys.stdout.write("\n")
+        return
+    try:
+        rod.to_json(out)
+    except OSError as exc:
+        raise ValueError(f"--out {out}: cannot write there ({exc.strerror or exc})") from None
+    print(f"wrote {out}", file=sys.stderr)
 
 
 def run(args: argparse.Namespace) -> int:
-    from ...estimate.calibration import calibrate, read_readings, summary
     from ...io.jsonl import check_input
     from ...presets import load as load_rod
 
-    rod = load_rod(args.rod)
+    _check_out(args.out, [args.rod, args.readings])
+    base = load_rod(args.rod)
+    rod = sensor_rod(args, base)  # the options' units read the readings; the rod written keeps its own
     check_input(args.readings, "READINGS")
-    data = read_readings(args.readings, rod)
+    if args.fibre:
+        return _fibre(args, rod, base)
+    if args.gain_tolerance is not None:
+        raise ValueError("--gain-tolerance is an option of --fibre")
+    from ...estimate.calibration import calibrate, read_readings, summary
+
+    data = read_readings(args.readings, rod, fmt=args.format, quantity=args.csv_quantity)
     result = calibrate(rod, data, directions=args.directions, initial_bias=args.initial_bias)
-    new_rod = result.apply(rod)
+    new_rod = result.apply(base)
     print(
         f"torchrod calibrate: {data.num_readings} readings, {int(data.forces.count.sum())} known forces",
         file=sys.stderr,
     )
     for line in summary(result, rod):
         print(line, file=sys.stderr)
-    if args.out == "-":
-        json.dump(new_rod.to_dict(), sys.stdout, indent=2)
-        sys.stdout.write("\n")
-    else:
-        try:
-            new_rod.to_json(args.out)
-        except OSError as exc:
-            raise ValueError(f"--out {args.out}: cannot write there ({exc.strerror or exc})") from None
-        print(f"wrote {args.out}", file=sys.stderr)
+    _write(new_rod, args.out)
+    return 0
+
+
+def _fibre(args: argparse.Namespace, rod, base) -> int:
+    from ...jig import GAIN_TOLERANCE, calibrate_fibre, read_jig_readings, report
+
+    quantity = args.csv_quantity if args.csv_quantity in ("wavelength", "wavelength-shift") else "wavelength"
+    data = read_jig_readings(args.readings, rod, args.format, quantity=quantity)
+    tolerance = GAIN_TOLERANCE if args.gain_tolerance is None else args.gain_tolerance
+    result = calibrate_fibre(rod, data, tolerance)
+    for line in report(result, data):
+        print(f"torchrod calibrate --fibre: {line}", file=sys.stderr)
+    _write(result.apply(base), args.out)
     return 0

@@ -1,7 +1,9 @@
 """``torchrod estimate``: contact forces from FBG curvature readings (JSON lines in, JSON lines out).
 
-Usage: ``torchrod estimate --rod ROD READINGS.jsonl [--out FILE]`` ('-' reads standard input). ROD is a rod
-JSON file (see torchrod.Rod.from_json) or a preset name (the presets are listed under --rod).
+Usage: ``torchrod estimate ROD READINGS [--out FILE]`` or ``torchrod estimate --rod ROD READINGS`` ('-' reads standard
+input). ROD is a rod JSON file (see torchrod.Rod.from_json) or a preset name (the presets are listed under --rod).
+READINGS is JSON lines, CSV or an interrogator's peak log, told apart by the extension or the first line (``--format``
+forces one; docs/sensors.md has every format).
 
 Each input line is one reading, as ``torchrod simulate`` writes them::
 
@@ -11,14 +13,21 @@ with one [ux, uy] pair [1/m] per grating in the rod file's order and ``null`` fo
 (it is left out of the fit). ``id`` is optional (any JSON value, echoed back); ``t`` [s] is optional; a
 ``gratings`` list, if present, must match the rod's; other keys are ignored. Numbers must be finite, and a
 curvature component at most 1e6 1/m in magnitude (a bend radius of 1 um: a larger value is a unit or scaling
-error); finite values within that bound reach the estimator, however implausible. ``--format csv`` reads the CSV
-rows of ``torchrod stream`` instead (``id, t, ux_1, uy_1, ...``; see ``torchrod stream --help``).
+error); finite values within that bound reach the estimator, however implausible. CSV: a header row names the
+columns (``id`` and ``t`` optional; ``ux_1 .. ux_G`` and ``uy_1 .. uy_G`` in any order, or the other quantities'
+columns below); without one the cells are ``id, t, ux_1, uy_1, ...`` (or ``t`` and the values, or the values
+alone); an integer id stays an integer, as in JSON.
 
 Other sensors: a line may give ``"strain": [[eps_1, ..., eps_C] or null, ...]`` (the core strains of the rod
-file's multicore ``"fibre": {"cores": [[x, y], ...]}``, dimensionless) or ``"curvature_polar": [[kappa, phi] or
-null, ...]`` (magnitude [1/m] and bend angle [rad]) instead of ``curvature``; both are turned into curvature as
-they are read (torchrod.sensors). In CSV, ``--csv-quantity strain`` or ``polar`` says what the cells are.
-``--strain-noise SIGMA`` gives the core strain noise instead of ``--noise``.
+file's multicore ``"fibre": {"cores": [[x, y], ...]}``), ``"curvature_polar": [[kappa, phi] or null, ...]``
+(magnitude and bend angle [rad]), ``"wavelength"`` (peak wavelengths per grating and core, the rod file's
+``fibre.wavelength.reference`` subtracted) or ``"wavelength_shift"`` instead of ``curvature``; all are turned into
+curvature as they are read (torchrod.sensors). CSV columns ``kappa_K, phi_K``, ``eps_K_C``, ``lambda_K_C`` or
+``dlambda_K_C`` give the same (or ``--csv-quantity`` without a header). ``--strain-noise SIGMA`` or
+``--wavelength-noise SIGMA`` [pm] gives the sensor's noise instead of ``--noise``. Units: ``--curvature-unit
+1/m|1/cm|1/mm``, ``--strain-unit strain|microstrain``, ``--wavelength-unit nm|pm`` (default: the rod file's fibre
+says, else SI and nm). ``--protocol fbgs`` reads length-prefixed shape-sensing records instead of lines (see
+``torchrod stream --help``).
 
 Each output line answers the input line in the same position::
 
@@ -72,31 +81,49 @@ from ...errors import MissingFileError
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.selection import RULES
 from ...io.jsonl import LineWriter, check_input, open_output, until_interrupted
-from ...io.readings import FORMATS, Reading, ReadingSource, stack_readings
+from ...io.readings import Reading, ReadingSource, stack_readings
 from ...presets import load as load_rod
 from ...rod import Rod
 from . import (
     add_device_option,
+    add_input_options,
     add_sensor_options,
     add_time_budget_option,
     check_device,
     check_estimation_options,
+    reading_source,
     rod_help,
     sensor_noise,
+    sensor_rod,
     settle,
     time_budget,
 )
 
 HELP = "forces from FBG curvature readings (JSON lines in, JSON lines out)"
 
-__all__ = ["HELP", "choose_network", "configure", "load_network", "options_from_args", "run", "trusting"]
+__all__ = [
+    "HELP",
+    "choose_network",
+    "configure",
+    "load_network",
+    "options_from_args",
+    "rod_and_readings",
+    "run",
+    "trusting",
+]
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.epilog = "\n\n".join((__doc__ or "").split("\n\n")[1:]).replace("``", "").replace("::", ":")
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("readings", metavar="READINGS.jsonl", help="readings, one JSON object a line; '-' for stdin")
-    parser.add_argument("--rod", required=True, help=rod_help())
+    parser.add_argument(
+        "paths",
+        nargs="+",
+        metavar="[ROD] READINGS",
+        help="the rod (a rod JSON file or preset name, unless --rod gives it) and the readings (JSON lines, CSV or a "
+        "peak log; '-' for stdin)",
+    )
+    parser.add_argument("--rod", help=rod_help(what=", instead of the first argument"))
     count = parser.add_mutually_exclusive_group()
     count.add_argument("--max-forces", type=int, default=3, metavar="H", help="choose the count in 0..H (default 3)")
     count.add_argument("--num-forces", type=int, metavar="N", help="fit exactly N forces")
@@ -121,7 +148,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="warm-start network checkpoint whose guesses start the fits (default: the network shipped for the rod's "
         "grating layout, if any; 'none': no network)",
     )
-    parser.add_argument("--format", choices=FORMATS, default="jsonl", help="input format: jsonl (default), csv or auto")
+    add_input_options(parser)
     add_sensor_options(parser)
     parser.add_argument("--out", metavar="FILE", help="write the answers to FILE (default: standard output)")
     parser.add_argument("--batch-size", type=int, default=1024, metavar="B", help="readings per batch (default 1024)")
@@ -227,12 +254,29 @@ def load_network(checkpoint: str | None, rod: Rod) -> Any:
     return network
 
 
+def rod_and_readings(args: argparse.Namespace) -> None:
+    """Set ``args.rod`` and ``args.readings`` from ``[ROD] READINGS`` and ``--rod`` (``ValueError`` for another
+    count)."""
+    paths = list(args.paths)
+    if args.rod is None and len(paths) == 2:
+        args.rod, args.readings = paths
+    elif args.rod is not None and len(paths) == 1:
+        args.readings = paths[0]
+    else:
+        given = "--rod and " if args.rod is not None else ""
+        raise ValueError(
+            f"give the rod and the readings (torchrod estimate ROD READINGS, or --rod ROD READINGS); got {given}"
+            f"{len(paths)} argument(s): {' '.join(paths)}"
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     return until_interrupted(lambda: _run(args))
 
 
 def _run(args: argparse.Namespace) -> int:
-    rod = load_rod(args.rod)
+    rod_and_readings(args)
+    rod = sensor_rod(args, load_rod(args.rod))
     check_estimation_options(args)
     sensor_noise(args, rod)
     check_counts(args)
@@ -249,9 +293,7 @@ def _run(args: argparse.Namespace) -> int:
     if device.type == "cpu":
         solver.warm()  # the workers start while the first batch is read
     settle()
-    readings = ReadingSource(
-        args.readings, rod.num_gratings, rod.gratings, args.format, quantity=args.csv_quantity, fibre=rod.fibre
-    )
+    readings = reading_source(args, rod, args.readings)
     from tqdm import tqdm
 
     with open_output(args.out, [args.readings]) as out:

@@ -39,6 +39,13 @@ prints the same numbers as JSON lines instead.
 for the curvature, and is turned back by the fibre's least squares (:mod:`torchrod.sensors`), as strain readings
 are read; the estimator is given that sigma, as ``--strain-noise`` gives it.
 
+``--input wavelength`` passes every reading through the peak wavelengths of the rod's fibre (its calibration
+matrices or its physics route; without a wavelength section, the physics route of :data:`EVALUATION_FIBRE` with
+reference wavelengths 1530 + 2.5 k nm): the shifts the bend gives, a random temperature per grating (the common
+strain above, as shifts the conversion removes) and Gaussian wavelength noise per core at the level that implies
+the row's sigma for the curvature (the largest over the gratings, as ``--wavelength-noise`` gives it), turned back
+by the conversion the reading parser applies (:mod:`torchrod.sensors`).
+
 ``--recovery N`` runs the clean-recovery study instead (:mod:`torchrod.eval.recovery`): N stratified noise-free
 cases, the verdicts per stratum, and every case missed or answered wrong.
 """
@@ -50,13 +57,14 @@ import json
 import math
 import sys
 import time
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
 from ...estimate.estimator import EstimateResult, Estimator, EstimatorOptions
 from ...presets import load as load_rod
 from ...rod import Rod
+from ...sensors import WAVELENGTH_UNITS
 from . import rod_help
 
 HELP = "accuracy of the estimator on simulated readings over a realistic envelope"
@@ -64,6 +72,10 @@ HELP = "accuracy of the estimator on simulated readings over a realistic envelop
 EVALUATION_FIBRE = ((3.5e-5, 0.0), (-1.75e-5, 3.0311e-5), (-1.75e-5, -3.0311e-5))
 """[m] The cores of ``--input strain`` when the rod has no fibre: three at 120 degrees, 35 um off the axis (a
 common multicore shape-sensing fibre)."""
+
+EVALUATION_REFERENCE_NM = (1530.0, 2.5)
+"""[nm] ``--input wavelength`` without a rod wavelength section: grating k (0-based) reflects at 1530 + 2.5 k nm on
+every core (gratings along a fibre are written at distinct wavelengths)."""
 
 COMMON_STRAIN = 1e-3
 """``--input strain``: the common strain per grating is uniform in +-this (about 100 K of temperature change)."""
@@ -78,6 +90,8 @@ __all__ = [
     "evaluate_cell",
     "misfit_cell",
     "run",
+    "through_sensor",
+    "through_wavelengths",
     "unexplainable",
     "zero_cell",
 ]
@@ -129,9 +143,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--input",
-        choices=("curvature", "strain"),
+        choices=("curvature", "strain", "wavelength"),
         default="curvature",
-        help="readings as curvature (default) or as a multicore fibre's core strains (see below)",
+        help="readings as curvature (default), as a multicore fibre's core strains, or as its peak wavelengths "
+        "(see below)",
     )
     parser.add_argument("--json", action="store_true", help="JSON lines instead of a table")
 
@@ -167,8 +182,8 @@ def evaluate_cell(
     """Simulate ``count`` readings with ``k`` forces and noise ``sigma``, estimate them, return the cell's metrics
     (:func:`cell_metrics` plus ``time_ms`` per reading, wall clock of the estimation alone). ``near_base``: only
     cases whose most proximal force lies between the first grating and 20 mm distal to the second (drawn over
-    [first grating, L] and kept when they do). ``fibre``: readings pass through its core strains
-    (:func:`through_fibre`)."""
+    [first grating, L] and kept when they do). ``fibre``: readings pass through its core strains, or its peak
+    wavelengths when it is a :class:`WavelengthInput` (:func:`through_sensor`)."""
     from ...learn.synthetic import LoadSampler, SensorModel, generate
 
     lo = s_min if s_min is not None else (rod.gratings[1] if rod.num_gratings > 1 else 0.02 * rod.length)
@@ -203,7 +218,7 @@ def evaluate_cell(
         data = generate(rod, count, sampler=sampler, sensor=sensor, seed=cell_seed)
         curvature, mask, s_true, f_true = data.curvature, data.mask, data.loads.s, data.loads.f
     if fibre is not None:
-        curvature = through_fibre(curvature, sigma, fibre, cell_seed)
+        curvature = through_sensor(curvature, sigma, fibre, cell_seed)
     results, elapsed = _estimate(rod, curvature, mask, sigma, max_forces, noise_known, batch_size)
     out = cell_metrics(results, s_true, f_true, k)
     out.update(forces=k, noise=sigma, time_ms=1e3 * elapsed / max(1, count), row=f"{k} nb" if near_base else str(k))
@@ -221,6 +236,53 @@ def through_fibre(clean: torch.Tensor, sigma: float, fibre: Any, seed: int) -> t
     strain_sigma = sigma / fibre.curvature_sigma(1.0)
     noise = strain_sigma * torch.randn(N, G, fibre.num_cores, generator=g, dtype=clean.dtype)
     return fibre.curvature(fibre.strain(clean, common) + noise)
+
+
+class WavelengthInput(NamedTuple):
+    """``--input wavelength``: readings pass through this fibre's peak wavelengths (:func:`through_wavelengths`)."""
+
+    fibre: Any
+
+
+def through_sensor(clean: torch.Tensor, sigma: float, sensor: Any, seed: int) -> torch.Tensor:
+    """:func:`through_wavelengths` for a :class:`WavelengthInput`, else :func:`through_fibre` (core strains)."""
+    if isinstance(sensor, WavelengthInput):
+        return through_wavelengths(clean, sigma, sensor.fibre, seed)
+    return through_fibre(clean, sigma, sensor, seed)
+
+
+def evaluation_wavelength_fibre(rod: Rod) -> Any:
+    """The fibre of ``--input wavelength``: the rod's when its fibre has a wavelength section, else the cores of
+    the rod's fibre (or :data:`EVALUATION_FIBRE`) read through the physics route with the reference wavelengths
+    :data:`EVALUATION_REFERENCE_NM`, the same on every core."""
+    from ...sensors import Fibre
+
+    if rod.fibre is not None and rod.fibre.wavelength is not None:
+        return rod.fibre
+    cores = rod.fibre.cores if rod.fibre is not None and rod.fibre.cores else EVALUATION_FIBRE
+    first, step = EVALUATION_REFERENCE_NM
+    reference = [[first + step * g] * len(cores) for g in range(rod.num_gratings)]
+    return Fibre(cores=cores, wavelength={"reference": reference})
+
+
+def through_wavelengths(clean: torch.Tensor, sigma: float, fibre: Any, seed: int) -> torch.Tensor:
+    """(N, G, 2) clean curvature [1/m] -> the curvature read from the fibre's peak wavelengths: the shifts the bend
+    gives (:meth:`torchrod.sensors.Fibre.bending_shift`) plus a temperature per grating (an apparent common strain
+    uniform in +-:data:`COMMON_STRAIN`, :meth:`~torchrod.sensors.Fibre.temperature_shift`) and Gaussian wavelength
+    noise per core at the sigma whose implied curvature sigma, the largest over the gratings, is ``sigma`` [1/m]
+    (as ``--wavelength-noise`` weighs the fit), added to the reference when there is one and turned back by the
+    fibre's conversion (:meth:`~torchrod.sensors.Fibre.wavelength_curvature`)."""
+    g = torch.Generator().manual_seed(seed + 11)
+    N, G, _ = clean.shape
+    common = COMMON_STRAIN * (2.0 * torch.rand(N, G, generator=g, dtype=clean.dtype) - 1.0)
+    wavelength_sigma = sigma / max(fibre.wavelength_sigmas(1.0))
+    noise = wavelength_sigma * torch.randn(N, G, fibre.num_cores, generator=g, dtype=clean.dtype)
+    shift = fibre.bending_shift(clean) + fibre.temperature_shift(common) + noise
+    reference = fibre.reference_m()
+    if reference is not None:  # as read: absolute wavelengths, the reference subtracted
+        ref = torch.tensor(reference, dtype=clean.dtype)
+        shift = (ref + shift) - ref
+    return fibre.wavelength_curvature(shift)
 
 
 def _estimate(rod, curvature, mask, sigma, max_forces, noise_known, batch_size):
@@ -250,7 +312,7 @@ def zero_cell(
     g = torch.Generator().manual_seed(seed * 1000 + round(100 * sigma) + 1)
     zero = _unloaded(rod).expand(count, rod.num_gratings, 2)
     if fibre is not None:
-        curvature = through_fibre(zero, sigma, fibre, seed * 1000 + round(100 * sigma) + 1)
+        curvature = through_sensor(zero, sigma, fibre, seed * 1000 + round(100 * sigma) + 1)
     else:
         curvature = zero + sigma * torch.randn(count, rod.num_gratings, 2, generator=g, dtype=torch.float64)
     return _forceless_cell(rod, curvature, sigma, 0, "0", max_forces, noise_known, batch_size)
@@ -300,7 +362,7 @@ def unexplainable(rod: Rod, count: int, sigma: float, seed: int = 0, fibre: Any 
     direction = torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # (count, 2)
     clean = (amp[:, None] * shapes)[:, :, None] * direction[:, None, :] + _unloaded(rod)
     if fibre is not None:
-        return through_fibre(clean, sigma, fibre, seed * 1000 + round(100 * sigma) + 2)
+        return through_sensor(clean, sigma, fibre, seed * 1000 + round(100 * sigma) + 2)
     return clean + sigma * torch.randn(count, G, 2, generator=g, dtype=torch.float64)
 
 
@@ -389,12 +451,28 @@ def run(args: argparse.Namespace) -> int:
     if args.input == "strain":
         from ...sensors import Fibre
 
-        fibre = rod.fibre if rod.fibre is not None else Fibre(cores=EVALUATION_FIBRE)
+        fibre = rod.fibre if rod.fibre is not None and rod.fibre.cores else Fibre(cores=EVALUATION_FIBRE)
         if not args.json:
             cores = ", ".join(f"({1e6 * x:.1f}, {1e6 * y:.1f})" for x, y in fibre.cores)
             print(
                 f"# readings as core strains of a fibre with cores at {cores} um, common strain within "
                 f"+-{COMMON_STRAIN:g}, strain sigma = sigma x {1.0 / fibre.curvature_sigma(1.0):.3g} m"
+            )
+    if args.input == "wavelength":
+        wavelength_fibre = evaluation_wavelength_fibre(rod)
+        fibre = WavelengthInput(wavelength_fibre)
+        if not args.json:
+            per_pm = max(wavelength_fibre.wavelength_sigmas(WAVELENGTH_UNITS["pm"]))
+            route = (
+                "calibration matrices of the rod file"
+                if wavelength_fibre.route == "calibration"
+                else "physics (cores at "
+                + ", ".join(f"({1e6 * x:.1f}, {1e6 * y:.1f})" for x, y in wavelength_fibre.cores)
+                + f" um, p_e {wavelength_fibre.wavelength.photoelastic:g})"
+            )
+            print(
+                f"# readings as peak wavelengths through the {route}, a temperature per grating (common strain "
+                f"within +-{COMMON_STRAIN:g}), wavelength sigma = sigma x {1.0 / per_pm:.4g} pm per 1/m"
             )
     bending = math.radians(args.max_bending_deg) if args.max_bending_deg > 0 else math.inf
     lo = args.s_min if args.s_min is not None else rod.gratings[1] if rod.num_gratings > 1 else None

@@ -4,10 +4,12 @@ Usage: ``torchrod plot READINGS.jsonl ESTIMATES.jsonl --rod ROD [--truth TRUTH.j
 [--out DIR|FILE]``.
 
 READINGS: the input of ``torchrod estimate``/``torchrod stream`` (``{"id", "curvature": [[ux, uy] or null, ...]}``,
-``"t"`` [s] for a stream). ESTIMATES: their output, one JSON line per reading (``{"id", "forces": [{"s", "fx",
-"fy"}, ...]}``; error lines are skipped). Estimates are matched to readings by id when every reading has a distinct
-id, else by line order. TRUTH (optional): the true forces, ``{"id", "t", "forces": [{"s", "fx", "fy"}, ...]}`` per
-line (the format of the shipped ``example_stream_truth.jsonl``: torchrod.data), matched by id.
+``"t"`` [s] for a stream), in any of their formats and units (JSON lines, CSV, a peak log; ``--format``,
+``--csv-quantity``, ``--peaks`` and the unit options as for ``torchrod estimate``). ESTIMATES: their output, one
+JSON line per reading (``{"id", "forces": [{"s", "fx", "fy"}, ...]}``; error lines are skipped). Estimates are
+matched to readings by id when every reading has a distinct id, else by line order. TRUTH (optional): the true
+forces, ``{"id", "t", "forces": [{"s", "fx", "fy"}, ...]}`` per line (the format of
+the shipped ``example_stream_truth.jsonl``: torchrod.data), matched by id.
 
 Figures:
 
@@ -40,7 +42,7 @@ from typing import Any
 from ...io.jsonl import as_number, check_input, get_list, read_records
 from ...presets import load as load_rod
 from ...rod import Rod
-from . import rod_help
+from . import add_input_options, add_sensor_options, rod_help, sensor_rod
 
 HELP = "figures of readings and their estimates"
 
@@ -50,7 +52,7 @@ __all__ = ["HELP", "configure", "parse_forces", "run"]
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.epilog = "\n\n".join((__doc__ or "").split("\n\n")[1:]).replace("``", "")
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("readings", metavar="READINGS.jsonl", help="readings, one JSON object a line")
+    parser.add_argument("readings", metavar="READINGS", help="readings (JSON lines, CSV or a peak log)")
     parser.add_argument("estimates", metavar="ESTIMATES.jsonl", help="their estimates (torchrod estimate/stream)")
     parser.add_argument(
         "--rod",
@@ -62,6 +64,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     which.add_argument("--all", action="store_true", help="one figure per reading (default: one file in all)")
     parser.add_argument("--out", default=".", help="output folder, or a .png file for one figure (default .)")
     parser.add_argument("--dpi", type=int, default=90, help="resolution of the PNGs (default 90)")
+    add_input_options(parser, protocol=False)
+    add_sensor_options(parser, estimating=False)
 
 
 def parse_forces(obj: dict[str, Any]) -> list[tuple[float, float, float]]:
@@ -82,14 +86,24 @@ def _time(obj: dict[str, Any]) -> float | None:
     return as_number(obj["t"], "t") if obj.get("t") is not None else None
 
 
-def _reading(rod: Rod):
-    from ...io.readings import parse_reading
+def _readings(args: argparse.Namespace, rod: Rod) -> list[Any]:
+    """The records of READINGS (:func:`torchrod.io.readings.iter_records`), each value (curvature [1/m], t)."""
+    from ...io.readings import iter_records, parse_reading
 
     def parse(obj: dict[str, Any]):
         reading = parse_reading(obj, rod.num_gratings, rod.gratings, fibre=rod.fibre)
         return reading.curvature.tolist(), reading.t
 
-    return parse
+    records = iter_records(
+        args.readings,
+        rod.num_gratings,
+        parse,
+        args.format,
+        quantity=args.csv_quantity,
+        fibre=rod.fibre,
+        peaks=args.peaks,
+    )
+    return list(records)
 
 
 def _forces_and_time(obj: dict[str, Any]):
@@ -142,9 +156,10 @@ def run(args: argparse.Namespace) -> int:
         if path is not None:
             check_input(path, what)
     rod = load_rod(args.rod) if args.rod is not None else _rod_named_in(args.readings, args.estimates)
+    rod = sensor_rod(args, rod)
     if args.dpi < 10:
         raise ValueError(f"--dpi must be >= 10, got {args.dpi}")
-    readings = [r for r in read_records(args.readings, _reading(rod))]
+    readings = _readings(args, rod)
     bad = [r.error for r in readings if not r.ok]
     readings = [r for r in readings if r.ok]
     if not readings:

@@ -1,7 +1,8 @@
 """``torchrod stream``: forces from a live stream of FBG readings, answered as they arrive.
 
-Usage: ``torchrod stream --rod ROD [--checkpoint C] [--input FILE]`` (default: standard input). ROD is a rod JSON
-file or a preset name (the presets are listed under --rod).
+Usage: ``torchrod stream --rod ROD [--checkpoint C] [--input FILE | tcp://HOST:PORT]`` (default: standard input). ROD is
+a rod JSON file or a preset name (the presets are listed under --rod). ``--input tcp://HOST:PORT`` connects to a server
+that sends the readings and reads until it closes the connection.
 
 Input, one reading a line, read as it arrives (a pipe from an interrogator is fine):
 
@@ -9,11 +10,14 @@ Input, one reading a line, read as it arrives (a pipe from an interrogator is fi
 
       {"id": "f000123", "t": 1.23, "curvature": [[ux, uy], null, ...]}
 
-* or CSV, one reading a row: ``id, t, ux_1, uy_1, ..., ux_G, uy_G`` [1/m] with both cells of a missing grating
-  empty (``t`` may be empty too); a first row whose cells after the id are not numbers is a header and skipped.
-  A CSV number is ``[+-]digits[.digits][e[+-]digits]`` in ASCII (``12``, ``-1.5``, ``.5``, ``2.5E-3``; spaces
-  around the cell are fine); ``1_000``, ``0x1f``, ``1 000`` are not numbers, and ``nan``/``inf`` are refused as not
-  finite (leave a missing value's cell empty).
+* or CSV, one reading a row. A first row of names (no numbers) is a header naming the columns: ``id`` and ``t``
+  (optional), ``ux_1 .. ux_G`` and ``uy_1 .. uy_G`` (1-based, any order), or ``kappa_K, phi_K``, ``eps_K_C``,
+  ``lambda_K_C``, ``dlambda_K_C`` for the other quantities; other columns are ignored. Without a header a row is
+  ``id, t, ux_1, uy_1, ..., ux_G, uy_G`` [1/m] (or ``t`` and the values, or the values alone). All the cells of a
+  missing grating are empty (``t`` may be empty too); an integer id stays an integer. A CSV number is
+  ``[+-]digits[.digits][e[+-]digits]`` in ASCII (``12``, ``-1.5``, ``.5``, ``2.5E-3``; spaces around the cell are
+  fine); ``1_000``, ``0x1f``, ``1 000`` are not numbers, and ``nan``/``inf`` are refused as not finite (leave a
+  missing value's cell empty).
 
 * or a ROS bag (``--input RUN --topic TOPIC``; ``pip install "torchrod[ros]"``): ``std_msgs/Float64MultiArray``
   messages of 2G values (ux, uy per grating, NaN for a missing one), ``t`` the bag's time stamp, ``id`` the
@@ -21,13 +25,24 @@ Input, one reading a line, read as it arrives (a pipe from an interrogator is fi
   ``/torchrod/estimate`` (String, the JSON answer), ``/torchrod/contact_<k>/wrench`` (WrenchStamped, body frame) and
   ``/torchrod/contact_<k>/arc_length`` (Float64, s [m]), NaN for an empty slot.
 
-A JSON line may give ``strain`` (the core strains of the rod file's multicore ``fibre``) or ``curvature_polar``
-(``[kappa, phi]`` per grating) instead of ``curvature``; CSV says which with ``--csv-quantity``, and
-``--strain-noise`` gives the core strain noise instead of ``--noise`` (see ``torchrod estimate --help``).
+* or an interrogator's peak log (``TIME: l_1, ..., l_N`` [nm], ``--peaks`` says which peak is which grating and
+  core; torchrod.io.peaklog), converted through the rod file's ``fibre.wavelength`` section;
 
-``--format auto`` (the default) reads JSON lines when the first non-blank line starts with ``{``, else CSV. The
-rules for a reading are those of ``torchrod estimate`` (one parser for both): finite numbers, each curvature
-component at most 1e6 1/m in magnitude, ids that JSON can echo.
+* or, with ``--protocol fbgs``, the length-prefixed records of shape-sensing software: a 4-byte big-endian length,
+  then tab-separated ASCII fields (date, time, sample number, the channels' peaks, then ``Curvature [1/cm]`` and
+  one curvature magnitude per grating, a label and one bend angle [rad] per grating, then the shape, skipped);
+  ``id`` is the sample number, ``t`` the time of day [s]. From ``tcp://HOST:PORT``, a recorded file or stdin; a
+  record cut short or with another grating count is an error line (torchrod.io.fbgs has what is assumed).
+
+A JSON line may give ``strain``, ``curvature_polar``, ``wavelength`` or ``wavelength_shift`` instead of
+``curvature``; ``--strain-noise`` or ``--wavelength-noise`` [pm] gives the sensor's noise instead of ``--noise``,
+and ``--curvature-unit``, ``--strain-unit``, ``--wavelength-unit`` the units the readings are in (default: the rod
+file's fibre says, else 1/m, strain and nm; see ``torchrod estimate --help`` and docs/sensors.md).
+
+``--format auto`` (the default) reads CSV for a .csv file and JSON lines for .jsonl, else JSON lines when the first
+non-blank line starts with ``{``, a peak log when it is ``TIME: number, ...``, else CSV. The rules for a reading
+are those of ``torchrod estimate`` (one parser for both): finite numbers, each curvature component at most 1e6 1/m
+in magnitude, ids that JSON can echo.
 
 Output: one JSON line per input line, in input order, each written and flushed as soon as its batch is solved::
 
@@ -105,12 +120,15 @@ from ...presets import load as load_rod
 from ...rod import Rod
 from . import (
     add_device_option,
+    add_input_options,
     add_sensor_options,
     add_time_budget_option,
     check_device,
     check_estimation_options,
+    reading_source,
     rod_help,
     sensor_noise,
+    sensor_rod,
     settle,
     time_budget,
 )
@@ -136,8 +154,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="warm-start network checkpoint, or 'none' (default: the network shipped for the rod's grating layout, if "
         "any, as in torchrod estimate)",
     )
-    parser.add_argument("--input", default="-", metavar="FILE", help="readings file (default '-': stdin)")
-    parser.add_argument("--format", choices=("auto", "jsonl", "csv"), default="auto", help="input format")
+    parser.add_argument(
+        "--input", default="-", metavar="FILE", help="readings file, or tcp://HOST:PORT (default '-': stdin)"
+    )
+    add_input_options(parser)
     parser.add_argument(
         "--topic",
         help="read --input as a ROS bag (ROS 1 .bag, ROS 2 directory) and take the readings from TOPIC "
@@ -199,10 +219,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def read_stream(
     source: str, rod: Rod, fmt: str = "auto", *, quantity: str = "curvature", topic: str | None = None
 ) -> Any:
-    """Readings from ``source`` (a path or ``"-"``) in format ``"jsonl"``, ``"csv"`` or ``"auto"`` (JSON lines if
-    the first non-blank line starts with ``{``), lazily, checked by :mod:`torchrod.io.readings`: unusable lines
-    become readings with an ``error``. The flush after an interrupt ends it at the lines already read. With
-    ``topic``, ``source`` is a ROS bag (:class:`torchrod.io.rosbag.BagSource`)."""
+    """Readings from ``source`` (a path, ``"-"`` or ``tcp://HOST:PORT``) in a format of
+    :data:`torchrod.io.readings.FORMATS`, lazily, checked by :mod:`torchrod.io.readings`: unusable lines become
+    readings with an ``error``. The flush after an interrupt ends it at the lines already read. With ``topic``,
+    ``source`` is a ROS bag (:class:`torchrod.io.rosbag.BagSource`)."""
     if topic is not None:
         from ...io.rosbag import BagSource
 
@@ -237,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    rod = load_rod(args.rod)
+    rod = sensor_rod(args, load_rod(args.rod))
     check_estimation_options(args)
     sensor_noise(args, rod)
     check_counts(args)
@@ -245,6 +265,8 @@ def _run(args: argparse.Namespace) -> int:
     device = check_device(args, processes)
     if args.topic is not None and args.input == "-":
         raise ValueError("--topic reads a ROS bag: give its path with --input")
+    if args.topic is not None and args.protocol != "lines":
+        raise ValueError("--topic reads a ROS bag; --protocol fbgs reads shape-sensing records: give one")
     if args.output_bag is not None:
         from ...io.rosbag import require_rosbags
 
@@ -284,7 +306,10 @@ def _run(args: argparse.Namespace) -> int:
     with solver:
         warm_up(estimator, device)
         settle()
-        source = read_stream(args.input, rod, args.format, quantity=args.csv_quantity, topic=args.topic)
+        if args.topic is not None:
+            source = read_stream(args.input, rod, topic=args.topic)
+        else:
+            source = reading_source(args, rod, args.input)
         with open_output(args.out, [args.input]) as out, _bag(args.output_bag, args.max_forces) as bag:
             return _answer(args, solver, options, source, LineWriter(out), truth, bag)
 
