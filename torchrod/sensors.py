@@ -30,7 +30,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["MAX_CORE_RADIUS", "MAX_STRAIN", "Fibre", "polar_to_curvature"]
+from .errors import RodError
+
+__all__ = ["MAX_CORE_RADIUS", "MAX_STRAIN", "MIN_CORE_SPREAD", "Fibre", "polar_to_curvature"]
 
 MAX_STRAIN = 0.1
 """A core strain beyond 10 % is refused: glass fibres break at a few percent, so such a value is a unit error (a
@@ -38,6 +40,10 @@ strain of 1e-6 is one microstrain)."""
 
 MAX_CORE_RADIUS = 0.05
 """[m] a core farther than this from the rod's axis is refused (a unit error: core positions are in metres)."""
+
+MIN_CORE_SPREAD = 1e-6
+"""[m] the smallest RMS distance of the cores from their centre: closer cores (1 um; fibres space them tens of
+micrometres apart) read almost no strain from any bend, and their least squares would divide by nearly nothing."""
 
 _COLLINEAR = 1e-8  # smallest / largest eigenvalue of the cores' scatter below which they count as on one line
 
@@ -85,6 +91,13 @@ class Fibre:
         sxx = sum((x - mx) ** 2 for x, _ in checked)
         syy = sum((y - my) ** 2 for _, y in checked)
         sxy = sum((x - mx) * (y - my) for x, y in checked)
+        spread = math.sqrt((sxx + syy) / len(checked))
+        if spread < MIN_CORE_SPREAD:
+            raise RodError(
+                f"fibre.cores {_show([list(c) for c in checked])} lie within {spread:.3g} m of their centre, less "
+                f"than {MIN_CORE_SPREAD:g} m: such cores read almost no strain from any bend; core positions are in "
+                "metres (35 um = 3.5e-5)"
+            )
         small, large = _symmetric2_eigen(sxx, sxy, syy)
         if not large > 0.0 or small <= _COLLINEAR * large:
             raise ValueError(
