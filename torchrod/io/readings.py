@@ -766,8 +766,13 @@ def _csv_readings(
 ) -> Iterator[Reading]:
     import csv
 
+    from .jsonl import Overlong, overlong_error
+
     first = True
     for number, text in lines:
+        if isinstance(text, Overlong):
+            yield Reading(error=overlong_error(number), line=number)
+            continue
         try:
             cells = _csv_cells(text)
         except csv.Error as exc:
@@ -818,11 +823,16 @@ def iter_readings(
         raise ValueError(f"quantity must be one of {', '.join(QUANTITIES)}, got {quantity!r}")
     lines: Iterator[tuple[int, str]] = iter(read_lines(source, control))
     if fmt == "auto":
+        from .jsonl import Overlong
+
+        # The first line that was read decides (an overlong line, not kept, cannot: it is an error in either format).
+        held = []
         head = next(lines, None)
-        if head is None:
-            return
-        fmt = "jsonl" if head[1].lstrip().startswith("{") else "csv"
-        lines = _chain(head, lines)
+        while head is not None and isinstance(head[1], Overlong):
+            held.append(head)
+            head = next(lines, None)
+        fmt = "jsonl" if head is None or head[1].lstrip().startswith("{") else "csv"
+        lines = _chain(held + ([head] if head is not None else []), lines)
     if fmt == "csv":
         yield from _csv_readings(lines, num_gratings, quantity, fibre)
         return
@@ -869,8 +879,8 @@ class ReadingSource:
         return self.control.waiting.is_set()
 
 
-def _chain(head: tuple[int, str], rest: Iterator[tuple[int, str]]) -> Iterator[tuple[int, str]]:
-    yield head
+def _chain(head: list[tuple[int, str]], rest: Iterator[tuple[int, str]]) -> Iterator[tuple[int, str]]:
+    yield from head
     yield from rest
 
 

@@ -31,7 +31,7 @@ import os
 import re
 from typing import Any
 
-from ...io.jsonl import as_number, get_list, read_records
+from ...io.jsonl import as_number, check_output, get_list, read_lines, read_records
 from ...presets import load as load_rod
 from ...rod import Rod
 
@@ -95,16 +95,15 @@ def _rod_named_in(*paths: str) -> Rod:
 
     named: dict[str, tuple[str, Any]] = {}
     for path in paths:
-        with open(path, encoding="utf-8") as fh:
-            for line in fh:
-                if '"rod"' not in line:
-                    continue
-                try:
-                    obj = json.loads(line)
-                except ValueError:
-                    continue
-                if isinstance(obj, dict) and obj.get("rod") is not None:
-                    named.setdefault(json.dumps(obj["rod"], sort_keys=True), (path, obj["rod"]))
+        for _, line in read_lines(path):  # (lines of bounded length: an endless one is not held)
+            if '"rod"' not in line:
+                continue
+            try:
+                obj = json.loads(line)
+            except (ValueError, RecursionError):
+                continue
+            if isinstance(obj, dict) and obj.get("rod") is not None:
+                named.setdefault(json.dumps(obj["rod"], sort_keys=True), (path, obj["rod"]))
     if not named:
         raise ValueError(
             "which rod? pass --rod ROD (the rod file or preset name the estimates were made with); "
@@ -163,9 +162,12 @@ def run(args: argparse.Namespace) -> int:
     single_file = args.out.lower().endswith(".png")
     if single_file and len(jobs) > 1:
         raise ValueError(f"--out {args.out} names one file but {len(jobs)} figures are due: give a folder or --id")
+    inputs = {"READINGS": args.readings, "ESTIMATES": args.estimates, "--truth": args.truth, "--rod": args.rod}
 
     def target(name: str) -> str:
-        return args.out if single_file else os.path.join(args.out, name)
+        path = args.out if single_file else os.path.join(args.out, name)
+        check_output(path, inputs)
+        return path
 
     for kind, k in jobs:
         if kind == "stream":
