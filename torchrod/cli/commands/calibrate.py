@@ -16,8 +16,16 @@ stops with status 2 naming the bad lines (a calibration from a silently thinned 
 
 Output: the calibrated rod (``location_bias``, and the stiffness: a rod given by its geometry keeps it and gets a
 new ``youngs_modulus``; a rod given by ``bending_stiffness`` gets a new one) goes to ``--out`` (default: standard
-output); the fitted values with their standard errors go to standard error. See torchrod.estimate.calibration for
-the method.
+output, never one of the inputs); the fitted values with their standard errors go to standard error. See
+torchrod.estimate.calibration for the method.
+
+A calibration the command cannot stand behind is refused: exit status 1, the reasons on standard error, and no rod
+written. It is refused when the readings are inconsistent with the known forces (all but zero, as from a dead
+sensor; fitted forces pointing against the known ones, as with a flipped sign), when a residual lies far beyond
+the noise (``--noise SIGMA``, the sensor's sigma [1/m]; without it, what forces fitted freely leave), when the
+stiffness lies outside physical bounds (0.1 to 10 times the rod file's; a Young's modulus of 1e6 to 1.2e12 Pa) or
+is not determined by the data (a standard error above 10 %), or when a solve did not converge. ``--force`` writes
+the rod anyway (the reasons are still printed, as warnings).
 """
 
 from __future__ import annotations
@@ -46,24 +54,49 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="stiffness step: use the known force components, or only their magnitudes (default: %(default)s)",
     )
     parser.add_argument("--initial-bias", type=float, default=0.0, help="start of the bias fit [m] (default: 0)")
+    parser.add_argument(
+        "--noise",
+        type=float,
+        metavar="SIGMA",
+        help="the sensor's noise sigma [1/m], to judge the residuals by (default: what freely fitted forces leave)",
+    )
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="write the rod even when the calibration is refused (its reasons are printed as warnings)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     from ...estimate.calibration import calibrate, read_readings, summary
-    from ...io.jsonl import check_input
+    from ...io.jsonl import STDOUT_CLOSED, ClosedOutput, check_input, check_output
     from ...presets import load as load_rod
 
     rod = load_rod(args.rod)
     check_input(args.readings, "READINGS")
+    if args.noise is not None and not 0.0 < args.noise < float("inf"):
+        raise ValueError(f"--noise must be a positive sigma [1/m], got {args.noise}")
+    # The output is checked before the fit (a wrong --out costs no time), and written only once the fit is accepted.
+    check_output(args.out, {"READINGS": args.readings, "--rod": args.rod})
+    if args.out == "-" and (sys.stdout is None or isinstance(sys.stdout, ClosedOutput)):
+        raise ValueError(STDOUT_CLOSED)
     data = read_readings(args.readings, rod)
-    result = calibrate(rod, data, directions=args.directions, initial_bias=args.initial_bias)
-    new_rod = result.apply(rod)
+    result = calibrate(rod, data, directions=args.directions, initial_bias=args.initial_bias, noise=args.noise)
     print(
         f"torchrod calibrate: {data.num_readings} readings, {int(data.forces.count.sum())} known forces",
         file=sys.stderr,
     )
     for line in summary(result, rod):
-        print(line, file=sys.stderr)
+        if not line.startswith("problem: "):
+            print(line, file=sys.stderr)
+    if result.problems and not args.force:
+        for text in result.problems:
+            print(f"torchrod calibrate: refused: {text}", file=sys.stderr)
+        print("torchrod calibrate: no rod written (--force writes it anyway)", file=sys.stderr)
+        return 1
+    for text in result.problems:
+        print(f"torchrod calibrate: warning (forced): {text}", file=sys.stderr)
+    new_rod = result.apply(rod, force=args.force)
     if args.out == "-":
         json.dump(new_rod.to_dict(), sys.stdout, indent=2)
         sys.stdout.write("\n")
