@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from torchrod import PointForces, Rod, grating_curvature, presets
+from torchrod import errors as tr_errors
 from torchrod.cli import main
 from torchrod.estimate.calibration import CalibrationData, calibrate, read_readings
 
@@ -204,3 +205,80 @@ def test_read_readings_lists_the_bad_lines_by_the_shared_rules(tmp_path):
     with pytest.raises(ValueError, match=r"7 unusable line\(s\): line 2: curvature\[0\]\[0\] = 10000000.0 1/m") as info:
         read_readings(path, ROD)
     assert "line 6:" in str(info.value) and "line 7:" not in str(info.value) and "(and 2 more)" in str(info.value)
+
+
+# ---------------------------------------------------------------------------------------------- refusals
+def test_a_sound_calibration_has_no_problems():
+    noisy = data_of(simulate_readings(noise=0.1, seed=7))
+    assert calibrate(ROD, noisy).problems == ()
+    assert calibrate(ROD, noisy, noise=0.1).problems == ()
+    assert calibrate(ROD, data_of(simulate_readings()), directions="free").problems == ()
+
+
+@pytest.mark.parametrize(
+    "name, change, expected",
+    [
+        ("dead sensor", lambda u: torch.zeros_like(u), ["all but zero", "outside physical bounds"]),
+        ("sign flipped", lambda u: -u, ["point against the known ones", "known forces leave an RMS residual"]),
+        ("scaled by 1e5", lambda u: 1e5 * u, ["even forces fitted freely leave", "not determined"]),
+    ],
+)
+def test_readings_inconsistent_with_the_known_forces_are_refused_saying_which(name, change, expected):
+    result = calibrate(ROD, data_of(change(simulate_readings(noise=0.1, seed=7))))
+    text = " | ".join(result.problems)
+    for part in expected:
+        assert part in text, (name, text)
+    with pytest.raises(ValueError, match="not applied") as info:
+        result.apply(ROD)
+    assert isinstance(info.value, tr_errors.ReadingError)
+    if 1e6 <= ROD.youngs_modulus * result.stiffness_ratio <= 1.2e12:
+        assert result.apply(ROD, force=True).location_bias == result.location_bias
+    else:  # forced, the rod itself refuses a modulus no material has
+        with pytest.raises(tr_errors.RodError, match="youngs_modulus"):
+            result.apply(ROD, force=True)
+
+
+def test_a_residual_far_beyond_the_given_noise_is_refused():
+    """Readings with noise 0.3 1/m calibrated as if the sensor's sigma were 0.03: the residual is ten times it."""
+    result = calibrate(ROD, data_of(simulate_readings(noise=0.3, seed=1)), noise=0.03)
+    assert any("times the noise sigma" in p for p in result.problems), result.problems
+
+
+def test_a_stiffness_out_of_physical_bounds_or_not_determined_is_refused():
+    # A rod 20 times stiffer than its file says: the fit is exact, and refused for the stiffness alone.
+    loads = known_forces()
+    stiff = grating_curvature(ROD, loads, bending_stiffness=20 * ROD.bending_stiffness)
+    result = calibrate(ROD, data_of(stiff))
+    assert len(result.problems) == 1 and "outside physical bounds" in result.problems[0], result.problems
+    assert "20" in result.problems[0] and "Young's modulus" in result.problems[0]
+    # One weak force in the noise: the stiffness is not determined.
+    weak = PointForces.from_lists([[(0.2, 0.01, 0.0)]])
+    u = grating_curvature(ROD, weak) + 0.1 * torch.randn(
+        1, ROD.num_gratings, 2, dtype=F64, generator=torch.Generator().manual_seed(0)
+    )
+    one = CalibrationData(u, torch.ones(1, ROD.num_gratings, dtype=torch.bool), weak)
+    assert any("not determined by the data" in p for p in calibrate(ROD, one).problems)
+
+
+def test_cli_refuses_a_dead_sensor_and_writes_no_rod_unless_forced(tmp_path, capsys):
+    readings = tmp_path / "cal.jsonl"
+    write_readings(readings, torch.zeros(len(CASES), ROD.num_gratings, 2, dtype=F64))
+    out = tmp_path / "new.json"
+    assert main(["calibrate", "--rod", "nitinol290", str(readings), "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert not out.exists() and captured.out == ""
+    assert "refused: readings inconsistent with the known forces: the readings are all but zero" in captured.err
+    assert "no rod written (--force writes it anyway)" in captured.err
+    assert main(["calibrate", "--rod", "nitinol290", str(readings)]) == 1  # nor to standard output
+    assert capsys.readouterr().out == ""
+    # forced, the rod file itself refuses the modulus a dead sensor gives
+    assert main(["calibrate", "--rod", "nitinol290", str(readings), "--out", str(out), "--force"]) == 2
+    assert "youngs_modulus" in capsys.readouterr().err and not out.exists()
+    # --noise judges the residuals: a sound set passes with its sigma, fails with a tenth of it (unless forced)
+    sound = tmp_path / "sound.jsonl"
+    write_readings(sound, simulate_readings(noise=0.1, seed=7))
+    assert main(["calibrate", "--rod", "nitinol290", str(sound), "--noise", "0.1"]) == 0
+    assert main(["calibrate", "--rod", "nitinol290", str(sound), "--noise", "0.01"]) == 1
+    assert "times the noise sigma" in capsys.readouterr().err
+    assert main(["calibrate", "--rod", "nitinol290", str(sound), "--noise", "0.01", "--out", str(out), "--force"]) == 0
+    assert "warning (forced)" in capsys.readouterr().err and Rod.from_json(out).location_bias != 0.0

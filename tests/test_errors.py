@@ -20,3 +20,8 @@ def test_each_error_is_a_torchrod_error_and_its_builtin(kind, builtin):
     with pytest.raises(builtin):
         raise kind("x")
     assert kind.__name__ in errors.__all__ and issubclass(kind, errors.TorchrodError)
+
+
+def test_rod_warnings_are_torchrod_warnings_and_user_warnings():
+    assert issubclass(errors.RodWarning, errors.TorchrodWarning) and issubclass(errors.TorchrodWarning, UserWarning)
+    assert {"RodWarning", "TorchrodWarning"} <= set(errors.__all__)

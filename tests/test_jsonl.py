@@ -321,3 +321,27 @@ def test_a_halted_reader_yields_the_lines_it_holds_then_ends(tmp_path):
     rest = list(lines)
     assert first[0] == 1 and 1 + len(rest) == 2**16 // len(line) < 2000
     assert [n for n, _ in rest] == list(range(2, 2 + len(rest)))
+
+
+def test_a_line_of_tens_of_megabytes_is_refused_in_bounded_memory(tmp_path):
+    """A 40 MB line (an array of small numbers: decoded, about 20 bytes of Python objects per byte of text) is an
+    error line read past in chunks: the reader never holds more than MAX_LINE_BYTES of it, and the next line is
+    read. Before, lines up to 256 MiB were decoded whole, and a 72 MB one took gigabytes."""
+    import tracemalloc
+
+    from torchrod.io.jsonl import MAX_LINE_BYTES
+
+    size = 40_000_000
+    path = tmp_path / "long.jsonl"
+    with open(path, "w") as fh:
+        fh.write('{"id": 1, "curvature": [' + "[0,0]," * (size // 6) + "[0,0]]}\n")
+        fh.write('{"id": 2, "x": 1}\n')
+    tracemalloc.start()
+    try:
+        records = list(read_records(path, lambda obj: obj.get("x")))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert records[0].error == f"line 1: longer than {MAX_LINE_BYTES} bytes; not read"
+    assert records[1].ok and records[1].value == 1
+    assert peak < MAX_LINE_BYTES + 4 * 2**20 < size

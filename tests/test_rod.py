@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
 import torch
 
 import torchrod as tr
+import torchrod.cli
+import torchrod.errors
 from torchrod.data import path as shipped_file
 from torchrod.errors import MissingFileError
 from torchrod.rod import Rod
@@ -327,3 +330,104 @@ def test_a_directory_as_rod_through_the_command_line_prints_no_traceback(tmp_pat
     )
     assert done.returncode == 2
     assert done.stderr == f"torchrod plot: error: {tmp_path}: is a directory, not a rod file\n"
+
+
+# ---------------------------------------------------------------------------------------------------- units sanity
+def test_a_rod_in_millimetres_and_gigapascals_is_refused_with_the_conversion(tmp_path, capsys):
+    """The paper's tube written in mm and GPa: every implausible value is named with its value in SI units."""
+    path = tmp_path / "rod.json"
+    path.write_text(
+        json.dumps(
+            {
+                "length": 290,
+                "outer_diameter": 1.397,
+                "inner_diameter": 1.118,
+                "youngs_modulus": 67,
+                "gratings": [10 + 20 * k for k in range(14)],
+            }
+        )
+    )
+    with pytest.raises(tr.errors.RodError) as info:
+        Rod.from_json(path)
+    text = str(info.value)
+    assert "SI units" in text
+    for part in ("length = 290 m", "give 0.29 m", "outer_diameter = 1.397 m", "give 0.001397 m"):
+        assert part in text
+    assert "youngs_modulus = 67 Pa" in text and "in GPa, give 6.7e+10 Pa" in text
+    forces = tmp_path / "f.jsonl"
+    forces.write_text('{"forces": []}\n')
+    assert tr.cli.main(["simulate", "--rod", str(path), str(forces)]) == 2  # (it used to answer all-zero curvature)
+    assert "give 0.29 m" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"length": 25.0}, "length = 25 m lies outside the plausible 1 mm to 20 m"),
+        ({"length": 5e-4, "gratings": [1e-4]}, "length = 0.0005 m lies outside"),
+        ({"youngs_modulus": 5e5}, "youngs_modulus = 500000 Pa lies outside"),
+        ({"youngs_modulus": 2000}, "in MPa, give 2e+09 Pa"),
+        ({"youngs_modulus": 2e12}, "youngs_modulus = 2e+12 Pa"),
+        ({"outer_diameter": 0.2, "inner_diameter": 0.0}, "outer_diameter = 0.2 m is larger than 0.1 m"),
+        ({"gratings": [0.01, 270.0]}, "gratings[1] = 270 m must lie inside the rod, [0, 0.29] m"),
+        ({"gratings": [-0.01, 0.1]}, "gratings[0] = -0.01 m must lie inside"),
+    ],
+)
+def test_each_implausible_value_is_an_error_naming_it(change, message):
+    with pytest.raises(tr.errors.RodError) as info:
+        Rod.from_dict({**GEOMETRY, "gratings": GRATINGS, **change})
+    assert message in str(info.value)
+
+
+def test_the_bounds_themselves_are_plausible():
+    for length in (1e-3, 20.0):
+        Rod(length=length, bending_stiffness=1.0, gratings=(0.0, 0.5 * length))
+    Rod.from_geometry(length=0.29, outer_diameter=0.1, inner_diameter=0.0, youngs_modulus=1e6, gratings=GRATINGS)
+    Rod.from_geometry(length=0.29, outer_diameter=1e-3, inner_diameter=0.0, youngs_modulus=1.2e12, gratings=GRATINGS)
+
+
+# ---------------------------------------------------------------------------------------------------- limitations
+def test_a_rod_whose_only_grating_is_at_the_tip_is_refused():
+    """No force can bend the rod distal to the tip, so no reading would ever see one (every loaded reading used to be
+    answered 'ok, 0 forces')."""
+    with pytest.raises(tr.errors.RodError, match="no grating lies proximal to the tip"):
+        Rod(length=0.29, bending_stiffness=7e-3, gratings=(0.29,))
+    with pytest.raises(tr.errors.RodError, match="no grating lies proximal"):
+        Rod(length=0.29, bending_stiffness=7e-3, gratings=(0.29 - 1e-9,))
+
+
+@pytest.mark.parametrize(
+    "gratings, message",
+    [
+        ((0.1, 0.1 + 1e-12, 0.2), r"gratings\[0\] and gratings\[1\] lie 1e-12 m apart"),
+        ((0.05,), "a single grating"),
+        ((0.2, 0.25, 0.27), "the first grating lies at 0.2 m, 69 % of the length"),
+    ],
+)
+def test_a_rod_that_cannot_determine_everything_is_warned_at_load(gratings, message):
+    data = {"length": 0.29, "bending_stiffness": 7e-3, "gratings": list(gratings)}
+    with pytest.warns(tr.errors.RodWarning, match=message):
+        rod = Rod.from_dict(data)
+    assert any(re.search(message, text) for text in rod.limitations)
+
+
+def test_a_sound_rod_has_no_limitations_and_gives_no_warning():
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert tr.presets.nitinol290().limitations == () and tr.presets.ctr250().limitations == ()
+
+
+def test_the_cli_prints_a_rod_warning_as_one_line(tmp_path, capsys):
+    path = tmp_path / "rod.json"
+    path.write_text(json.dumps({"length": 0.29, "bending_stiffness": 7e-3, "gratings": [0.1, 0.1 + 1e-12, 0.2]}))
+    forces = tmp_path / "f.jsonl"
+    forces.write_text('{"forces": [{"s": 0.25, "fx": 0.1, "fy": 0.0}]}\n')
+    assert tr.cli.main(["simulate", "--rod", str(path), str(forces)]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err == [
+        "torchrod simulate: warning: gratings[0] and gratings[1] lie 1e-12 m apart: they read the same curvature, "
+        "which counts twice in the fit (a count test too sure of itself if they carry one sensor's value twice); "
+        "give one of them"
+    ]

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -128,3 +130,139 @@ def test_bag_errors(tmp_path: Path, capsys, readings):
     write_readings(short, TOPIC, [(0.5, readings[0][1][:5])])
     assert main([*base, "--input", str(short), "--topic", TOPIC]) == 1
     assert "holds 10 values" in capsys.readouterr().out
+
+
+# ---------------------------------------------------------------------------------------------------- faults
+def _stream_lines(path: Path, readings, times) -> None:
+    """JSON lines of the readings' curvature at the given times [s]."""
+    curvature = [u for _, u in readings if all(p is None or not math.isnan(p[1]) for p in u)]
+    lines = [json.dumps({"id": k, "t": t, "curvature": curvature[k % len(curvature)]}) for k, t in enumerate(times)]
+    path.write_text("\n".join(lines) + "\n")
+
+
+BASE = ["stream", "--rod", "nitinol290", "--noise", "0.05", "--checkpoint", "none", "--max-forces", "2"]
+
+
+@pytest.mark.parametrize("name", ["run", "run.bag"])
+def test_a_time_stamp_the_bag_cannot_hold_is_an_error_line_for_that_reading(tmp_path, capsys, readings, name):
+    """t = 2^40 s and t in milliseconds since the epoch (1.7e12) fit neither format: those readings are answered
+    with an error line (saying what t may be), every other reading is answered and written, and the bag is
+    readable with its topics aligned."""
+    lines, out_bag = tmp_path / "in.jsonl", tmp_path / name
+    times = [1.0, 1.01, 2.0**40, 1.03, 1.7e12, 1.05]
+    _stream_lines(lines, readings, times)
+    status = main([*BASE, "--input", str(lines), "--output-bag", str(out_bag)])
+    answers = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert status == 1
+    assert [a["id"] for a in answers] == list(range(6))
+    for k in (2, 4):
+        assert "cannot be a time stamp" in answers[k]["error"] and answers[k]["t"] == times[k]
+    assert "milliseconds" in answers[4]["error"] and "1.7e+09" in answers[4]["error"]
+    good = [0, 1, 3, 5]
+    assert all("forces" in answers[k] for k in good)
+    msgs = _messages(out_bag)
+    for topic, items in msgs.items():
+        assert [stamp for stamp, _ in items] == [round(times[k] * 1e9) for k in good], topic
+    assert [json.loads(m.data) for _, m in msgs["/torchrod/estimate"]] == [answers[k] for k in good]
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_bag_time_stamps_hold_what_the_format_holds(tmp_path, ros1):
+    from torchrod.errors import ReadingError
+    from torchrod.io.rosbag import BagWriter
+
+    with BagWriter(tmp_path / ("b.bag" if ros1 else "b"), 1) as bag:
+        assert bag.stamp(1.5) == 1_500_000_000 and bag.stamp(None) == 0
+        assert bag.stamp(2.0**31 - 1) == (2**31 - 1) * 10**9
+        if ros1:
+            assert bag.stamp(2.0**31) == 2**31 * 10**9
+        for t in ((2.0**32,) if ros1 else (2.0**31,)) + (-1.0, 2.0**40, math.inf):
+            with pytest.raises(ReadingError, match="cannot be a time stamp"):
+                bag.write({"id": 0, "forces": []}, t)
+        bag.write({"id": 0, "forces": []}, 3.0)
+    msgs = _messages(tmp_path / ("b.bag" if ros1 else "b"))
+    assert all([stamp for stamp, _ in items] == [3 * 10**9] for items in msgs.values())
+
+
+def test_a_ros1_bag_damaged_in_the_middle_answers_what_it_could_read_then_one_error(tmp_path, capsys, readings):
+    bag = tmp_path / "run.bag"
+    write_readings(bag, TOPIC, [(1.0 + 0.01 * k, readings[0][1]) for k in range(200)])
+    size = bag.stat().st_size
+    with open(bag, "r+b") as fh:
+        fh.seek(size // 2)
+        fh.write(bytes(range(256)) * 8)
+    status = main([*BASE, "--input", str(bag), "--topic", TOPIC])
+    out, err = capsys.readouterr()
+    answers = [json.loads(x) for x in out.splitlines()]
+    assert status == 2
+    assert 10 < len(answers) < 200 and [a["id"] for a in answers] == list(range(len(answers)))
+    # (the message that the damage starts in may be read as garbage: an error answer of its own)
+    assert all(a["num_forces"] == 2 for a in answers[:-1]) and ("error" in answers[-1] or "forces" in answers[-1])
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "damaged" in lines[0] and f"message {len(answers)}" in lines[0]
+
+
+def _failing(real, exc, after: int):
+    """``real`` (a writer's method), raising ``exc`` from its call number ``after`` on."""
+    calls = [0]
+
+    def write(self, *args, **kwargs):
+        calls[0] += 1
+        if calls[0] > after:
+            raise exc
+        return real(self, *args, **kwargs)
+
+    return write
+
+
+@pytest.mark.parametrize("name", ["run", "run.bag"])
+def test_a_full_disk_under_the_output_bag_is_one_clear_error(tmp_path, capsys, monkeypatch, readings, name):
+    """The storage refusing a write (injected: ENOSPC from the ROS 1 file, SQLite's "database or disk is full",
+    at the write and again when the bag is closed): one error line, every reading still answered, status 1."""
+    import errno
+    import sqlite3
+
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import Writer as Writer2
+
+    writer = Writer1 if name.endswith(".bag") else Writer2
+    full = (
+        OSError(errno.ENOSPC, "No space left on device")
+        if writer is Writer1
+        else sqlite3.OperationalError("database or disk is full")
+    )
+    monkeypatch.setattr(writer, "write", _failing(writer.write, full, after=7 * 3))  # 3 answers of 7 messages
+    monkeypatch.setattr(writer, "close", _failing(writer.close, full, after=0))
+    lines = tmp_path / "in.jsonl"
+    _stream_lines(lines, readings, [1.0 + 0.01 * k for k in range(8)])
+    status = main([*BASE, "--input", str(lines), "--output-bag", str(tmp_path / name)])
+    out, err = capsys.readouterr()
+    assert status == 1
+    assert [json.loads(x)["id"] for x in out.splitlines()] == list(range(8))
+    errors = [line for line in err.splitlines() if line.strip()]
+    assert len(errors) == 1 and "--output-bag" in errors[0] and ("No space" in errors[0] or "disk is full" in errors[0])
+    assert "Traceback" not in err
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0, reason="mounting a tmpfs needs root")
+@pytest.mark.parametrize("name", ["run", "run.bag"])
+def test_a_really_full_disk_under_the_output_bag(tmp_path, capsys, readings, name):
+    """The same on a real 256 KiB tmpfs, where this machine lets the test mount one."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)], capture_output=True, check=False
+    )
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.decode().strip()}")
+    try:
+        lines = tmp_path / "in.jsonl"
+        _stream_lines(lines, readings, [1.0 + 0.001 * k for k in range(1500)])
+        status = main([*BASE, "--input", str(lines), "--output-bag", str(disk / name), "--max-forces", "1"])
+        out, err = capsys.readouterr()
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)  # (lazy: a file left open cannot keep it)
+    assert status == 1
+    assert len(out.splitlines()) == 1500
+    errors = [line for line in err.splitlines() if line.strip()]
+    assert len(errors) == 1 and "--output-bag" in errors[0] and ("No space" in errors[0] or "disk is full" in errors[0])

@@ -10,7 +10,15 @@ A reading the estimator cannot fit is not an exception: it is answered with a st
 
 from __future__ import annotations
 
-__all__ = ["MissingFileError", "OptionsError", "ReadingError", "RodError", "TorchrodError"]
+__all__ = [
+    "MissingFileError",
+    "OptionsError",
+    "ReadingError",
+    "RodError",
+    "RodWarning",
+    "TorchrodError",
+    "TorchrodWarning",
+]
 
 
 class TorchrodError(Exception):
@@ -33,3 +41,13 @@ class OptionsError(TorchrodError, ValueError):
 
 class MissingFileError(TorchrodError, FileNotFoundError):
     """A file the caller named does not exist (a checkpoint, a rod file, an input)."""
+
+
+class TorchrodWarning(UserWarning):
+    """Base class of the warnings torchrod gives about input it can use, but not fully (the CLI prints them as one
+    line each on stderr)."""
+
+
+class RodWarning(TorchrodWarning):
+    """A rod that works, but cannot determine everything a user may ask of it: forces where no grating can see
+    them, gratings so close that they read the same curvature, a single grating (:attr:`torchrod.Rod.limitations`)."""

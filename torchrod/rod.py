@@ -16,16 +16,28 @@ import math
 import numbers
 import os
 import sys
+import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
+
+from .errors import RodError, RodWarning
 
 if TYPE_CHECKING:  # torch is imported where a tensor is made: a rod file can be checked without it
     import torch
 
     from .sensors import Fibre
 
-__all__ = ["AGREEMENT", "DEFAULT_POISSON_RATIO", "Rod", "tube_bending_stiffness"]
+__all__ = [
+    "AGREEMENT",
+    "COINCIDENT",
+    "DEFAULT_POISSON_RATIO",
+    "LENGTH_RANGE",
+    "MAX_DIAMETER",
+    "YOUNGS_MODULUS_RANGE",
+    "Rod",
+    "tube_bending_stiffness",
+]
 
 DEFAULT_POISSON_RATIO = 0.33
 """nu for the torsional stiffness GJ = EI / (1 + nu) of a tube when the rod gives neither ``poisson_ratio`` nor
@@ -36,6 +48,22 @@ AGREEMENT = 1e-9
 
 MAX_FILE_BYTES = 16 * 2**20
 """A rod file larger than this (16 MiB) is refused unread: it cannot be a rod description."""
+
+LENGTH_RANGE = (1e-3, 20.0)
+"""[m] The plausible rod lengths (1 mm to 20 m): a length outside is taken for a unit error (a rod file written in
+millimetres) and refused, with the conversion to SI in the message."""
+
+YOUNGS_MODULUS_RANGE = (1e6, 1.2e12)
+"""[Pa] The plausible Young's moduli: from soft elastomers (about 1 MPa) to diamond (about 1.2 TPa). A modulus
+outside (``193`` for a steel in GPa) is refused as a unit error; :mod:`torchrod.estimate.calibration` holds a
+fitted modulus to the same range."""
+
+MAX_DIAMETER = 0.1
+"""[m] The largest plausible tube diameter: a larger one is taken for a unit error (millimetres) and refused."""
+
+COINCIDENT = 1e-6
+"""Gratings closer than this fraction of the length read the same curvature (a warning); a force must be able to
+act on at least this fraction of the length distal to the first grating, else no reading can see any force."""
 
 _GEOMETRY = ("outer_diameter", "inner_diameter", "youngs_modulus")
 _QUOTE = 100  # characters of an offending value quoted in an error message
@@ -131,6 +159,36 @@ def _geometry_stiffness(
     return d_out, d_in, e, ei
 
 
+def _as_si(value: float, unit: str, scales: Sequence[tuple[str, float]], plausible: tuple[float, float]) -> str:
+    """The first reading of ``value`` in another unit that is plausible, as advice (``"; in millimetres? give
+    0.4"``), or nothing."""
+    for name, factor in scales:
+        converted = value * factor
+        if plausible[0] <= converted <= plausible[1]:
+            return f" (if it is in {name}, give {converted:.6g} {unit})"
+    return ""
+
+
+def _unit_problems(length: float, geometry: tuple[float, float, float] | None) -> list[str]:
+    """What in a rod's length and tube geometry is implausible in SI units (each with its likely conversion)."""
+    out = []
+    lo, hi = LENGTH_RANGE
+    if not lo <= length <= hi:
+        fix = _as_si(length, "m", (("millimetres", 1e-3), ("centimetres", 1e-2)), LENGTH_RANGE)
+        out.append(f"length = {length:g} m lies outside the plausible {lo * 1e3:g} mm to {hi:g} m{fix}")
+    if geometry is not None:
+        d_out, d_in, e = geometry
+        for name, d in (("outer_diameter", d_out), ("inner_diameter", d_in)):
+            if d > MAX_DIAMETER:
+                fix = _as_si(d, "m", (("millimetres", 1e-3),), (0.0, MAX_DIAMETER))
+                out.append(f"{name} = {d:g} m is larger than {MAX_DIAMETER:g} m{fix}")
+        lo, hi = YOUNGS_MODULUS_RANGE
+        if not lo <= e <= hi:
+            fix = _as_si(e, "Pa", (("GPa", 1e9), ("MPa", 1e6)), YOUNGS_MODULUS_RANGE)
+            out.append(f"youngs_modulus = {e:g} Pa lies outside the plausible {lo:g} to {hi:g} Pa{fix}")
+    return out
+
+
 @dataclass(frozen=True)
 class Rod:
     """A straight elastic rod clamped at ``s = 0`` with FBG gratings along it.
@@ -177,6 +235,21 @@ class Rod:
         length = _positive("length", self.length, " [m]")
         set_(self, "length", length)
         ei = _positive("bending_stiffness", self.bending_stiffness, " [N m^2]")
+        geometry = {k: getattr(self, k) for k in _GEOMETRY}
+        given = [k for k, v in geometry.items() if v is not None]
+        if given and len(given) < 3:
+            missing = [k for k in _GEOMETRY if k not in given]
+            raise ValueError(
+                f"outer_diameter, inner_diameter and youngs_modulus go together: {given} given, {missing} missing"
+            )
+        checked = _geometry_stiffness(*geometry.values()) if given else None
+        problems = _unit_problems(length, checked[:3] if checked else None)
+        if problems:
+            raise RodError(
+                "implausible rod values, as if not in SI units (metres, pascals): "
+                + "; ".join(problems)
+                + ". Give the rod in SI units"
+            )
         set_(self, "gratings", _check_gratings(self.gratings, length))
         bias = _real("location_bias", self.location_bias, " [m]")
         if abs(bias) >= length:
@@ -184,15 +257,8 @@ class Rod:
                 f"location_bias must be smaller in size than the length ({length} m), got {_show(self.location_bias)}"
             )
         set_(self, "location_bias", bias)
-        geometry = {k: getattr(self, k) for k in _GEOMETRY}
-        given = [k for k, v in geometry.items() if v is not None]
-        if given:
-            if len(given) < 3:
-                missing = [k for k in _GEOMETRY if k not in given]
-                raise ValueError(
-                    f"outer_diameter, inner_diameter and youngs_modulus go together: {given} given, {missing} missing"
-                )
-            d_out, d_in, e, ei_geometry = _geometry_stiffness(*geometry.values())
+        if checked is not None:
+            d_out, d_in, e, ei_geometry = checked
             if not math.isclose(ei, ei_geometry, rel_tol=AGREEMENT, abs_tol=0.0):
                 raise ValueError(
                     f"bending_stiffness {_show(self.bending_stiffness)} N m^2 contradicts the geometry "
@@ -223,6 +289,8 @@ class Rod:
                 )
             set_(self, "torsional_stiffness", _positive("torsional_stiffness", self.torsional_stiffness, " [N m^2]"))
         set_(self, "intrinsic_curvature", _check_intrinsic(self.intrinsic_curvature, length))
+        for text in self.limitations:
+            warnings.warn(text, RodWarning, stacklevel=3)
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -289,35 +357,36 @@ class Rod:
     def from_json(cls, path: str | os.PathLike) -> Rod:
         """Read a rod file (the JSON form of :meth:`from_dict`, UTF-8).
 
-        Every problem is one ``ValueError`` naming the file: a directory, an unreadable or missing file, a file
-        over ``MAX_FILE_BYTES``, text that is not JSON (or repeats a key), and what :meth:`from_dict` refuses.
+        Every problem is one :class:`~torchrod.errors.RodError` (a ``ValueError``) naming the file: a directory, an
+        unreadable or missing file, a file over ``MAX_FILE_BYTES``, text that is not JSON (or repeats a key), and
+        what :meth:`from_dict` refuses.
         """
         name = os.fspath(path)
         if os.path.isdir(name):
-            raise ValueError(f"{name}: is a directory, not a rod file")
+            raise RodError(f"{name}: is a directory, not a rod file")
         try:
             with open(name, "rb") as fh:
                 raw = fh.read(MAX_FILE_BYTES + 1)
         except OSError as exc:
-            raise ValueError(f"{name}: cannot read the rod file ({exc.strerror or type(exc).__name__})") from None
+            raise RodError(f"{name}: cannot read the rod file ({exc.strerror or type(exc).__name__})") from None
         if len(raw) > MAX_FILE_BYTES:
-            raise ValueError(f"{name}: larger than {MAX_FILE_BYTES // 2**20} MiB, not a rod file")
+            raise RodError(f"{name}: larger than {MAX_FILE_BYTES // 2**20} MiB, not a rod file")
         try:
             text = raw.decode("utf-8-sig")
         except UnicodeDecodeError:
-            raise ValueError(f"{name}: not a rod file (not UTF-8 text)") from None
+            raise RodError(f"{name}: not a rod file (not UTF-8 text)") from None
         try:
             data = json.loads(text, object_pairs_hook=_no_repeated_keys)
         except json.JSONDecodeError as exc:
-            raise ValueError(f"{name}: not valid JSON ({exc})") from None
+            raise RodError(f"{name}: not valid JSON ({exc})") from None
         except RecursionError:
-            raise ValueError(f"{name}: not a rod file (nested too deeply)") from None
+            raise RodError(f"{name}: not a rod file (nested too deeply)") from None
         except ValueError as exc:  # a repeated key, or an integer beyond Python's int-to-text limit
-            raise ValueError(f"{name}: {_clip(str(exc))}") from None
+            raise RodError(f"{name}: {_clip(str(exc))}") from None
         try:
             return cls.from_dict(data)
         except ValueError as exc:
-            raise ValueError(f"{name}: {exc}") from None
+            raise RodError(f"{name}: {exc}") from None
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form; geometry is written when known, else ``bending_stiffness``."""
@@ -449,6 +518,40 @@ class Rod:
         return out
 
     @property
+    def limitations(self) -> tuple[str, ...]:
+        """What this rod cannot determine, one sentence each (empty for a rod without such limits). Each is also
+        given as a :class:`~torchrod.errors.RodWarning` when the rod is made (the CLI prints it):
+
+        - a single grating: two values per reading, fewer than a force's three unknowns (s, f_x, f_y);
+        - a first grating beyond half the length: a force proximal to it bends no grating, so no reading sees it;
+        - two gratings closer than :data:`COINCIDENT` times the length: they read the same curvature, which then
+          counts twice in the fit (a count test too sure of itself, when they carry one sensor's value twice).
+
+        A rod on which no force can be seen at all (its only grating at the tip) is refused when it is made.
+        """
+        out = []
+        L, g = self.length, self.gratings
+        if len(g) == 1:
+            out.append(
+                f"a single grating (at {g[0]:g} m) reads 2 values per reading, fewer than the 3 unknowns (s, fx, fy) "
+                "of one force: it cannot locate a force; give the rod's other gratings"
+            )
+        if g[0] > 0.5 * L:
+            out.append(
+                f"the first grating lies at {g[0]:g} m, {100 * g[0] / L:.0f} % of the length: a force proximal to "
+                "it bends no grating, so no reading can see a force there (answers say 0 forces)"
+            )
+        for k, (a, b) in enumerate(itertools.pairwise(g), start=1):
+            if b - a < COINCIDENT * L:
+                out.append(
+                    f"gratings[{k - 1}] and gratings[{k}] lie {b - a:.3g} m apart: they read the same curvature, which "
+                    "counts twice in the fit (a count test too sure of itself if they carry one sensor's value "
+                    "twice); give one of them"
+                )
+                break
+        return tuple(out)
+
+    @property
     def relative_gratings(self) -> tuple[float, ...]:
         """Grating positions divided by the length (the layout a trained network is tied to)."""
         return tuple(g / self.length for g in self.gratings)
@@ -467,7 +570,17 @@ def _check_gratings(gratings: Any, length: float) -> tuple[float, ...]:
         raise ValueError("gratings must hold at least one position, got none")
     for k, x in enumerate(g):
         if not 0.0 <= x <= length:
-            raise ValueError(f"gratings[{k}] = {x} m must lie inside the rod, [0, {length}] m")
+            fix = _as_si(x, "m", (("millimetres", 1e-3), ("centimetres", 1e-2)), (0.0, length))
+            raise RodError(
+                f"gratings[{k}] = {x:g} m must lie inside the rod, [0, {length:g}] m: positions are in metres from "
+                f"the base, as the length{fix}"
+            )
+    if length - g[0] < COINCIDENT * length:
+        raise RodError(
+            f"no grating lies proximal to the tip (the first is at {g[0]:g} m of {length:g} m): a force anywhere on "
+            "the rod bends the rod only proximal to it, so no grating could ever read one; give the gratings "
+            "between the base and the loads"
+        )
     for k, (a, b) in enumerate(itertools.pairwise(g), start=1):
         if b <= a:
             raise ValueError(f"gratings must be strictly increasing: gratings[{k}] = {b} m follows {a} m")

@@ -62,6 +62,7 @@ __all__ = [
     "DEFAULT_UNITS",
     "MAX_CORE_RADIUS",
     "MAX_STRAIN",
+    "MIN_CORE_SPREAD",
     "MAX_WAVELENGTH_SHIFT",
     "NOMINAL_WAVELENGTH",
     "PEAK_ORDERS",
@@ -118,6 +119,10 @@ PEAK_ORDERS = ("by-core", "by-grating")
 """The regular orders of a peak log's N = G x C peaks: ``by-core`` (core 1's G gratings, then core 2's, ...: an
 interrogator with one channel per core, each channel's peaks in order along the fibre) or ``by-grating`` (grating
 1's C cores, then grating 2's, ...)."""
+
+MIN_CORE_SPREAD = 1e-6
+"""[m] the smallest RMS distance of the cores from their centre: closer cores (1 um; fibres space them tens of
+micrometres apart) read almost no strain from any bend, and their least squares would divide by nearly nothing."""
 
 _COLLINEAR = 1e-8  # smallest / largest eigenvalue of the cores' scatter below which they count as on one line
 
@@ -429,6 +434,13 @@ class Fibre:
         sxx = sum((x - mx) ** 2 for x, _ in checked)
         syy = sum((y - my) ** 2 for _, y in checked)
         sxy = sum((x - mx) * (y - my) for x, y in checked)
+        spread = math.sqrt((sxx + syy) / len(checked))
+        if spread < MIN_CORE_SPREAD:
+            raise RodError(
+                f"fibre.cores {_show([list(c) for c in checked])} lie within {spread:.3g} m of their centre, less "
+                f"than {MIN_CORE_SPREAD:g} m: such cores read almost no strain from any bend; core positions are in "
+                "metres (35 um = 3.5e-5)"
+            )
         small, large = _symmetric2_eigen(sxx, sxy, syy)
         if not large > 0.0 or small <= _COLLINEAR * large:
             raise RodError(

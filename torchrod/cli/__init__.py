@@ -10,9 +10,11 @@ from __future__ import annotations
 import argparse
 import gc
 import importlib
+import os
 import sys
 import textwrap
-from collections.abc import Sequence
+import warnings
+from collections.abc import Callable, Sequence
 from types import ModuleType
 
 __all__ = ["COMMANDS", "DESCRIPTION", "command_parser", "help_pages", "main"]
@@ -126,8 +128,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise
     sub = command_parser(name, module)
     args = sub.parse_args(argv[1:])
+    restore = _standard_streams()
     try:
-        return int(module.run(args) or 0)
+        with warnings.catch_warnings():
+            warnings.showwarning = _warning_printer(name)
+            return int(module.run(args) or 0)
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:
@@ -137,13 +142,76 @@ def main(argv: Sequence[str] | None = None) -> int:
         quiet_closed_pipe(sys.stdout)
         return 141
     except (ValueError, OSError) as exc:
-        # A bad input, option, rod file or checkpoint (OSError: a directory, a missing or unreadable file):
-        # one line, no traceback.
+        # A bad input, option, rod file or checkpoint (OSError: a directory, a missing or unreadable file, a full
+        # disk, a closed standard stream): one line, no traceback.
         print(f"torchrod {name}: error: {exc}", file=sys.stderr)
         return 2
+    except MemoryError:
+        print(
+            f"torchrod {name}: error: out of memory; ask for less at a time (a smaller --count or --batch-size)",
+            file=sys.stderr,
+        )
+        return 2
     finally:
+        restore()
         gc.unfreeze()  # what the command froze (commands.settle) is the collector's again: main() may be called in a
         # process that goes on (a test, a script)
+
+
+def _standard_streams() -> Callable[[], None]:
+    """Make a command safe to run with a standard stream closed (``<&-``, ``>&-``, ``2>&-``); returns what undoes
+    the change to ``sys`` (the file descriptors stay taken).
+
+    A closed descriptor 0, 1 or 2 is taken by the null device, so that a file the command opens never lands on it
+    (and output meant for the terminal never goes into an output file). Python starts with ``sys.stdin`` /
+    ``sys.stdout`` / ``sys.stderr`` None then: standard input stays None (reading ``-`` is refused with a clear
+    error, :func:`torchrod.io.jsonl.check_input`), standard output becomes a
+    :class:`~torchrod.io.jsonl.ClosedOutput` (writing an answer there is one clear error, never a silent loss), and
+    standard error goes to the null device."""
+    from ..io.jsonl import ClosedOutput
+
+    for fd, flags in ((0, os.O_RDONLY), (1, os.O_WRONLY), (2, os.O_WRONLY)):
+        try:
+            os.fstat(fd)
+        except OSError:
+            taken = os.open(os.devnull, flags)
+            if taken != fd:  # (a lower descriptor was free too: it is taken in its own turn)
+                os.dup2(taken, fd)
+                os.close(taken)
+    stdout, stderr = sys.stdout, sys.stderr
+    if stdout is None:
+        sys.stdout = ClosedOutput()
+    if stderr is None:
+        sys.stderr = open(os.devnull, "w", encoding="utf-8")  # noqa: SIM115 - closed by the returned function
+
+    def restore() -> None:
+        if stdout is None:
+            sys.stdout = stdout
+        if stderr is None:
+            sys.stderr.close()
+            sys.stderr = stderr
+
+    return restore
+
+
+def _warning_printer(name: str) -> Callable[..., None]:
+    """``warnings.showwarning`` for a command: torchrod's own warnings (:class:`torchrod.errors.TorchrodWarning`,
+    such as a rod that cannot determine what is asked) as one line ``torchrod NAME: warning: ...`` on stderr, each
+    text once; others as Python prints them."""
+    from ..errors import TorchrodWarning
+
+    default = warnings.showwarning
+    shown: set[str] = set()  # (a rod copied inside the command warns again: each text is printed once)
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001 - warnings' API
+        if isinstance(category, type) and issubclass(category, TorchrodWarning):
+            if str(message) not in shown:
+                shown.add(str(message))
+                print(f"torchrod {name}: warning: {message}", file=sys.stderr)
+        else:
+            default(message, category, filename, lineno, file, line)
+
+    return show
 
 
 if __name__ == "__main__":  # pragma: no cover

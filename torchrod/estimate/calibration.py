@@ -24,6 +24,22 @@ estimated from the residuals (n observed curvature components, p unknowns). The 
 its covariance includes b's column, so the stiffness's error carries the bias's uncertainty (with b held exactly,
 it would come out about 25 % too small: the two are correlated through the forces' lever arms).
 
+What it will not stand behind. A calibration is written into a rod that every later estimate trusts, so
+:func:`calibrate` checks its own result and lists in :attr:`CalibrationResult.problems` what is wrong with it
+(:meth:`CalibrationResult.apply` then refuses unless forced; ``torchrod calibrate`` exits with status 1 and writes
+no rod unless ``--force``):
+
+- readings inconsistent with the known forces: readings all but zero while the known forces bend the rod (a dead
+  or disconnected sensor, :data:`DEAD_SIGNAL`); forces fitted freely to the readings that point against the known
+  ones (a flipped sign or frame; with ``directions="known"``);
+- a residual far beyond the noise (:data:`MAX_RESIDUAL_RATIO`): of the free fit (the readings do not fit this rod
+  at all) against the given noise, or against half the readings' own size; of the known-force fit against the
+  noise, which is the given sigma or, without one, what the free fit leaves;
+- a stiffness outside physical bounds (:data:`STIFFNESS_RATIO_RANGE` of the nominal one; a Young's modulus outside
+  :data:`torchrod.rod.YOUNGS_MODULUS_RANGE`), or not determined by the data (a relative standard error above
+  :data:`MAX_RELATIVE_STD`, or none); a location bias not determined;
+- a least-squares solve that stopped on its evaluation limit.
+
 Input readings (JSON lines or CSV, :func:`read_readings`): ``{"id": ..., "curvature": [[u_x, u_y] or null, ...],
 "forces": [{"s": ..., "fx": ..., "fy": ...}, ...]}``, one curvature pair per grating [1/m] (null for a grating
 without a reading), the known forces with ``s`` [m] in the true coordinate and components [N] in the body frame.
@@ -33,6 +49,7 @@ The reading follows the rules of every reading (:mod:`torchrod.io.readings`: fin
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Callable, Sequence
@@ -42,13 +59,40 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from ..errors import OptionsError, ReadingError
 from ..loads import PointForces
 from ..model.body_frame import grating_curvature
-from ..rod import Rod
+from ..rod import YOUNGS_MODULUS_RANGE, Rod
 
-__all__ = ["CalibrationData", "CalibrationResult", "calibrate", "parse_reading", "read_readings", "summary"]
+__all__ = [
+    "DEAD_SIGNAL",
+    "MAX_RELATIVE_STD",
+    "MAX_RESIDUAL_RATIO",
+    "STIFFNESS_RATIO_RANGE",
+    "CalibrationData",
+    "CalibrationResult",
+    "calibrate",
+    "parse_reading",
+    "read_readings",
+    "summary",
+]
 
 Directions = Literal["known", "free"]
+
+MAX_RESIDUAL_RATIO = 3.0
+"""A fit's RMS residual beyond this many times the noise is far beyond it (module docstring)."""
+
+STIFFNESS_RATIO_RANGE = (0.1, 10.0)
+"""Fitted over nominal bending stiffness: outside this range the rod file, not the rod, is wrong (diameters enter
+EI to the fourth power, and a material's modulus is known far better than tenfold)."""
+
+MAX_RELATIVE_STD = 0.1
+"""A fitted stiffness whose standard error is more than this fraction of it is not determined by the data; a
+location bias whose standard error is more than this fraction of the length neither."""
+
+DEAD_SIGNAL = 1e-3
+"""Readings whose RMS is below this fraction of what the known forces give at the nominal stiffness are taken for
+a dead or disconnected sensor."""
 
 
 @dataclass(frozen=True)
@@ -103,6 +147,12 @@ class CalibrationResult:
             they equal the true ones times nominal / true EI) [m, N].
         converged: both least-squares solves ended on a tolerance.
         observations: number of observed curvature components used.
+        reading_rms: RMS of the observed curvature components [1/m].
+        predicted_rms: RMS of what the known forces give at the nominal stiffness, at the same components [1/m].
+        force_agreement: how the step-1 forces point along the known ones: sum f_fit . f_known / (|F_fit| |F_known|)
+            over all forces, +1 when parallel, -1 when opposite (NaN without a fitted force).
+        noise: the sensor's sigma the residuals were judged against [1/m], None when not given.
+        problems: what is wrong with this calibration, one sentence each (module docstring); empty when nothing.
     """
 
     location_bias: float
@@ -115,16 +165,28 @@ class CalibrationResult:
     fitted_forces: PointForces
     converged: bool
     observations: int
+    reading_rms: float = math.nan
+    predicted_rms: float = math.nan
+    force_agreement: float = math.nan
+    noise: float | None = None
+    problems: tuple[str, ...] = ()
 
     @property
     def stiffness_ratio(self) -> float:
         """Fitted over nominal EI."""
         return self.bending_stiffness / self.nominal_stiffness
 
-    def apply(self, rod: Rod) -> Rod:
+    def apply(self, rod: Rod, *, force: bool = False) -> Rod:
         """``rod`` with the fitted bias and stiffness. A rod described by its geometry keeps it and gets its
         Young's modulus scaled by the stiffness ratio (EI is proportional to E), as the paper calibrates E; a rod
-        given by its EI gets the new EI."""
+        given by its EI gets the new EI.
+
+        Raises :class:`~torchrod.errors.ReadingError` listing :attr:`problems` when there are any, unless
+        ``force``: a calibration that cannot be stood behind is not applied by default."""
+        if self.problems and not force:
+            raise ReadingError(
+                "the calibration is not applied: " + "; ".join(self.problems) + " (force=True applies it anyway)"
+            )
         if rod.youngs_modulus is not None:
             return rod.with_(
                 location_bias=self.location_bias,
@@ -351,6 +413,7 @@ def calibrate(
     *,
     directions: Directions = "known",
     initial_bias: float = 0.0,
+    noise: float | None = None,
 ) -> CalibrationResult:
     """Fit the location bias, then the bending stiffness, from readings with known forces (module docstring).
 
@@ -359,9 +422,14 @@ def calibrate(
         data: R readings with known forces (:func:`read_readings`), s in the true coordinate.
         directions: ``"known"``: step 2 uses the known (f_x, f_y); ``"free"``: only their magnitudes.
         initial_bias: starting value of b [m].
+        noise: the sensor's sigma per curvature component [1/m], if known: the residuals are judged against it
+            (else against what forces fitted freely leave).
     Returns:
-        :class:`CalibrationResult`; ``result.apply(rod)`` is the calibrated rod.
+        :class:`CalibrationResult` with its :attr:`~CalibrationResult.problems`; ``result.apply(rod)`` is the
+        calibrated rod (refused while there are problems, unless forced).
     """
+    if noise is not None and not (isinstance(noise, (int, float)) and 0.0 < noise < math.inf):
+        raise OptionsError(f"noise must be a positive sigma [1/m] or None, got {noise!r}")
     if not isinstance(rod, Rod):
         raise TypeError(f"rod must be a Rod, got {type(rod).__name__}")
     if not isinstance(data, CalibrationData):
@@ -446,9 +514,20 @@ def calibrate(
     free[0] = False
     unbounded = np.full_like(theta0, np.inf)
     fit2 = step2.solve(theta0, -unbounded, unbounded, free)
-    ei = ei0 * math.exp(float(fit2.x[1]))
+    log_ratio = float(fit2.x[1])
+    ei = ei0 * math.exp(min(log_ratio, 700.0)) if math.isfinite(log_ratio) else math.nan
     ei_std = ei * float(fit2.std[1])
-    return CalibrationResult(
+    # The diagnostics the checks use: the readings' size, what the known forces give at the nominal stiffness, and
+    # how the freely fitted forces point along the known ones.
+    observed = data.present.unsqueeze(-1).expand(-1, -1, 2)
+    with torch.no_grad():
+        predicted = grating_curvature(rod, PointForces(s_true, loads.masked_f(), mask), bending_stiffness=ei0)
+    reading_rms = float(data.curvature[observed].pow(2).mean().sqrt())
+    predicted_rms = float(predicted[observed].pow(2).mean().sqrt())
+    f_fit, f_known = fitted_forces.masked_f()[active], loads.masked_f()[active]
+    norm = float(f_fit.norm() * f_known.norm())
+    agreement = float((f_fit * f_known).sum()) / norm if norm > 0 else math.nan
+    result = CalibrationResult(
         location_bias=bias,
         location_bias_std=bias_std,
         bending_stiffness=ei,
@@ -459,7 +538,80 @@ def calibrate(
         fitted_forces=fitted_forces,
         converged=fit1.converged and fit2.converged,
         observations=step1.num_obs,
+        reading_rms=reading_rms,
+        predicted_rms=predicted_rms,
+        force_agreement=agreement,
+        noise=noise,
     )
+    return dataclasses.replace(result, problems=_problems(result, rod, directions))
+
+
+def _problems(result: CalibrationResult, rod: Rod, directions: str) -> tuple[str, ...]:
+    """What is wrong with ``result`` (module docstring: the checks), one sentence each."""
+    out = []
+    r = result
+    ratio = MAX_RESIDUAL_RATIO
+    if not r.reading_rms > DEAD_SIGNAL * r.predicted_rms:
+        out.append(
+            f"readings inconsistent with the known forces: the readings are all but zero (RMS {r.reading_rms:.3g} "
+            f"1/m) while the known forces bend the rod to an RMS of {r.predicted_rms:.3g} 1/m at the nominal "
+            "stiffness: a dead or disconnected sensor, or readings in other units than 1/m"
+        )
+    elif r.noise is not None and r.rms_location_step > ratio * r.noise:
+        out.append(
+            f"residual far beyond the noise: even forces fitted freely leave an RMS residual of "
+            f"{r.rms_location_step:.3g} 1/m, {r.rms_location_step / r.noise:.3g} times the noise sigma "
+            f"{r.noise:.3g} 1/m: the readings do not fit this rod (check the rod file and the readings' units)"
+        )
+    elif r.noise is None and r.rms_location_step > 0.5 * r.reading_rms:
+        out.append(
+            f"residual far beyond the noise: even forces fitted freely leave an RMS residual of "
+            f"{r.rms_location_step:.3g} 1/m of readings of RMS {r.reading_rms:.3g} 1/m: the readings do not fit "
+            "this rod (check the rod file and the readings' units)"
+        )
+    else:  # the readings fit the rod: do they fit the known forces?
+        if directions == "known" and not r.force_agreement >= 0.5:
+            way = "against" if r.force_agreement < -0.5 else "away from"
+            out.append(
+                f"readings inconsistent with the known forces: forces fitted freely to the readings point {way} the "
+                f"known ones (agreement {r.force_agreement:+.2f}; +1 when parallel): is the sign of the curvature, "
+                "or the frame of the known forces, flipped or turned? (--directions free trusts only their "
+                "magnitudes)"
+            )
+        noise = r.noise if r.noise is not None else r.rms_location_step
+        which = "the noise sigma" if r.noise is not None else "the residual of forces fitted freely"
+        reference = max(noise, 1e-6 * r.reading_rms)
+        if r.rms_stiffness_step > ratio * reference:
+            out.append(
+                f"residual far beyond the noise: the known forces leave an RMS residual of {r.rms_stiffness_step:.3g} "
+                f"1/m, {r.rms_stiffness_step / reference:.3g} times {which} ({noise:.3g} 1/m): the readings are "
+                "inconsistent with the known forces (their locations, magnitudes or directions)"
+            )
+    lo, hi = STIFFNESS_RATIO_RANGE
+    e = rod.youngs_modulus * r.stiffness_ratio if rod.youngs_modulus is not None else None
+    e_lo, e_hi = YOUNGS_MODULUS_RANGE
+    if not (lo <= r.stiffness_ratio <= hi) or (e is not None and not e_lo <= e <= e_hi):
+        modulus = f", a Young's modulus of {e:.3g} Pa" if e is not None else ""
+        out.append(
+            f"stiffness outside physical bounds: the fit gives EI = {r.bending_stiffness:.3g} N m^2{modulus}, "
+            f"{r.stiffness_ratio:.3g} times the rod file's (allowed {lo:g} to {hi:g} times"
+            + (f", and {e_lo:g} to {e_hi:g} Pa" if e is not None else "")
+            + ")"
+        )
+    relative = r.bending_stiffness_std / r.bending_stiffness if r.bending_stiffness > 0 else math.nan
+    if not relative <= MAX_RELATIVE_STD:
+        out.append(
+            f"stiffness not determined by the data: EI = {r.bending_stiffness:.3g} +/- {r.bending_stiffness_std:.3g} "
+            f"N m^2 (more than {100 * MAX_RELATIVE_STD:g} %): add readings with larger known forces"
+        )
+    if not r.location_bias_std <= MAX_RELATIVE_STD * rod.length:
+        out.append(
+            f"location bias not determined by the data: {r.location_bias:.3g} +/- {r.location_bias_std:.3g} m: add "
+            "readings with known forces at several places along the rod"
+        )
+    if not r.converged:
+        out.append("a least-squares solve stopped on its evaluation limit: the fit may not be the best one")
+    return tuple(out)
 
 
 def summary(result: CalibrationResult, rod: Rod | None = None) -> Sequence[str]:
@@ -480,6 +632,5 @@ def summary(result: CalibrationResult, rod: Rod | None = None) -> Sequence[str]:
         f"rms residual      = {result.rms_location_step:.4g} 1/m (bias step), {result.rms_stiffness_step:.4g} 1/m"
         f" (stiffness step), {result.observations} curvature components"
     )
-    if not result.converged:
-        lines.append("warning: a least-squares solve stopped on its evaluation limit")
+    lines.extend(f"problem: {text}" for text in result.problems)
     return lines

@@ -39,21 +39,25 @@ a :class:`ReadControl` ends :func:`read_lines` at the lines it already read, for
 from __future__ import annotations
 
 import contextlib
+import errno
+import io
 import json
 import os
 import signal
+import stat
 import sys
 import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import IO, Any, Generic, TypeVar
 
-from ..errors import MissingFileError
+from ..errors import MissingFileError, OptionsError
 from .readings import HugeInteger, as_number, check_id, describe, id_problem, int_digit_limit, quote
 from .tcp import TcpReader, is_tcp
 
 __all__ = [
     "MAX_LINE_BYTES",
+    "ClosedOutput",
     "LineWriter",
     "ReadControl",
     "Record",
@@ -62,6 +66,7 @@ __all__ = [
     "batched",
     "check_input",
     "check_keys",
+    "check_output",
     "decode",
     "get_list",
     "get_number",
@@ -72,13 +77,25 @@ __all__ = [
     "quiet_closed_pipe",
     "read_lines",
     "read_records",
+    "same_path",
     "sigterm_as_interrupt",
 ]
 
 T = TypeVar("T")
 
-MAX_LINE_BYTES = 256 * 2**20
-"""The longest input line read [bytes]; a longer one is an error line, skipped in chunks."""
+Inputs = Sequence[str] | Mapping[str, str | None]
+"""The inputs an output must not overwrite: paths, or what each is mapped to its path."""
+
+STDIN_CLOSED = "standard input is closed: give the input as a file path instead of '-', or pipe it in"
+STDOUT_CLOSED = (
+    "standard output is closed (started with >&-): give --out FILE where the command takes one, or run it with "
+    "standard output open"
+)
+
+MAX_LINE_BYTES = 16 * 2**20
+"""The longest input line read [bytes]; a longer one is an error line, read past in chunks without being held.
+A reading of 100 000 gratings fits in a few MB; decoding a line into Python objects costs up to about 20 times
+its size in memory (an array of small numbers), so this bound also bounds what one line can cost."""
 
 MAX_MESSAGE_CHARS = 600
 """The longest error message written (messages quote at most ~100 characters of a value; this is a safety net)."""
@@ -107,6 +124,11 @@ class Record(Generic[T]):
 
 class Overlong(str):
     """Stands for an input line longer than :data:`MAX_LINE_BYTES` (its text is not kept)."""
+
+
+def overlong_error(number: int) -> str:
+    """The error of input line ``number`` when it is an :class:`Overlong` (in every format)."""
+    return f"line {number}: longer than {MAX_LINE_BYTES} bytes; not read"
 
 
 # ---------------------------------------------------------------------------------------------------- reading
@@ -140,6 +162,8 @@ def read_lines(source: str | os.PathLike | IO[str], control: ReadControl | None 
     control = control if control is not None else ReadControl()
     if isinstance(source, (str, os.PathLike)) and os.fspath(source) == "-":
         stdin = sys.stdin
+        if stdin is None:  # the process was started with its standard input closed (`<&-`)
+            raise OptionsError(STDIN_CLOSED)
         try:
             fd = stdin.fileno()
         except (AttributeError, OSError, ValueError):  # a replaced stdin (tests): a text stream
@@ -150,7 +174,16 @@ def read_lines(source: str | os.PathLike | IO[str], control: ReadControl | None 
         with TcpReader(str(source), control.halted) as conn:
             yield from _numbered_bytes(conn.read, control)
     elif isinstance(source, (str, os.PathLike)):
-        with open(source, "rb", buffering=0) as fh:
+        if control.halted.is_set():
+            return
+        # Opening a named pipe waits for its writer: that wait counts as waiting on the input, so that a flush after
+        # an interrupt (ReadControl.halt) need not wait for a writer that may never come.
+        control.waiting.set()
+        try:
+            fh = open(source, "rb", buffering=0)  # noqa: SIM115 - closed below
+        finally:
+            control.waiting.clear()
+        with fh:
             yield from _numbered_bytes(fh.read, control)
     else:
         yield from _numbered(source, control)
@@ -184,7 +217,8 @@ def _raw_lines(read: Callable[[int], bytes | None], control: ReadControl, chunk:
     while True:
         nl = buf.find(b"\n", scanned)
         if nl >= 0:
-            yield None if overlong or nl + 1 - pos > MAX_LINE_BYTES else bytes(buf[pos : nl + 1])
+            # (a memoryview slice: one copy of the line, not two)
+            yield None if overlong or nl + 1 - pos > MAX_LINE_BYTES else bytes(memoryview(buf)[pos : nl + 1])
             overlong = False
             pos = scanned = nl + 1
             continue
@@ -266,7 +300,7 @@ def parse_records(lines: Iterable[tuple[int, str]], parse: Callable[[dict[str, A
 def _record(number: int, text: str, parse: Callable[[dict[str, Any]], T]) -> Record[T]:
     at = f"line {number}: "
     if isinstance(text, Overlong):
-        return Record(number, None, None, f"{at}longer than {MAX_LINE_BYTES} bytes; not read")
+        return Record(number, None, None, overlong_error(number))
     try:
         obj = decode(text)
     except ValueError as exc:
@@ -304,11 +338,17 @@ def read_records(source: str | os.PathLike | IO[str], parse: Callable[[dict[str,
 
 
 def check_input(path: str, what: str) -> None:
-    """An error naming ``what`` when ``path`` (not ``"-"``) cannot be opened for reading, before any output is made:
-    :class:`~torchrod.errors.MissingFileError` when it does not exist, ``ValueError`` otherwise (a folder, no
-    permission). A TCP address (``tcp://HOST:PORT``) is checked for its form only: the connection opens when
-    reading starts."""
+    """An error naming ``what`` when ``path`` cannot be read (``"-"``: standard input closed), before any output is
+    made: :class:`~torchrod.errors.MissingFileError` when it does not exist, :class:`~torchrod.errors.OptionsError`
+    (a ``ValueError``) for a folder, a socket or no permission. A TCP address (``tcp://HOST:PORT``) is checked for
+    its form only: the connection opens when reading starts.
+
+    The check looks at the file (``os.stat``) and never opens it: opening a named pipe to probe it and closing it
+    again would take the writer's data, or end the writer with SIGPIPE. A named pipe or a character device (a
+    serial port, ``/dev/stdin``) is read once, by the command."""
     if path == "-":
+        if sys.stdin is None:
+            raise OptionsError(STDIN_CLOSED)
         return
     if is_tcp(path):
         from .tcp import tcp_address
@@ -318,10 +358,18 @@ def check_input(path: str, what: str) -> None:
     if not os.path.lexists(path):
         raise MissingFileError(f"{what} {path}: no such file (check the path)")
     try:
-        with open(path, "rb"):
-            pass
+        mode = os.stat(path).st_mode
     except OSError as exc:
-        raise ValueError(f"{what} {path}: {exc.strerror or exc}") from None
+        raise OptionsError(f"{what} {path}: {exc.strerror or exc}") from None
+    if stat.S_ISDIR(mode):
+        raise OptionsError(f"{what} {path}: Is a directory (give a file)")
+    if stat.S_ISSOCK(mode):
+        raise OptionsError(
+            f"{what} {path}: is a socket, which cannot be read as a file; connect to it and pipe the lines in "
+            f"(e.g. socat UNIX-CONNECT:{path} - | torchrod ...)"
+        )
+    if not os.access(path, os.R_OK):
+        raise OptionsError(f"{what} {path}: Permission denied")
 
 
 def batched(items: Iterable[T], size: int) -> Iterator[list[T]]:
@@ -402,6 +450,18 @@ class LineWriter:
         self.error(record.id, record.error or "unknown error")
 
 
+class ClosedOutput(io.TextIOBase):
+    """Stands in for ``sys.stdout`` when the process was started with standard output closed (``>&-``, where
+    Python leaves ``sys.stdout`` None and ``print`` would drop every line without a word): writing to it raises
+    ``OSError`` (EBADF) saying so, which the CLI reports as one error line (:func:`torchrod.cli.main`)."""
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, text: str) -> int:
+        raise OSError(errno.EBADF, STDOUT_CLOSED)
+
+
 def quiet_closed_pipe(stream: IO[str]) -> None:
     """Point ``stream``'s file descriptor at the null device, so that nothing written after its reader went away
     (the interpreter's final flush included) raises ``BrokenPipeError`` again. Streams without one are left alone."""
@@ -416,19 +476,47 @@ def quiet_closed_pipe(stream: IO[str]) -> None:
         os.close(devnull)
 
 
+def same_path(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """Whether two paths name the same file: the same file on disk when both exist (links followed), else the
+    same absolute path once links are resolved."""
+    a, b = os.fspath(a), os.fspath(b)
+    if os.path.exists(a) and os.path.exists(b):
+        return os.path.samefile(a, b)
+    return os.path.realpath(a) == os.path.realpath(b)
+
+
+def check_output(path: str | None, inputs: Inputs = (), option: str = "--out") -> None:
+    """:class:`~torchrod.errors.OptionsError` when the output ``path`` of ``option`` is one of ``inputs`` (writing
+    it would erase that input): a sequence of paths, or a mapping from what each is (``"--rod"``, ``"READINGS"``)
+    to its path. ``None``, ``"-"`` and inputs that are no file (a preset name, ``"-"``) are left alone."""
+    if path is None or path == "-":
+        return
+    named = inputs.items() if isinstance(inputs, Mapping) else ((None, source) for source in inputs)
+    for label, source in named:
+        if source is None or os.fspath(source) == "-" or not os.path.lexists(source):
+            continue
+        if same_path(source, path):
+            which = f" ({label})" if label else ""
+            raise OptionsError(
+                f"{option} {path} is the input {os.fspath(source)}{which}: writing it would erase the input; "
+                "give another path"
+            )
+
+
 @contextlib.contextmanager
-def open_output(path: str | None, inputs: Sequence[str] = ()) -> Iterator[IO[str] | None]:
+def open_output(path: str | None, inputs: Inputs = ()) -> Iterator[IO[str] | None]:
     """``--out PATH`` opened for writing (UTF-8, closed at the end), or None for standard output (``None``/``"-"``).
 
     Raises ``ValueError`` (exit status 2) naming the path when it cannot be written (a missing folder, a folder,
-    no permission) or when it is one of ``inputs`` (it would be emptied before being read).
+    no permission), when it is one of ``inputs`` (:func:`check_output`: it would be emptied before being read), or,
+    for standard output, when the process was started with standard output closed (``>&-``).
     """
     if path is None or path == "-":
+        if sys.stdout is None or isinstance(sys.stdout, ClosedOutput):
+            raise OptionsError(STDOUT_CLOSED)
         yield None
         return
-    for source in inputs:
-        if source != "-" and os.path.exists(source) and os.path.exists(path) and os.path.samefile(source, path):
-            raise ValueError(f"--out {path} is the input {source}: writing it would erase the input")
+    check_output(path, inputs)
     try:
         fh = open(path, "w", encoding="utf-8")  # noqa: SIM115 - closed below
     except OSError as exc:

@@ -179,9 +179,12 @@ class PeakLog:
 
     def records(self, lines: Iterable[tuple[int, str]], parse: Callable[[Any], Any]) -> Iterator[Any]:
         """One :class:`torchrod.io.jsonl.Record` per line: ``parse`` of its reading object, or its error."""
-        from .jsonl import Record, parsed_record
+        from .jsonl import Overlong, Record, overlong_error, parsed_record
 
         for number, text in lines:
+            if isinstance(text, Overlong):
+                yield Record(number, None, None, overlong_error(number))
+                continue
             try:
                 obj = self.reading_object(text)
             except ValueError as exc:

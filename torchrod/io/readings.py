@@ -1133,11 +1133,14 @@ def _csv_records(
 ) -> Iterator[Any]:
     import csv
 
-    from .jsonl import Record, parsed_record
+    from .jsonl import Overlong, Record, overlong_error, parsed_record
 
     layout: CsvLayout | None = None
     first = True
     for number, text in lines:
+        if isinstance(text, Overlong):
+            yield Record(number, None, None, overlong_error(number))
+            continue
         try:
             cells = _csv_cells(text)
         except csv.Error as exc:
@@ -1223,11 +1226,18 @@ def iter_records(
         raise ValueError(f"quantity must be one of {', '.join(QUANTITIES)}, got {quantity!r}")
     lines: Iterator[tuple[int, str]] = iter(read_lines(source, control))
     if fmt == "auto":
+        from .jsonl import Overlong
+
+        # The first line that was read decides (an overlong line, not kept, cannot: it is an error in either format).
+        held = []
         head = next(lines, None)
-        if head is None:
+        while head is not None and isinstance(head[1], Overlong):
+            held.append(head)
+            head = next(lines, None)
+        if head is None and not held:
             return
-        fmt = detect_format(source, head[1])
-        lines = _chain(head, lines)
+        fmt = detect_format(source, None if head is None else head[1])
+        lines = _chain(held + ([head] if head is not None else []), lines)
     if fmt == "csv":
         yield from _csv_records(lines, num_gratings, quantity, fibre, parse)
     elif fmt == "peaks":
@@ -1300,8 +1310,8 @@ class ReadingSource:
         return self.control.waiting.is_set()
 
 
-def _chain(head: tuple[int, str], rest: Iterator[tuple[int, str]]) -> Iterator[tuple[int, str]]:
-    yield head
+def _chain(head: list[tuple[int, str]], rest: Iterator[tuple[int, str]]) -> Iterator[tuple[int, str]]:
+    yield from head
     yield from rest
 
 

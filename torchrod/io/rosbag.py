@@ -20,6 +20,11 @@ Writing (:class:`BagWriter`)
       contact (``header.frame_id`` ``torchrod_body``), torque zero; NaN when the slot holds no contact;
     * ``/torchrod/contact_<k>/arc_length`` (``std_msgs/msg/Float64``): the contact's location s [m] from the base
       (as reported: ``s_model + location_bias``), NaN when the slot is empty.
+
+    A time stamp is ``t`` in nanoseconds, which the format must hold: 0 <= t < 2^32 s in a ROS 1 bag, 0 <= t < 2^31 s
+    in a ROS 2 bag (seconds are a 32-bit integer in their headers). An answer whose ``t`` lies outside (``t`` in
+    milliseconds since the epoch, 1.7e12) is not written, and ``torchrod stream`` answers that reading with an
+    error line saying so; the bag stays readable. A storage that refuses a write (a full disk) is one error.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+from ..errors import ReadingError
 from .readings import Reading, quote, to_reading
 
 __all__ = ["ESTIMATE_TOPIC", "MESSAGE_TYPE", "BagSource", "BagWriter", "require_rosbags", "write_readings"]
@@ -87,9 +93,21 @@ class BagSource:
             raise ValueError(f"{self.path}: topic {topic!r} holds {sorted(kinds)}, not {MESSAGE_TYPE}")
 
     def __iter__(self) -> Iterator[Reading]:
+        index = 0
         try:
-            for index, (connection, stamp, raw) in enumerate(self._reader.messages(connections=self._connections)):
+            messages = self._reader.messages(connections=self._connections)
+            while True:
+                try:
+                    connection, stamp, raw = next(messages)
+                except StopIteration:
+                    return
+                except Exception as exc:  # noqa: BLE001 - rosbags raises its own classes for every kind of damage
+                    raise ReadingError(
+                        f"{self.path}: the bag is damaged: {self.topic} cannot be read past its message {index} "
+                        f"({type(exc).__name__}: {quote(str(exc))}); the messages before it were read"
+                    ) from None
                 yield self._reading(index, connection, stamp, raw)
+                index += 1
         finally:
             self._reader.close()
 
@@ -123,7 +141,12 @@ class BagSource:
 
 class BagWriter:
     """Estimates into a new bag (module docstring); a context manager. ``slots``: H, the contact slots written per
-    reading (the estimator's ``max_forces``, or ``num_forces``)."""
+    reading (the estimator's ``max_forces``, or ``num_forces``).
+
+    A time stamp the format cannot hold (:meth:`stamp`) is a :class:`~torchrod.errors.ReadingError` for that answer
+    alone, raised before anything of it is written, so the topics stay aligned and the bag readable. A write the
+    storage refuses (a full disk) is an ``OSError`` naming the bag and the cause; the writer then takes no more
+    answers (:attr:`failed`), and closing it keeps what the storage still holds."""
 
     def __init__(self, path: str | os.PathLike, slots: int) -> None:
         require_rosbags()
@@ -141,6 +164,7 @@ class BagWriter:
 
             self._writer = Writer2(self.path, version=9)
         self._count = 0
+        self.failed: str | None = None  # why a write failed; no more answers are taken then
 
     def __enter__(self) -> BagWriter:
         self._writer.open()
@@ -155,25 +179,79 @@ class BagWriter:
         return self
 
     def __exit__(self, *exc: Any) -> None:
-        self._writer.close()
+        self.close()
 
-    def _put(self, connection: Any, stamp: int, message: Any) -> None:
-        kind = connection.msgtype
-        raw = self.store.serialize_ros1(message, kind) if self.ros1 else self.store.serialize_cdr(message, kind)
-        self._writer.write(connection, stamp, raw)
+    def close(self) -> None:
+        """Finish the bag (ROS 1: its index; ROS 2: the commit and ``metadata.yaml``). A storage that refuses (a
+        full disk shows up here too) is an ``OSError`` unless a write already failed and said so; either way the
+        storage's files are let go."""
+        try:
+            self._writer.close()
+        except Exception as error:  # noqa: BLE001 - the storage's own classes (sqlite3, OSError, rosbags)
+            self._release()
+            if self.failed is None:
+                raise self._storage_error(error) from None
+
+    def _release(self) -> None:
+        """Let go of a failed storage's open files (ROS 1: the bag file; ROS 2: the database, rolled back), so that
+        nothing stays open on a full disk."""
+        writer = self._writer
+        try:
+            if self.ros1 and getattr(writer, "bio", None) is not None:
+                writer.bio.close()
+            elif not self.ros1 and getattr(writer, "storage", None) is not None:
+                writer.storage.abort()
+        except Exception:  # noqa: BLE001, S110 - best effort: the failure itself is reported by the caller
+            pass
+
+    def _storage_error(self, exc: BaseException) -> OSError:
+        self.failed = f"{type(exc).__name__}: {quote(str(exc))}"
+        return OSError(f"--output-bag {self.path}: the bag cannot be written ({self.failed})")
+
+    @property
+    def limit(self) -> int:
+        """The end of the time stamps [s] the format holds: ROS 1 stores seconds as an unsigned 32-bit integer,
+        ROS 2 messages (``builtin_interfaces/Time``) as a signed one; both start at 0."""
+        return 2**32 if self.ros1 else 2**31
+
+    def stamp(self, t: float | None) -> int:
+        """The bag time stamp [ns] of an answer at ``t`` [s]; None: the answer's index in microseconds, so that
+        the order is kept. :class:`~torchrod.errors.ReadingError` for a ``t`` the format cannot hold (0 <= t <
+        :attr:`limit`), saying what it may be instead (milliseconds or nanoseconds since the epoch)."""
+        if t is None:
+            return self._count * 1000
+        stamp = round(t * 1e9) if math.isfinite(t) else -1
+        if 0 <= stamp < self.limit * 10**9:
+            return stamp
+        kind = "ROS 1" if self.ros1 else "ROS 2"
+        hint = ""
+        for unit, factor in (("milliseconds", 1e-3), ("microseconds", 1e-6), ("nanoseconds", 1e-9)):
+            if math.isfinite(t) and 1.0 <= t * factor < self.limit:
+                hint = f"; if t is in {unit}, give it in seconds: {t * factor:.9g}"
+                break
+        raise ReadingError(
+            f"t = {t:g} s cannot be a time stamp of a {kind} bag, which holds 0 <= t < {self.limit} s: this answer "
+            f"is left out of --output-bag {self.path.name}{hint}"
+        )
+
+    def _serialized(self, message: Any, kind: str) -> bytes:
+        return self.store.serialize_ros1(message, kind) if self.ros1 else self.store.serialize_cdr(message, kind)
 
     def write(self, record: Mapping[str, Any], t: float | None) -> None:
         """One answer (an estimate's record or an error record, as written to the JSON lines) at time ``t`` [s]
-        (None: the answer's index in microseconds, so that the order is kept)."""
+        (None: the answer's index in microseconds, so that the order is kept). Every message of the answer is made
+        before the first is written, so an answer is written whole or not at all (class docstring: errors)."""
+        if self.failed is not None:
+            raise OSError(f"--output-bag {self.path}: the bag cannot be written ({self.failed})")
         types = self.store.types
-        stamp = round(t * 1e9) if t is not None and math.isfinite(t) and t >= 0 else self._count * 1000
+        stamp = self.stamp(t)
         self._count += 1
         sec, nsec = divmod(stamp, 10**9)
         try:
             text = json.dumps(record, allow_nan=False)
         except (ValueError, TypeError, OverflowError, RecursionError):
             text = json.dumps({"id": None, "error": "the answer cannot be written as JSON"})
-        self._put(self._estimate, stamp, types["std_msgs/msg/String"](data=text))
+        out = [(self._estimate, self._serialized(types["std_msgs/msg/String"](data=text), "std_msgs/msg/String"))]
         forces = record.get("forces") or []
         header_type = types["std_msgs/msg/Header"]
         time_type = types["builtin_interfaces/msg/Time"]
@@ -191,8 +269,13 @@ class BagWriter:
                 header=header,
                 wrench=wrench(force=vector(x=fx, y=fy, z=0.0), torque=vector(x=0.0, y=0.0, z=0.0)),
             )
-            self._put(self._wrench[k], stamp, message)
-            self._put(self._arc[k], stamp, types["std_msgs/msg/Float64"](data=s))
+            out.append((self._wrench[k], self._serialized(message, "geometry_msgs/msg/WrenchStamped")))
+            out.append((self._arc[k], self._serialized(types["std_msgs/msg/Float64"](data=s), "std_msgs/msg/Float64")))
+        try:
+            for connection, raw in out:
+                self._writer.write(connection, stamp, raw)
+        except Exception as exc:  # noqa: BLE001 - the storage's own classes (sqlite3, OSError, rosbags)
+            raise self._storage_error(exc) from None
 
 
 def write_readings(path: str | os.PathLike, topic: str, readings: list[tuple[float, list[Any]]]) -> None:

@@ -290,6 +290,20 @@ def _profile(rod: Rod, loads: PointForces) -> tuple[torch.Tensor, torch.Tensor]:
     return curv[:, :G], turning
 
 
+PROFILE_CHUNK = 4096
+"""Cases :func:`_profiles` hands :func:`_profile` at a time: its working memory (the curvature at every sample of
+every case) grows with the batch, so a long trajectory is profiled in chunks (the results do not depend on it)."""
+
+
+def _profiles(rod: Rod, loads: PointForces) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_profile` of any number of cases, :data:`PROFILE_CHUNK` at a time (the same results, in bounded
+    working memory)."""
+    if loads.batch_size <= PROFILE_CHUNK:
+        return _profile(rod, loads)
+    parts = [_profile(rod, loads[i : i + PROFILE_CHUNK]) for i in range(0, loads.batch_size, PROFILE_CHUNK)]
+    return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+
+
 def _admissible(rod: Rod, loads: PointForces, limit: float) -> torch.Tensor:
     """(B,) bool: False where a coarse estimate of the total turning (17 samples, one step per segment, error
     below 0.02 rad for cases near the limit) exceeds the limit by more than ``_COARSE_MARGIN``. A cheap first pass:
@@ -1037,7 +1051,7 @@ def _bending_scale(rod: Rod, loads: PointForces, limit: float, window: int) -> t
 
     def turning(c: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         sub = PointForces(loads.s[rows], loads.f[rows] * c.unsqueeze(-1).unsqueeze(-1), loads.mask[rows])
-        return _profile(rod, sub)[1]
+        return _profiles(rod, sub)[1]
 
     c = torch.ones(T, dtype=torch.float64)
     for _ in range(6):
@@ -1112,7 +1126,7 @@ def generate_trajectory(
     if scale is not None:
         loads = PointForces(loads.s, loads.f * scale.view(-1, 1, 1), loads.mask)
     G = rod.num_gratings
-    clean, _ = _profile(rod, _shifted(rod, loads, -sensor.location_bias))
+    clean, _ = _profiles(rod, _shifted(rod, loads, -sensor.location_bias))
     sg = torch.Generator().manual_seed(_derive_seed(seed, "trajectory-sensor"))
     offsets = sensor.offset_std * torch.randn(G, 2, generator=sg, dtype=torch.float64)
     noise, missing = _sensor_draws(count, G, sg)

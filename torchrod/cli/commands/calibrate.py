@@ -22,6 +22,14 @@ geometry keeps it and gets a new ``youngs_modulus``; a rod given by ``bending_st
 ``--out`` (default: standard output); the fitted values with their standard errors go to standard error. See
 torchrod.estimate.calibration for the method.
 
+A calibration the command cannot stand behind is refused: exit status 1, the reasons on standard error, and no rod
+written. It is refused when the readings are inconsistent with the known forces (all but zero, as from a dead
+sensor; fitted forces pointing against the known ones, as with a flipped sign), when a residual lies far beyond
+the noise (``--noise SIGMA``, the sensor's sigma [1/m]; without it, what forces fitted freely leave), when the
+stiffness lies outside physical bounds (0.1 to 10 times the rod file's; a Young's modulus of 1e6 to 1.2e12 Pa) or
+is not determined by the data (a standard error above 10 %), or when a solve did not converge. ``--force`` writes
+the rod anyway (the reasons are still printed, as warnings).
+
 Fibre (``--fibre``): JIG_READINGS holds readings of the fibre on jigs of known constant curvature, each tagged with
 the jig::
 
@@ -44,7 +52,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 
 from . import add_input_options, add_sensor_options, rod_help, sensor_rod
@@ -84,17 +91,17 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--initial-bias", type=float, default=0.0, help="start of the bias fit [m] (default: 0)")
     add_input_options(parser, protocol=False)
     add_sensor_options(parser, estimating=False)
-
-
-def _check_out(out: str, inputs: list[str]) -> None:
-    """``ValueError`` when ``--out`` names one of the inputs (a calibration never overwrites what it came from)."""
-    if out == "-":
-        return
-    for source in inputs:
-        if source == "-" or not os.path.exists(source):
-            continue
-        if os.path.abspath(out) == os.path.abspath(source) or (os.path.exists(out) and os.path.samefile(out, source)):
-            raise ValueError(f"--out {out} is the input {source}: write the calibrated rod to a new file")
+    parser.add_argument(
+        "--noise",
+        type=float,
+        metavar="SIGMA",
+        help="the sensor's noise sigma [1/m], to judge the residuals by (default: what freely fitted forces leave)",
+    )
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="write the rod even when the calibration is refused (its reasons are printed as warnings)",
+    )
 
 
 def _write(rod, out: str) -> None:
@@ -110,13 +117,18 @@ def _write(rod, out: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ...io.jsonl import check_input
+    from ...io.jsonl import STDOUT_CLOSED, ClosedOutput, check_input, check_output
     from ...presets import load as load_rod
 
-    _check_out(args.out, [args.rod, args.readings])
+    # The output is checked before the fit (a wrong --out costs no time), and written only once the fit is accepted.
+    check_output(args.out, {"READINGS": args.readings, "--rod": args.rod})
+    if args.out == "-" and (sys.stdout is None or isinstance(sys.stdout, ClosedOutput)):
+        raise ValueError(STDOUT_CLOSED)
     base = load_rod(args.rod)
     rod = sensor_rod(args, base)  # the options' units read the readings; the rod written keeps its own
     check_input(args.readings, "READINGS")
+    if args.noise is not None and not 0.0 < args.noise < float("inf"):
+        raise ValueError(f"--noise must be a positive sigma [1/m], got {args.noise}")
     if args.fibre:
         return _fibre(args, rod, base)
     if args.gain_tolerance is not None:
@@ -124,15 +136,22 @@ def run(args: argparse.Namespace) -> int:
     from ...estimate.calibration import calibrate, read_readings, summary
 
     data = read_readings(args.readings, rod, fmt=args.format, quantity=args.csv_quantity)
-    result = calibrate(rod, data, directions=args.directions, initial_bias=args.initial_bias)
-    new_rod = result.apply(base)
+    result = calibrate(rod, data, directions=args.directions, initial_bias=args.initial_bias, noise=args.noise)
     print(
         f"torchrod calibrate: {data.num_readings} readings, {int(data.forces.count.sum())} known forces",
         file=sys.stderr,
     )
     for line in summary(result, rod):
-        print(line, file=sys.stderr)
-    _write(new_rod, args.out)
+        if not line.startswith("problem: "):
+            print(line, file=sys.stderr)
+    if result.problems and not args.force:
+        for text in result.problems:
+            print(f"torchrod calibrate: refused: {text}", file=sys.stderr)
+        print("torchrod calibrate: no rod written (--force writes it anyway)", file=sys.stderr)
+        return 1
+    for text in result.problems:
+        print(f"torchrod calibrate: warning (forced): {text}", file=sys.stderr)
+    _write(result.apply(base, force=args.force), args.out)
     return 0
 
 

@@ -56,9 +56,10 @@ Every non-blank input line gets exactly one output line, in order, whatever it h
 (bad JSON, a wrong number of gratings, a non-numeric, non-finite or out-of-bound value, all gratings missing, an id
 JSON cannot echo such as NaN) gives ``{"id": ... or null, "error": "line N: ..."}`` naming the field and quoting
 at most about 100 characters of the value, and the other lines go on. The exit status is 1 if any line failed,
-else 0; 2 for a bad rod file, checkpoint or option (such as an ``--out`` that cannot be written); 141 when the
-reader of the output goes away; 130 after Ctrl-C and 143 after SIGTERM, both once every line already read is
-answered.
+else 0; 2 for a bad rod file, checkpoint or option (such as an ``--out`` that cannot be written or that names an
+input) or a closed standard input or output; 141 when the reader of the output goes away; 130 after Ctrl-C and 143
+after SIGTERM, both once every line already read is answered. READINGS may be a named pipe or a device: it is
+opened once.
 
 Lines are estimated in batches of ``--batch-size`` (one batched call per batch; should it fail, each reading
 alone), answers in input order; a progress bar on stderr counts readings when stderr is a terminal (not with
@@ -80,7 +81,7 @@ import torch
 from ...errors import MissingFileError
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.selection import RULES
-from ...io.jsonl import LineWriter, check_input, open_output, until_interrupted
+from ...io.jsonl import LineWriter, check_input, check_output, open_output, until_interrupted
 from ...io.readings import Reading, ReadingSource, stack_readings
 from ...presets import load as load_rod
 from ...rod import Rod
@@ -159,13 +160,33 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def check_counts(args: argparse.Namespace) -> None:
+def check_counts(args: argparse.Namespace, rod: Rod | None = None) -> None:
     """``--max-forces`` and ``--num-forces`` (where the command has them) must be >= 0 (``ValueError``, status 2);
-    the estimator judges the rest."""
+    the estimator judges the rest. With the ``rod``, a count whose 3 unknowns per force (s, fx, fy) leave no
+    degree of freedom in the 2 values per grating of a reading is warned about
+    (:class:`~torchrod.errors.RodWarning`): such counts cannot be told apart."""
     for option in ("max_forces", "num_forces"):
         value = getattr(args, option, None)
         if value is not None and value < 0:
             raise ValueError(f"--{option.replace('_', '-')} must be >= 0, got {value}")
+    if rod is None:
+        return
+    option = "num_forces" if getattr(args, "num_forces", None) is not None else "max_forces"
+    count = getattr(args, option, None)
+    values = 2 * rod.num_gratings
+    if count is not None and 3 * count >= values:
+        import warnings
+
+        from ...errors import RodWarning
+
+        most = (values - 1) // 3
+        warnings.warn(
+            f"--{option.replace('_', '-')} {count} asks for up to {3 * count} unknowns (s, fx, fy per force) from the "
+            f"{values} values of a reading of this rod's {rod.num_gratings} grating(s): at most {most} force(s) "
+            "can be told apart",
+            RodWarning,
+            stacklevel=2,
+        )
 
 
 def add_workers_option(parser: argparse.ArgumentParser) -> None:
@@ -279,12 +300,14 @@ def _run(args: argparse.Namespace) -> int:
     rod = sensor_rod(args, load_rod(args.rod))
     check_estimation_options(args)
     sensor_noise(args, rod)
-    check_counts(args)
+    check_counts(args, rod)
     processes = check_workers(args)
     device = check_device(args, processes)
     if args.starts is not None and args.starts < 0:
         raise ValueError(f"--starts must be >= 0, got {args.starts}")
     check_input(args.readings, "READINGS")
+    inputs = {"READINGS": args.readings, "--rod": args.rod, "--checkpoint": args.checkpoint}
+    check_output(args.out, inputs)
     network = choose_network(args.checkpoint, rod, "estimate")
     estimator = Estimator(rod, trusting(options_from_args(args), network), warm_start=network)
     from ...estimate.workers import ParallelEstimator
@@ -296,7 +319,7 @@ def _run(args: argparse.Namespace) -> int:
     readings = reading_source(args, rod, args.readings)
     from tqdm import tqdm
 
-    with open_output(args.out, [args.readings]) as out:
+    with open_output(args.out, inputs) as out:
         writer = LineWriter(out)
         bar = tqdm(
             disable=args.quiet or not sys.stderr.isatty(),

@@ -2,16 +2,21 @@
 
 Sets: ``torchrod generate --rod ROD --count N --out PATH.npz [--seed S] [sampler and sensor options]``.
 Streams: ``torchrod generate --trajectory --rod ROD --count N --out PATH.jsonl [--rate HZ] [--truth PATH]``.
-ROD is a rod JSON file or a preset name. A one-line summary goes to stderr.
+ROD is a rod JSON file or a preset name. A one-line summary goes to stderr. A ``--count`` whose set or stream
+would need more memory than the machine has free is refused up front, with how many fit (make the rest in parts,
+each with its own ``--seed``). ``--out`` and ``--truth`` never name the rod file or each other.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 import time
 
+from ...errors import OptionsError
+from ...io.jsonl import check_output, same_path
 from . import add_device_option, check_device, rod_help
 
 HELP = "synthetic training sets (.npz) and synthetic reading streams (.jsonl)"
@@ -66,6 +71,56 @@ def configure(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--decimals", type=int, default=6, help="decimals of the curvature written [1/m] (default: 6)")
 
 
+def memory_per_case(num_gratings: int, max_forces: int, trajectory: bool) -> int:
+    """About how many bytes of memory one case of a set (or one reading of a ``--trajectory``) holds while it is
+    made: a set keeps float64 tensors of its loads and readings (``25 H + 33 G`` bytes a case), three times over at
+    its peak (the parts, their concatenation, the arrays saved); a trajectory keeps every reading and its truth as
+    Python lists and dicts (hundreds of bytes per grating and per force) until it is written."""
+    G, H = num_gratings, max(1, max_forces)
+    if trajectory:
+        return 600 * G + 1000 * H + 1000
+    return 3 * (25 * H + 33 * G)
+
+
+def available_memory() -> int | None:
+    """The memory this machine can still give [bytes] (``MemAvailable``, else the free pages), None if unknown."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
+def check_memory(count: int, rod, max_forces: int, trajectory: bool) -> None:
+    """:class:`~torchrod.errors.OptionsError` up front when ``--count`` cases would need more memory than the
+    machine has free (:func:`memory_per_case`), instead of a ``MemoryError`` hours later; the message says how
+    many cases fit."""
+    per_case = memory_per_case(rod.num_gratings, max_forces, trajectory)
+    free = available_memory()
+    if free is None or count * per_case <= free:
+        return
+    what = "readings" if trajectory else "cases"
+    raise OptionsError(
+        f"--count {count} would need about {_bytes(count * per_case)} of memory (about {_bytes(per_case)} per "
+        f"{what[:-1]}), more than the {_bytes(free)} this machine has free: make at most {free // per_case} {what} "
+        "at a time (a different --seed for each part)"
+    )
+
+
+def _bytes(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB", "TB", "PB"):
+        if n < 1000 or unit == "PB":
+            return f"{n:.3g} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1000
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
 def run(args: argparse.Namespace) -> int:
     from ...learn.synthetic import (
         ContactModel,
@@ -73,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
         SensorModel,
         generate,
         generate_trajectory,
+        truth_path,
         write_trajectory,
     )
     from ...presets import load as load_rod
@@ -80,6 +136,13 @@ def run(args: argparse.Namespace) -> int:
     rod = load_rod(args.rod)
     if args.count < 0:
         raise ValueError(f"--count must be >= 0, got {args.count}")
+    check_output(args.out, {"--rod": args.rod})
+    if args.trajectory:
+        truth = args.truth if args.truth is not None else truth_path(args.out)
+        check_output(truth, {"--rod": args.rod}, "--truth")
+        if same_path(truth, args.out):
+            raise OptionsError(f"--out and --truth name the same file, {args.out}: give two")
+    check_memory(args.count, rod, args.max_forces, args.trajectory)
     device = check_device(args)
     s_range = None
     if args.s_min is not None or args.s_max is not None:

@@ -39,7 +39,7 @@ import re
 import sys
 from typing import Any
 
-from ...io.jsonl import as_number, check_input, get_list, read_records
+from ...io.jsonl import as_number, check_input, check_output, get_list, read_lines, read_records
 from ...presets import load as load_rod
 from ...rod import Rod
 from . import add_input_options, add_sensor_options, rod_help, sensor_rod
@@ -118,16 +118,15 @@ def _rod_named_in(*paths: str) -> Rod:
 
     named: dict[str, tuple[str, Any]] = {}
     for path in paths:
-        with open(path, encoding="utf-8") as fh:
-            for line in fh:
-                if '"rod"' not in line:
-                    continue
-                try:
-                    obj = json.loads(line)
-                except ValueError:
-                    continue
-                if isinstance(obj, dict) and obj.get("rod") is not None:
-                    named.setdefault(json.dumps(obj["rod"], sort_keys=True), (path, obj["rod"]))
+        for _, line in read_lines(path):  # (lines of bounded length: an endless one is not held)
+            if '"rod"' not in line:
+                continue
+            try:
+                obj = json.loads(line)
+            except (ValueError, RecursionError):
+                continue
+            if isinstance(obj, dict) and obj.get("rod") is not None:
+                named.setdefault(json.dumps(obj["rod"], sort_keys=True), (path, obj["rod"]))
     if not named:
         raise ValueError(
             "which rod? pass --rod ROD (the rod file or preset name the estimates were made with); "
@@ -198,9 +197,12 @@ def run(args: argparse.Namespace) -> int:
     single_file = args.out.lower().endswith(".png")
     if single_file and len(jobs) > 1:
         raise ValueError(f"--out {args.out} names one file but --all asks for {len(jobs)} figures: give a folder")
+    inputs = {"READINGS": args.readings, "ESTIMATES": args.estimates, "--truth": args.truth, "--rod": args.rod}
 
     def target(name: str) -> str:
-        return args.out if single_file else os.path.join(args.out, name)
+        path = args.out if single_file else os.path.join(args.out, name)
+        check_output(path, inputs)
+        return path
 
     for kind, k in jobs:
         if kind == "stream":

@@ -51,6 +51,7 @@ from ...io.jsonl import (
     batched,
     check_input,
     check_keys,
+    check_output,
     get_list,
     get_number,
     open_output,
@@ -201,6 +202,8 @@ def run(args: argparse.Namespace) -> int:
     if args.seed is not None and args.noise == 0.0:
         raise ValueError("--seed sets the noise of --noise SIGMA; give both")
     check_input(args.forces, "FORCES")
+    inputs = {"FORCES": args.forces, "--rod": args.rod}
+    check_output(args.out, inputs)
     device = check_device(args)
     options = {
         "samples": args.samples,
@@ -211,7 +214,7 @@ def run(args: argparse.Namespace) -> int:
     }
     noise = _Noise(args.noise, args.seed) if args.noise > 0.0 else None
     records = read_records(args.forces, lambda obj: parse_case(obj, rod))
-    with open_output(args.out, [args.forces]) as out:
+    with open_output(args.out, inputs) as out:
         writer = LineWriter(out)
         try:
             _run(rod, records, writer, args.batch_size, options, noise)

@@ -74,9 +74,17 @@ Every non-blank input line gets exactly one output line (a CSV header excepted).
 JSON or CSV, a wrong number of gratings, NaN, a value out of bounds, all gratings missing) gives
 ``{"id": ... or null, "error": "line N: ..."}`` naming the field and quoting at most about 100 characters of the
 value, and the stream goes on; missing gratings are left out of the fit. The end of the input, Ctrl-C and SIGTERM
-answer every line read so far before stopping. Memory stays bounded (a batch and a bounded read-ahead). Exit
-status: 0, or 1 if any line failed, 130 after Ctrl-C, 143 after SIGTERM, 141 when the reader of the output goes
-away, 2 for a bad rod, checkpoint or option.
+answer every line read so far before stopping. Memory stays bounded (a batch and a bounded read-ahead; a line
+longer than 16 MiB is an error line, read past without being held). ``--input`` may be a named pipe or a
+device: it is opened once, and SIGTERM ends a stream still waiting for the pipe's writer. ``--out`` and
+``--output-bag`` never name an input. Exit status: 0, or 1 if any line failed or the output bag could not be written
+(a full disk: said once on stderr, the answers go on), 130 after Ctrl-C, 143 after SIGTERM, 141 when the reader of
+the output goes away, 2 for a bad rod, checkpoint or option, a damaged input bag (after the answers of the messages
+before the damage) or a closed standard input or output.
+
+With ``--output-bag``, a reading whose ``t`` the bag cannot hold as a time stamp (ROS 1: 0 <= t < 2^32 s; ROS 2:
+0 <= t < 2^31 s; so not milliseconds since the epoch) is answered with an error line saying so and left out of
+the bag; the others are written, and the bag stays readable.
 
 ``--summary`` prints to stderr at the end: readings, errors, readings/s, the latency (from reading a line to
 answering it) median and 99th percentile beside the solve time per batch and per reading, and with ``--truth FILE``
@@ -90,14 +98,14 @@ reading is then the cost of estimation.
 from __future__ import annotations
 
 import argparse
-import contextlib
+import dataclasses
 import json
 import os
 import sys
 import time
-from collections.abc import Iterator
 from typing import Any
 
+from ...errors import ReadingError
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.lm import LMPolicy
 from ...estimate.noise import NoiseLearning
@@ -106,12 +114,14 @@ from ...io.jsonl import (
     LineWriter,
     check_input,
     check_keys,
+    check_output,
     get_list,
     get_number,
     interrupt_status,
     open_output,
     parse_records,
     read_lines,
+    same_path,
     until_interrupted,
 )
 from ...io.readings import ReadingSource
@@ -260,19 +270,24 @@ def _run(args: argparse.Namespace) -> int:
     rod = sensor_rod(args, load_rod(args.rod))
     check_estimation_options(args)
     sensor_noise(args, rod)
-    check_counts(args)
+    check_counts(args, rod)
     processes = check_workers(args)
     device = check_device(args, processes)
     if args.topic is not None and args.input == "-":
         raise ValueError("--topic reads a ROS bag: give its path with --input")
     if args.topic is not None and args.protocol != "lines":
         raise ValueError("--topic reads a ROS bag; --protocol fbgs reads shape-sensing records: give one")
+    inputs = _inputs(args)
+    check_output(args.out, inputs)
     if args.output_bag is not None:
         from ...io.rosbag import require_rosbags
 
         require_rosbags()
-        if os.path.exists(args.output_bag):
+        check_output(args.output_bag, {**inputs, "--out": args.out}, "--output-bag")
+        if os.path.lexists(args.output_bag):
             raise ValueError(f"--output-bag {args.output_bag} exists already: a bag is never overwritten")
+        if args.out is not None and same_path(args.out, args.output_bag):
+            raise ValueError(f"--out and --output-bag name the same path, {args.out}: give two")
     if not 0.0 <= args.max_latency_ms < float("inf"):
         raise ValueError(f"--max-latency-ms must be >= 0, got {args.max_latency_ms}")
     if args.truth is not None and not args.summary:
@@ -310,20 +325,42 @@ def _run(args: argparse.Namespace) -> int:
             source = read_stream(args.input, rod, topic=args.topic)
         else:
             source = reading_source(args, rod, args.input)
-        with open_output(args.out, [args.input]) as out, _bag(args.output_bag, args.max_forces) as bag:
-            return _answer(args, solver, options, source, LineWriter(out), truth, bag)
+        with open_output(args.out, inputs) as out:
+            bag = _open_bag(args.output_bag, args.max_forces)
+            status = 2
+            try:
+                status = _answer(args, solver, options, source, LineWriter(out), truth, bag)
+            finally:
+                if bag is not None:
+                    status = _close_bag(bag, status)
+            return status
 
 
-@contextlib.contextmanager
-def _bag(path: str | None, slots: int) -> Iterator[Any]:
-    """The :class:`torchrod.io.rosbag.BagWriter` of ``--output-bag``, or None."""
+def _inputs(args: argparse.Namespace) -> dict[str, str | None]:
+    """The files the command reads, by option, which no output may overwrite."""
+    from ...learn.warm_start import SHIPPED_CHECKPOINT
+
+    checkpoint = SHIPPED_CHECKPOINT if args.checkpoint is None else args.checkpoint
+    return {"--input": args.input, "--rod": args.rod, "--checkpoint": checkpoint, "--truth": args.truth}
+
+
+def _open_bag(path: str | None, slots: int) -> Any:
+    """The open :class:`torchrod.io.rosbag.BagWriter` of ``--output-bag``, or None."""
     if path is None:
-        yield None
-        return
+        return None
     from ...io.rosbag import BagWriter
 
-    with BagWriter(path, slots) as bag:
-        yield bag
+    return BagWriter(path, slots).__enter__()
+
+
+def _close_bag(bag: Any, status: int) -> int:
+    """Close the bag; a storage that refuses then (a full disk) is one error line and makes ``status`` 0 a 1."""
+    try:
+        bag.close()
+    except OSError as exc:
+        print(f"torchrod stream: error: {exc}", file=sys.stderr)
+        return 1 if status == 0 else status
+    return status
 
 
 def _answer(
@@ -339,15 +376,27 @@ def _answer(
     start = time.perf_counter()
 
     def emit(result: StreamResult) -> None:
+        extra = {"t": result.t} if result.t is not None else {}
+        record = {"id": result.id, "error": result.error, **extra} if result.error is not None else result.record
+        if bag is not None and bag.failed is None:
+            try:
+                bag.write(record, result.t)
+            except ReadingError as exc:  # a time stamp the bag cannot hold: an error line for this reading alone
+                at = f"line {result.line}: " if result.line is not None else ""
+                writer.error(result.id, at + str(exc), **extra)
+                if args.summary:
+                    stats.add(dataclasses.replace(result, error=str(exc)))
+                return
+            except OSError as exc:  # the storage refused (a full disk): the answers go on, the bag stops here
+                print(
+                    f"torchrod stream: error: {exc}; the answers go on on the output, the bag stops here (exit "
+                    "status 1)",
+                    file=sys.stderr,
+                )
         if result.error is not None:
-            extra = {"t": result.t} if result.t is not None else {}
             writer.error(result.id, result.error, **extra)
-            if bag is not None:
-                bag.write({"id": result.id, "error": result.error, **extra}, result.t)
         else:
             writer.answer(result.record, result.line)
-            if bag is not None:
-                bag.write(result.record, result.t)
         if args.summary:
             known = truth.get(_key(result.id)) if truth is not None and result.ok else None
             stats.add(result, known)
@@ -379,7 +428,7 @@ def _answer(
                 print(f"torchrod stream: {line}", file=sys.stderr)
     if interrupted is not None:
         return interrupt_status(interrupted)
-    return 1 if writer.errors else 0
+    return 1 if writer.errors or (bag is not None and bag.failed is not None) else 0
 
 
 def _key(ident: Any) -> str:

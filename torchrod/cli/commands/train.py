@@ -23,6 +23,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ...io.jsonl import check_output
     from ...learn.training import run as run_training
 
+    if args.evaluate is None:  # (--evaluate records its quality into the checkpoint it reads, by design)
+        # --resume may name the checkpoint written: training goes on in the same file.
+        check_output(args.checkpoint, {"--rod": args.rod, "--data": args.data}, "--checkpoint")
     return run_training(args)
