@@ -27,6 +27,16 @@ def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _kernels_compiled():
+    """The CPU kernels compiled (or loaded from the cache) once, before the first test: tests that run the
+    command line in a subprocess, and time it or interrupt it, then meet loaded kernels and not a first compile."""
+    from torchrod.kernels import targets
+
+    targets.cpu().ready()
+    targets.cpu_schedule().ready()
+
+
 @pytest.fixture(autouse=True)
 def _no_stream_time_budget(monkeypatch):
     """``torchrod stream`` without its default time budget: with it, which readings time out depends on the

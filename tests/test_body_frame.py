@@ -274,6 +274,50 @@ def test_gradcheck_locations_forces_and_stiffness(rod):
     assert torch.autograd.gradcheck(fn, (s, f, ei), eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
+def test_jacrev_of_simulate_matches_finite_differences(rod):
+    """``torch.func.jacrev`` over :func:`torchrod.simulate` (the discrete adjoint under a function transform), in
+    the forces and the locations, against central differences of the fixed-step scheme."""
+    s = torch.tensor([[0.085, 0.205]], dtype=F64)
+    f = torch.tensor([[[0.6, -0.4], [0.3, 0.9]]], dtype=F64)
+
+    def curvature(s: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+        return tr.simulate(rod, tr.PointForces(s, f), steps=3).grating_curvature
+
+    js, jf = torch.func.jacrev(curvature, argnums=(0, 1))(s, f)
+    eps = 1e-6
+    for j in range(2):
+        ds = torch.zeros_like(s)
+        ds[0, j] = eps
+        fd = (curvature(s + ds, f) - curvature(s - ds, f)) / (2 * eps)
+        torch.testing.assert_close(js[..., 0, j], fd, rtol=1e-5, atol=1e-6)
+        for c in range(2):
+            df = torch.zeros_like(f)
+            df[0, j, c] = eps
+            fd = (curvature(s, f + df) - curvature(s, f - df)) / (2 * eps)
+            torch.testing.assert_close(jf[..., 0, j, c], fd, rtol=1e-5, atol=1e-6)
+
+
+def test_second_derivatives_need_the_recorded_model(rod):
+    """The adjoint gives first derivatives; asked for a second it raises, naming the way that works:
+    ``adjoint=False``, whose Hessian-vector product matches differences of the gradient."""
+    s = torch.tensor([[0.12, 0.25]], dtype=F64)
+    f = torch.tensor([[[0.3, -0.2], [0.1, 0.4]]], dtype=F64, requires_grad=True)
+    u = tr.simulate(rod, tr.PointForces(s, f)).grating_curvature
+    with pytest.raises(tr.TorchrodError, match="adjoint=False"):
+        torch.autograd.grad(u.pow(2).sum(), f, create_graph=True)
+
+    def gradient(f: torch.Tensor, create: bool) -> torch.Tensor:
+        u = tr.simulate(rod, tr.PointForces(s, f), steps=3, adjoint=False).grating_curvature
+        return torch.autograd.grad(u.pow(2).sum(), f, create_graph=create)[0]
+
+    v = torch.tensor([[[0.3, 1.0], [-0.5, 0.2]]], dtype=F64)
+    (hv,) = torch.autograd.grad((gradient(f, True) * v).sum(), f)
+    eps = 1e-6
+    plus, minus = (f.detach() + eps * v).requires_grad_(), (f.detach() - eps * v).requires_grad_()
+    fd = (gradient(plus, False) - gradient(minus, False)) / (2 * eps)
+    torch.testing.assert_close(hv, fd, rtol=1e-6, atol=1e-4)
+
+
 def test_padded_forces_get_no_gradient(rod):
     s = torch.tensor([[0.1, 0.2]], dtype=F64, requires_grad=True)
     f = torch.tensor([[[0.5, 0.2], [0.7, -0.2]]], dtype=F64, requires_grad=True)

@@ -48,7 +48,7 @@ def test_the_shipped_checkpoint_records_its_quality_and_is_used_beside_the_scan(
     assert est.options.starts > 0 and est.options.trust_guesses == (not weak)
     assert len(messages) == (1 if weak else 0) and (not weak or "weak" in messages[0])
     kappa, loads = _readings(rod, [[(0.2, 0.3, -0.2)], [(0.1, -0.5, 0.4), (0.22, 0.2, 0.3)]])
-    r = est.estimate(kappa, noise=0.0)
+    r = est.estimate(kappa, options=dataclasses.replace(est.options, noise=0.0))
     assert r.num_forces.tolist() == [1, 2]
     true = loads.sorted()
     for b, h in enumerate([1, 2]):
@@ -162,7 +162,7 @@ def test_a_longer_rod_with_the_same_relative_layout_uses_the_network_too():
         est = Estimator.from_checkpoint(CHECKPOINT, rod)
     assert est.warm_start is not None
     kappa, _ = _readings(rod, [[(0.3, 0.4, 0.1)]])
-    r = est.estimate(kappa, noise=0.0)
+    r = est.estimate(kappa, options=dataclasses.replace(est.options, noise=0.0))
     assert int(r.num_forces[0]) == 1
     assert abs(float(r.forces.s[0, 0]) - 0.3) < 1e-4
 
@@ -175,7 +175,7 @@ def test_without_a_network_for_the_rod_it_says_so_once_and_what_to_do():
     assert len(messages) == 1 and "no warm-start network for this rod" in messages[0]
     assert "torchrod train" in messages[0]  # how to get one
     kappa, _ = _readings(rod, [[(0.2, 0.3, 0.0)]])
-    r = est.estimate(kappa, noise=0.0)
+    r = est.estimate(kappa, options=dataclasses.replace(est.options, noise=0.0))
     assert int(r.num_forces[0]) == 1 and abs(float(r.forces.s[0, 0]) - 0.2) < 1e-4
     with pytest.warns(UserWarning, match="no warm-start network"):
         Estimator.from_checkpoint(CHECKPOINT, rod)
@@ -227,7 +227,7 @@ def test_starts_zero_needs_another_start():
         Estimator(rod, EstimatorOptions(starts=0)).estimate(kappa)
     # With an extra start for every count it runs without the scan.
     extra = {h: tr.PointForces.from_lists([[(0.05 + 0.08 * i, 0.1, 0.0) for i in range(h)]]) for h in (1, 2, 3)}
-    r = Estimator(rod, EstimatorOptions(starts=0)).estimate(kappa, extra_starts=extra, noise=0.0)
+    r = Estimator(rod, EstimatorOptions(starts=0, noise=0.0)).estimate(kappa, extra_starts=extra)
     assert int(r.num_forces[0]) == 1 and abs(float(r.forces.s[0, 0]) - 0.2) < 1e-4
 
 
@@ -256,16 +256,10 @@ class _FixedGuess:
 
 
 @pytest.mark.parametrize(
-    ("backend", "trust", "noise"),
-    [
-        ("numpy", False, 0.05),
-        ("numpy", True, 0.05),
-        ("torch", False, 0.05),
-        ("torch", True, 0.05),
-        ("numpy", False, None),
-    ],
+    ("trust", "noise"),
+    [(False, 0.05), (True, 0.05), (False, None)],
 )
-def test_a_network_guess_starts_only_the_readings_that_find_its_count_likely(backend, trust, noise):
+def test_a_network_guess_starts_only_the_readings_that_find_its_count_likely(trust, noise):
     """With ``guess_probability`` p, a network guess of h forces is a start only for the readings whose count
     probabilities give h at least p: a batch answers as if each reading had been estimated alone with a network
     that gives no guess for its unlikely counts (same counts, statuses, fits and evaluations), trusted or not (a
@@ -287,7 +281,7 @@ def test_a_network_guess_starts_only_the_readings_that_find_its_count_likely(bac
     forces = {
         h: tr.PointForces.from_lists([[(0.04 + 0.09 * i, 0.1, -0.1) for i in range(h)]] * len(cases)) for h in (1, 2, 3)
     }
-    opts = EstimatorOptions(noise=noise, backend=backend, trust_guesses=trust)
+    opts = EstimatorOptions(noise=noise, trust_guesses=trust)
     batch = Estimator(rod, opts, warm_start=_FixedGuess(probs, forces)).estimate(kappa)
     for b in range(len(cases)):
         likely = [h for h in forces if probs[b, h - 1] >= 0.01]
@@ -308,8 +302,7 @@ def test_guess_probability_is_a_probability():
             EstimatorOptions(guess_probability=bad)
 
 
-@pytest.mark.parametrize("backend", ["numpy", "torch"])
-def test_twins_answer_as_the_search_without_them_for_fewer_evaluations(backend):
+def test_twins_answer_as_the_search_without_them_for_fewer_evaluations():
     """``SearchOptions.twins`` stops rows that another row of the same reading joins in the same intervals (the
     network's guess and the scan's start, the wider search's starts). On noisy readings of one to three forces
     with the shipped network, the estimates equal those of the search without twins: the same counts and
@@ -320,11 +313,12 @@ def test_twins_answer_as_the_search_without_them_for_fewer_evaluations(backend):
     rod = tr.presets.nitinol290()
     sampler = LoadSampler(min_forces=1, max_forces=3, force_range=(0.05, 2.0), min_separation=0.025)
     data = generate(rod, 160, sampler=sampler, sensor=SensorModel(noise=0.1), seed=17)
-    opts = EstimatorOptions(noise=0.1, backend=backend)
+    opts = EstimatorOptions(noise=0.1)
     est = Estimator.from_checkpoint(CHECKPOINT, rod, opts, warn=lambda _: None)
     assert est.options.search.twins
     on = est.estimate(data.curvature, data.mask)
-    off = est.estimate(data.curvature, data.mask, search=dataclasses.replace(opts.search, twins=False))
+    untwinned = dataclasses.replace(est.options, search=dataclasses.replace(opts.search, twins=False))
+    off = est.estimate(data.curvature, data.mask, options=untwinned)
     assert on.num_forces.tolist() == off.num_forces.tolist()
     assert on.statuses == off.statuses
     worse = (on.loss - off.loss) / 0.1**2
@@ -366,3 +360,13 @@ def test_the_commands_trust_a_network_as_from_checkpoint_does(tmp_path, monkeypa
         assert Estimator.from_checkpoint(path, rod, warn=messages.append).options.trust_guesses == is_trusted(net)
     assert is_trusted(WarmStart.load(trusted, rod)) and not is_trusted(WarmStart.load(CHECKPOINT, rod))
     assert not is_trusted(None)
+
+
+def test_from_checkpoint_on_a_missing_path_raises_naming_it(tmp_path):
+    """A checkpoint the caller names that does not exist is an error, not a warning and a run without the network
+    asked for."""
+    missing = tmp_path / "checkpoints" / "nitinol290.pt"
+    with pytest.raises(tr.MissingFileError, match="nitinol290.pt"):
+        Estimator.from_checkpoint(missing, tr.presets.nitinol290())
+    with pytest.raises(FileNotFoundError):  # the standard type too
+        Estimator.from_checkpoint(str(missing), tr.presets.nitinol290())

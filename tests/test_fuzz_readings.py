@@ -320,6 +320,9 @@ class _CheckingEstimator:
     def __init__(self, rod: tr.Rod, options: Any = None, warm_start: Any = None) -> None:
         self.rod, self.options = rod, options
 
+    def plan(self, *args: Any, **kwargs: Any) -> None:
+        """Nothing to compile."""
+
     def estimate(self, curvature: torch.Tensor, mask: torch.Tensor | None = None, **kwargs: Any) -> _Result:
         check_readings(curvature, mask, self.rod.num_gratings)
         return _Result(curvature.shape[0])

@@ -137,7 +137,7 @@ def test_calibrate_fibre_command_writes_the_rod_and_refuses_its_input(tmp_path, 
     before = rod_file.read_text()
     for target in (rod_file, readings):
         assert main([*argv, "--out", str(target)]) == 2
-        assert "write the calibrated rod to a new file" in capsys.readouterr().err
+        assert "writing it would erase the input" in capsys.readouterr().err
     assert rod_file.read_text() == before
 
 

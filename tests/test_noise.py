@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -156,6 +157,6 @@ def test_fits_cut_by_the_time_budget_teach_nothing():
     u = 0.1 * torch.randn(60, rod.num_gratings, 2, dtype=torch.float64, generator=gen)
     est = tr.Estimator(rod, tr.EstimatorOptions(max_forces=1))
     readings = [{"id": k, "curvature": u[k]} for k in range(60)]
-    out = list(stream(est, readings, StreamOptions(batch_size=8), time_budget=0.0))
+    out = list(stream(est, readings, StreamOptions(batch_size=8), dataclasses.replace(est.options, time_budget=0.0)))
     assert [r.record["status"] for r in out] == ["timeout"] * 60
     assert not any("noise" in r.record for r in out)

@@ -137,17 +137,17 @@ def test_a_failing_batch_is_retried_reading_by_reading(rod, estimator):
     assert all(r.record["num_forces"] == 1 for r in out if r.ok)
 
 
-def test_bad_overrides_raise_at_once_and_an_unused_stream_reads_nothing(estimator):
+def test_bad_options_raise_at_once_and_an_unused_stream_reads_nothing(estimator):
     taken = []
 
     def source():
         taken.append(1)
         yield {}
 
-    with pytest.raises(ValueError, match="max_forces"):
-        stream(estimator, source(), max_forces=-1)
-    with pytest.raises(TypeError):
-        stream(estimator, source(), no_such_option=1)
+    with pytest.raises(TypeError, match="estimate_options must be EstimatorOptions"):
+        stream(estimator, source(), StreamOptions(), {"max_forces": 2})
+    with pytest.raises(TypeError, match="options must be StreamOptions"):
+        stream(estimator, source(), {"batch_size": 2})
     results = stream(estimator, source())
     time.sleep(0.2)
     assert taken == []
@@ -209,10 +209,13 @@ def test_latency_bound_flushes_a_slow_source(rod, estimator):
     assert all(seen <= k + 2 for k, (_, seen) in enumerate(answered))
 
 
-def test_read_ahead_is_bounded(rod, estimator):
-    """A fast source (100 000 readings ready at once): the stream never takes more than the rest of the current
-    batch, the read-ahead and the one the reader holds beyond what it answered."""
+@pytest.mark.parametrize("workers", [1, 2])
+def test_read_ahead_is_bounded(rod, estimator, workers):
+    """A fast source (100 000 readings ready at once): the stream never takes more than the batches in flight (two
+    per solver thread, with more than one), the rest of the current batch, the read-ahead and the one the reader
+    holds beyond what it answered."""
     (line,) = _one_force_lines(rod, 1)
+    flight = 4 * (2 * workers if workers > 1 else 0)
     taken = [0]
 
     def source():
@@ -220,18 +223,18 @@ def test_read_ahead_is_bounded(rod, estimator):
             taken[0] += 1
             yield dict(line, id=k)
 
-    options = StreamOptions(batch_size=4, max_latency=0.0, read_ahead=8)
+    options = StreamOptions(batch_size=4, max_latency=0.0, read_ahead=8, workers=workers)
     results = stream(estimator, source(), options)
     try:
         first = next(results)
         time.sleep(0.3)
         assert first.id == 0
-        assert taken[0] <= 4 + 8 + 1
+        assert taken[0] <= flight + 4 + 8 + 1
         for _ in range(10):
             next(results)
         time.sleep(0.3)
-        # answered 11; the rest of their batch (<= 3), the queue (8) and the reader's hand (1)
-        assert taken[0] <= 11 + 3 + 8 + 1
+        # answered 11; the batches in flight, the rest of their batch (<= 3), the queue (8), the reader's hand (1)
+        assert taken[0] <= 11 + flight + 3 + 8 + 1
     finally:
         results.close()
     before = taken[0]
@@ -807,11 +810,12 @@ def test_bench_stream_runs_and_reports_every_way(capsys):
     assert main([*args, "--checkpoint", "none", "--set", "max_forces=2", "--profile", *external]) == 0
     out = capsys.readouterr().out
     rows = [line for line in out.splitlines() if "|" in line and not line.startswith("way")]
+    threads = os.cpu_count() or 1
     assert [r.split("|")[0].strip() for r in rows] == [
         "static, batched (B=1024)",
         "static, one at a time",
-        "stream, backlog (B<=1024)",
-        "stream, backlog, 2 processes",
+        "stream, backlog, 1 thread (B<=1024)",
+        *([f"stream, backlog, {threads} threads"] if threads > 1 else []),
         "stream, backlog, noise learned",
         "stream, backlog, noise per reading",
         "stream, paced 400 Hz",
@@ -820,13 +824,13 @@ def test_bench_stream_runs_and_reports_every_way(capsys):
         "stream, one at a time",
     ]
     readings = [int(r.split("|")[1].split()[0]) for r in rows]
-    assert readings == [40, 3, 40, 40, 40, 40, 20, 20, 20, 3]
+    assert readings == [40, 3, 40, *([40] if threads > 1 else []), 40, 40, 20, 20, 20, 3]
     # the process paced from outside answers every line; with no time at all, every answer says so
     assert "# CLI, 400 Hz from outside, budget 0 ms: latency median" in out and "statuses: timeout 20" in out
     # the stream over the same readings as the static batches agrees with them on the count
     static, backlog = (float(rows[k].split("|")[4].split()[0].rstrip("%")) for k in (0, 2))
     assert abs(static - backlog) <= 10.0
-    assert "max_forces=2" in out and "L-BFGS" in out
+    assert "max_forces=2" in out and "kernels" in out  # the options, and where the time goes
 
 
 def test_bench_paced_latency_counts_the_wait_of_a_stream_that_falls_behind(rod, estimator):
@@ -845,7 +849,7 @@ def test_bench_paced_latency_counts_the_wait_of_a_stream_that_falls_behind(rod, 
 
     items = [Reading(k, torch.tensor(line["curvature"])) for k, line in enumerate(_one_force_lines(rod, 12))]
     due: dict = {}
-    options = StreamOptions(batch_size=1, read_ahead=1)
+    options = StreamOptions(batch_size=1, read_ahead=1, workers=1)  # one solver thread: it falls behind
     got = list(_since_due(stream(Slow(estimator), _paced(items, 1000.0, due), options), due))
     assert [r.id for r in got] == list(range(12)) and sorted(due) == list(range(12))
     waited = [r.latency - 1e-3 * r.record["latency_ms"] for r in got]  # from release until the stream took it

@@ -6,20 +6,23 @@ The public surface (SI units everywhere: m, N, Pa, 1/m):
 - the differentiable, batched body-frame forward model: :func:`simulate`, :func:`grating_curvature`;
 - the shape: :func:`rod_shape`, :class:`Shape`, :func:`bending_angle`;
 - estimation: :class:`Estimator`, :class:`EstimatorOptions` (with :class:`LMPolicy` and :class:`SearchOptions`),
-  :class:`EstimateResult`, the batched :func:`lbfgs`;
+  :class:`EstimateResult` and its :class:`Status`; :func:`calibrate` (a rod's stiffness and location bias from
+  readings of known loads); the warm-start network, :class:`WarmStart`;
+- streams: :func:`stream` with :class:`StreamOptions` (readings in order, in latency-bounded batches);
+- errors and warnings: :class:`TorchrodError` (with :class:`ReadingError`, :class:`RodError`,
+  :class:`OptionsError`, :class:`MissingFileError`) and :class:`TorchrodWarning` (with :class:`RodWarning`);
 - subpackages for the rest: :mod:`torchrod.model` (forward model, the global-frame reference and the paper's
-  baselines), :mod:`torchrod.estimate` (fit, count selection, uncertainty, calibration), :mod:`torchrod.learn`
-  (synthetic data, the warm-start network, training), :mod:`torchrod.io` (readings, streams).
+  baselines), :mod:`torchrod.estimate` (options, status, noise, calibration), :mod:`torchrod.kernels` (the
+  estimator's numerical core), :mod:`torchrod.learn` (synthetic data, the warm-start network, training),
+  :mod:`torchrod.io` (readings, streams, files), :mod:`torchrod.sensors` (strain and wavelengths to curvature).
 
 The names are loaded on first use (PEP 562): ``import torchrod`` and ``torchrod.__version__`` do not import torch,
 so ``torchrod --version`` and ``torchrod --help`` answer at once; ``torchrod.Rod`` or ``torchrod.simulate`` import
 what they need when first touched.
 """
 
-from __future__ import annotations
-
-import importlib
-from typing import TYPE_CHECKING, Any
+import importlib as _importlib
+import typing as _typing
 
 __version__ = "0.1.0"
 
@@ -27,76 +30,104 @@ __version__ = "0.1.0"
 _LAZY: dict[str, tuple[str, str | None]] = {
     "EstimateResult": (".estimate.estimator", "EstimateResult"),
     "Estimator": (".estimate.estimator", "Estimator"),
-    "EstimatorOptions": (".estimate.estimator", "EstimatorOptions"),
-    "LBFGSOptions": (".estimate.refine", "LBFGSOptions"),
-    "LMPolicy": (".estimate.lm", "LMPolicy"),
+    "EstimatorOptions": (".estimate.options", "EstimatorOptions"),
+    "LMPolicy": (".estimate.options", "LMPolicy"),
+    "MissingFileError": (".errors", "MissingFileError"),
+    "OptionsError": (".errors", "OptionsError"),
     "PointForces": (".loads", "PointForces"),
-    "RefineResult": (".estimate.refine", "RefineResult"),
+    "ReadingError": (".errors", "ReadingError"),
     "Rod": (".rod", "Rod"),
-    "SearchOptions": (".estimate.search", "SearchOptions"),
+    "RodError": (".errors", "RodError"),
+    "RodWarning": (".errors", "RodWarning"),
+    "SearchOptions": (".estimate.options", "SearchOptions"),
     "Shape": (".model.shape", "Shape"),
     "Simulation": (".model.body_frame", "Simulation"),
+    "Status": (".estimate.status", "Status"),
+    "StreamOptions": (".io.stream", "StreamOptions"),
+    "TorchrodError": (".errors", "TorchrodError"),
+    "TorchrodWarning": (".errors", "TorchrodWarning"),
+    "WarmStart": (".learn.warm_start", "WarmStart"),
     "bending_angle": (".model.shape", "bending_angle"),
+    "calibrate": (".estimate.calibration", "calibrate"),
     "grating_curvature": (".model.body_frame", "grating_curvature"),
-    "lbfgs": (".estimate.refine", "lbfgs"),
     "presets": (".presets", None),
     "rod_shape": (".model.shape", "rod_shape"),
     "simulate": (".model.body_frame", "simulate"),
-    "spread_to_nodes": (".loads", "spread_to_nodes"),
-    "tube_bending_stiffness": (".rod", "tube_bending_stiffness"),
+    "stream": (".io.stream", "stream"),
 }
 
 __all__ = [  # the names of _LAZY and __version__ (a test holds them equal)
     "EstimateResult",
     "Estimator",
     "EstimatorOptions",
-    "LBFGSOptions",
     "LMPolicy",
+    "MissingFileError",
+    "OptionsError",
     "PointForces",
-    "RefineResult",
+    "ReadingError",
     "Rod",
+    "RodError",
+    "RodWarning",
     "SearchOptions",
     "Shape",
     "Simulation",
+    "Status",
+    "StreamOptions",
+    "TorchrodError",
+    "TorchrodWarning",
+    "WarmStart",
     "__version__",
     "bending_angle",
+    "calibrate",
     "grating_curvature",
-    "lbfgs",
     "presets",
     "rod_shape",
     "simulate",
-    "spread_to_nodes",
-    "tube_bending_stiffness",
+    "stream",
 ]
 
 # Subpackages and modules that ``torchrod.X`` reaches without an import of its own (as when they were eager).
-_SUBMODULES = frozenset({"cli", "estimate", "eval", "io", "learn", "loads", "model", "rod"})
+_SUBMODULES = frozenset(
+    {"cli", "errors", "estimate", "eval", "io", "kernels", "learn", "loads", "model", "rod", "sensors"}
+)
 
-if TYPE_CHECKING:  # what static tools see; at run time __getattr__ imports on first use
+if _typing.TYPE_CHECKING:  # what static tools see; at run time __getattr__ imports on first use
     from . import presets
-    from .estimate.estimator import EstimateResult, Estimator, EstimatorOptions
-    from .estimate.lm import LMPolicy
-    from .estimate.refine import LBFGSOptions, RefineResult, lbfgs
-    from .estimate.search import SearchOptions
-    from .loads import PointForces, spread_to_nodes
+    from .errors import (
+        MissingFileError,
+        OptionsError,
+        ReadingError,
+        RodError,
+        RodWarning,
+        TorchrodError,
+        TorchrodWarning,
+    )
+    from .estimate.calibration import calibrate
+    from .estimate.estimator import EstimateResult, Estimator
+    from .estimate.options import EstimatorOptions, LMPolicy, SearchOptions
+    from .estimate.status import Status
+    from .io.stream import StreamOptions, stream
+    from .learn.warm_start import WarmStart
+    from .loads import PointForces
     from .model.body_frame import Simulation, grating_curvature, simulate
     from .model.shape import Shape, bending_angle, rod_shape
-    from .rod import Rod, tube_bending_stiffness
+    from .rod import Rod
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> _typing.Any:
     """Import a public name on first use and keep it (later lookups do not come here)."""
     if name in _SUBMODULES:
-        return importlib.import_module(f".{name}", __name__)
+        return _importlib.import_module(f".{name}", __name__)
     try:
         module_name, attribute = _LAZY[name]
     except KeyError:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
-    module = importlib.import_module(module_name, __name__)
+    module = _importlib.import_module(module_name, __name__)
     value = module if attribute is None else getattr(module, attribute)
     globals()[name] = value
     return value
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+    """The public names and subpackages (not this module's own helpers)."""
+    return sorted(set(__all__) | _SUBMODULES)

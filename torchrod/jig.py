@@ -304,6 +304,7 @@ def calibrate_fibre(rod: Rod, data: JigData, tolerance: float = GAIN_TOLERANCE) 
     reference = data.reference
     old = rod.fibre.wavelength if rod.fibre is not None else None
     if reference is None and old is not None and old.reference is not None:
+        assert rod.fibre is not None  # old is its wavelength section
         reference = torch.tensor(rod.fibre.reference_m(), dtype=torch.float64)
     if rod.fibre is not None and rod.fibre.cores and reference is not None:
         pe = old.photoelastic if old is not None else PHOTOELASTIC

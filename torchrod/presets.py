@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 from .errors import MissingFileError, RodError
 from .rod import Rod
@@ -25,7 +26,7 @@ __all__ = ["PAPER_LOCATION_BIAS", "PRESETS", "ctr250", "get", "load", "nitinol29
 
 PAPER_LOCATION_BIAS = -3.12e-3  # [m], the paper's calibrated s_bias
 
-_PAPER_TUBE = {"outer_diameter": 1.397e-3, "inner_diameter": 1.118e-3, "youngs_modulus": 67e9}
+_PAPER_TUBE: dict[str, Any] = {"outer_diameter": 1.397e-3, "inner_diameter": 1.118e-3, "youngs_modulus": 67e9}
 """The paper's Nitinol cross-section and modulus ([m], [m], [Pa]), shared by the presets."""
 
 

@@ -19,7 +19,7 @@ import sys
 import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from .errors import RodError, RodWarning
 
@@ -312,13 +312,13 @@ class Rod:
         return cls(
             length=length,
             bending_stiffness=ei,
-            gratings=gratings,
+            gratings=cast("tuple[float, ...]", gratings),  # __post_init__ makes the tuple
             location_bias=location_bias,
             outer_diameter=d_out,
             inner_diameter=d_in,
             youngs_modulus=e,
             poisson_ratio=poisson_ratio,
-            fibre=fibre,
+            fibre=cast("Fibre | None", fibre),  # __post_init__ reads a mapping as a Fibre
             torsional_stiffness=torsional_stiffness,
             intrinsic_curvature=intrinsic_curvature,
         )

@@ -336,7 +336,7 @@ def _check_peaks(peaks: Any, G: int, C: int, what: str = "fibre.wavelength.peaks
         return peaks
     entries = _rows(what, peaks, "[grating, core] pairs or null")
     seen: dict[tuple[int, int], int] = {}
-    out = []
+    out: list[tuple[int, int] | None] = []
     for k, p in enumerate(entries):
         if p is None:
             out.append(None)
@@ -475,6 +475,7 @@ class Fibre:
                 maps.append(rows)
         else:
             p = self._derived["pinv"]
+            assert per_strain is not None  # no calibration: Wavelength requires the reference then
             for row in per_strain:
                 maps.append([[p[j][c] / row[c] for c in range(C)] for j in range(2)])
         self._derived["reference"] = reference

@@ -305,7 +305,7 @@ class _Problem:
         self.obs = data.present.unsqueeze(-1).expand(-1, -1, 2)  # (R, G, 2)
         R, K = local_used.shape
         used = local_used.reshape(-1).cpu().numpy()
-        self.col = np.full(R * K, -1, dtype=np.int64)
+        self.col: np.ndarray = np.full(R * K, -1, dtype=np.int64)
         self.col[used] = n_global + np.arange(int(used.sum()))
         self.col = self.col.reshape(R, K)
         self.num_unknowns = n_global + int(used.sum())

@@ -1,24 +1,18 @@
-"""Estimating the contact forces behind FBG curvature readings: the orchestration of one estimate.
+"""Estimating the contact forces behind FBG curvature readings.
 
 For B readings, :meth:`Estimator.estimate`
 
-1. checks the readings (:func:`torchrod.io.readings.check_readings`) and poses the least-squares problem
-   (:mod:`.problem`: residuals over the present gratings, each force in its grating interval);
-2. fits the counts 0, 1, ..., ``max_forces`` in turn, each from the one below (:mod:`.search`: a scan for where one
-   more force helps most, Levenberg-Marquardt fits (:mod:`.lm`) from the best few places and from any network or
-   caller guesses, an exchange of forces that sit in a wrong interval); with the noise known, a reading whose
-   count is already decided (:func:`.selection.settled`) is not fitted further;
-3. chooses the count (:func:`.selection.select_count`; 0 is a count like any other);
-4. gives every reading a verdict (:mod:`.status`: ``ok``, ``misfit``, ``unconverged``, ``poorly_determined``,
-   ``timeout``) with the chi-square p-value of its fit, and the Gauss-Newton standard deviations
-   (:mod:`.uncertainty`); a time budget, when given, cuts the search of the readings it runs out on;
-5. reports locations as ``s_model + rod.location_bias``, forces sorted by location, in the input's dtype and
-   device.
+1. checks the readings (:func:`torchrod.io.readings.check_readings`): missing gratings are masked, never read as
+   zero;
+2. asks the warm-start network, when the estimator has one, for a first guess of each count;
+3. runs the kernels (:mod:`torchrod.kernels`) on every reading, on the CPU's cores or one GPU thread per reading:
+   the fit of every count 0..max_forces, each from the one below, the search for each count's global minimum, the
+   count chosen by the significance tests, the verdict's ingredients and the Gauss-Newton uncertainty;
+4. gives every reading its status (:mod:`.status`: ``ok``, ``misfit``, ``unconverged``, ``poorly_determined``,
+   ``timeout``) and the chi-square p-value of its fit, in the input's dtype and on its device.
 
-The work runs on one of two backends (:mod:`torchrod.backend`) with the same code: NumPy on the CPU (a
-one-reading estimate is a few hundred small array operations, which cost several times less in NumPy than in
-torch; at large batches NumPy's complex arithmetic also measured faster on the CPU than torch's, docs/results.md),
-torch on other devices (CUDA). Tests hold the two to the same answers.
+Locations are reported as ``s_model + rod.location_bias``, forces sorted by location. A reading the numerics fail on
+is answered with a status, never an exception.
 """
 
 from __future__ import annotations
@@ -26,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import threading
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -35,140 +30,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..backend import NUMPY, Backend, TorchBackend
+from ..errors import MissingFileError, OptionsError
 from ..io.readings import check_readings
 from ..loads import PointForces
-from ..model.precurved import Precurved
-from ..model.sensitivity import ESTIMATION_STEP_ANGLE
 from ..rod import Rod
-from . import lm, search
-from .problem import Fits, interval_of, make_problem, sided
-from .refine import LBFGSOptions
-from .selection import MISFIT_FACTOR, RULES, ceilings, chi2_quantile, chi2_survival, select_count, settled
-from .status import MISFIT_LEVEL, STATUSES, verdict
-from .uncertainty import CONDITION_LIMIT, fit_uncertainty
+from .options import EstimatorOptions, LMPolicy, SearchOptions
+from .status import Status, verdict
 
-__all__ = ["DEFAULT_LBFGS", "EstimateResult", "Estimator", "EstimatorOptions"]
-
-DEFAULT_LBFGS = LBFGSOptions(max_iter=10, history_size=10, lr=1.0, tolerance_grad=1e-9, tolerance_change=1e-12)
-"""Settings of the L-BFGS refinement of fits the Levenberg-Marquardt budget leaves unconverged."""
-
-_MAX_STEPS = 12  # cap on integrator steps per segment while fitting (far-off trial points need no accuracy)
-
-
-@dataclass(frozen=True)
-class EstimatorOptions:
-    """Settings of :class:`Estimator` (all can be overridden per call of :meth:`Estimator.estimate`).
-
-    Attributes:
-        max_forces: the largest count considered; the count is chosen among 0..max_forces.
-        num_forces: a fixed count instead (0 allowed); the result then holds num_forces slots.
-        noise: sensor sigma per curvature component [1/m]; None: estimated per reading (selection F test).
-        max_noise: [1/m] with ``noise`` None, the largest sensor sigma the verdict believes: a reading that needs
-            more is a misfit (:mod:`.status`).
-        selection: ``"noise"`` (significance test, default) or ``"threshold"`` (the paper's rule).
-        threshold: the paper's loss threshold [1/m^2] for ``selection="threshold"``.
-        significance: alpha of the count tests, before the Bonferroni factor G (:mod:`.selection`).
-        misfit_level: the misfit verdict's significance (:mod:`.status`).
-        noise_floor: [1/m] added in quadrature to sigma: the least noise any reading is assumed to carry (a
-            noise-free reading is not held to a loss of exactly zero; the reported fits use the exact model,
-            accurate to ~1e-9 1/m, so this is far above the model's own error).
-        starts: scan starts per count (the best intervals for one more force); 0 uses only other starts (a
-            warm-start network's, ``extra_starts``).
-        settle: with a known noise, stop fitting larger counts of a reading once its count is decided.
-        lm: the Levenberg-Marquardt policy (:class:`.lm.LMPolicy`).
-        search: scan and exchange settings (:class:`.search.SearchOptions`).
-        lbfgs: refinement of fits still unconverged after ``lm.iterations`` steps (:func:`torchrod.lbfgs`).
-        max_step_angle: accuracy of the forward model used for fitting (:mod:`torchrod.model.sensitivity`).
-        condition_limit: ``poorly_determined`` above this condition number (:mod:`.uncertainty`).
-        backend: ``"auto"`` (NumPy on the CPU, torch elsewhere), ``"numpy"`` (CPU only) or ``"torch"``. On a GPU
-            the torch backend gives the CPU's answers but, at present, far more slowly than NumPy on the CPU (each
-            small operation of the march is a kernel of its own; docs/results.md, "On a GPU").
-        trust_guesses: a count with guesses (a warm-start network's, ``extra_starts``) is first fitted from them
-            alone; the scan's starts serve only a fit found suspicious (:mod:`.search`). Set by
-            :meth:`Estimator.from_checkpoint` when the network's recorded quality is trusted; otherwise guesses
-            are starts beside the scan's.
-        guess_probability: a warm-start network's guess of h forces starts a fit only for the readings where the
-            network gives h at least this probability (its count head); elsewhere it would be one more start for
-            a count the reading is unlikely to have (docs/results.md, "Network guesses where the network expects
-            them"). 0: every guess is used. Ignored with ``starts=0`` (the guesses are then the only starts) and
-            for a warm start that gives no probabilities.
-        relative: readings of a precurved rod are the change of curvature from the unloaded shape, u - u*, not the
-            total curvature u a fibre that is straight when unstrained reads (no effect on a straight rod).
-        time_budget: [s] per reading, None: no limit. A call on B readings stops searching ``B * time_budget``
-            after it began; the readings whose search it cut get the best fit found so far and the status
-            ``timeout`` (:mod:`.status`). For real time, where an answer late is worth less than an answer
-            less sure. It is checked between solver steps (a compiled solve of a few rows: every few steps,
-            ``_lm_compiled.STEPS_PER_CHECK`` row steps at most), so a call overruns it by about one step of its
-            batch, the exact residual of the fits it keeps and the report (a few ms at one reading per call).
-    """
-
-    max_forces: int = 3
-    num_forces: int | None = None
-    noise: float | None = None
-    max_noise: float = 1.0
-    selection: str = "noise"
-    threshold: float = 3.0
-    significance: float = 0.05
-    misfit_level: float = MISFIT_LEVEL
-    noise_floor: float = 1e-3
-    starts: int = 3
-    settle: bool = True
-    lm: lm.LMPolicy = lm.LMPolicy()
-    search: search.SearchOptions = search.SearchOptions()
-    lbfgs: LBFGSOptions = DEFAULT_LBFGS
-    max_step_angle: float = ESTIMATION_STEP_ANGLE
-    condition_limit: float = CONDITION_LIMIT
-    backend: str = "auto"
-    trust_guesses: bool = False
-    guess_probability: float = 0.01
-    relative: bool = False
-    time_budget: float | None = None
-
-    def __post_init__(self) -> None:
-        def integer(name: str, low: int) -> None:
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < low:
-                raise ValueError(f"{name} must be an integer >= {low}, got {v!r}")
-
-        def number(name: str, ok: Callable[[float], bool], what: str) -> None:
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not ok(v):
-                raise ValueError(f"{name} must be {what}, got {v!r}")
-
-        integer("max_forces", 0)
-        integer("starts", 0)
-        if self.num_forces is not None:
-            integer("num_forces", 0)
-        if self.noise is not None:
-            number("noise", lambda v: v >= 0.0, "None or a finite sigma >= 0 [1/m]")
-        if self.time_budget is not None:
-            number("time_budget", lambda v: v >= 0.0, "None or a finite time >= 0 [s]")
-        number("max_noise", lambda v: v > 0.0, "a positive sigma [1/m]")
-        if self.selection not in RULES:
-            raise ValueError(f"selection must be one of {RULES}, got {self.selection!r}")
-        number("threshold", lambda v: v > 0.0, "positive [1/m^2]")
-        number("significance", lambda v: 0.0 < v < 1.0, "in (0, 1)")
-        number("misfit_level", lambda v: 0.0 < v < 1.0, "in (0, 1)")
-        number("noise_floor", lambda v: v >= 0.0, ">= 0 [1/m]")
-        number("max_step_angle", lambda v: v > 0.0, "positive")
-        number("condition_limit", lambda v: v > 1.0, "above 1")
-        number("guess_probability", lambda v: 0.0 <= v < 1.0, "in [0, 1)")
-        for name, kind in (("lm", lm.LMPolicy), ("search", search.SearchOptions), ("lbfgs", LBFGSOptions)):
-            if not isinstance(getattr(self, name), kind):
-                raise TypeError(f"{name} must be {kind.__name__}, got {type(getattr(self, name)).__name__}")
-        if self.backend not in ("auto", "numpy", "torch"):
-            raise ValueError(f"backend must be 'auto', 'numpy' or 'torch', got {self.backend!r}")
-
-    @property
-    def counts(self) -> list[int]:
-        """The counts the choice is among: [num_forces], or 0..max_forces."""
-        return [self.num_forces] if self.num_forces is not None else list(range(self.max_forces + 1))
-
-    @property
-    def width(self) -> int:
-        """Force slots in a result: num_forces if fixed, else max_forces."""
-        return self.num_forces if self.num_forces is not None else self.max_forces
+__all__ = ["EstimateResult", "Estimator", "EstimatorOptions", "LMPolicy", "SearchOptions"]
 
 
 @dataclass(frozen=True)
@@ -179,16 +48,16 @@ class EstimateResult:
         forces: (B, W) forces sorted by location, padding (mask False) last; s REPORTED = s_model +
             rod.location_bias [m], f body-frame (f_x, f_y) [N].
         num_forces: (B,) long, the chosen count (0: no contact).
-        status: (B,) long, the verdict, an index into :data:`torchrod.estimate.status.STATUSES` (``ok``,
-            ``misfit``, ``unconverged``, ``poorly_determined``, ``timeout``; :mod:`.status` says what each means
-            and what to do).
+        status: (B,) long, the verdict's code: its position in :class:`~torchrod.Status` (``ok``, ``misfit``,
+            ``unconverged``, ``poorly_determined``, ``timeout``; :mod:`torchrod.estimate.status` says what each
+            means and what to do). :attr:`statuses` gives them as :class:`~torchrod.Status` members.
         p_value: (B,) the chi-square p-value of the chosen fit's loss (the chance that a correct fit is this bad or
             worse; NaN with no degree of freedom left).
         loss: (B,) loss of the chosen fit: sum over present gratings of squared residuals [1/m^2].
         converged: (B,) bool, the chosen fit stopped on its tolerance.
         iterations: (B,) long, the chosen fit's solver steps.
         std: (B, W, 3) standard deviations of (s [m], f_x [N], f_y [N]); NaN for padding.
-        poorly_determined: (B,) bool (:mod:`.uncertainty`).
+        poorly_determined: (B,) bool (:class:`~torchrod.estimate.status.Status`, ``poorly_determined``).
         losses_by_count: (B, W + 1) best loss of each count h = 0..W [1/m^2]; NaN where h was not fitted.
         noise: (B,) sigma used for the selection and the covariance [1/m].
         evaluations: (B,) long, forward-model evaluations spent on the reading (all its fits and scans).
@@ -215,14 +84,15 @@ class EstimateResult:
         return self.batch_size
 
     @property
-    def statuses(self) -> list[str]:
-        """The status names, one per reading."""
-        return [STATUSES[int(c)] for c in self.status.tolist()]
+    def statuses(self) -> list[Status]:
+        """The verdicts, one per reading (each a string: ``result.statuses[0] == "ok"``)."""
+        members = list(Status)
+        return [members[int(c)] for c in self.status.tolist()]
 
     @property
     def ok(self) -> torch.Tensor:
         """(B,) bool: status ``ok``."""
-        return self.status == 0
+        return self.status == Status.OK.code
 
     def __getitem__(self, index: int | slice | torch.Tensor) -> EstimateResult:
         """Select readings along the batch dimension (an int keeps a batch of one)."""
@@ -279,7 +149,7 @@ class EstimateResult:
             out.append(
                 {
                     "id": ids[b],
-                    "status": status[b],
+                    "status": status[b].value,
                     "num_forces": int(n[b]),
                     "forces": forces,
                     "p_value": num(p[b]),
@@ -295,15 +165,11 @@ class EstimateResult:
 WarmStartLike = Callable[[torch.Tensor, torch.Tensor], Mapping[int, PointForces]]
 
 
-def _p_values(problem: Any, opts: EstimatorOptions, readings: Any, chosen: Any, loss: Any) -> Any:
-    """(n,) the verdict's chi-square p-values of fits of ``chosen`` (n,) forces with ``loss`` (n,) to
-    ``readings`` (n,): at the given noise, or (noise unknown) at the largest believed; 0 where the loss is not
-    finite (it explains nothing)."""
-    xp = problem.xp
-    test_sigma2 = (float(opts.noise) if opts.noise is not None else float(opts.max_noise)) ** 2 + problem.floor2
-    dof = xp.tolist(problem.residuals[readings] - 3 * chosen)
-    p_value = xp.asarray(chi2_survival(xp.tolist(loss / test_sigma2), dof))
-    return xp.where(xp.isfinite(loss), p_value, 0.0)
+def chi2_survival(x: torch.Tensor, dof: torch.Tensor) -> torch.Tensor:
+    """P(chi2_dof > x), elementwise on tensors (NaN where dof <= 0)."""
+    d = dof.to(x.dtype)
+    p = torch.special.gammaincc(torch.clamp(d, min=1.0) / 2.0, torch.clamp(x, min=0.0) / 2.0)
+    return torch.where(d > 0, p, torch.full_like(x, math.nan))
 
 
 class Estimator:
@@ -319,9 +185,10 @@ class Estimator:
             never take the search's away.
     """
 
-    def __init__(self, rod: Rod, options: EstimatorOptions = EstimatorOptions(), warm_start: Any = None) -> None:
+    def __init__(self, rod: Rod, options: EstimatorOptions | None = None, warm_start: Any = None) -> None:
         if not isinstance(rod, Rod):
             raise TypeError(f"rod must be a Rod, got {type(rod).__name__}")
+        options = EstimatorOptions() if options is None else options
         if not isinstance(options, EstimatorOptions):
             raise TypeError(f"options must be EstimatorOptions, got {type(options).__name__}")
         if warm_start is not None and not (hasattr(warm_start, "guess") or callable(warm_start)):
@@ -329,6 +196,8 @@ class Estimator:
         self.rod = rod
         self.options = options
         self.warm_start = warm_start
+        self._plans: dict[Any, Any] = {}
+        self._lock = threading.Lock()
 
     @classmethod
     def from_checkpoint(
@@ -347,7 +216,8 @@ class Estimator:
         scan serves the fits found suspicious (``trust_guesses``).
         Otherwise the network is said to be weak, once, through ``warn`` (default: a :class:`UserWarning`), and its
         guesses are starts beside the scan's, so it cannot make results worse. When the layout does not match (or the
-        file is missing or damaged), the estimator runs without a network and says so, and how to train one.
+        file is damaged), the estimator runs without a network and says so, and how to train one; a path that does
+        not exist is an error (:class:`~torchrod.MissingFileError`).
 
         Args:
             path: a checkpoint written by :mod:`torchrod.learn.training` (loaded with ``weights_only=True``).
@@ -356,6 +226,9 @@ class Estimator:
         """
         from ..learn.warm_start import WarmStart, quality_verdict
 
+        if not os.path.exists(path):
+            raise MissingFileError(f"checkpoint {os.fspath(path)!r} does not exist (the shipped network of the "
+                                   "nitinol290 preset: torchrod.learn.warm_start.SHIPPED_CHECKPOINT)")  # fmt: skip
         say = warn if warn is not None else (lambda m: warnings.warn(m, UserWarning, stacklevel=3))
         options = options if options is not None else EstimatorOptions()
         try:
@@ -375,20 +248,20 @@ class Estimator:
             )
         return cls(rod, dataclasses.replace(options, trust_guesses=not weak), warm_start=ws)
 
-    def stream(self, readings: Any, options: Any = None, **overrides: Any) -> Any:
+    def stream(self, readings: Any, options: Any = None, estimate_options: EstimatorOptions | None = None) -> Any:
         """Estimate a stream of readings in order, in latency-bounded batches (:func:`torchrod.io.stream.stream`).
 
         Args:
             readings: any iterable of :class:`torchrod.io.stream.Reading` (or dicts with ``id``, ``curvature``,
                 optional ``t``).
-            options: :class:`torchrod.io.stream.StreamOptions` (batch size, latency bound).
-            **overrides: :class:`EstimatorOptions` fields for every batch.
+            options: :class:`torchrod.io.stream.StreamOptions` (batch size, latency bound, threads).
+            estimate_options: the :class:`EstimatorOptions` of every batch (default: the estimator's).
         Yields:
             one :class:`torchrod.io.stream.StreamResult` per reading, in input order.
         """
         from ..io.stream import StreamOptions, stream
 
-        return stream(self, readings, options if options is not None else StreamOptions(), **overrides)
+        return stream(self, readings, options if options is not None else StreamOptions(), estimate_options)
 
     # ------------------------------------------------------------------ input checks
     def _check(self, curvature: Any, mask: Any) -> tuple[torch.Tensor, torch.Tensor]:
@@ -400,15 +273,71 @@ class Estimator:
             raise ValueError(f"readings {rows[:10]} have no present grating (mask all False)")
         return curvature, mask
 
-    def _backend(self, opts: EstimatorOptions, B: int, device: torch.device) -> Backend:
-        name = opts.backend
-        if name == "auto":
-            name = "numpy" if device.type == "cpu" else "torch"
-        if name == "numpy":
-            if device.type != "cpu":
-                raise ValueError(f"backend 'numpy' runs on the CPU only, got readings on {device}")
-            return NUMPY
-        return TorchBackend(device)
+    @staticmethod
+    def _target(opts: EstimatorOptions, device: torch.device) -> str:
+        if opts.target == "auto":
+            return "cuda" if device.type == "cuda" else "cpu"
+        if (opts.target == "cuda") != (device.type == "cuda") and not _simulated_cuda():
+            raise OptionsError(f"target {opts.target!r} does not run readings on {device}: move them, or target 'auto'")
+        return opts.target
+
+    def plan(self, options: EstimatorOptions | None = None, guess_counts: Sequence[int] = (), device: Any = "cpu"):
+        """The kernels' plan for these options and guess blocks (their counts), made once and kept: its setup, and
+        the compiled kernels of the target (compiled or loaded now, announced the first time; never inside a
+        reading's time budget)."""
+        from ..kernels.host import Plan, count_tables, rod_setup, setup_of
+        from ..kernels.march import EXACT_MAX_STEPS, EXACT_STEP_ANGLE, FIT_MAX_STEPS
+        from ..model.nystrom import RKN8
+
+        opts = self.options if options is None else options
+        target = self._target(opts, torch.device(device))
+        key = (opts, tuple(guess_counts), target)
+        with self._lock:
+            plan = self._plans.get(key)
+            if plan is None:
+                rod = self.rod
+                rec, model = rod_setup(
+                    length=rod.length,
+                    ei=rod.bending_stiffness,
+                    gj=rod.torsion_stiffness,
+                    bias=rod.location_bias,
+                    gratings=rod.gratings,
+                    segments=rod.intrinsic_curvature if rod.precurved else (),
+                    breakpoints=rod.breakpoints() if rod.precurved else (),
+                    step_angle=opts.max_step_angle,
+                    max_steps=FIT_MAX_STEPS,
+                    exact_angle=EXACT_STEP_ANGLE,
+                    exact_max_steps=EXACT_MAX_STEPS,
+                    method=RKN8,
+                )
+                tables = count_tables(
+                    rod.num_gratings,
+                    opts.width,
+                    opts.significance,
+                    opts.search.suspect,
+                    opts.search.kink_suspect,
+                    opts.misfit_level,
+                )
+                setup, sizes = setup_of(rec, model, opts.record(), tables, guess_counts)
+                plan = Plan(target, setup, sizes)
+                if len(self._plans) > 32:
+                    self._plans.clear()
+                self._plans[key] = plan
+        plan.compiled.ready()
+        return plan
+
+    def kit(self, curvature: torch.Tensor, mask: torch.Tensor | None = None, options: EstimatorOptions | None = None):
+        """The kernels' :class:`~torchrod.kernels.layout.Kit` of one reading (curvature (G, 2) [1/m], mask (G,)), for
+        calling kernel functions one by one as Python (debugging, tests); noise as ``options`` say."""
+        from ..kernels.host import kit
+
+        opts = self.options if options is None else options
+        curvature, mask = self._check(curvature[None], None if mask is None else mask[None])
+        plan = self.plan(dataclasses.replace(opts, target="python"))
+        u = torch.where(mask[0, :, None], curvature[0].to(torch.float64), 0.0).reshape(-1).cpu().numpy()
+        w = mask[0, :, None].expand(-1, 2).to(torch.float64).reshape(-1).cpu().numpy()
+        noise2 = -1.0 if opts.noise is None else float(opts.noise) ** 2 + float(opts.noise_floor) ** 2
+        return kit(plan.setup, plan.sizes, u, w, noise2)
 
     # ------------------------------------------------------------------ the method
     def estimate(
@@ -416,8 +345,8 @@ class Estimator:
         curvature: torch.Tensor,
         mask: torch.Tensor | None = None,
         *,
+        options: EstimatorOptions | None = None,
         extra_starts: Mapping[int, PointForces] | None = None,
-        **overrides: Any,
     ) -> EstimateResult:
         """Estimate the forces behind B readings.
 
@@ -425,83 +354,97 @@ class Estimator:
             curvature: (B, G, 2) measured (u_x, u_y) at the rod's gratings [1/m]; values at missing gratings are
                 ignored (may be NaN).
             mask: (B, G) bool, True where the grating was read; None: the finite entries.
+            options: :class:`EstimatorOptions` for this call (default: the estimator's).
             extra_starts: {h: PointForces (B, h)} additional starting guesses in REPORTED coordinates (as in
-                :attr:`EstimateResult.forces`, so a previous solution can be passed as is); rows whose forces are
-                not all finite are ignored; counts that are not fitted are ignored.
-            **overrides: any :class:`EstimatorOptions` field for this call.
+                :attr:`EstimateResult.forces`, so a previous solution can be passed as is); a row whose forces are
+                not all finite starts from no load instead; counts that are not fitted are ignored.
         Returns:
-            :class:`EstimateResult` in ``curvature``'s dtype and device (computed in float64). A reading that the
-            numerics fail on is reported with a status, never raised.
+            :class:`EstimateResult` in ``curvature``'s dtype and device (computed in float64).
         """
-        began = time.perf_counter()
-        opts = dataclasses.replace(self.options, **overrides) if overrides else self.options
+        opts = self.options if options is None else options
+        if not isinstance(opts, EstimatorOptions):
+            raise TypeError(f"options must be EstimatorOptions, got {type(opts).__name__}")
         curvature, mask = self._check(curvature, mask)
         device, out_dtype = curvature.device, curvature.dtype
-        B = curvature.shape[0]
-        xp = self._backend(opts, B, device)
-        rod = self.rod
+        B, G = mask.shape
+        W = opts.width
         u = curvature.to(torch.float64)
-        if opts.relative and rod.precurved:  # readings of the change from the unloaded shape: add the shape back
-            u = u + rod.unloaded_curvature(torch.float64, u.device)
+        if opts.relative and self.rod.precurved:  # readings of the change from the unloaded shape: add it back
+            u = u + self.rod.unloaded_curvature(torch.float64, u.device)
+        u = torch.where(mask[:, :, None], u, torch.zeros((), dtype=torch.float64, device=device))
+        w = mask[:, :, None].expand(B, G, 2).to(torch.float64)
         floor2 = float(opts.noise_floor) ** 2
-        noise2 = None if opts.noise is None else xp.full((B,), float(opts.noise) ** 2 + floor2)
-        present = xp.asarray(mask, "bool")
-        problem = make_problem(
-            xp,
-            rod.length,
-            rod.bending_stiffness,
-            rod.gratings,
-            xp.where(present[:, :, None], xp.asarray(u), 0.0),  # a missing grating's value (NaN, say) never read
-            present,
-            noise2=noise2,
-            floor2=floor2,
-            step_angle=opts.max_step_angle,
-            max_steps=_MAX_STEPS,
-            precurved=Precurved.of(rod) if rod.precurved else None,
-        )
-        counts = opts.counts
-        top = max(counts)
-        guesses = self._guesses(problem, curvature, mask, opts, extra_starts, top)
-        # A reading the numerics fail on (an overflow, a singular matrix) gets a status, not a warning or an error.
-        deadline = None if opts.time_budget is None else began + B * opts.time_budget
-        with np.errstate(all="ignore"):
-            return self._solve(problem, opts, guesses, counts, top, mask, out_dtype, device, deadline)
-
-    def _solve(self, problem, opts, guesses, counts, top, mask, out_dtype, device, deadline) -> EstimateResult:
-        found = search.fit_counts(
-            problem,
-            search.Solver(opts.lm, opts.lbfgs, deadline),
-            opts.search,
-            self._rules(problem, opts),
-            top_count=top,
-            starts=opts.starts,
-            guesses=guesses,
-            needed=set(counts) - {0},
-            trusted=opts.trust_guesses,
-        )
-        return self._report(problem, opts, found, mask, out_dtype, device)
+        noise2 = torch.full((B,), -1.0 if opts.noise is None else float(opts.noise) ** 2 + floor2, device=device,
+                            dtype=torch.float64)  # fmt: skip
+        blocks = self._guesses(curvature, mask, opts, extra_starts)
+        counts = [h for h, _, _, _ in blocks]
+        if opts.starts == 0:
+            needed = set(opts.counts) - {0}
+            missing = sorted(needed - set(counts))
+            if missing:
+                raise OptionsError(
+                    f"no start for h = {missing[0]}: starts=0 needs a warm start or extra_starts for every count"
+                )
+        plan = self.plan(opts, counts, device)  # compiled before the clock starts
+        began = time.perf_counter()
+        H = max(W, 1)
+        K = max(len(blocks), 1)
+        gs = torch.zeros((B, K, H), dtype=torch.float64, device=device)
+        gf = torch.zeros((B, K, H, 2), dtype=torch.float64, device=device)
+        guse = torch.zeros((B, K), dtype=torch.bool, device=device)
+        for k, (h, s, f, use) in enumerate(blocks):
+            gs[:, k, :h] = s
+            gf[:, k, :h] = f
+            guse[:, k] = use
+        out = _outputs(B, W, device)
+        flag = np.zeros(1, np.int64)
+        timer = None
+        if opts.time_budget is not None and plan.target != "cuda":
+            left = began + B * opts.time_budget - time.perf_counter()
+            if left <= 0.0:
+                flag.fill(1)
+            else:
+                timer = threading.Timer(left, flag.fill, (1,))
+                timer.daemon = True
+                timer.start()
+        try:
+            batch = _batch(u.reshape(B, 2 * G), w.reshape(B, 2 * G), noise2, gs, gf, guse, out, plan.target)
+            gpu = (
+                device.index
+                if device.index is not None
+                else (torch.cuda.current_device() if device.type == "cuda" else 0)
+            )
+            plan.run(batch, flag, opts.threads, gpu)
+        finally:
+            if timer is not None:
+                timer.cancel()
+        return self._report(out, mask, opts, out_dtype)
 
     # ------------------------------------------------------------------ stages
     def _guesses(
         self,
-        problem: Any,
         curvature: torch.Tensor,
         mask: torch.Tensor,
         opts: EstimatorOptions,
         extra_starts: Mapping[int, PointForces] | None,
-        top: int,
-    ) -> dict[int, list[Fits]]:
-        """The starts other than the scan's, per count 1..top, as Fits of B rows in model coordinates: the caller's
-        ``extra_starts`` (location bias removed), then the warm start's guesses. A guess that is not finite for a
-        reading becomes, for that reading, a force at the middle of its first interval with no load."""
+    ) -> list[tuple[int, torch.Tensor, torch.Tensor, torch.Tensor]]:
+        """The starts other than the scan's, per count 1..top, as blocks (h, s (B, h) [m] in model coordinates, f
+        (B, h, 2) [N], use (B,) bool): the caller's ``extra_starts`` (location bias removed), then the warm start's
+        guesses (used where the network gives the count at least ``guess_probability``)."""
         B = curvature.shape[0]
-        xp = problem.xp
-        # per count: (the guess, its location shift [m], the readings it starts: None for all)
-        found: dict[int, list[tuple[PointForces, float, Any]]] = {h: [] for h in range(1, top + 1)}
+        top = opts.width
+        device = curvature.device
+        out: list[tuple[int, torch.Tensor, torch.Tensor, torch.Tensor]] = []
+        everyone = torch.ones((B,), dtype=torch.bool, device=device)
+        per_count: dict[int, list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]] = {h: [] for h in range(1, top + 1)}
         if extra_starts:
             for h, pf in extra_starts.items():
-                if h in found:
-                    found[h].append((self._check_guess(pf, B, h), -self.rod.location_bias, None))
+                if h in per_count:
+                    pf = self._check_guess(pf, B, h)
+                    s = pf.s.detach().to(device, torch.float64) - self.rod.location_bias
+                    f = pf.f.detach().to(device, torch.float64)
+                    f = torch.where(pf.active.to(device)[:, :, None], f, torch.full_like(f, math.nan))
+                    per_count[h].append((s, f, everyone))
         if self.warm_start is not None:
             net = (
                 self.warm_start.guess(curvature, mask)
@@ -509,206 +452,48 @@ class Estimator:
                 else self.warm_start(curvature, mask)
             )
             probs = getattr(net, "count_probs", None)
-            probs = None if probs is None else xp.asarray(probs.detach())
             for h, pf in (net.forces if hasattr(net, "forces") else net).items():
-                if h in found:
-                    likely = None
+                if h in per_count:
+                    pf = self._check_guess(pf, B, h)
+                    use = everyone
                     if probs is not None and opts.starts > 0 and opts.guess_probability > 0 and h <= probs.shape[1]:
-                        likely = probs[:, h - 1] >= opts.guess_probability
-                        likely = None if bool(xp.all(likely)) else xp.nonzero(likely)
-                    found[h].append((self._check_guess(pf, B, h), 0.0, likely))
-        reading = xp.arange(B)
-        first = 0.5 * (problem.lo[:, :1] + problem.hi[:, :1])  # (B, 1) the first interval's middle
-        out: dict[int, list[Fits]] = {}
-        for h, guesses in found.items():
-            for pf, shift, rows in guesses:
-                if rows is not None and rows.shape[0] == 0:
-                    continue
-                s = xp.clip(xp.asarray(pf.s.detach()) + shift, lo=0.0, hi=self.rod.length)
-                f = xp.asarray(pf.f.detach())
-                ok = xp.all(xp.asarray(pf.active, "bool") & xp.isfinite(s) & xp.all(xp.isfinite(f), 2), 1)
-                s = xp.where(ok[:, None], s, xp.expand(first, (B, h)))
-                f = xp.where(ok[:, None, None], f, 0.0)
-                j, s = interval_of(problem, reading, s)
-                fits = Fits(reading, s, f, j)
-                if rows is not None:
-                    fits = fits.take(rows)
-                out.setdefault(h, []).append(fits)
+                        use = probs[:, h - 1].detach().to(device) >= opts.guess_probability
+                    s = pf.s.detach().to(device, torch.float64)
+                    f = pf.f.detach().to(device, torch.float64)
+                    f = torch.where(pf.active.to(device)[:, :, None], f, torch.full_like(f, math.nan))
+                    per_count[h].append((s, f, use))
+        for h, found in per_count.items():
+            for s, f, use in found:
+                if bool(use.any()):
+                    out.append((h, torch.clamp(s, 0.0, self.rod.length), f, use))
         return out
 
-    def _rules(self, problem: Any, opts: EstimatorOptions) -> search.Rules:
-        """The search's decisions from the options (:class:`.search.Rules`, :mod:`.selection`)."""
-        xp = problem.xp
-        G = self.rod.num_gratings
-        known = opts.noise is not None
-        fixed = opts.num_forces is not None
-        tests = dict(
-            rule=opts.selection,
-            noise=opts.noise,
-            threshold=opts.threshold,
-            significance=opts.significance,
-            floor=opts.noise_floor,
-            num_gratings=G,
-        )
-
-        def choose(losses: Any) -> Any:
-            if fixed:
-                return xp.full((losses.shape[0],), opts.num_forces, "int")
-            return select_count(xp, losses, list(range(losses.shape[1])), problem.residuals, **tests)[0]
-
-        def settle(losses: Any, readings: Any, gain: Any) -> Any:
-            counts = list(range(losses.shape[1]))
-            return settled(xp, losses, counts, problem.residuals[readings], gain, **tests)
-
-        def quantile(p: float, h: int, readings: Any) -> Any:
-            """The p-quantile of a correct h-force fit's loss at the noise (given, or unknown: the floor)."""
-            n = xp.tolist(problem.residuals[readings])
-            q = xp.asarray([chi2_quantile(p, int(k) - 3 * h) for k in n])
-            return q * (problem.noise2[readings] if known else problem.floor2)
-
-        def suspect(h: int, readings: Any) -> tuple[Any, Any]:
-            return quantile(opts.search.suspect, h, readings), quantile(opts.search.kink_suspect, h, readings)
-
-        def plausible(readings: Any, losses: Any) -> Any:
-            # Within `hopeless` times the loss each count needs to be chosen (its ceiling, given the larger counts'
-            # fits), and of the misfit guard's quantile at the noise (given, or unknown: the floor).
-            counts = list(range(losses.shape[1]))
-            ceiling = ceilings(xp, losses, counts, problem.residuals[readings], **tests)
-            level = 1.0 - opts.significance / MISFIT_FACTOR
-            guard = xp.stack([quantile(level, h, readings) for h in counts], 1)
-            return opts.search.hopeless * xp.lib.minimum(guard, ceiling)
-
-        def doubtful(state: Any) -> Any:
-            n, h = state.fits.s.shape
-            if known:
-                sigma = xp.lib.sqrt(problem.noise2[state.fits.reading])
-            else:
-                dof = xp.clip(xp.astype(problem.residuals[state.fits.reading] - 3 * h, "float"), lo=1.0)
-                sigma = xp.lib.sqrt(state.loss / dof + problem.floor2)
-            unc = fit_uncertainty(
-                problem,
-                state.fits,
-                xp.ones((n, h), "bool"),
-                sided(problem, state.fits, state.J),
-                sigma,
-                condition_limit=opts.condition_limit,
-            )
-            return unc.poorly_determined
-
-        def unexplained(readings: Any, chosen: Any, loss: Any) -> Any:
-            return _p_values(problem, opts, readings, chosen, loss) < opts.misfit_level  # the verdict's misfit
-
-        return search.Rules(
-            choose=choose,
-            doubtful=doubtful,
-            unexplained=unexplained,
-            settled=settle if (opts.settle and not fixed and opts.starts > 0) else None,
-            suspect=suspect,
-            plausible=plausible,
-        )
-
-    def _report(
-        self,
-        problem: Any,
-        opts: EstimatorOptions,
-        found: search.CountFits,
-        mask: torch.Tensor,
-        out_dtype: torch.dtype,
-        device: torch.device,
-    ) -> EstimateResult:
-        """The chosen count, its fit in reported form, the verdict and the uncertainty."""
-        xp = problem.xp
-        rod = self.rod
-        B = problem.batch_size
-        G = rod.num_gratings
-        counts, W = opts.counts, opts.width
-        nan = math.nan
-        losses = xp.stack([found.states[h].loss for h in counts], 1)  # (B, C)
-        if len(counts) > 1:
-            chosen, sigma = select_count(
-                xp,
-                losses,
-                counts,
-                problem.residuals,
-                rule=opts.selection,
-                noise=opts.noise,
-                threshold=opts.threshold,
-                significance=opts.significance,
-                floor=opts.noise_floor,
-                num_gratings=G,
-            )
-        else:
-            # The fixed count, or where the time budget cut the search before it, the largest count fitted (the
-            # best answer so far: never a fit that was not made).
-            chosen = xp.zeros((B,), "int")
-            for h in range(counts[0] + 1):
-                chosen = xp.where(found.fitted[h], h, chosen)
-            if opts.noise is not None:
-                sigma = xp.full((B,), math.sqrt(float(opts.noise) ** 2 + problem.floor2))
-        # The chosen fits, padded to W forces.
-        s = xp.zeros((B, W))
-        f = xp.zeros((B, W, 2))
-        interval = xp.zeros((B, W), "int")
-        J = xp.zeros((B, 2 * G, 3 * W))
-        loss = xp.zeros((B,)) + nan
-        converged = xp.zeros((B,), "bool")
-        steps = xp.zeros((B,), "int")
-        for h in set(xp.tolist(chosen)):
-            at = xp.nonzero(chosen == h)
-            st = found.states[h].take(xp, at)
-            if h:
-                s[at, :h] = st.fits.s
-                f[at, :h] = st.fits.f
-                interval[at, :h] = st.fits.interval
-                J[at, :, : 3 * h] = sided(problem, st.fits, st.J)
-            loss[at] = st.loss
-            converged[at] = st.converged
-            steps[at] = st.steps
-        if len(counts) == 1 and opts.noise is None:  # the noise from the fit's own loss
-            dof = xp.clip(xp.astype(problem.residuals - 3 * chosen, "float"), lo=1.0)
-            sigma = xp.lib.sqrt(xp.clip(loss / dof, lo=0.0) + problem.floor2)
-        active = xp.arange(W)[None, :] < chosen[:, None]
-        unc = fit_uncertainty(
-            problem,
-            Fits(xp.arange(B), s, f, interval),
-            active,
-            J,
-            sigma,
-            condition_limit=opts.condition_limit,
-        )
-        p_value = _p_values(problem, opts, xp.arange(B), chosen, loss)
-        converged = converged & xp.isfinite(loss)
-        status = verdict(xp, p_value, converged, unc.poorly_determined, opts.misfit_level, found.cut)
-
-        # Reported form: sorted by location (padding, and a location that is not a number, last), the location bias
-        # added, then in the input's dtype and device.
-        order = xp.argsort_desc(xp.where(active & (s == s), -s, -math.inf))
-        act = xp.take(active, order, 1)
-        s_rep = xp.where(act, xp.take(s, order, 1) + rod.location_bias, 0.0)
-        f_rep = xp.where(act[:, :, None], xp.take(f, xp.expand(order[:, :, None], (B, W, 2)), 1), 0.0)
-        std = xp.where(act[:, :, None], xp.take(unc.std, xp.expand(order[:, :, None], (B, W, 3)), 1), nan)
-        by_count = xp.full((B, W + 1), nan)
-        by_count[:, list(counts)] = losses
-
-        def to(x):
-            return xp.to_torch(x, device)
-
-        def cast(x):
-            return to(x).to(out_dtype)
-
+    def _report(self, out: Any, mask: torch.Tensor, opts: EstimatorOptions, dtype: torch.dtype) -> EstimateResult:
+        """The kernels' outputs as an :class:`EstimateResult`: the p-values and the verdict added."""
+        t = _tensors(out, mask.device)
+        count = t["count"]
+        B, W = t["s"].shape
+        floor2 = float(opts.noise_floor) ** 2
+        test_sigma2 = (float(opts.noise) if opts.noise is not None else float(opts.max_noise)) ** 2 + floor2
+        residuals = 2 * mask.sum(1)
+        loss = t["loss"]
+        p_value = chi2_survival(loss / test_sigma2, residuals - 3 * count)
+        p_value = torch.where(torch.isfinite(loss), p_value, torch.zeros_like(p_value))
+        status = verdict(p_value, t["converged"], t["poorly"], opts.misfit_level, t["cut"])
+        active = torch.arange(W, device=count.device)[None, :] < count[:, None]
         return EstimateResult(
-            forces=PointForces(cast(s_rep), cast(f_rep), to(act)),
-            num_forces=to(chosen).long(),
-            status=to(status).long(),
-            p_value=cast(p_value),
-            loss=cast(loss),
-            converged=to(converged),
-            iterations=to(steps).long(),
-            std=cast(std),
-            poorly_determined=to(unc.poorly_determined),
-            losses_by_count=cast(by_count),
-            noise=cast(sigma),
-            evaluations=to(found.evaluations).long(),
+            forces=PointForces(t["s"].to(dtype), t["f"].to(dtype), active),
+            num_forces=count,
+            status=status,
+            p_value=p_value.to(dtype),
+            loss=loss.to(dtype),
+            converged=t["converged"],
+            iterations=t["iterations"],
+            std=t["std"].to(dtype),
+            poorly_determined=t["poorly"],
+            losses_by_count=t["losses"].to(dtype),
+            noise=t["sigma"].to(dtype),
+            evaluations=t["evaluations"],
         )
 
     def _check_guess(self, pf: Any, B: int, h: int) -> PointForces:
@@ -717,3 +502,41 @@ class Estimator:
         if pf.s.shape != (B, h):
             raise ValueError(f"the starts for h = {h} must have shape (B, h) = {(B, h)}, got {tuple(pf.s.shape)}")
         return pf
+
+
+def _outputs(B: int, W: int, device: torch.device) -> Any:
+    """The kernels' outputs for B readings of width W, as torch tensors on ``device``."""
+    from ..kernels.host import outputs
+
+    return outputs(B, W, lambda shape, dtype: torch.empty(shape, dtype=_TORCH[np.dtype(dtype)], device=device))
+
+
+_TORCH = {np.dtype(np.float64): torch.float64, np.dtype(np.int64): torch.int64, np.dtype(np.bool_): torch.bool}
+
+
+def _simulated_cuda() -> bool:
+    """Whether numba-cuda's simulator stands in for a GPU: the CUDA target then takes readings on the CPU."""
+    from ..kernels.host import simulated
+
+    return simulated()
+
+
+def _batch(u, w, noise2, gs, gf, guse, out, target: str) -> Any:
+    """The kernels' batch: NumPy views of CPU tensors, or CUDA arrays sharing the tensors' memory."""
+    from ..kernels.layout import Batch
+
+    if target == "cuda" and not _simulated_cuda():
+        from numba import cuda
+
+        def view(x: torch.Tensor) -> Any:
+            return cuda.as_cuda_array(x.contiguous())
+    else:
+
+        def view(x: torch.Tensor) -> Any:
+            return x.contiguous().numpy()
+
+    return Batch(view(u), view(w), view(noise2), view(gs), view(gf), view(guse), type(out)(*(view(x) for x in out)))
+
+
+def _tensors(out: Any, device: torch.device) -> dict[str, torch.Tensor]:
+    return dict(zip(out._fields, out, strict=True))

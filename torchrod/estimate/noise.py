@@ -1,16 +1,16 @@
 """The sensor's noise learned from the fits themselves: a running robust estimate for streams.
 
 A reading whose noise is not given is tested with the F law against a sigma estimated from that reading alone
-(:mod:`.selection`). This costs accuracy (the F law's quantiles are wider than the chi-square law's) and time (a
-count is never settled early, so every count is fitted). A stream comes from one sensor, so its sigma can be
+(:mod:`torchrod.kernels.counts`). This costs accuracy (the F law's quantiles are wider than the chi-square law's) and
+time (a count is never settled early, so every count is fitted). A stream comes from one sensor, so its sigma can be
 learned once from the stream and then used as a known noise.
 
-The estimate: a correct fit of h forces to n residuals leaves ``loss ~ sigma^2 chi2(n - 3h)`` (:mod:`.selection`),
-so each fit gives ``loss / median(chi2(n - 3h))``, whose median over fits is sigma^2 (exactly when every fit has the
-same degrees of freedom, and to within a few percent when gratings are missing now and then). The median ignores
-the fits that are not correct (a misfit, a force missed) as long as they are fewer than half. Fits without degrees
-of freedom left, and unconverged ones, are not used. Only the most recent ``window`` fits count, so a sensor whose
-noise drifts slowly is followed.
+The estimate: a correct fit of h forces to n residuals leaves ``loss ~ sigma^2 chi2(n - 3h)``
+(:mod:`torchrod.kernels.counts`), so each fit gives ``loss / median(chi2(n - 3h))``, whose median over fits is sigma^2
+(exactly when every fit has the same degrees of freedom, and to within a few percent when gratings are missing now and
+then). The median ignores the fits that are not correct (a misfit, a force missed) as long as they are fewer than half.
+Fits without degrees of freedom left, and unconverged ones, are not used. Only the most recent ``window`` fits count, so
+a sensor whose noise drifts slowly is followed.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from .selection import chi2_quantile
+from ..kernels.host import chi2_quantile
 
 __all__ = ["NoiseLearning", "RunningNoise"]
 

@@ -8,7 +8,7 @@ Each reading's result carries one status; when several apply, the first in this 
     were skipped. Its p-value, ``converged`` and ``poorly_determined`` are those of that fit, so a timeout
     with a small p-value may be a misfit that more time would have fixed, or not. Use it with care (or hold
     the last good answer); if many readings time out, give a larger budget, fewer ``max_forces``, or more
-    workers.
+    CPU threads.
 ``"misfit"``
     The chosen fit is worse than the noise explains: its loss exceeds the ``1 - misfit_level`` quantile of the
     chi-square law of a correct fit's loss, ``loss / sigma^2 ~ chi2(n - 3h)``, at the given noise (with the floor)
@@ -23,20 +23,42 @@ Each reading's result carries one status; when several apply, the first in this 
     Retry with more iterations (``EstimatorOptions(lm=LMPolicy(iterations=..., refine_iterations=...))``) or
     report the reading.
 ``"poorly_determined"``
-    The data cannot tell this answer from others (:mod:`.uncertainty`: forces the gratings cannot separate, a
-    force seen by one grating only, a location uncertain beyond its grating interval). The fit explains the
-    reading, but some of its numbers are not pinned down: use the standard deviations, or a denser grating layout.
+    The data cannot tell this answer from others (:mod:`torchrod.kernels.covariance`: forces the gratings cannot
+    separate, a force seen by one grating only, a location uncertain beyond its grating interval). The fit explains
+    the reading, but some of its numbers are not pinned down: use the standard deviations, or a denser grating
+    layout.
 ``"ok"``
     The fit explains the reading and its parameters are determined; the standard deviations hold.
 """
 
 from __future__ import annotations
 
+from enum import Enum
 from typing import Any
 
-__all__ = ["MISFIT_LEVEL", "STATUSES", "verdict"]
+__all__ = ["MISFIT_LEVEL", "STATUSES", "Status", "verdict"]
 
-STATUSES = ("ok", "misfit", "unconverged", "poorly_determined", "timeout")
+
+class Status(str, Enum):
+    """A reading's verdict, a string (``Status.OK == "ok"``); its position in this enumeration is the code that
+    :attr:`torchrod.EstimateResult.status` holds per reading."""
+
+    OK = "ok"
+    MISFIT = "misfit"
+    UNCONVERGED = "unconverged"
+    POORLY_DETERMINED = "poorly_determined"
+    TIMEOUT = "timeout"
+
+    def __str__(self) -> str:
+        return self.value
+
+    @property
+    def code(self) -> int:
+        """The integer code of this status in :attr:`torchrod.EstimateResult.status`."""
+        return STATUSES.index(self.value)
+
+
+STATUSES = tuple(s.value for s in Status)
 """The status names, by code: ``STATUSES[code]``."""
 
 MISFIT_LEVEL = 1e-3
@@ -45,14 +67,14 @@ MISFIT_LEVEL = 1e-3
 OK, MISFIT, UNCONVERGED, POORLY_DETERMINED, TIMEOUT = range(5)
 
 
-def verdict(xp: Any, p_value: Any, converged: Any, poorly_determined: Any, level: float, timeout: Any = None) -> Any:
-    """(B,) int status codes (indices into :data:`STATUSES`): timeout where ``timeout`` (B,) bool, then misfit
-    where ``p_value < level`` (or not finite with a fit that could be tested), then unconverged, then poorly
-    determined, else ok."""
-    misfit = p_value < level
-    code = xp.where(poorly_determined, POORLY_DETERMINED, OK)
-    code = xp.where(~converged, UNCONVERGED, code)
-    code = xp.where(misfit, MISFIT, code)
+def verdict(p_value: Any, converged: Any, poorly_determined: Any, level: float, timeout: Any = None) -> Any:
+    """(B,) int64 status codes (indices into :data:`STATUSES`) from (B,) tensors: timeout where ``timeout``, then
+    misfit where ``p_value < level``, then unconverged, then poorly determined, else ok."""
+    import torch
+
+    code = torch.where(poorly_determined, POORLY_DETERMINED, OK)
+    code = torch.where(~converged, UNCONVERGED, code)
+    code = torch.where(p_value < level, MISFIT, code)
     if timeout is not None:
-        code = xp.where(timeout, TIMEOUT, code)
-    return xp.astype(code, "int")
+        code = torch.where(timeout, TIMEOUT, code)
+    return code.to(torch.int64)

@@ -2,7 +2,7 @@
 
 The baselines of :mod:`torchrod.eval.paper` (the paper's node method, BVP + Levenberg-Marquardt, BVP + derivative
 propagation) all start from these guesses, so that their timings compare the inner models and not the starts. (The
-estimator itself starts from the sequential scan of :mod:`torchrod.estimate.search`, whose cost grows linearly
+estimator itself starts from the sequential scan of :mod:`torchrod.kernels.scan`, whose cost grows linearly
 with the number of gratings; this one enumerates location sets, which is affordable for the paper's 14 gratings and
 at most three forces.)
 
@@ -176,7 +176,7 @@ class GridStarts:
         loss = loss.clamp(min=0.0)
         # Best distinct candidates: pick the best, suppress its near copies, repeat.
         copies = self._copy_matrix(h)
-        chosen = []
+        chosen: list[torch.Tensor] = []
         work = loss.clone()
         inf = torch.tensor(float("inf"), dtype=self.dtype, device=self.device)
         for _ in range(count):

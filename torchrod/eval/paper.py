@@ -39,10 +39,12 @@ Loss maps (:func:`loss_maps`)
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any, Literal, cast
 
 import numpy as np
 import torch
@@ -183,7 +185,7 @@ class BVPModel(CurvatureModel):
     iterations and the solves that did not converge.
     """
 
-    def __init__(self, rod: Rod, nodes: int, jacobian: str = "dp", *, tol: float = 1e-10) -> None:
+    def __init__(self, rod: Rod, nodes: int, jacobian: Literal["fd", "dp"] = "dp", *, tol: float = 1e-10) -> None:
         super().__init__(rod, nodes)
         self.solver = ShootingSolver(rod, nodes=nodes, jacobian=jacobian, scheme="nodes", tol=tol, warm_start=False)
         self.name = f"bvp_{'lm' if jacobian == 'fd' else 'dp'}"
@@ -667,7 +669,7 @@ class Timed:
     cpu: float
 
 
-def _timed(call, *args, **kwargs) -> tuple[object, float, float]:
+def _timed(call, *args, **kwargs) -> tuple[Any, float, float]:
     """``call(*args, **kwargs)``, its wall-clock and process CPU seconds."""
     w0, c0 = time.perf_counter(), time.process_time()
     out = call(*args, **kwargs)
@@ -721,7 +723,7 @@ class SpeedTable:
 
     def median(self, method: str, q: int | None = None, what: str = "wall") -> float:
         """Median seconds per estimate of ``method`` (a baseline at ``q``, or ``"torchrod"``)."""
-        runs = self.torchrod if method == "torchrod" else self.baselines[method][q]
+        runs = self.torchrod if method == "torchrod" else self.baselines[method][cast(int, q)]  # a baseline has a q
         return _median([getattr(r, what) for r in runs])
 
     def speedup(self, method: str, q: int, what: str = "wall", batched: bool = False) -> float:
@@ -730,7 +732,7 @@ class SpeedTable:
         return self.median(method, q, what) / mine
 
     def estimates(self, method: str, q: int | None = None) -> list[np.ndarray]:
-        runs = self.torchrod if method == "torchrod" else self.baselines[method][q]
+        runs = self.torchrod if method == "torchrod" else self.baselines[method][cast(int, q)]  # a baseline has a q
         return [r.forces for r in runs]
 
     def gaps(self, a: str, b: str, q: int) -> tuple[np.ndarray, np.ndarray]:
@@ -872,7 +874,8 @@ def accuracy_study(
         runs.setdefault(label, {})[k] = MethodRun(est, wall, cpu)
 
     def mine(u: torch.Tensor, m: torch.Tensor, **overrides) -> np.ndarray:
-        return _torchrod_rows(estimator.estimate(u[None], m[None], **overrides))
+        opts = dataclasses.replace(estimator.options, **overrides) if overrides else None
+        return _torchrod_rows(estimator.estimate(u[None], m[None], options=opts))
 
     def theirs(u: torch.Tensor, m: torch.Tensor, model: CurvatureModel, **kwargs) -> np.ndarray:
         return paper_estimate(model, u, mask=m, grid=grid, options=options, **kwargs).fit.forces

@@ -48,6 +48,7 @@ __all__ = [
     "RecoveryCase",
     "VERDICTS",
     "explains",
+    "gauss_newton_condition",
     "identifiable",
     "judge",
     "recovery_cases",
@@ -135,10 +136,7 @@ def identifiable(rod: Rod, case: RecoveryCase, visible: float = 0.01, condition:
     at the truth (unit diagonal) conditioned better than ``condition`` (else a nearby answer fits as well: two forces
     the gratings
     between them barely separate can have another exact solution a fraction of a millimetre away)."""
-    from ..backend import NUMPY
-    from ..estimate.uncertainty import gauss_newton_covariance
     from ..model.body_frame import simulate
-    from ..model.sensitivity import march
 
     q = [x for x, p in zip(rod.gratings, case.present, strict=False) if p]
     intervals = [max(j for j in range(len(q)) if q[j] <= s) for s in case.s]
@@ -155,22 +153,31 @@ def identifiable(rod: Rod, case: RecoveryCase, visible: float = 0.01, condition:
         gone = (u[0] - u[1])[torch.tensor(case.present)].abs().amax(dim=-1)
         if int((gone >= visible).sum()) < 2:
             return False
+    return gauss_newton_condition(rod, case) <= condition
+
+
+def gauss_newton_condition(rod: Rod, case: RecoveryCase) -> float:
+    """The condition number of the Gauss-Newton matrix J^T J of the case's present readings at the truth, scaled to
+    a unit diagonal (J: d curvature / d (s_j, f_x,j, f_y,j), from the differentiable forward model)."""
     import numpy as np
 
+    from ..model.body_frame import simulate
+
+    s0 = torch.tensor([case.s], dtype=torch.float64)
+    f0 = torch.tensor([case.f], dtype=torch.float64)
+
+    def curvature(s: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+        return simulate(rod, PointForces(s, f)).grating_curvature[0]  # (G, 2)
+
+    js, jf = torch.autograd.functional.jacobian(curvature, (s0, f0))  # (G, 2, 1, h), (G, 2, 1, h, 2)
     h = len(case.s)
-    _, jac = march(
-        NUMPY,
-        np.asarray(rod.gratings),
-        np.asarray([case.s]),
-        np.asarray([case.f]),
-        rod.length,
-        rod.bending_stiffness,
-        step_angle=0.05,
-        max_steps=400,
-    )
-    J = (jac * np.repeat(np.asarray(case.present, dtype=float), 1)[None, :, None, None, None]).reshape(1, -1, 3 * h)
-    _, cond = gauss_newton_covariance(NUMPY, J, np.ones(1), np.ones((1, 3 * h), dtype=bool))
-    return bool(cond[0] <= condition)
+    J = torch.cat((js[:, :, 0, :, None], jf[:, :, 0]), dim=-1)  # (G, 2, h, 3): (s, f_x, f_y) per force
+    Jp = J[torch.tensor(case.present)].reshape(-1, 3 * h).numpy()  # the rows of the present gratings
+    N = Jp.T @ Jp
+    d = np.sqrt(np.diag(N))
+    if not np.all(d > 0):
+        return math.inf
+    return float(np.linalg.cond(N / np.outer(d, d)))
 
 
 def judge(

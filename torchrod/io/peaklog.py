@@ -31,7 +31,7 @@ from __future__ import annotations
 import datetime
 import re
 from collections.abc import Callable, Iterable, Iterator
-from typing import Any
+from typing import Any, cast
 
 from ..errors import OptionsError, ReadingError
 from .readings import csv_number, quote
@@ -80,7 +80,7 @@ def peak_time(text: str) -> tuple[float, datetime.date | None, bool]:
                 raise ValueError(f"time stamp {quote(text)} holds no valid date (YYYY-MM-DD)") from None
         return 3600.0 * h + 60.0 * mi + s, date, True
     if _SECONDS.fullmatch(text):
-        return csv_number(text, "the time stamp"), None, False
+        return cast(float, csv_number(text, "the time stamp")), None, False  # a number: not an empty cell
     raise ValueError(
         f"time stamp {quote(text)} is not HH-MM-SS.ffffff, HH:MM:SS.ffffff (optionally after YYYY-MM-DD) or a number "
         "of seconds"
@@ -138,7 +138,7 @@ class PeakLog:
         order = peaks if isinstance(peaks, str) else fibre.wavelength.peaks if peaks is None else None
         self.described = f"{self.G} gratings x {self.C} cores, {order}" if isinstance(order, str) else "--peaks"
         self._first_date: datetime.date | None = None
-        self._last = None  # the last time of day [s]
+        self._last: float | None = None  # the last time of day [s]
         self._days = 0
 
     def reading_object(self, text: str) -> dict[str, Any]:

@@ -76,7 +76,7 @@ import re
 import sys
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, cast
 
 import torch
 
@@ -282,10 +282,11 @@ def quote(value: Any, limit: int = QUOTE_CHARS) -> str:
             if isinstance(item, _Piece):
                 text = str(item)
             else:
-                text = _scalar_text(item, limit)
-                if text is None:
+                scalar = _scalar_text(item, limit)
+                if scalar is None:
                     stack.append(_pieces(item))
                     continue
+                text = scalar
             out.append(text)
             size += len(text)
     except Exception:  # noqa: BLE001 - a message must come out whatever the value holds
@@ -1008,12 +1009,12 @@ class CsvLayout:
                 f"{at} lacks the columns {', '.join(missing[:6])}{more}: give every grating's columns (leave a "
                 "missing grating's cells empty in its rows)"
             )
-        force_cols = []
+        force_cols: list[tuple[int, int, int]] = []
         for j in sorted(forces):
             lack = [f for f in _FORCE_FIELDS if f not in forces[j]]
             if lack:
                 raise ReadingError(f"{at}: force {j} lacks the column(s) {', '.join(f'{f}_{j}' for f in lack)}")
-            force_cols.append(tuple(forces[j][f] for f in _FORCE_FIELDS))
+            force_cols.append(cast("tuple[int, int, int]", tuple(forces[j][f] for f in _FORCE_FIELDS)))  # s, fx, fy
         data = tuple((col, k - 1, j - 1) for (k, j), col in sorted(cols.items()))
         return cls(key, per, len(cells), id_col, t_col, data, tuple(force_cols), tuple(sorted(jig.items())), line)
 

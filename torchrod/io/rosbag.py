@@ -115,7 +115,8 @@ class BagSource:
         t = stamp * 1e-9
         where = f"message {index} of {self.topic}"
         try:
-            data = [float(x) for x in self._reader.deserialize(raw, connection.msgtype).data]
+            message: Any = self._reader.deserialize(raw, connection.msgtype)  # typed as object by rosbags
+            data = [float(x) for x in message.data]
         except Exception as exc:  # noqa: BLE001 - one bad message is one error answer
             return Reading(index, t=t, error=f"{where}: cannot be decoded ({type(exc).__name__})")
         if len(data) != 2 * self.G:
@@ -158,7 +159,7 @@ class BagWriter:
         if self.ros1:
             from rosbags.rosbag1 import Writer as Writer1
 
-            self._writer = Writer1(self.path)
+            self._writer: Any = Writer1(self.path)  # either bag version's writer
         else:
             from rosbags.rosbag2 import Writer as Writer2
 
@@ -288,10 +289,10 @@ def write_readings(path: str | os.PathLike, topic: str, readings: list[tuple[flo
     ros1 = path.suffix == ".bag"
     store = _typestore(ros1)
     if ros1:
-        from rosbags.rosbag1 import Writer
+        from rosbags.rosbag1 import Writer as Writer1
     else:
-        from rosbags.rosbag2 import Writer
-    writer = Writer(path) if ros1 else Writer(path, version=9)
+        from rosbags.rosbag2 import Writer as Writer2
+    writer: Any = Writer1(path) if ros1 else Writer2(path, version=9)
     array, layout = store.types[MESSAGE_TYPE], store.types["std_msgs/msg/MultiArrayLayout"]
     with writer:
         connection = writer.add_connection(topic, MESSAGE_TYPE, typestore=store)

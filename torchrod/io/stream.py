@@ -8,8 +8,8 @@ iterable of readings and yields one result per reading, in input order, as soon 
   the oldest pending reading has waited ``max_latency`` seconds (by default 0: a reading that finds the estimator
   idle is solved at once); readings that queued up while a batch was being solved all join the next one (up to a
   full batch), so under load batches form by themselves and grow instead of falling behind; with ``workers`` > 1
-  a large batch is spread over that many processes, and a small one goes whole to an idle worker process while
-  the next readings are taken (:mod:`torchrod.estimate.workers`);
+  each batch goes to an idle solver thread while the next readings are taken, so consecutive batches are solved
+  at once on different cores (the kernels run without the interpreter lock) and their answers still come in order;
 - each reading is estimated as :meth:`~torchrod.Estimator.estimate` would alone (the warm-start network's
   guesses when the estimator has one, the scan's starts, the count chosen per reading), so the stream's answers
   are the static estimator's; with ``track``, readings in batches of at most ``track_limit`` also start from the
@@ -35,6 +35,7 @@ Readings are :class:`~torchrod.io.readings.Reading` objects or dicts with the sa
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import dataclasses
 import math
 import queue
@@ -42,7 +43,7 @@ import threading
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import torch
 
@@ -95,13 +96,9 @@ class StreamOptions:
     """Batching of a stream.
 
     Attributes:
-        batch_size: the most readings solved together by one process (with ``workers`` W, a batch holds up to
-            W x batch_size readings, spread over the W processes: each solves a batch as large as it would alone,
-            which is where the estimator is efficient). It bounds only a backlog: a source the solver keeps up
-            with leaves fewer readings pending. Large, because a reading costs the estimator less the more are
-            solved with it (per-operation overhead shared), so a backlog is cleared sooner and shrinks instead of
-            growing; the price is that the first answers of a large backlog wait for its whole batch
-            (docs/results.md, "Batches as large as the backlog").
+        batch_size: the most readings solved together. It bounds only a backlog: a source the solver keeps up with
+            leaves fewer readings pending. Large, so that a backlog is cleared in few calls; the price is that the
+            first answers of a large backlog wait for its whole batch.
         max_latency: [s] the longest the oldest pending reading waits for more readings before its batch is
             solved (0, the default: solve whatever is available at once; a wait lets a fast source fill larger
             batches at the cost of latency).
@@ -119,21 +116,11 @@ class StreamOptions:
             Until then a batch holds ``after`` readings, and until the sigma comes from enough fits, no more
             readings than ``growth`` times the fits learned from (:class:`~torchrod.estimate.noise.NoiseLearning`).
             None: every reading estimates its own noise.
-        workers: processes the stream solves on (:class:`torchrod.estimate.workers.ParallelEstimator`; 1: the
-            calling process alone). A batch of 16 readings or more (a source faster than the solver) is split over
-            them in chunks of at least 8; a backlog of W x ``batch_size`` readings or more (a file) is solved in
-            batches of ``batch_size``, each whole, kept queued at the workers (two each) and solved in the calling
-            process while they are fed, with no barrier between batches. A smaller batch (a live source) goes
-            whole to an idle worker process (the first such batch starts a spare worker, so that W processes give W
-            workers while the calling process reads and collects; until it is ready the calling process solves what
-            finds the others busy), so consecutive readings are solved at once on different cores and one slow
-            reading does not hold the next ones back (their answers still come in input order). With ``track`` or a
-            ``max_latency`` wait, neither: small batches are solved in the calling process, backlogs are split.
-            The workers start with the stream (they take seconds to start; until they are ready every batch is
-            solved in the calling process, and holds ``batch_size`` readings, but with ``track``) and stop when it
-            ends. With a
-            :class:`~torchrod.estimate.workers.ParallelEstimator` as the stream's estimator, leave 1: its
-            processes are the workers.
+        workers: solver threads (None: one per CPU core). Each batch is solved whole by an idle thread while the
+            next readings are taken: a backlog keeps every core busy with batches of ``batch_size``, and a live
+            source's consecutive readings are solved at once, so one slow reading does not hold the next ones back
+            (their answers still come in input order). With ``track`` the batches are solved one after another
+            (each starts from the last one's answer), each spread over the threads.
     """
 
     batch_size: int = 1024
@@ -143,14 +130,14 @@ class StreamOptions:
     track_limit: int = 16
     device: str | torch.device = "cpu"
     learn_noise: NoiseLearning | None = NoiseLearning()
-    workers: int = 1
+    workers: int | None = None
 
     def __post_init__(self) -> None:
         if self.learn_noise is not None and not isinstance(self.learn_noise, NoiseLearning):
             raise TypeError(f"learn_noise must be NoiseLearning or None, got {type(self.learn_noise).__name__}")
         for name in ("batch_size", "read_ahead", "track_limit", "workers"):
             v = getattr(self, name)
-            if v is None and name == "read_ahead":
+            if v is None and name in ("read_ahead", "workers"):
                 continue
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
@@ -216,69 +203,52 @@ class _Pending:
 
 @dataclass
 class _Slot:
-    """A batch taken from the pending readings: its results, or the worker's :class:`Solving` of it."""
+    """A batch taken from the pending readings: its results, or the future of its solve in a solver thread."""
 
     batch: list[_Pending]
     results: list[StreamResult] | None = None
-    solving: Any = None
-    good: list[_Pending] = field(default_factory=list)
-    mask: torch.Tensor | None = None
-    learned: float | None = None
+    future: Any = None
     start: float = 0.0
 
     def done(self) -> bool:
-        return self.results is not None or self.solving.done()
+        return self.results is not None or self.future.done()
 
 
 class _Stream:
     """The state of one :func:`stream`: queue, pending batch, last solution."""
 
-    def __init__(self, estimator: Any, readings: Iterable[Any], options: StreamOptions, overrides: dict) -> None:
-        from ..estimate.workers import ParallelEstimator
+    def __init__(self, estimator: Any, readings: Iterable[Any], options: StreamOptions, estimate: Any) -> None:
+        from ..kernels.host import cpu_threads
 
-        # The batches' solver: the estimator, or the estimator spread over worker processes: the caller's
-        # ParallelEstimator (left running), or one made here (closed with the stream).
-        self.solver = estimator
-        workers = options.workers
-        self.owned = False  # whether the stream closes its solver's workers when it ends
-        if isinstance(estimator, ParallelEstimator):
-            if workers not in (1, estimator.processes):
-                raise ValueError(
-                    f"StreamOptions.workers is {workers} but the ParallelEstimator has {estimator.processes} "
-                    "processes: leave workers at 1 with a ParallelEstimator, or give an estimator"
-                )
-            workers, estimator = estimator.processes, estimator.estimator
-        elif workers > 1:
-            self.solver, self.owned = ParallelEstimator(estimator, workers), True
-        self.estimator, self.options, self.overrides = estimator, options, overrides
+        self.estimator, self.options = estimator, options
+        self.estimate_options = estimate  # the EstimatorOptions of every batch
+        self.workers = cpu_threads(options.workers)
+        # Solver threads: each batch whole in one (the kernels release the interpreter lock), unless tracking.
+        self.pool = None
+        if self.workers > 1 and not options.track:
+            self.pool = concurrent.futures.ThreadPoolExecutor(self.workers, thread_name_prefix="torchrod-stream")
+        self.threads = 1 if self.pool is not None else self.workers  # CPU threads of one batch's solve
         self.G = estimator.rod.num_gratings
         self.fibre = estimator.rod.fibre
         self.device = torch.device(options.device)
-        self.batch_size = options.batch_size * workers  # the most readings of one batch, all processes
-        read_ahead = options.read_ahead if options.read_ahead is not None else 2 * self.batch_size
+        self.batch_size = options.batch_size
+        read_ahead = options.read_ahead if options.read_ahead is not None else 2 * self.batch_size * self.workers
         self.q: queue.Queue = queue.Queue(maxsize=read_ahead)
         self.stop = threading.Event()
         self.halt = threading.Event()
-        self.wake = threading.Event()  # set by the reader after each reading and by a worker's finished batch
+        self.wake = threading.Event()  # set by the reader after each reading and by a solver thread's finished batch
         self.in_source = threading.Event()
         self.pending: list[_Pending] = []
         # The last solved reading's forces, in reported coordinates, (1, h).
         self.previous: PointForces | None = None
         self.finished = False
         self.error: BaseException | None = None
-        base = getattr(estimator, "options", None)
-        given = overrides.get("noise", getattr(base, "noise", None))
-        selection = overrides.get("selection", getattr(base, "selection", "noise"))
-        learn = options.learn_noise is not None and given is None and selection == "noise"
-        self.noise = RunningNoise(options.learn_noise) if learn else None
-        self.max_noise = float(overrides.get("max_noise", getattr(base, "max_noise", math.inf)))
+        learn = options.learn_noise is not None and estimate.noise is None and estimate.selection == "noise"
+        self.noise = RunningNoise(cast(NoiseLearning, options.learn_noise)) if learn else None  # learn: it is set
+        self.max_noise = float(estimate.max_noise)
         # Started by the first ``next``: a stream that is never iterated takes nothing from its source.
         self.thread = threading.Thread(target=_reader, args=(self, readings), daemon=True)
-        self.source = readings
-        # Batches too small to split go whole to an idle worker while this process takes the next readings: with
-        # ``workers`` > 1, no tracking (which needs each batch's answer before the next) and no batching wait (which
-        # asks for batches to be gathered, not hurried).
-        self.pipelined = workers > 1 and not options.track and options.max_latency == 0.0
+        self.source: Any = readings  # any iterable; a ReadingSource also has halt() and waiting (drain)
 
     def _take(self, entry: Any) -> None:
         if entry is _END or entry is _HALTED:
@@ -301,11 +271,11 @@ class _Stream:
                 return
         while len(self.pending) < self.batch_size and not self.finished:
             if self.pending:
-                wait = opts.max_latency - (time.perf_counter() - self.pending[0].arrived)
+                left = opts.max_latency - (time.perf_counter() - self.pending[0].arrived)
                 try:
-                    entry = self.q.get(timeout=min(wait, _POLL)) if wait > 0 else self.q.get_nowait()
+                    entry = self.q.get(timeout=min(left, _POLL)) if left > 0 else self.q.get_nowait()
                 except queue.Empty:
-                    if wait <= _POLL:
+                    if left <= _POLL:
                         return
                     continue
             else:
@@ -317,14 +287,10 @@ class _Stream:
 
     def step(self, flight: collections.deque[_Slot]) -> list[StreamResult] | None:
         """The results of the next batch in input order, or None at the end of the input. Batches are taken from
-        the pending readings as they come and solved here, or (:attr:`pipelined`, a batch too small to split)
-        handed to an idle worker, while this process goes on taking readings: the next small batch goes to the
-        next idle worker, is solved here while the spare worker is not ready yet, or waits once every worker is
-        busy; a large one is split as :meth:`ParallelEstimator.estimate` splits it; a backlog (:meth:`backlog`)
-        goes in batches of ``batch_size``, queued at the workers two at a time and solved here while they are fed,
-        up to four times as many batches in flight as are queued.
-        A batch leaves ``pending`` only once it is solved or handed out, and ``flight`` only once its results are
-        returned, so an interrupt loses none."""
+        the pending readings as they come and handed to an idle solver thread (or solved here without a pool),
+        while this thread goes on taking readings; at most two batches per thread are in flight. A batch leaves
+        ``pending`` only once it is handed out or solved, and ``flight`` only once its results are returned, so an
+        interrupt loses none."""
         while True:
             self.wake.clear()  # (before the checks: what happens after them sets it again)
             if flight and flight[0].done():
@@ -338,38 +304,22 @@ class _Stream:
                     return None  # fill waits for a reading unless something is in flight: the input ended
                 self.wake.wait(_POLL)  # for a reading, or the first batch in flight
                 continue
-            batch = self.pending[: self.batch_limit()]
-            if self.backlog(len(batch)):
-                # Batches of batch_size, each solved whole: queued at the workers, two per worker so that none waits
-                # for this process to hand it the next, and solved here while they are fed.
-                batch = batch[: self.options.batch_size]
-                fed = 2 * (self.solver.processes - 1)
-                if sum(1 for s in flight if s.results is None) < fed:  # handed out, not yet received
-                    slot = self.send(batch, queue=True)
-                elif len(flight) >= 4 * fed:
-                    self.wake.wait(_POLL)  # enough solved ahead of the oldest: wait for it
-                    continue
-                else:
-                    slot = _Slot(batch, results=self.solve(batch, here=True))
-            elif self.small(len(batch)) and self.solver.idle():
-                slot = self.send(batch)
-            elif self.small(len(batch)) and flight and self.solver.full():
-                self.wake.wait(_POLL)  # every worker is busy: wait for one rather than solve beside them
+            if self.pool is not None and (len(flight) >= 2 * self.workers or (flight and self.learning)):
+                # every thread has its batches, or the next batch's size and noise wait on the fits in flight
+                self.wake.wait(_POLL)
                 continue
-            else:
-                slot = _Slot(batch, results=self.solve(batch))
+            batch = self.pending[: self.batch_limit()]
+            slot = self.send(batch) if self.pool is not None else _Slot(batch, results=self.solve(batch))
             del self.pending[: len(batch)]
             flight.append(slot)
 
     def batch_limit(self) -> int:
-        """The most pending readings the next batch takes: ``batch_size`` (times ``workers`` once they are ready:
-        :meth:`alone`), but while the stream learns its noise no more than ``learn_noise.growth`` times the fits
-        learned from so far, and before it has a sigma, ``learn_noise.after``. So a backlog's first large batch does
-        not solve every reading with a noise of its own (slower, less accurate) before the stream has the fits it
-        learns from, nor a thousand readings with a sigma learned from 32 fits: the batches grow until the sigma
-        comes from enough fits."""
-        # (With ``track`` the batches keep their size: their ends decide the tracking starts, so the answers.)
-        size = self.options.batch_size if not self.options.track and self.alone() else self.batch_size
+        """The most pending readings the next batch takes: ``batch_size``, but while the stream learns its noise no
+        more than ``learn_noise.growth`` times the fits learned from so far, and before it has a sigma,
+        ``learn_noise.after``. So a backlog's first large batch does not solve every reading with a noise of its own
+        (slower, less accurate) before the stream has the fits it learns from, nor a thousand readings with a sigma
+        learned from 32 fits: the batches grow until the sigma comes from enough fits."""
+        size = self.batch_size
         if self.noise is None:
             return size
         learning = self.noise.learning
@@ -377,12 +327,11 @@ class _Stream:
             return min(size, learning.after)
         return min(size, max(learning.after, learning.growth * self.noise.used))
 
-    def alone(self) -> bool:
-        """Whether batches are solved in this process alone for now: the workers are still starting. Split over
-        them, a batch would wait seconds for their start with this process idle. Solved here, a batch holds what
-        one process solves (``batch_size``), not the W times as much that would then run on one (but for
-        ``track``: :meth:`batch_limit`)."""
-        return self.solver is not self.estimator and self.solver.starting()
+    @property
+    def learning(self) -> bool:
+        """Whether the stream is still learning its noise: the next batch is held to fewer than ``batch_size``
+        readings by the fits learned from so far (:meth:`batch_limit`), so it waits for the batches in flight."""
+        return self.noise is not None and self.batch_limit() < self.batch_size
 
     def drain(self) -> None:
         """The flush after an interrupt: take everything the reader already took (the queue, and the reading in
@@ -390,7 +339,7 @@ class _Stream:
         ReadingSource`) is asked to end after the lines it already read, and the reader runs until it ends or
         waits on its input; any other source is left at once: the reader stops after the reading in its hands and
         is left alone once it waits on the source (it then holds nothing)."""
-        halt = getattr(self.source, "halt", None)
+        halt: Any = getattr(self.source, "halt", None)
         cooperative = callable(halt) and hasattr(self.source, "waiting")
         if cooperative:
             halt()
@@ -407,49 +356,30 @@ class _Stream:
                 continue
             self._take(entry)
 
-    def solve(self, batch: Sequence[_Pending], here: bool = False) -> list[StreamResult]:
-        """Estimate the usable readings of ``batch`` together (``here``: in this process, not split over the
-        workers); one result per reading, in order."""
+    def solve(self, batch: Sequence[_Pending]) -> list[StreamResult]:
+        """Estimate the usable readings of ``batch`` together, here; one result per reading, in order."""
         good = [p for p in batch if p.ok]
         start = time.perf_counter()
-        answers = self._estimate(good, here) if good else []
+        answers = self._answers(good, *self._estimate(good, self.learned_noise)) if good else []
         return self._results(batch, answers, start)
 
-    def small(self, size: int) -> bool:
-        """Whether a batch of ``size`` readings is one for a single worker: pipelined, and too small to split."""
-        return self.pipelined and size < 2 * self.solver.min_chunk
-
-    def backlog(self, size: int) -> bool:
-        """Whether the next batch, ``size`` readings, shows a backlog to keep the workers fed with: pipelined, the
-        workers ready (:meth:`batch_limit` is ``batch_size`` while they start) and a whole batch of every process
-        pending. Split over the processes instead, each batch ended at a barrier: the workers waited while this
-        process wrote the batch's answers and read the next (docs/results.md, "A backlog without barriers")."""
-        return self.pipelined and size == self.batch_size > self.options.batch_size
-
-    def send(self, batch: list[_Pending], queue: bool = False) -> _Slot:
-        """Hand ``batch`` to an idle worker (:meth:`ParallelEstimator.submit`; ``queue``: to the workers, busy or
-        not); :meth:`receive` gives its results."""
+    def send(self, batch: list[_Pending]) -> _Slot:
+        """Hand ``batch`` to a solver thread; :meth:`receive` gives its results."""
         good = [p for p in batch if p.ok]
         start = time.perf_counter()
         if not good:
             return _Slot(batch, results=self._results(batch, [], start))
-        curvature, mask, overrides, learned = self._request(good)
-        solving = self.solver.submit(curvature, mask, queue=queue, **overrides)
-        solving.add_done_callback(self.wake.set)
-        return _Slot(batch, solving=solving, good=good, mask=mask, learned=learned, start=start)
+        assert self.pool is not None  # step() sends only with a pool
+        future = self.pool.submit(self._estimate, good, self.learned_noise)
+        future.add_done_callback(lambda _: self.wake.set())
+        return _Slot(batch, future=future, start=start)
 
     def receive(self, slot: _Slot) -> list[StreamResult]:
-        """The results of a batch :meth:`send` handed out (waiting for them), as :meth:`solve` gives them; should
-        the batched call have failed, each reading is estimated alone here."""
+        """The results of a batch :meth:`send` handed out (waiting for them), as :meth:`solve` gives them."""
         if slot.results is not None:
             return slot.results
-        try:
-            result = slot.solving.result()
-        except Exception:  # noqa: BLE001 - a reading that breaks the solver must not stop the stream
-            answers = [a for k in range(len(slot.good)) for a in self._estimate(slot.good[k : k + 1])]
-        else:
-            answers = self._answers(slot.good, slot.mask, slot.learned, result)
-        slot.results = self._results(slot.batch, answers, slot.start)
+        good = [p for p in slot.batch if p.ok]
+        slot.results = self._results(slot.batch, self._answers(good, *slot.future.result()), slot.start)
         return slot.results
 
     def _results(self, batch: Sequence[_Pending], answers: list, start: float) -> list[StreamResult]:
@@ -470,40 +400,40 @@ class _Stream:
                     rec["t"] = r.t
                 out.append(StreamResult(r.id, r.t, rec, latency, error, len(batch), elapsed, line=r.line))
                 continue
+            assert rec is not None  # an answer without an error holds its record
             if r.t is not None:
                 rec["t"] = r.t
             rec["latency_ms"] = round(1e3 * latency, 3)
             out.append(StreamResult(r.id, r.t, rec, latency, None, len(good), elapsed, result, index, line=r.line))
         return out
 
-    def _estimate(self, good: Sequence[_Pending], here: bool = False) -> list[tuple[Any, int, dict | None, str | None]]:
-        """(batch result, index in it, record, None) per reading; should the batched call fail, each reading alone,
-        and (None, 0, None, message) for one that fails alone too (the stream goes on)."""
-        curvature, mask, overrides, learned = self._request(good)
-        solver = self.estimator if here or self.alone() else self.solver
-        try:
-            result = solver.estimate(curvature, mask, extra_starts=self._tracking_starts(len(good)), **overrides)
-        except Exception as exc:  # noqa: BLE001 - a reading that breaks the solver must not stop the stream
-            if len(good) == 1:
-                return [(None, 0, None, f"estimation failed: {_exception_text(exc)}")]
-            return [a for k in range(len(good)) for a in self._estimate(good[k : k + 1])]
-        return self._answers(good, mask, learned, result)
-
-    def _request(self, good: Sequence[_Pending]) -> tuple[torch.Tensor, torch.Tensor, dict, float | None]:
-        """The batched call's curvature (B, G, 2) [1/m], mask (B, G), overrides (the learned noise with them) and
-        the learned noise [1/m] (or None)."""
+    def _estimate(self, good: Sequence[_Pending], learned: float | None) -> tuple[Any, torch.Tensor, float | None, Any]:
+        """The batched call on ``good`` with the ``learned`` noise (None: none): (its result, the mask, that noise,
+        None), or, should it fail, (None, the mask, the noise, what came instead: the error message of a single
+        reading, else each reading's own call, as this returns it)."""
         curvature, mask = stack_readings([p.reading for p in good])
         curvature, mask = curvature.to(self.device), mask.to(self.device)
-        overrides, learned = self.overrides, self.learned_noise
+        options = dataclasses.replace(self.estimate_options, threads=self.threads)
         if learned is not None:
-            overrides = {**overrides, "noise": learned}
-        return curvature, mask, overrides, learned
+            options = dataclasses.replace(options, noise=learned)
+        starts = self._tracking_starts(len(good))
+        try:
+            result = self.estimator.estimate(curvature, mask, options=options, extra_starts=starts)
+        except Exception as exc:  # noqa: BLE001 - a reading that breaks the solver must not stop the stream
+            if len(good) == 1:
+                return None, mask, learned, f"estimation failed: {_exception_text(exc)}"
+            return None, mask, learned, [self._estimate(good[k : k + 1], learned) for k in range(len(good))]
+        return result, mask, learned, None
 
     def _answers(
-        self, good: Sequence[_Pending], mask: torch.Tensor, learned: float | None, result: Any
+        self, good: Sequence[_Pending], result: Any, mask: torch.Tensor, learned: float | None, alone: Any
     ) -> list[tuple[Any, int, dict | None, str | None]]:
-        """(batch result, index in it, record, None) per reading of a batched call's ``result``; the fits teach
-        the noise, the last one is the tracking start."""
+        """(batch result, index in it, record, None) per reading of a batched call's ``result`` (or of each
+        reading's own call, or its error); the fits teach the noise, the last one is the tracking start."""
+        if result is None:
+            if isinstance(alone, str):  # one reading, and its call failed
+                return [(None, 0, None, alone)]
+            return [a for p, each in zip(good, alone, strict=True) for a in self._answers([p], *each)]
         records = result.to_records([p.reading.id for p in good])
         if learned is not None:
             for rec in records:
@@ -548,8 +478,8 @@ class _Stream:
             pass
         if self.thread.is_alive():
             self.thread.join(timeout=2 * _POLL)
-        if self.owned:
-            self.solver.close()
+        if self.pool is not None:
+            self.pool.shutdown(wait=True)
 
 
 def _exception_text(exc: BaseException) -> str:
@@ -578,38 +508,34 @@ def stream(
     estimator: Any,
     readings: Iterable[Reading | dict[str, Any]],
     options: StreamOptions = StreamOptions(),
-    **estimate_overrides: Any,
+    estimate_options: Any = None,
 ) -> Iterator[StreamResult]:
     """Estimate the forces of every reading of ``readings``, in order, in latency-bounded batches.
 
     Args:
-        estimator: a :class:`torchrod.estimator.Estimator` (with its ``warm_start`` network, if any), or a
-            :class:`torchrod.estimate.workers.ParallelEstimator`: the stream then runs on its processes as on
-            ``workers`` of its own, and leaves them running when it ends (the caller closes it), so that its
-            workers can start before the stream, and serve one stream after another.
+        estimator: a :class:`torchrod.Estimator` (with its ``warm_start`` network, if any).
         readings: any iterable (possibly endless, possibly slow) of :class:`Reading` or dicts with the keys
             ``id``, ``curvature`` ((G, 2) [1/m]), optional ``t`` [s] and ``error``.
         options: batching (:class:`StreamOptions`).
-        **estimate_overrides: :class:`torchrod.estimator.EstimatorOptions` fields for every batch (e.g.
-            ``max_forces``, ``noise``).
+        estimate_options: the :class:`torchrod.EstimatorOptions` of every batch (default: the estimator's).
     Yields:
         one :class:`StreamResult` per reading, in input order; an unusable reading gives an error result.
     Raises:
         whatever iterating ``readings`` raised (after the results of the readings before it);
         the ``KeyboardInterrupt`` (or subclass) after flushing, when interrupted (module docstring).
     """
+    from ..estimate.options import EstimatorOptions
+
     if not isinstance(options, StreamOptions):
         raise TypeError(f"options must be StreamOptions, got {type(options).__name__}")
-    base = getattr(estimator, "options", None)
-    if estimate_overrides and dataclasses.is_dataclass(base):
-        dataclasses.replace(base, **estimate_overrides)  # a bad override raises here, not in every batch
-    return _run(_Stream(estimator, readings, options, estimate_overrides), options)
+    estimate = estimator.options if estimate_options is None else estimate_options
+    if not isinstance(estimate, EstimatorOptions):
+        raise TypeError(f"estimate_options must be EstimatorOptions, got {type(estimate).__name__}")
+    return _run(_Stream(estimator, readings, options, estimate), options)
 
 
 def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
     state.thread.start()
-    if state.solver is not state.estimator:
-        state.solver.warm()  # the worker processes start (seconds) while the first readings come in
     flight: collections.deque[_Slot] = collections.deque()  # batches taken from pending, not yet yielded
     try:
         interrupted: KeyboardInterrupt | None = None
@@ -651,13 +577,9 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
 
 
 def warm_up(estimator: Any, device: str | torch.device = "cpu") -> None:
-    """Estimate two simulated readings (one and two forces) so that first-call costs (per-rod caches, lazy
-    initialisation in torch, the compiled march of :mod:`torchrod.model.compiled`) do not land on the first real
-    reading's latency."""
-    from ..model import compiled
+    """Estimate two simulated readings (one and two forces) so that first-call costs (the kernels' compilation or
+    loading, per-rod setup, lazy initialisation in torch) do not land on the first real reading's latency."""
     from ..model.body_frame import simulate
-
-    compiled.load()
 
     rod = estimator.rod
     L = rod.length
@@ -714,7 +636,7 @@ class StreamStats:
     def __init__(self) -> None:
         self.readings = 0
         self.errors = 0
-        self.batches = 0
+        self.batches: float = 0
         self.busy = 0.0  # [s] total estimation time
         self._latency = _Quantiles(1e-6, 1e4)
         self._solve = _Quantiles(1e-7, 1e4)

@@ -34,6 +34,21 @@ SETTLE_SAFETY = 2.0
 """A count is settled when even ``loss_last - SETTLE_SAFETY x gain`` (the scan's promise for one more force, a
 local estimate) would not make the next count chosen."""
 
+INLINE = (
+    "dof_index",
+    "largest_fitted",
+    "test_sigma2",
+    "drop_limit",
+    "misfit_limit",
+    "passes_drops",
+    "quantile_scale",
+    "suspect_limits",
+    "unexplained",
+    "plausible_limit",
+    "ceiling",
+)
+"""Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
+
 
 def dof_index(k, d):
     """A degrees-of-freedom count as an index into the tables (row 0 holds the values for d <= 0)."""

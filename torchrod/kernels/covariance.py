@@ -22,6 +22,9 @@ DIAG_MIN = 1e-300
 EPS = 2.220446049250313e-16
 """float64's machine epsilon: eigenvalues below EPS x the largest count as zero."""
 
+INLINE = ("near_kink",)
+"""Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
+
 
 def covariance(k, J, P, active, sigma, cov):
     """``sigma^2 (J^T J)^-1`` (P x P, in the columns' units) over the active columns (``active[p]``; the others, and

@@ -30,7 +30,7 @@ so the count tests and the verdict judge the physics.
 import math
 
 from .linalg import spd_solve, sumsq
-from .march import march_exact, march_fit
+from .march import march_exact, march_fit, slope_jump
 from .precurved import EXACT_MAX_STEP, FIT_MAX_STEP, march_precurved
 from .views import lm_of, march_of, model_of, reading_of, rows_of
 
@@ -51,6 +51,21 @@ side, must not hide the better interval next to it."""
 
 KINK = 1e-6
 """[m] a force this close to a present grating sits on the loss's kink there."""
+
+INLINE = (
+    "late",
+    "march_model",
+    "bounds",
+    "gradient",
+    "gram",
+    "noise2_of",
+    "start",
+    "shortened",
+    "moved",
+    "sided",
+    "damped",
+)
+"""Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
 
 
 def late(k):
@@ -202,8 +217,9 @@ def analyse(k, i, limit):
         m_int = k.info[0].intervals
         cross = False
         for j in range(h):
-            jc0 = -f[j, 1] * scale  # the slope jump's grating entries, per unit s / L
-            jc1 = f[j, 0] * scale
+            jc = slope_jump(f[j, 0], f[j, 1], scale)  # the slope jump's grating entries, per unit s / L
+            jc0 = jc.real
+            jc1 = jc.imag
             g_lo = rd.lo_k[interval[j]]
             g_hi = rd.hi_k[interval[j]]
             c_lo = 0.0

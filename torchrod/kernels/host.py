@@ -7,6 +7,7 @@ quantiles are made once here (SciPy), so that the kernels compute no special fun
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import os
@@ -138,9 +139,11 @@ def options_record(**values: Any) -> np.recarray:
     return record(OPTIONS, **values)
 
 
-def setup_of(rod: np.recarray, model: dict, opt: np.recarray, tables: dict, guess_counts: Sequence[int]) -> Setup:
-    """The batch's :class:`.layout.Setup` (and its arenas' :class:`.layout.Sizes` as ``setup_sizes``): the records,
-    the constants' arena holding ``model`` and ``tables``, and the counts of the guess blocks."""
+def setup_of(
+    rod: np.recarray, model: dict, opt: np.recarray, tables: dict, guess_counts: Sequence[int]
+) -> tuple[Setup, Sizes]:
+    """The batch's :class:`.layout.Setup` and its arenas' :class:`.layout.Sizes`: the records, the constants' arena
+    holding ``model`` and ``tables``, and the counts of the guess blocks."""
     counts = [int(h) for h in guess_counts]
     o, r = opt[0], rod[0]
     z = Sizes(
@@ -177,6 +180,50 @@ def outputs(B: int, W: int, empty: Any = np.empty) -> Outputs:
     )
 
 
+SCHEDULE_PYTHON_ROWS = 64
+"""A simulator batch of at most this many rows takes its schedule from the kernel source run as Python (no compiled
+code to load); a larger one from the compiled schedule. Both give the same step counts."""
+
+
+def schedule_rows(
+    query: np.ndarray, s: np.ndarray, f: np.ndarray, ei: np.ndarray, length: float, step_angle: float, max_steps: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The simulator's events (B, E) (:func:`torchrod.kernels.march.schedule` with the rigorous rule: an index < h
+    a force, ``h + q`` query q; tip to base) and the steps on each segment (B, E), for forces s (B, h) [m],
+    f (B, h, 2) [N] at the queries (Q,) [m] of rods of stiffness ei (B,) [N m^2]."""
+    from . import march, targets
+
+    s = np.ascontiguousarray(s, np.float64)
+    B, h = s.shape
+    E = h + query.shape[0]
+    order, seg, steps = np.empty((B, E), np.int64), np.empty((B, E)), np.empty((B, E), np.int64)
+    args = (np.ascontiguousarray(query, np.float64), s, np.ascontiguousarray(f, np.float64),
+            np.ascontiguousarray(ei, np.float64), float(length), float(step_angle), int(max_steps), order, seg, steps,
+            np.empty(max(h, 1), np.complex128), np.empty(max(h, 1)))  # fmt: skip
+    if B <= SCHEDULE_PYTHON_ROWS:
+        march.schedule_rows(*args)
+    else:
+        compiled = targets.cpu_schedule()
+        compiled.ready()
+        compiled.entry(*args)
+    return order, steps
+
+
+def kit(setup: Setup, sizes: Sizes, u: np.ndarray, w: np.ndarray, noise2: float = -1.0) -> Any:
+    """A :class:`.layout.Kit` of one reading (u (2G,) [1/m], w (2G,) 1.0 where present, noise2 sigma^2 + floor^2
+    [1/m^2] or -1: unknown) on fresh scratch, its intervals prepared: for calling kernel functions one by one, as
+    Python (debugging, tests)."""
+    from .layout import Kit
+    from .search import prepare
+
+    a = allocate(sizes)
+    u, w = np.ascontiguousarray(u, np.float64), np.ascontiguousarray(w, np.float64)
+    flag = np.zeros(1, np.int64)
+    k = Kit(setup.rod[0], setup.opt[0], setup.lay[0], a.info, setup.const, a.f, a.i, a.c, a.b, u, w, flag)
+    prepare(k, float(noise2))
+    return k
+
+
 _local = threading.local()
 
 
@@ -200,6 +247,8 @@ class Plan:
         self.compiled = targets.get(target)
         self.setup = setup
         self.sizes = sizes
+        self._cuda_lock = threading.Lock()
+        self._cuda: dict[int, tuple[Setup, Arenas, int]] = {}
 
     def _work(self) -> Arenas:
         """This thread's scratch for these sizes (made once per thread, reused)."""
@@ -210,14 +259,14 @@ class Plan:
             cache[self.sizes] = allocate(self.sizes)
         return cache[self.sizes]
 
-    def run(self, batch: Batch, flag: np.ndarray, threads: int | None = None) -> None:
-        """Estimate every reading of ``batch`` into its outputs (CPU and Python: NumPy arrays; CUDA: device arrays).
-        ``flag`` (1,) int64: set it non-zero (from another thread) to stop every search where it stands; ``threads``:
-        CPU threads (None: every core)."""
+    def run(self, batch: Batch, flag: np.ndarray, threads: int | None = None, device: int = 0) -> None:
+        """Estimate every reading of ``batch`` into its outputs (CPU and Python: NumPy arrays; CUDA: arrays on GPU
+        ``device``). ``flag`` (1,) int64: set it non-zero (from another thread) to stop every search where it
+        stands; ``threads``: CPU threads (None: every core)."""
         self.compiled.ready()
         B = batch.u.shape[0]
         if self.target == "cuda":
-            self._run_cuda(batch, flag)
+            self._run_cuda(batch, flag, device)
             return
         entry = self.compiled.entry
         workers = 1 if self.target == "python" else min(cpu_threads(threads), B)
@@ -246,7 +295,14 @@ class Plan:
             for f in futures:
                 f.result()
 
-    def _run_cuda(self, batch: Batch, flag: Any) -> None:
+    launch_limit: int | None = None
+    """The most readings one CUDA launch takes (None: as many as a quarter of the free GPU memory holds scratch
+    for); a batch beyond it runs in several launches."""
+
+    CUDA_THREADS = 64
+    """GPU threads per block: one reading each."""
+
+    def _run_cuda(self, batch: Batch, flag: Any, device: int) -> None:
         from numba import cuda
 
         B = batch.u.shape[0]
@@ -254,20 +310,54 @@ class Plan:
         per_reading = sum(n * np.dtype(dtype).itemsize for n, dtype in zip(
             (lengths["f"], lengths["i"], lengths["c"], lengths["b"]), (np.float64, np.int64, np.complex128, np.bool_),
             strict=True))  # fmt: skip
-        free, _ = cuda.current_context().get_memory_info()
-        chunk = int(max(1, min(B, (free // 4) // max(per_reading, 1))))
-        setup = _device_setup(self.setup)
-        arenas = allocate(self.sizes, (chunk,), empty=lambda shape, dtype: cuda.device_array(shape, dtype))
-        threads = 64
-        for offset in range(0, B, chunk):
-            count = min(chunk, B - offset)
-            blocks = (count + threads - 1) // threads
-            self.compiled.entry[blocks, threads](setup, batch, arenas, flag, offset, count)
-        cuda.synchronize()
+        context = contextlib.nullcontext() if simulated() else cuda.gpus[device]
+        with self._cuda_lock, context:  # (one batch at a time on the kept scratch)
+            try:
+                free, _ = cuda.current_context().get_memory_info()
+            except (AttributeError, NotImplementedError):  # numba-cuda's simulator: no device memory to measure
+                free = 4 * B * per_reading
+            chunk = int(max(1, min(B, (free // 4) // max(per_reading, 1))))
+            if self.launch_limit is not None:
+                chunk = min(chunk, self.launch_limit)
+            setup, arenas = self._cuda_scratch(device, chunk)
+            threads = self.CUDA_THREADS
+            for offset in range(0, B, chunk):
+                count = min(chunk, B - offset)
+                blocks = (count + threads - 1) // threads
+                self.compiled.entry[blocks, threads](setup, batch, arenas, flag, offset, count)
+            cuda.synchronize()
+
+    def _cuda_scratch(self, device: int, chunk: int) -> tuple[Setup, Arenas]:
+        """The setup copied to GPU ``device`` and scratch for at least ``chunk`` readings there, made once and kept
+        (grown when a launch needs more)."""
+        kept = self._cuda.get(device)
+        if kept is None or kept[2] < chunk:
+            self._cuda.pop(device, None)  # (the old scratch freed before the new is made)
+            kept = (_device_setup(self.setup), allocate(self.sizes, (chunk,), empty=_device_empty), chunk)
+            self._cuda[device] = kept
+        return kept[0], kept[1]
+
+
+def simulated() -> bool:
+    """Whether numba-cuda's simulator stands in for a GPU (``NUMBA_ENABLE_CUDASIM=1``): the CUDA kernels then run on
+    the CPU, on host arrays (tests of the CUDA target without a GPU)."""
+    return os.environ.get("NUMBA_ENABLE_CUDASIM", "0") == "1"
+
+
+def _device_empty(shape: tuple, dtype: Any) -> Any:
+    """A GPU array (host arrays under the simulator, records readable by name there as on the GPU)."""
+    if simulated():
+        out = np.empty(shape, dtype)
+        return out.view(np.recarray) if out.dtype.names else out
+    from numba import cuda
+
+    return cuda.device_array(shape, dtype)
 
 
 def _device_setup(setup: Setup) -> Setup:
-    """The setup's arrays copied to the GPU (small)."""
+    """The setup's arrays copied to the GPU (small; as they are under the simulator)."""
+    if simulated():
+        return setup
     from numba import cuda
 
     return Setup(*(cuda.to_device(np.ascontiguousarray(v)) for v in setup))

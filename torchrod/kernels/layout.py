@@ -36,7 +36,8 @@ ROD = np.dtype(
         ("max_steps", np.int64),  # the fitting model's most steps per segment
         ("exact_angle", np.float64),  # the exact model's
         ("exact_max_steps", np.int64),
-    ]
+    ],
+    align=True,  # CUDA reads only aligned fields
 )
 
 OPTIONS = np.dtype(
@@ -73,7 +74,8 @@ OPTIONS = np.dtype(
         ("acceleration", np.float64),  # -inf: never
         ("probe", np.float64),
         ("acceleration_limit", np.float64),
-    ]
+    ],
+    align=True,
 )
 
 INFO = np.dtype(
@@ -85,7 +87,8 @@ INFO = np.dtype(
         ("evaluations", np.int64),
         ("cut", np.bool_),
         ("home_known", np.bool_),
-    ]
+    ],
+    align=True,
 )
 
 DIMS = ("G", "H", "n", "P", "P2", "W", "C", "Q", "R", "NT", "TE", "E", "NC", "S", "NSEG", "NX", "KT", "D")
@@ -93,7 +96,7 @@ DIMS = ("G", "H", "n", "P", "P2", "W", "C", "Q", "R", "NT", "TE", "E", "NC", "S"
 
 # The arenas' parts: group -> {name: (shape in DIMS or numbers, kind)}; kinds: f float64, i int64, c complex128,
 # b bool, k the constants' float64 arena. Each group becomes a named tuple of views (:mod:`.views`).
-SPEC = {
+SPEC: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
     "model": {  # the rod: grating positions [m], the exact model's tableau, the intrinsic curvature
         "query": (("G",), "k"), "tab_c": (("S",), "k"), "tab_a": (("S", "S"), "k"), "tab_bp": (("S",), "k"),
         "tab_bv": (("S",), "k"), "segments": (("NSEG", 4), "k"), "extra": (("NX",), "k"),
@@ -246,14 +249,16 @@ def allocate(z: Sizes, lead: tuple = (), empty=np.empty) -> Arenas:
     info = empty(lead + (1,), INFO)
     if isinstance(info, np.ndarray):
         info = info.view(np.recarray)
-    return Arenas(*(empty(lead + (lengths[kind],), KINDS[kind]) for kind in "ficb"), info)
+    f, i, c, b = (empty(lead + (lengths[kind],), KINDS[kind]) for kind in "ficb")
+    return Arenas(f, i, c, b, info)
 
 
 def record(dtype: np.dtype, **values) -> np.recarray:
     """A one-element record array of ``dtype`` with ``values`` (every field must be given)."""
-    missing = set(dtype.names) - set(values)
-    if missing or set(values) - set(dtype.names):
-        raise KeyError(f"record fields missing {sorted(missing)} or unknown {sorted(set(values) - set(dtype.names))}")
+    names = set(dtype.names or ())
+    missing = names - set(values)
+    if missing or set(values) - names:
+        raise KeyError(f"record fields missing {sorted(missing)} or unknown {sorted(set(values) - names)}")
     out = np.zeros(1, dtype).view(np.recarray)
     for name, value in values.items():
         out[name] = value
@@ -281,7 +286,7 @@ def constants(lay: np.recarray, parts: dict) -> np.ndarray:
 
 
 for _dtype in (ROD, OPTIONS, INFO, LAYOUT):  # a field must not hide an attribute of NumPy's records (as T does)
-    _clash = [name for name in _dtype.names if name in dir(np.record)]
+    _clash = [name for name in _dtype.names or () if name in dir(np.record)]
     if _clash:
         raise ValueError(f"record fields {_clash} hide attributes of numpy.record")
 del _dtype

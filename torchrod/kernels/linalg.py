@@ -14,6 +14,13 @@ EIGEN_SWEEPS = 60
 """Most sweeps of the cyclic Jacobi eigenvalue method: it converges quadratically, in under ten sweeps for the
 9 x 9 matrices it is given, so reaching this bound means the input was not a number."""
 
+INLINE = (
+    "sumsq",
+    "dot",
+    "spd_solve",
+)
+"""Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
+
 
 def sumsq(x, n):
     """sum_{k < n} x[k]^2."""
@@ -159,10 +166,11 @@ def symmetric_eigen(A, w, V, a, P):
                     apq = a[p, q]
                     if apq == 0.0:
                         continue
-                    theta = (a[q, q] - a[p, p]) / (apq + apq)
-                    if abs(theta) > 1e150:  # theta^2 would overflow: t ~ 1 / (2 theta)
-                        t = 0.5 / theta
+                    diff = a[q, q] - a[p, p]
+                    if abs(diff) > 1e150 * abs(apq):  # theta^2 would overflow: t ~ 1 / (2 theta)
+                        t = apq / diff
                     else:
+                        theta = diff / (apq + apq)
                         t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
                         if theta < 0.0:
                             t = -t

@@ -15,7 +15,11 @@ import math
 
 from .fit import FLOOR, SCALE_MIN, TINY, bounds, gradient, gram, march_model, sided
 from .linalg import cholesky_apply, cholesky_factor, lu_apply, lu_factor, sumsq
+from .march import slope_jump
 from .views import lm_of, march_of, model_of, reading_of, rows_of, scan_of
+
+INLINE = ("interval_of",)
+"""Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
 
 
 def interval_of(k, s, j_out, s_out, idx):
@@ -127,10 +131,10 @@ def scan_model(k, bs, bf, bint, h0, known_row):
                     sw.col[a] = 0.0
                 if k.rod.precurved:
                     sw.col[j] = 1.0  # a unit force: n jumps by e_x or e_y
-                elif j == 0:
-                    sw.col[3] = inv  # a unit f_x: the slope W jumps by i / EI
                 else:
-                    sw.col[2] = -inv  # a unit f_y: by -1 / EI
+                    unit = slope_jump(1.0 - j, float(j), inv)  # a unit f_x or f_y: the slope W jumps
+                    sw.col[2] = unit.real
+                    sw.col[3] = unit.imag
                 ok = ok and lu_apply(sw.LU, sw.piv, sw.col, sw.xcol, S)
                 for a in range(S):
                     sw.Msol[a, j] = sw.xcol[a] if ok else 0.0

@@ -82,6 +82,21 @@ def copy_row(k, src, dst):
     rows.count[dst] = rows.count[src]
 
 
+INLINE = (
+    "finish_best",
+    "note_cut",
+    "work_ids",
+    "try_starts",
+    "suspicious",
+    "choose",
+    "location_key",
+    "estimate_one",
+    "blank_row",
+    "load_row",
+)
+"""Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
+
+
 def load_row(k, i, h, s, f, interval):
     """Row i holds h forces at (s, f) in their intervals (a start, not yet evaluated)."""
     rows = rows_of(k)
@@ -240,18 +255,19 @@ def note_cut(k, ids, nr):
 
 
 def work_ids(k, nr):
-    """ids[:nr] = the first nr work rows (the rows after the H + 1 best fits)."""
+    """ids[:nr] = the first nr work rows (the rows after the H + 1 best fits). (Nothing returned: a CUDA device
+    function returns no array it was not given.)"""
     sw = search_of(k)
     first = k.opt.max_forces + 1
     for a in range(nr):
         sw.ids[a] = first + a
-    return sw.ids
 
 
 def first_fits(k, h, nr):
     """The best of the starts in the first nr work rows (fitted side by side, twins stopped), finished, as the best
     fit of h forces."""
-    ids = work_ids(k, nr)
+    work_ids(k, nr)
+    ids = search_of(k).ids
     for a in range(nr):
         start(k, ids[a], k.opt.iterations)
     kind = STOP_TWINS if (k.opt.twins and nr > 1) else STOP_NONE
@@ -287,7 +303,8 @@ def explore(k, h, nr):
     rows = rows_of(k)
     sw = search_of(k)
     opt = k.opt
-    ids = work_ids(k, nr)
+    work_ids(k, nr)
+    ids = search_of(k).ids
     goal = rows.loss[h]
     set_home(k, h)
     use_home = opt.twins or h == 1
@@ -317,7 +334,8 @@ def explore(k, h, nr):
         note_cut(k, sw.going, going)
     if not live:
         return -1
-    ids = work_ids(k, nr)
+    work_ids(k, nr)
+    ids = search_of(k).ids
     best = best_of(k, ids, nr)
     finish_best(k, best)
     return best
@@ -395,7 +413,8 @@ def refine(k, h):
         return
     if opt.refine_iterations == 0:
         return
-    ids = work_ids(k, 1)
+    work_ids(k, 1)
+    ids = search_of(k).ids
     i = ids[0]
     load_row(k, i, h, rows.s[h], rows.f[h], rows.interval[h])
     start(k, i, opt.refine_iterations)

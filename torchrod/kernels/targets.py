@@ -42,30 +42,46 @@ def _modules() -> list[types.ModuleType]:
     return [importlib.import_module(f"{__package__}.{name}") for name in MODULES]
 
 
-def namespace(decorate: Any, accessor: Any) -> dict[str, Any]:
+def namespace(decorate: Any, accessor: Any, inlined: Any, name: str = "", view: Any = None) -> dict[str, Any]:
     """One namespace holding every kernel function rebuilt and decorated (the accessors of :mod:`.views` with
-    ``accessor``, to be inlined where called; the rest with ``decorate``), and the kernel modules' other globals
-    (constants, named tuples, ``math``). Two kernel functions of one name, or two different globals of one name,
-    are a mistake of the source: ValueError."""
+    ``accessor``, the small functions each module lists in its ``INLINE`` with ``inlined``, the rest with ``decorate``),
+    and the kernel modules' other globals (constants, named tuples, ``math``). With a ``name``, the namespace is a
+    module's of that name (``torchrod.kernels.NAME``, registered in ``sys.modules``, so that Numba's on-disk cache finds
+    the functions' globals again in a new process). ``view``: the target's own :func:`.views.view`. Two kernel
+    functions of one name, or two different globals of one name, are a mistake of the source: ValueError."""
     modules = _modules()
     functions: dict[str, types.FunctionType] = {}
     for mod in modules:
-        for name, value in vars(mod).items():
-            if isinstance(value, types.FunctionType) and value.__module__ == mod.__name__:
-                if name in functions:
-                    raise ValueError(f"kernel function {name!r} is defined twice ({mod.__name__})")
-                functions[name] = value
+        for key, value in vars(mod).items():
+            if isinstance(value, types.FunctionType) and value.__module__ == mod.__name__ and not key.startswith("__"):
+                if key in functions:
+                    raise ValueError(f"kernel function {key!r} is defined twice ({mod.__name__})")
+                functions[key] = value
     ns: dict[str, Any] = {}
+    if name:
+        module = types.ModuleType(
+            f"{__package__}.{name}", "The kernels rebuilt for one target (torchrod.kernels.targets)."
+        )
+        sys.modules[module.__name__] = module
+        ns = module.__dict__
     for mod in modules:
-        for name, value in vars(mod).items():
-            if name.startswith("__") or name in functions:
+        for key, value in vars(mod).items():
+            if key.startswith("__") or key in functions or key == "INLINE":
                 continue
-            if name in ns and ns[name] is not value:
-                raise ValueError(f"kernel global {name!r} means two things ({mod.__name__})")
-            ns[name] = value
-    for name, fn in functions.items():
+            if key in ns and ns[key] is not value:
+                raise ValueError(f"kernel global {key!r} means two things ({mod.__name__})")
+            ns[key] = value
+    inline = {fn for mod in modules for fn in getattr(mod, "INLINE", ())}
+    for key, fn in functions.items():
         rebuilt = types.FunctionType(fn.__code__, ns, fn.__name__, fn.__defaults__, fn.__closure__)
-        ns[name] = (accessor if fn.__module__.endswith(".views") else decorate)(rebuilt)
+        if key == "view" and view is not None:
+            ns[key] = view
+        elif fn.__module__.endswith(".views"):
+            ns[key] = accessor(rebuilt)
+        elif key in inline:
+            ns[key] = inlined(rebuilt)
+        else:
+            ns[key] = decorate(rebuilt)
     return ns
 
 
@@ -111,22 +127,35 @@ def _say(message: str) -> None:
     print(f"torchrod: {message}", file=sys.stderr, flush=True)
 
 
-def _expected_seconds(root: Path, target: str) -> str:
+_FIRST_GUESS = {
+    "cpu-estimation": "one to three minutes",
+    "cpu-schedule": "a few seconds",
+    "cuda-estimation": "tens of minutes: NVIDIA's optimiser takes long over the whole search",
+}
+"""How long a first compile takes (a 2-core machine at the top of each range), before one was timed here."""
+
+
+def _expected_seconds(root: Path, target: str, what: str) -> str:
     """How long a compile took here last time (a guess before the first)."""
     try:
-        seconds = float((root / f"compile-seconds-{target}").read_text())
+        seconds = float((root / f"compile-seconds-{target}-{what}").read_text())
         return f"about {seconds:.0f} s, as last time here"
     except (OSError, ValueError):
-        return "about a minute"
+        return _FIRST_GUESS.get(f"{target}-{what}", "a few minutes")
 
 
 class Compiled:
-    """A target's compiled entry with its on-disk cache (:func:`cpu`, :func:`cuda`)."""
+    """A target's compiled entry with its on-disk cache (:func:`cpu`, :func:`cuda`); ``what`` it is, for the
+    announcement."""
 
-    def __init__(self, target: str, entry: Any, directory: Path | None, warm: Any) -> None:
+    def __init__(
+        self, target: str, entry: Any, directory: Path | None, warm: Any, what: str = "estimation", quiet: bool = False
+    ) -> None:
         self.target = target
         self.entry = entry
         self.directory = directory
+        self.what = what
+        self.quiet = quiet  # nothing to announce (the simulator's "compilation" is none)
         self._warm = warm
         self._ready = False
 
@@ -138,26 +167,26 @@ class Compiled:
             if self._ready:
                 return
             root = cache_root()
-            fresh = self.directory is None or not any(self.directory.glob("**/*.nbi"))
-            lock = contextlib.nullcontext()
+            pattern = f"**/*{self.entry.__name__}*.nbi" if self.target != "cuda" else "**/*.nbi"
+            lock: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
             if self.directory is not None:
                 lock = _file_lock(self.directory / ".lock")
-            with lock:
-                if self.directory is not None:
-                    fresh = not any(self.directory.glob("**/*.nbi"))
+            with lock:  # (the cache looked at once the lock is held: another process may just have filled it)
+                fresh = not self.quiet and (self.directory is None or not any(self.directory.glob(pattern)))
                 where = f"kept in {self.directory}" if self.directory is not None else "not kept (no writable cache)"
                 if fresh:
                     _say(
-                        f"compiling the estimation kernels for the {self.target.upper()} "
-                        f"({_expected_seconds(root, self.target)}; once per machine and version, {where})"
+                        f"compiling the {self.what} kernels for {'the CPU' if self.target == 'cpu' else 'CUDA'} "
+                        f"({_expected_seconds(root, self.target, self.what)}; once per machine and version, "
+                        f"{where})"
                     )
                 began = time.perf_counter()
                 self._warm(self.entry)
                 took = time.perf_counter() - began
                 if fresh:
-                    _say(f"kernels compiled in {took:.0f} s")
+                    _say(f"{self.what} kernels compiled in {took:.0f} s")
                     with contextlib.suppress(OSError):
-                        (root / f"compile-seconds-{self.target}").write_text(f"{took:.1f}")
+                        (root / f"compile-seconds-{self.target}-{self.what}").write_text(f"{took:.1f}")
             self._ready = True
 
 
@@ -179,13 +208,68 @@ def _numba_cache_dir(path: Path | None):
     cached function is made)."""
     import numba
 
-    old = numba.config.CACHE_DIR
+    config: Any = numba.config  # (its settings are made at import: no static attributes)
+    old = config.CACHE_DIR
     if path is not None:
-        numba.config.CACHE_DIR = str(path)
+        config.CACHE_DIR = str(path)
     try:
         yield
     finally:
-        numba.config.CACHE_DIR = old
+        config.CACHE_DIR = old
+
+
+def view_intrinsic(intrinsic: Any, types: Any, cgutils: Any, arrayobj: Any, imputils: Any) -> Any:
+    """:func:`.views.view` as an intrinsic of a Numba target, from that target's own ``intrinsic`` decorator,
+    ``types``, ``cgutils``, array and implementation utilities (numba's for the CPU, numba-cuda's for CUDA): the view
+    is built from the arena's data pointer, the shape and C-order strides, with no checks and no call."""
+
+    @intrinsic
+    def view(typingctx, arena, start, shape):
+        if not (isinstance(arena, types.Array) and arena.ndim == 1 and isinstance(shape, types.BaseTuple)):
+            return None
+        result = arena.copy(ndim=len(shape), layout="C")
+
+        def codegen(context, builder, sig, args):
+            arena_type, start_type, shape_type = sig.args
+            source = arrayobj.make_array(arena_type)(context, builder, args[0])
+            out = arrayobj.make_array(sig.return_type)(context, builder)
+            dims = [context.cast(builder, d, t, types.intp)
+                    for d, t in zip(cgutils.unpack_tuple(builder, args[2]), shape_type, strict=True)]  # fmt: skip
+            strides, step = [], source.itemsize
+            for d in reversed(dims):
+                strides.insert(0, step)
+                step = builder.mul(step, d)
+            first = context.cast(builder, args[1], start_type, types.intp)
+            arrayobj.populate_array(out, data=builder.gep(source.data, [first]), shape=dims, strides=strides,
+                                    itemsize=source.itemsize, meminfo=source.meminfo, parent=source.parent)  # fmt: skip
+            return imputils.impl_ret_borrowed(context, builder, sig.return_type, out._getvalue())
+
+        return result(arena, start, shape), codegen
+
+    return view
+
+
+@functools.cache
+def _cpu_view() -> Any:
+    from numba.core import cgutils, imputils, types
+    from numba.extending import intrinsic
+    from numba.np import arrayobj
+
+    return view_intrinsic(intrinsic, types, cgutils, arrayobj, imputils)
+
+
+@functools.cache
+def _cuda_view() -> Any:
+    import importlib
+
+    from numba.cuda import types
+    from numba.cuda.core import imputils
+
+    cgutils = importlib.import_module("numba.cuda.cgutils")  # (numba-cuda's own; numba's stubs do not list it)
+    from numba.cuda.extending import intrinsic
+    from numba.cuda.np import arrayobj
+
+    return view_intrinsic(intrinsic, types, cgutils, arrayobj, imputils)
 
 
 @functools.cache
@@ -199,19 +283,38 @@ def python() -> Compiled:
 
 
 @functools.cache
-def cpu() -> Compiled:
-    """The kernels compiled by Numba for this CPU: ``entry(first, last, setup, batch, work, flag)`` estimates
-    readings first..last-1 on one scratch, without the interpreter lock (threads run it side by side)."""
+def _cpu_namespace() -> dict[str, Any]:
     import numba
 
-    from .warmup import warm_up
+    inner: dict[str, Any] = {"nogil": True, "no_cpython_wrapper": True, "no_cfunc_wrapper": True}
+    return namespace(numba.njit(**inner), numba.njit(**inner), numba.njit(inline="always", **inner), "cpu_kernels",
+                     _cpu_view())  # fmt: skip
+
+
+def _cpu_entry(name: str, warm: Any, what: str) -> Compiled:
+    import numba
 
     directory = _cache_directory("cpu")
-    inner = {"nogil": True, "no_cpython_wrapper": True, "no_cfunc_wrapper": True}
-    ns = namespace(numba.njit(**inner), numba.njit(**inner))
     with _numba_cache_dir(directory):
-        entry = numba.njit(nogil=True, cache=directory is not None)(ns["estimate_rows"].py_func)
-    return Compiled("cpu", entry, directory, lambda e: warm_up("cpu", e))
+        entry = numba.njit(nogil=True, cache=directory is not None)(_cpu_namespace()[name].py_func)
+    return Compiled("cpu", entry, directory, warm, what)
+
+
+@functools.cache
+def cpu() -> Compiled:
+    """The kernels compiled by Numba for this CPU: ``entry(first, last, setup, batch, arenas, flag)`` estimates
+    readings first..last-1 on one scratch, without the interpreter lock (threads run it side by side)."""
+    from .warmup import warm_up
+
+    return _cpu_entry("estimate_rows", lambda e: warm_up("cpu", e), "estimation")
+
+
+@functools.cache
+def cpu_schedule() -> Compiled:
+    """The simulator's schedule (:func:`.march.schedule_rows`) compiled by Numba for this CPU."""
+    from .warmup import warm_up_schedule
+
+    return _cpu_entry("schedule_rows", warm_up_schedule, "schedule")
 
 
 _CUDA_ENTRY = """
@@ -229,9 +332,14 @@ def cuda_namespace() -> dict[str, Any]:
     or compiles it to PTX)."""
     from numba import cuda
 
+    from .host import simulated
     from .layout import Arenas
 
-    ns = namespace(cuda.jit(device=True), cuda.jit(device=True, inline="always"))
+    # Inlined by NVVM (forceinline), not by Numba's IR inliner: that one types an inlined function again at every
+    # call site, which over this source takes far longer than the compile itself.
+    jit: Any = cuda.jit  # (numba's stubs type the simulator's jit, which takes fewer options)
+    inline = jit(device=True) if simulated() else jit(device=True, forceinline=True)
+    ns = namespace(jit(device=True), inline, inline, "cuda_kernels", None if simulated() else _cuda_view())
     ns.update({"cuda": cuda, "Arenas": Arenas})
     exec(compile(_CUDA_ENTRY, "<torchrod.kernels.targets cuda entry>", "exec"), ns)  # noqa: S102
     return ns
@@ -243,13 +351,14 @@ def cuda() -> Compiled:
     import numba_cuda  # noqa: F401 - the extra that provides the CUDA target
     from numba import cuda as nb_cuda
 
+    from .host import simulated
     from .warmup import warm_up
 
-    directory = _cache_directory("cuda", getattr(numba_cuda, "__version__", ""))
+    directory = None if simulated() else _cache_directory("cuda", getattr(numba_cuda, "__version__", ""))
     ns = cuda_namespace()
     with _numba_cache_dir(directory):
         entry = nb_cuda.jit(cache=directory is not None)(ns["estimate_kernel"])
-    return Compiled("cuda", entry, directory, lambda e: warm_up("cuda", e))
+    return Compiled("cuda", entry, directory, lambda e: warm_up("cuda", e), quiet=simulated())
 
 
 def get(target: str) -> Compiled:

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from .layout import Batch, Setup
+from .layout import Batch, Setup, Sizes
 
 
 class _Euler:
@@ -22,7 +22,7 @@ class _Euler:
         return np.zeros((1, 1))
 
 
-def tiny_setup() -> tuple[Setup, Any]:
+def tiny_setup() -> tuple[Setup, Sizes]:
     """A setup for a straight two-grating rod with counts up to 1, and its sizes."""
     from .host import count_tables, options_record, rod_setup, setup_of
 
@@ -57,13 +57,25 @@ def warm_up(target: str, entry: Any) -> None:
     if target == "cuda":
         from numba import cuda
 
-        from .host import _device_setup
+        from .host import _device_empty, _device_setup, simulated
 
         batch = tiny_batch()
-        out = type(batch.out)(*(cuda.to_device(x) for x in batch.out))
-        dev = Batch(*(cuda.to_device(x) for x in batch[:-1]), out=out)
-        arenas = allocate(sizes, (1,), empty=lambda shape, dtype: cuda.device_array(shape, dtype))
-        entry[1, 1](_device_setup(setup), dev, arenas, cuda.to_device(np.zeros(1, np.int64)), 0, 1)
+        flag = np.zeros(1, np.int64)
+        if not simulated():
+            out = type(batch.out)(*(cuda.to_device(x) for x in batch.out))
+            u, w, noise2, gs, gf, guse = (cuda.to_device(x) for x in batch[:-1])
+            batch = Batch(u, w, noise2, gs, gf, guse, out)
+            flag = cuda.to_device(flag)
+        arenas = allocate(sizes, (1,), empty=_device_empty)
+        entry[1, 1](_device_setup(setup), batch, arenas, flag, 0, 1)
         cuda.synchronize()
         return
     entry(0, 1, setup, tiny_batch(), allocate(sizes), np.zeros(1, np.int64))
+
+
+def warm_up_schedule(entry: Any) -> None:
+    """Run the schedule's ``entry`` once on one row of one force."""
+    B, h, Q = 1, 1, 2
+    entry(np.array([0.2, 0.6]), np.full((B, h), 0.5), np.ones((B, h, 2)), np.ones(B), 1.0, 0.8, 4,
+          np.empty((B, h + Q), np.int64), np.empty((B, h + Q)), np.empty((B, h + Q), np.int64),
+          np.empty(h, np.complex128), np.empty(h))  # fmt: skip

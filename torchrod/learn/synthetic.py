@@ -73,7 +73,7 @@ import sys
 import tempfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -275,12 +275,11 @@ def _profile(rod: Rod, loads: PointForces) -> tuple[torch.Tensor, torch.Tensor]:
     if rod.precurved:
         # The turning the load causes, int |u - u*| ds (a precurved rod's own shape is not deflection); RK4 steps
         # of at most L/128 (relative error ~1e-7).
-        from ..backend import TorchBackend
         from ..model.precurved import Precurved, intrinsic, simulate_torch
 
         with torch.no_grad():
             u3, _ = simulate_torch(rod, loads, torch.cat((grat, grid)), steps=_STEPS)
-        shape = intrinsic(TorchBackend(device), Precurved.of(rod), grid.to(torch.float64)).to(dtype)
+        shape = intrinsic(Precurved.of(rod), grid.to(torch.float64)).to(dtype)
         curv = u3[..., :2]
         bend = torch.linalg.vector_norm(u3[:, G:] - shape[None], dim=-1)
     else:
@@ -348,7 +347,7 @@ def _draw(
     """Candidate cases with the given force counts (n,): s (n, h), f (n, h, 2), mask (n, h), float64 on the
     generator's device. Draws a fixed amount per row (whatever its count), so the streams stay aligned."""
     n, h = counts.shape[0], sampler.max_forces
-    opts = {"generator": generator, "dtype": torch.float64, "device": generator.device}
+    opts: dict[str, Any] = {"generator": generator, "dtype": torch.float64, "device": generator.device}
     u = torch.rand(n, h, **opts)
     mag = torch.rand(n, h, **opts)
     ang = torch.rand(n, h, **opts)
@@ -590,6 +589,7 @@ class SyntheticSet:
         def a(x: torch.Tensor, dtype: Any) -> np.ndarray:
             return np.ascontiguousarray(x.detach().cpu().numpy().astype(dtype, copy=False))
 
+        assert self.offsets is not None  # __post_init__ replaces None with zeros
         return {
             "s": a(self.loads.s, np.float64),
             "f": a(self.loads.f, np.float64),
@@ -624,7 +624,8 @@ class SyntheticSet:
         fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".npz", dir=folder)
         try:
             with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, meta=np.array(json.dumps(meta)), **arrays)
+                # cast: the stub's allow_pickle: bool keyword would reject a dict of arrays
+                np.savez_compressed(fh, meta=np.array(json.dumps(meta)), **cast("dict[str, Any]", arrays))
             os.replace(tmp, path)
         except BaseException:
             if os.path.exists(tmp):
@@ -939,6 +940,19 @@ class _Contact:
         "v",
         "wob",
     )
+    ident: int
+    s: float
+    v: float
+    angle: float
+    omega: float
+    peak: float
+    start: int
+    end: int
+    up: float
+    down: float
+    wob: float
+    period: float
+    phase: float
 
 
 def _smoothstep(x: float) -> float:
@@ -1048,9 +1062,11 @@ def _plan(
 def _bending_scale(rod: Rod, loads: PointForces, limit: float, window: int) -> torch.Tensor:
     """A smooth per-frame factor c (T,) in (0, 1] with total turning of (c f) <= limit at every frame."""
     T = loads.batch_size
+    mask = loads.mask
+    assert mask is not None  # the loads come from PointForces.from_lists, which always sets a mask
 
     def turning(c: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-        sub = PointForces(loads.s[rows], loads.f[rows] * c.unsqueeze(-1).unsqueeze(-1), loads.mask[rows])
+        sub = PointForces(loads.s[rows], loads.f[rows] * c.unsqueeze(-1).unsqueeze(-1), mask[rows])
         return _profiles(rod, sub)[1]
 
     c = torch.ones(T, dtype=torch.float64)

@@ -848,6 +848,7 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
     if main_rank:
         # The quality measured at the end of training, on the held-back set, goes into the checkpoint: an
         # estimator told to use this network can tell whether to trust it (warm_start.quality_verdict).
+        assert held is not None  # made on the main rank
         quality = held_back_quality(WarmStart(net, rod), held.curvature, held.mask, held.loads, config.noise)
         save_checkpoint(
             config.checkpoint,

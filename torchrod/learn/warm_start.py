@@ -27,7 +27,7 @@ import os
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib import resources
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import torch
 from torch import nn
@@ -37,7 +37,8 @@ from ..io.readings import check_readings
 from ..loads import PointForces
 from ..rod import Rod
 
-SHIPPED_CHECKPOINT = os.fspath(resources.files("torchrod.data").joinpath("nitinol290.pt"))
+# cast: importlib's Traversable is not typed PathLike, though a package's files are paths
+SHIPPED_CHECKPOINT = os.fspath(cast("os.PathLike[str]", resources.files("torchrod.data").joinpath("nitinol290.pt")))
 """The shipped warm-start network, trained for the ``nitinol290`` grating layout (``torchrod/data/nitinol290.pt``,
 installed with the package; :func:`shipped_network` finds it for a rod)."""
 
@@ -178,6 +179,8 @@ class WarmStartNet(nn.Module):
     dtype (the caller casts back; see :class:`WarmStart`).
     """
 
+    stencil: torch.Tensor  # a buffer (register_buffer in __init__)
+
     def __init__(self, config: NetConfig) -> None:
         super().__init__()
         self.config = config
@@ -279,7 +282,9 @@ def unit_rod(layout: NetConfig | Sequence[float]) -> Rod:
     straight rod): length 1, EI = 1, its gratings, precurvature and GJ / EI (for the physics loss)."""
     if not isinstance(layout, NetConfig):
         return Rod(length=1.0, bending_stiffness=1.0, gratings=tuple(layout))
-    segments = tuple(tuple(x) for x in layout.intrinsic_curvature)
+    segments = cast(
+        "tuple[tuple[float, float, float, float], ...]", tuple(tuple(x) for x in layout.intrinsic_curvature)
+    )
     return Rod(
         length=1.0,
         bending_stiffness=1.0,
@@ -320,7 +325,7 @@ def save_checkpoint(
     """
     from .. import __version__
 
-    module = net.module if hasattr(net, "module") else net
+    module = cast(WarmStartNet, net.module if hasattr(net, "module") else net)  # (a DistributedDataParallel's)
     payload: dict[str, Any] = {
         "format": CHECKPOINT_FORMAT,
         "torchrod_version": __version__,
@@ -584,7 +589,7 @@ class WarmStart:
         )
         ratio, other_ratio = self.net.config.torsion_ratio, other.torsion_ratio
         same_torsion = (ratio is None) == (other_ratio is None) and (
-            ratio is None or abs(ratio - other_ratio) <= LAYOUT_TOLERANCE * ratio
+            ratio is None or abs(ratio - cast(float, other_ratio)) <= LAYOUT_TOLERANCE * ratio  # both or neither None
         )
         return same and same_shape and same_torsion
 

@@ -20,15 +20,15 @@ The rod is integrated from s = L (U = U' = 0) to s = 0 as a sequence of events: 
 points) and the force locations, sorted per sample, so every sample in a batch keeps its own load locations and
 the jump happens exactly at s_i (no node count in the default scheme). Each segment between events is crossed with
 explicit Runge-Kutta-Nystrom steps (default: the 8th-order method of Dormand, El-Mikkawy & Prince). The events,
-their order at ties and the step counts are the schedule of :mod:`torchrod.model.schedule` (one definition for
-every march), here with its rigorous ``"bound"`` rule on the local rate: rate x step <= ``max_step_angle``.
-Every sample gets its own step counts; a batch runs max over samples of (total steps) steps, shorter schedules
-padded with steps of length zero.
+their order at ties and the step counts come from the estimator's own schedule
+(:func:`torchrod.kernels.march.schedule`, one definition for every march), with its rigorous rule on the local
+rate: rate x step <= ``max_step_angle``. Every sample gets its own step counts; a batch runs max over samples of
+(total steps) steps, shorter schedules padded with steps of length zero. The step counts are integers (no gradient
+flows through them); the step lengths are differentiable in the locations.
 
 The march (:mod:`torchrod.model.nystrom`) runs inside one autograd node with a hand-written discrete adjoint (the exact
-gradient of the discrete scheme, in O(steps) memory): on the CPU in NumPy (or plain Python numbers for a batch of a
-few), elsewhere in torch. ``adjoint=False`` instead records every torch operation for autograd: slower, but it
-supports ``torch.func`` transforms and higher derivatives.
+gradient of the discrete scheme, in O(steps) memory). ``adjoint=False`` instead records every torch operation for
+autograd: slower, but it supports ``torch.func`` transforms and higher derivatives.
 
 The paper's scheme (``scheme="nodes"``) spreads each force onto the two nearest of q uniform nodes (docs/physics.md,
 erratum 3) and integrates the distributed load, interpolated linearly between nodes, one step per node interval
@@ -40,13 +40,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Literal
 
+import numpy as np
 import torch
 
-from ..backend import torch_backend
+from ..errors import TorchrodError
+from ..kernels.march import EXACT_MAX_STEPS, EXACT_STEP_ANGLE
 from ..loads import PointForces, spread_to_nodes
 from ..rod import Rod
-from . import compiled, schedule
-from .nystrom import METHODS, Tableau, _forward_array, _forward_generic, _sq_complex, march
+from .nystrom import METHODS, Tableau, march
 
 __all__ = [
     "DEFAULT_STEP_ANGLE",
@@ -59,14 +60,13 @@ __all__ = [
     "step_counts",
 ]
 
-DEFAULT_STEP_ANGLE = 0.8
-"""Default bound on (local rate) x (step) per step of the default method ("rkn8"), dimensionless. Measured on
-large deflections (bending >= 90 degrees, 1-3 forces up to 2 N on the paper's tube, adversarial sets included):
-gratings within 5e-8 of a converged reference relative to max |u|, and within 1e-7 with only two query points (no
-help from the gratings' event spacing). On that tube the gratings (20 mm apart) already make every segment short
-enough for one step, so the cost is one 8-stage step per event."""
+DEFAULT_STEP_ANGLE = EXACT_STEP_ANGLE
+"""Default bound on (local rate) x (step) per step of the default method ("rkn8"), dimensionless: the estimator's
+exact model's. Measured on large deflections (bending >= 90 degrees, 1-3 forces up to 2 N on the paper's tube):
+gratings within 5e-8 of a converged reference relative to max |u|. On that tube the gratings (20 mm apart) already
+make every segment short enough for one step, so the cost is one 8-stage step per event."""
 
-DEFAULT_MAX_STEPS = 64
+DEFAULT_MAX_STEPS = EXACT_MAX_STEPS
 """Default cap on the steps of one segment between events (forces, gratings)."""
 
 Scheme = Literal["exact", "nodes"]
@@ -133,32 +133,68 @@ def _valid_loads(loads: PointForces) -> tuple[torch.Tensor, torch.Tensor]:
     return s, f
 
 
-def _events(
-    query: torch.Tensor, s: torch.Tensor, f: torch.Tensor, ei: torch.Tensor, length: float
+def _schedule(
+    query: torch.Tensor, s: torch.Tensor, f: torch.Tensor, ei: torch.Tensor, length: float, angle: float, cap: int
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The schedule's events (:func:`torchrod.model.schedule.events`): positions (B, E) [m], the sort order (B, E)
-    (indices < h are forces), segment lengths (B, E) [m], and the jump of W at each event (B, E, 2) [1/m^2]."""
-    B, Q = s.shape[0], query.shape[0]
-    # Jump of W = dU/dt (t = L - s) at a force: W(s_i-) = W(s_i+) - (f_y - i f_x)/EI, as real pairs (-f_y, f_x)/EI.
-    jump_f = torch.stack((-f[..., 1], f[..., 0]), dim=-1) / ei.unsqueeze(-1)  # (B, h, 2)
-    pos_sorted, order, seg = schedule.events(torch_backend(s.device), query, s, length)
-    jump = torch.cat((jump_f, jump_f.new_zeros(B, Q, 2)), dim=1).gather(1, order.unsqueeze(-1).expand(-1, -1, 2))
-    return pos_sorted, order, seg, jump
+    """The events of each sample, tip to base: the order (B, E) (indices < h forces, then the queries), their
+    positions (B, E) [m] and segment lengths (B, E) [m] (differentiable in s), and the steps per segment (B, E)
+    of the schedule's rigorous rule (:func:`torchrod.kernels.host.schedule_rows`; 0 distal to every force, where the
+    state is zero)."""
+    from ..kernels.host import schedule_rows
+
+    B, h = s.shape
+    Q = query.shape[0]
+    with torch.no_grad():
+        order_np, steps_np = schedule_rows(
+            _values(query), _values(s), _values(f), _values(ei.expand(B, 1)[:, 0]), length, angle, cap
+        )
+    order = torch.from_numpy(order_np).to(s.device)
+    pos = torch.cat((s, query.expand(B, Q)), dim=1).gather(1, order)
+    start = torch.cat((pos.new_full((B, 1), float(length)), pos[:, :-1]), dim=1)
+    seg = (start - pos).clamp(min=0.0)
+    return order, pos, seg, torch.from_numpy(steps_np).to(s.device)
 
 
-def _step_counts(
-    s: torch.Tensor,
-    f: torch.Tensor,
-    ei: torch.Tensor,
-    pos: torch.Tensor,
-    seg: torch.Tensor,
-    angle: float,
-    cap: int,
-) -> torch.Tensor:
-    """(B, E) steps per segment: the schedule's rigorous ``"bound"`` rule (:mod:`torchrod.model.schedule`)."""
-    fmag = torch.linalg.vector_norm(f, dim=-1) / ei  # (B, h) [1/m^2]
-    xp = torch_backend(s.device)
-    return schedule.step_counts(xp, s, fmag, pos, seg, step_angle=angle, max_steps=cap, rule="bound")
+def _values(t: torch.Tensor) -> np.ndarray:
+    """The numbers a tensor holds, as a NumPy array, also under torch.func's gradient transforms (which wrap it):
+    the step schedule is chosen from the values, not differentiated."""
+    t = t.detach()
+    try:
+        from torch._C import _DisableFuncTorch
+        from torch._C._functorch import get_unwrapped, is_batchedtensor, is_functorch_wrapped_tensor
+    except ImportError:  # an older torch: nothing wraps
+        return t.cpu().numpy()
+    if not is_functorch_wrapped_tensor(t):
+        return t.cpu().numpy()
+    with _DisableFuncTorch():
+        while is_functorch_wrapped_tensor(t):
+            if is_batchedtensor(t):
+                raise TorchrodError(
+                    "the forward model cannot run under torch.func.vmap: its step schedule depends on each "
+                    "sample's loads; pass the samples as one batch instead (every function here is batched)"
+                )
+            t = get_unwrapped(t)
+        return t.cpu().numpy()
+
+
+def _sequence(order: torch.Tensor, seg: torch.Tensor, steps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each sample's steps one after the other: hstep (B, K) the step lengths [m] (zero past a sample's last step,
+    K the largest sample's count), and slot (B, E), the steps taken when each force's and each query's event is
+    reached, forces first, then the queries, in their input order."""
+    B, E = steps.shape
+    last = steps.cumsum(1)  # (B, E)
+    K = int(last[:, -1].max()) if B else 0
+    event = torch.searchsorted(last, torch.arange(K, device=steps.device).expand(B, K).contiguous(), right=True)
+    length = torch.where(steps > 0, seg / steps.clamp(min=1), torch.zeros_like(seg))
+    hstep = torch.cat((length, length.new_zeros(B, 1)), dim=1).gather(1, event)
+    inverse = torch.empty_like(order).scatter_(1, order, torch.arange(E, device=order.device).expand(B, E))
+    return hstep, last.gather(1, inverse)
+
+
+def _jumps(f: torch.Tensor, ei: torch.Tensor) -> torch.Tensor:
+    """(B, h, 2) the jump of W = dU/dt (t = L - s) at each force: W(s_i-) = W(s_i+) - (f_y - i f_x)/EI, as real
+    pairs (-f_y, f_x)/EI."""
+    return torch.stack((-f[..., 1], f[..., 0]), dim=-1) / ei.unsqueeze(-1)
 
 
 def step_counts(
@@ -169,16 +205,13 @@ def step_counts(
     max_step_angle: float = DEFAULT_STEP_ANGLE,
     max_steps: int = DEFAULT_MAX_STEPS,
 ) -> torch.Tensor:
-    """(B, E) steps per segment that :func:`grating_curvature` takes with the exact scheme (a diagnostic).
-
-    Segments run between events (the rod's gratings and the forces, padding included), tip to base, E = G + h.
-    A batch runs max over samples of the row sums: every sample's own steps, then zero-length steps.
-    """
+    """(B, E) steps per segment that :func:`grating_curvature` takes with the exact scheme (a diagnostic), events in
+    order from the tip (the rod's gratings and the forces, padding included), E = G + h; 0 for the events distal to
+    every force. A batch runs max over samples of the row sums: every sample's own steps, then zero-length steps."""
     s, f = _valid_loads(loads)
     ei = _as_stiffness(rod.bending_stiffness if bending_stiffness is None else bending_stiffness, s)
-    with torch.no_grad():
-        pos_sorted, _, seg, _ = _events(rod.grating_positions(s.dtype, s.device), s, f, ei, rod.length)
-        return _step_counts(s, f, ei, pos_sorted, seg, max_step_angle, max_steps)
+    query = rod.grating_positions(s.dtype, s.device)
+    return _schedule(query, s, f, ei, rod.length, max_step_angle, max_steps)[3]
 
 
 def integrate_curvature(
@@ -215,112 +248,21 @@ def integrate_curvature(
     s, f = _valid_loads(loads)
     B, h = s.shape
     ei = _as_stiffness(bending_stiffness, s)
-    pos_sorted, order, seg, jump = _events(query, s, f, ei, length)
-    E = seg.shape[1]
-    with torch.no_grad():
-        if steps is None:
-            counts = _step_counts(s, f, ei, pos_sorted, seg, max_step_angle, max_steps)
-        else:
-            counts = torch.full((B, E), int(steps), dtype=torch.int64, device=s.device)
-    # Every sample runs K steps: its own step lengths, then zero-length steps once its events are done
-    # (schedule.sequence). ends: the step that ends each event (forces, then queries, in input order).
-    hstep, slot = schedule.sequence(torch_backend(s.device), order, seg, counts)  # (B, K) [m], (B, E)
-    K, ends = hstep.shape[1], slot - 1
-    kick_at = ends.gather(1, order).unsqueeze(-1).expand(-1, -1, 2)  # in event order, as ``jump``
-    kick = jump.new_zeros(B, K, 2).scatter(1, kick_at, jump)  # (B, K, 2)
+    order, _, seg, counts = _schedule(query, s, f, ei, length, max_step_angle, max_steps)
+    if steps is not None:
+        counts = torch.full_like(counts, int(steps))
+    # Every sample runs K steps: its own step lengths, then zero-length steps once its events are done. slot: the
+    # steps taken when each event is reached (forces, then queries, in input order).
+    hstep, slot = _sequence(order, seg, counts)  # (B, K) [m], (B, E)
+    K = hstep.shape[1]
+    jumps = _jumps(f, ei)
+    kick = jumps.new_zeros(B, K + 1, 2).scatter_add(1, slot[:, :h].unsqueeze(-1).expand(B, h, 2), jumps)[:, 1:]
     Z = march(hstep, tab, kick=kick, adjoint=adjoint)  # (B, K, 4)
-    at_query = Z.gather(1, ends[:, h:].unsqueeze(-1).expand(-1, -1, 4))  # (B, Q, 4)
+    Z = torch.cat((Z.new_zeros(B, 1, 4), Z), dim=1)  # slot 0: the zero state before any step
+    at_query = Z.gather(1, slot[:, h:].unsqueeze(-1).expand(-1, -1, 4))  # (B, Q, 4)
     curvature = at_query[..., :2]
     force = _internal_force(at_query, ei) if return_force else None
     return curvature, force
-
-
-ROWS_MAX_BATCH = 12
-""":func:`march_curvature` runs batches up to this size one row at a time on Python numbers. Measured against the
-arrays on 1-3 forces of ``bench estimate``'s envelope (docs/results.md, "The two forward-sensitivity marches"): the
-rows win up to 16 rows for one or two forces and up to 12 for three."""
-
-
-def march_curvature(
-    xp: Any,
-    query: Any,
-    s: Any,
-    f: Any,
-    length: float,
-    bending_stiffness: float,
-    *,
-    max_step_angle: float = DEFAULT_STEP_ANGLE,
-    method: str | None = None,
-) -> Any:
-    """:func:`integrate_curvature` without autograd on a backend's arrays (:mod:`torchrod.backend`): curvature
-    (B, Q, 2) [1/m] at ``query`` (Q,) for forces s (B, h) [m], f (B, h, 2) [N]. The same schedule and method; a few
-    rows on NumPy (at most :data:`ROWS_MAX_BATCH`) run one at a time on Python numbers (no per-operation overhead),
-    the rest as arrays; where the compiled march runs (:mod:`torchrod.model.compiled`), every NumPy batch runs one
-    row at a time on it."""
-    tab = _method(method, "exact")
-    B, h = s.shape
-    Q = query.shape[0]
-    ei = float(bending_stiffness)
-    fmag = xp.lib.sqrt((f * f).sum(-1)) / ei
-    jump = xp.complex(-f[..., 1], f[..., 0]) / ei  # (B, h) slope jumps
-    if xp.name == "numpy" and (B <= ROWS_MAX_BATCH or compiled.available()):
-        import numpy as np
-
-        out = np.zeros((B, Q, 2))
-        python = range(B)
-        if compiled.takes(B > ROWS_MAX_BATCH):
-            # The same march compiled (the small batches give the same numbers on either), every batch size; rows
-            # with a non-finite input stay on Python numbers.
-            marched = compiled.exact_rows(query, s, fmag, jump, length, max_step_angle, DEFAULT_MAX_STEPS, tab, out)
-            python = np.flatnonzero(~marched).tolist()
-        if not len(python):
-            return out
-        queries, positions, magnitudes, slopes = query.tolist(), s.tolist(), fmag.tolist(), jump.tolist()
-        for b in python:
-            jumps = slopes[b]
-            order, seg, counts = schedule.row(
-                queries,
-                positions[b],
-                magnitudes[b],
-                length,
-                step_angle=max_step_angle,
-                max_steps=DEFAULT_MAX_STEPS,
-                rule="bound",
-                skip=True,
-            )
-            hs, kicks, ends = [], [], []
-            for e, idx in enumerate(order):
-                n = counts[e]  # 0 only for queries distal to every force
-                if n:
-                    hs += [seg[e] / n] * n
-                    kicks += [None] * (n - 1) + [jumps[idx] if idx < h and jumps[idx] != 0 else None]
-                ends.append(len(hs) - 1)
-            Us, _, _ = _forward_generic(tab, 0j, hs, [x * x for x in hs], kicks, None, _sq_complex, False)
-            at = [0j] * Q
-            for e, idx in enumerate(order):
-                if idx >= h and ends[e] >= 0:
-                    at[idx - h] = Us[ends[e]]
-            z = np.asarray(at)
-            out[b, :, 0], out[b, :, 1] = z.real, z.imag
-        return out
-    pos, order, seg = schedule.events(xp, query, s, length)
-    steps = schedule.step_counts(
-        xp, s, fmag, pos, seg, step_angle=max_step_angle, max_steps=DEFAULT_MAX_STEPS, rule="bound"
-    )
-    steps = schedule.skip_unloaded(xp, order, steps, h)  # the zero state distal to every force: no steps
-    # Arrays: every row runs K steps, its own step lengths then zero-length steps (as integrate_curvature). Slot j:
-    # the state after j steps (0: the zero state before any).
-    hstep, slot = schedule.sequence(xp, order, seg, steps)  # (B, K), (B, E)
-    K = hstep.shape[1]
-    at = xp.astype(slot[:, :h, None] - 1 == xp.arange(K)[None, None, :], "complex")  # (B, h, K): forces' steps
-    kick = (at * jump[:, :, None]).sum(1)  # (B, K), the slope jumps after each step
-    kick2 = xp.stack([kick.real, kick.imag], 1)  # (B, 2, K)
-    hs = xp.mT(hstep)
-    kicks = kick2.transpose(2, 1, 0) if xp.name == "numpy" else kick2.permute(2, 1, 0)
-    Z, _ = _forward_array(tab, hs + 0.0, kicks + 0.0, None, False)  # (K, 4, B)
-    Zb = Z.transpose(2, 0, 1) if xp.name == "numpy" else Z.permute(2, 0, 1)  # (B, K, 4)
-    Zb = xp.concat([xp.zeros((B, 1, 4)), Zb], 1)
-    return Zb[xp.expand(xp.arange(B)[:, None], (B, Q)), slot[:, h:]][..., :2]
 
 
 def _internal_force(state: torch.Tensor, ei: torch.Tensor) -> torch.Tensor:
@@ -504,6 +446,7 @@ def simulate(
         parts.append(at)
     query = torch.cat(parts)
     ei = rod.bending_stiffness if bending_stiffness is None else bending_stiffness
+    force: torch.Tensor | None  # (the integrators' second result: None only without return_force)
     if rod.precurved:
         # Intrinsic curvature: the general march (:mod:`.precurved`); the straight rod keeps the fast path below.
         if steps is not None or method is not None:
@@ -528,6 +471,7 @@ def simulate(
         curv, force = integrate_curvature_nodes(
             query, loads, rod.length, ei, nodes, return_force=True, method=method, adjoint=adjoint
         )
+    assert force is not None  # return_force=True
     G = grat.shape[0]
     extra = query[G:]
     if extra.numel():

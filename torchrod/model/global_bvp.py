@@ -43,7 +43,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -111,7 +111,7 @@ def _stiffness(rod: Rod) -> np.ndarray:
     return np.array([1.0 / ei, 1.0 / ei, 1.0 / rod.torsion_stiffness])
 
 
-def _intrinsic(rod: Rod, s: np.ndarray) -> np.ndarray:
+def _intrinsic(rod: Rod, s: np.ndarray | Sequence[float]) -> np.ndarray:
     """(len(s), 3) u* [1/m] at positions s (the distal value at a breakpoint)."""
     return np.array([[ux, uy, 0.0] for ux, uy in rod.intrinsic_at(np.asarray(s, dtype=np.float64).tolist())])
 
@@ -592,7 +592,7 @@ class ShootingSolver:
     def _march_steps(self, grid: _Grid, y: np.ndarray, tangent: bool, record: bool):
         rhs = self._rhs_tangent if tangent else self._rhs
         n = len(grid.s)
-        rec = np.empty((n, *y.shape)) if record else None
+        rec: Any = np.empty((n, *y.shape)) if record else None  # an array when record
         w = grid.w
         for k in range(n):
             if record:
@@ -651,6 +651,7 @@ class ShootingSolver:
 
         def kept(zs: np.ndarray, rec: np.ndarray | None) -> None:
             if record:
+                assert keep is not None and rec is not None  # record: a keep dict, and the march recorded
                 keep["z"], keep["states"] = zs.copy(), rec[:, 0]
 
         if self.jacobian == "dp":
@@ -668,19 +669,19 @@ class ShootingSolver:
                 J = np.concatenate((tip[1:, _N], tip[1:, _M]), axis=1).T / scale[:, None]
                 return r, J
 
-            def residual(zs: np.ndarray) -> np.ndarray:
+            def residual_dp(zs: np.ndarray) -> np.ndarray:
                 r, J = integrate_dp(zs)
                 cache.clear()
                 cache[zs.tobytes()] = J
                 return r
 
-            def jac(zs: np.ndarray, r: np.ndarray) -> np.ndarray:
+            def jac_dp(zs: np.ndarray, r: np.ndarray) -> np.ndarray:
                 J = cache.get(zs.tobytes())
                 if J is None:
                     _, J = integrate_dp(zs)
                 return J
 
-            return residual, jac
+            return residual_dp, jac_dp
 
         def shots(zs: np.ndarray, rec: bool = False) -> np.ndarray:
             self._evals += zs.shape[0]
@@ -757,6 +758,7 @@ class ShootingSolver:
         else:
             tip, rec = self._march(grid, _initial_state(z[None]), tangent=False, record=True)
             self._evals += 1
+            assert rec is not None  # record=True
             states = rec[:, 0]
             r = np.concatenate((tip[0, _N], tip[0, _M])) / scale
         sol = _solution(self.rod, query, states, z, r, iters, self._evals, ok)

@@ -8,6 +8,7 @@ names ``torchrod bench`` knows (a suite whose module is missing is reported as n
 * ``estimate``, ``stream``, ``paper``: estimation, streams, the paper's comparison.
 * ``network``: the warm-start network alone, and the estimator with and without it.
 * ``startup``: time to the first answer (``--version``, ``--help``, a one-reading estimate) against importing torch.
+* ``gpu``: the CUDA kernels: their compiled size (no GPU needed), the CUDA tests and readings per second on a GPU.
 """
 
 from __future__ import annotations
@@ -21,4 +22,5 @@ SUITES: dict[str, str] = {
     "paper": "the paper's speed and accuracy comparison",
     "network": "what the warm-start network buys: the network alone, the estimator with and without it",
     "startup": "time to the first answer (--version, --help, a one-reading estimate) against importing torch",
+    "gpu": "the CUDA kernels: PTX size and registers, the CUDA tests, readings per second on a GPU",
 }

@@ -9,8 +9,8 @@ from the rod's second grating to the tip, bending <= 90 degrees), Gaussian noise
 Per k: B = 1 (``--single`` readings estimated one after the other: mean, median, 90th and 99th percentiles of the
 wall time per call, and the mean process CPU time, which a busy machine inflates less) and batched (``--batched``
 readings in calls of ``--batch-size``: readings per second, wall and CPU). Count accuracy is printed as a sanity
-check. Every timing follows a warm-up call (per-rod caches: the grid bases of the starts) and the compiled march's
-load where Numba is installed (:func:`torchrod.model.compiled.load`); torch runs on ``--threads`` threads.
+check. Every timing follows a warm-up call (the kernels compiled or loaded, per-rod set-up). ``--threads`` is the
+CPU threads of a batched call (a single reading is never split); the one-at-a-time rows run on one.
 ``--device`` estimates on that device (e.g. ``cuda``, the readings made on the CPU and moved there; the batched
 time includes reading the counts back); ``--forces`` picks the rows.
 """
@@ -18,6 +18,7 @@ time includes reading the counts back); ``--forces`` picks the rows.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import statistics
 import time
@@ -25,7 +26,6 @@ import time
 import torch
 
 from ...estimate.estimator import Estimator, EstimatorOptions
-from ...model import compiled
 from ...presets import load as load_rod
 from ..commands import add_device_option, check_device, rod_help
 from . import SUITES
@@ -41,7 +41,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--single", type=int, default=40, help="readings timed one at a time per k (default 40)")
     parser.add_argument("--batched", type=int, default=1000, help="readings timed batched per k (default 1000)")
     parser.add_argument("--batch-size", type=int, default=500, help="readings per batched call (default 500)")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--threads", type=int, default=1, help="CPU threads of the batched calls (default 1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the readings (default 0)")
     parser.add_argument(
         "--forces", default="1,2,3,1-3", metavar="K,...", help="the rows: counts 1, 2, 3 and the mix 1-3 (default all)"
@@ -81,17 +81,18 @@ def run(args: argparse.Namespace) -> int:
     if not wanted or any(x not in rows for x in wanted):
         raise ValueError(f"--forces takes some of 1, 2, 3 and 1-3, comma-separated, got {args.forces!r}")
     device = check_device(args)
-    torch.set_num_threads(args.threads)
-    estimator = Estimator(rod, EstimatorOptions(noise=args.noise))
+    torch.set_num_threads(1)
+    estimator = Estimator(rod, EstimatorOptions(noise=args.noise, threads=args.threads))
+    one = dataclasses.replace(estimator.options, threads=1)
     print(
         f"# torchrod bench estimate: {rod.num_gratings} gratings, noise {args.noise:g} 1/m (known), "
-        f"count chosen in 0..3, torch threads {torch.get_num_threads()}, device {device}"
+        f"count chosen in 0..3, CPU threads of a batch {args.threads}, device {device}"
     )
     print(
         f"{'forces':>6} | {'B=1 ms mean':>11} {'median':>7} {'p90':>7} {'p99':>7} {'cpu':>7} | {'batched rd/s':>12} "
         f"{'ms/rd':>7} {'cpu ms/rd':>9} | {'count ok':>8}"
     )
-    compiled.load()
+    estimator.plan(device=device)
     for k in (rows[x] for x in wanted):
         data = readings(rod, k, max(single, batched), args.noise, args.seed + (k or 0))
         curvature, mask = data.curvature.to(device), data.mask.to(device)
@@ -100,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         walls, cpus, right = [], [], 0
         for b in range(single):
             w0, c0 = time.perf_counter(), time.process_time()
-            res = estimator.estimate(curvature[b : b + 1], mask[b : b + 1])
+            res = estimator.estimate(curvature[b : b + 1], mask[b : b + 1], options=one)
             walls.append(time.perf_counter() - w0)
             cpus.append(time.process_time() - c0)
             right += int(res.num_forces[0].cpu() == truth[b])

@@ -18,7 +18,6 @@ seeded generator and kept when the rod's tangent turns by at least 90 degrees fr
 from __future__ import annotations
 
 import argparse
-import contextlib
 import math
 import os
 import time
@@ -59,12 +58,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-sizes", type=int, nargs="+", metavar="B", help="default: 1 64 4096")
     parser.add_argument("--cases", type=int, help="accuracy cases (default 24)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the load cases (default 0)")
-    parser.add_argument(
-        "--paths",
-        action="store_true",
-        help="also time the estimator's forward-sensitivity march on arrays against one row at a time (the switch "
-        "torchrod.model.sensitivity.SCALAR_WORK) and, with Numba, the compiled rows",
-    )
 
 
 # ------------------------------------------------------------------------------------------------- cases
@@ -178,77 +171,6 @@ def _speed(rod: Rod, loads: PointForces, options: dict, min_time: float, repeats
     return {"fwd": fwd / B, "fwd_bwd": both / B, "fwd_bwd_cpu": both_cpu / B, "steps": steps}
 
 
-def _paths(rod: Rod, seed: int, min_time: float, repeats: int) -> None:
-    """The estimator's march (:mod:`torchrod.model.sensitivity`) on NumPy arrays and one row at a time on Python
-    numbers, side by side, on readings of ``torchrod bench estimate`` (the estimator's envelope): h = 1..3 forces
-    with the Jacobian, with the Jacobian and the propagator's seeds, and the seeds alone (h = 0), at growing batch
-    sizes. Prints the smallest batch where the arrays win and its work (:func:`.sensitivity.march_work`), against
-    which the switch SCALAR_WORK is set."""
-    from ...backend import NUMPY
-    from ...model import compiled, sensitivity
-    from .estimate import readings
-
-    query = np.asarray(rod.gratings, dtype=float)
-    sizes = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32)
-    step = sensitivity.ESTIMATION_STEP_ANGLE
-    three = readings(rod, 3, sizes[-1], 0.0, seed).loads  # the estimator's envelope; the first h of 3 forces
-    s_all, f_all = three.s.numpy(), three.f.numpy()
-    fast = compiled.load()  # loaded now: the small batches would run on the Python rows until something loads it
-    width = 17 if fast else 11
-    print(
-        "forward-sensitivity march, ms per call: arrays / rows (one at a time)"
-        + (" / compiled rows (Numba)" if fast else "")
-        + f"; switch at work {sensitivity.SCALAR_WORK}"
-        + ("; with Numba the NumPy backend marches every batch on the compiled rows" if fast else "")
-    )
-    print(
-        f"{'forces':>6s} {'seeds':>5s} {'cols':>4s} | "
-        + " ".join(f"{'B=' + str(b):>{width}s}" for b in sizes)
-        + " | arrays win"
-    )
-    for h, seeds in ((0, True), (1, False), (2, False), (3, False), (1, True), (2, True), (3, True)):
-        cols = 3 * h + (4 if seeds else 0)
-        cells, win = [], None
-        for B in sizes:
-            s = np.ascontiguousarray(s_all[:B, :h])
-            f = np.ascontiguousarray(f_all[:B, :h])
-            args = (query, s, f, rod.length, rod.bending_stiffness, None, h > 0, seeds, step, 64)
-            arrays, _ = time_call(
-                lambda a=args: sensitivity._march_arrays(NUMPY, *a), min_time=min_time, repeats=repeats
-            )
-            with _numba("0"):
-                rows, _ = time_call(lambda a=args: sensitivity._march_rows(*a), min_time=min_time, repeats=repeats)
-            cell = f"{1e3 * arrays:5.2f}/{1e3 * rows:5.2f}"
-            if fast:
-                with _numba("1"):
-                    done, _ = time_call(lambda a=args: sensitivity._march_rows(*a), min_time=min_time, repeats=repeats)
-                cell += f"/{1e3 * done:5.3f}"
-            cells.append(cell)
-            if win is None and arrays < rows:
-                win = B
-        work = "-" if win is None else f"B={win}, work {sensitivity.march_work(win, cols)}"
-        print(
-            f"{h:6d} {'yes' if seeds else 'no':>5s} {cols:4d} | "
-            + " ".join(f"{c:>{width}s}" for c in cells)
-            + f" | {work}"
-        )
-    print()
-
-
-@contextlib.contextmanager
-def _numba(value: str):
-    """``TORCHROD_NUMBA`` set to ``value`` for the block (:func:`torchrod.model.compiled.available`)."""
-    old = os.environ.get("TORCHROD_NUMBA")
-    os.environ["TORCHROD_NUMBA"] = value
-    try:
-        yield
-    finally:
-        if old is None:
-            del os.environ["TORCHROD_NUMBA"]
-        else:
-            os.environ["TORCHROD_NUMBA"] = old
-
-
 def _microseconds(x: float) -> str:
     return f"{x * 1e6:10.1f}"
 
@@ -297,8 +219,6 @@ def run(args: argparse.Namespace) -> int:
             "nodes: one per node interval and grating, 3 stages per step)"
         )
         print()
-        if args.paths:
-            _paths(rod, args.seed, min_time, repeats)
         acc = loads[:cases]
         refs = [reference_curvature(rod, forces) for forces in acc.to_lists()]
         print(f"accuracy at the gratings vs a converged reference (DOP853, rtol 1e-12), {cases} of the cases:")

@@ -20,6 +20,7 @@ import argparse
 import statistics
 import time
 from types import SimpleNamespace
+from typing import Any
 
 import torch
 
@@ -58,7 +59,7 @@ def _network_alone(warm_start, data, k: int) -> dict:
         rows = count == h
         s[rows, :h] = pf.s[rows].to(s.dtype)
         f[rows, :h] = pf.f[rows].to(f.dtype)
-    fake = SimpleNamespace(
+    fake: Any = SimpleNamespace(  # stands in for an EstimateResult
         num_forces=count,
         forces=SimpleNamespace(s=s, f=f),
         statuses=["ok"] * count.shape[0],  # the network gives no verdict
@@ -102,11 +103,13 @@ def run(args: argparse.Namespace) -> int:
     print("-" * len(header))
     for k in (1, 2, 3):
         data = readings(rod, k, count, args.noise, args.seed + k)
-        rows = [("network", _network_alone(warm_start, data, k), None, None, None)]
+        rows: list[tuple[str, dict[str, Any], float | None, float | None, float | None]] = [
+            ("network", _network_alone(warm_start, data, k), None, None, None)
+        ]
         for name, est in (("estimator", plain), ("estimator+network", with_net)):
-            results, batched, one = _timed(est, data, args.batch_size, single)
-            iters = torch.cat([r.iterations for r in results]).double().median().item()
-            rows.append((name, cell_metrics(results, data.loads.s, data.loads.f, k), iters, batched, one))
+            results, t_batched, t_one = _timed(est, data, args.batch_size, single)
+            median_iters = torch.cat([r.iterations for r in results]).double().median().item()
+            rows.append((name, cell_metrics(results, data.loads.s, data.loads.f, k), median_iters, t_batched, t_one))
         for name, m, iters, batched, one in rows:
             print(
                 f"{k:>2} {name:<18} {100 * m['count_accuracy']:>8.1f}% {m['force_error_median']:>9.2f}% "

@@ -79,6 +79,7 @@ class ExternalStream:
             text=True,
             bufsize=1,
         )
+        assert self.process.stdout is not None  # stdout=PIPE
         self.settled = 0.0
         for round_ in (self.warm[:1], self.warm[1:]):
             for line in round_:
@@ -104,6 +105,9 @@ class ExternalStream:
         if self.process is None:
             self.start()
         proc = self.process
+        assert proc is not None  # start() set it
+        stdin, stdout = proc.stdin, proc.stdout
+        assert stdin is not None and stdout is not None  # both are pipes
         cpu0 = cpu_time(family(proc.pid))
         sent: dict[str, float] = {}
         failed: list[BaseException] = []
@@ -118,7 +122,7 @@ class ExternalStream:
                     if wait > 0:
                         time.sleep(wait)
                     self._send(line)
-                proc.stdin.close()
+                stdin.close()
             except BaseException as exc:  # noqa: BLE001 - reported by the reading thread
                 failed.append(exc)
 
@@ -126,7 +130,7 @@ class ExternalStream:
         writer.start()
         got = 0
         cpu1 = math.nan
-        for text in proc.stdout:
+        for text in stdout:
             now = time.perf_counter()
             record = json.loads(text)
             key = json.dumps(record.get("id"))

@@ -4,7 +4,7 @@
    Marquardt, BVP + derivative propagation and its body-frame method with the node scheme, all inside ONE shared
    outer optimiser (scipy ``least_squares``, forward-difference Jacobian over (s, f_x, f_y), the same start and
    tolerances: :mod:`torchrod.paper`), and torchrod's default estimator (exact point loads, warm-start network when
-   its checkpoint is there, L-BFGS; the count fixed to 1 so the comparison is like for like). The same
+   its checkpoint is there, Levenberg-Marquardt; the count fixed to 1 so the comparison is like for like). The same
    ``--table-readings`` readings for every method (few: the BVP baselines take seconds each); the median wall time
    per estimate, one reading per call (torchrod also batched: all readings in one call, per reading), the ratios
    beside the paper's (29.0x and 101.6x at q = 100) and the largest difference between the estimates (the
@@ -192,7 +192,7 @@ def _run(args, rod, table_nodes, acc_nodes, table_readings, per_count, map_size,
         f"{rod.num_gratings} gratings, location bias {1e3 * rod.location_bias:+.2f} mm, noise {args.noise:g} 1/m, "
         f"torch threads {torch.get_num_threads()}"
     )
-    print(f"# torchrod default: Estimator (exact point loads, L-BFGS, noise known) {which}")
+    print(f"# torchrod default: Estimator (exact point loads, Levenberg-Marquardt, noise known) {which}")
     print(
         "# baselines: scipy least_squares (trf, s in [0, L]), forward-difference Jacobian over (s, fx, fy), "
         "grid-scan start, the same tolerances; inner: RK4 shooting (LM: fd Jacobian, vectorised; DP: derivative "
@@ -222,13 +222,13 @@ def _run(args, rod, table_nodes, acc_nodes, table_readings, per_count, map_size,
         print(f"{q:>5} | " + " | ".join(cells) + f" | {_fmt(t_mine)} {_fmt(table.torchrod_batched)}")
     print("speed-ups (baseline time / torchrod time; paper: its node method as the reference):")
     for q in table_nodes:
-        pq = P.PAPER_TABLE_II.get(q)
+        paper_row = P.PAPER_TABLE_II.get(q)
         parts = []
         for name in ("bvp_lm", "bvp_dp", "nodes"):
             mine = table.speedup(name, q)
             cpu = table.speedup(name, q, what="cpu")
             batched = table.speedup(name, q, batched=True)
-            paper = pq[name] / pq["nodes"] if pq and name != "nodes" else math.nan
+            paper = paper_row[name] / paper_row["nodes"] if paper_row and name != "nodes" else math.nan
             ptxt = f", paper {paper:.1f}x" if math.isfinite(paper) else ""
             if name == "nodes":
                 parts.append(f"{name} {mine:.2f}x (cpu {cpu:.2f}x, batched {batched:.1f}x)")
@@ -242,9 +242,9 @@ def _run(args, rod, table_nodes, acc_nodes, table_readings, per_count, map_size,
     mine_loss = table.exact_losses("torchrod")
     for q in table_nodes:
         parts = []
-        for a, b in (("bvp_lm", "nodes"), ("bvp_dp", "nodes"), ("torchrod", "nodes")):
-            ds, df = table.gaps(a, b, q)
-            parts.append(f"{a} vs {b} {1e3 * ds.max():.2g} / {df.max():.2g} ({1e3 * np.median(ds):.2g})")
+        for method, ref in (("bvp_lm", "nodes"), ("bvp_dp", "nodes"), ("torchrod", "nodes")):
+            ds, df = table.gaps(method, ref, q)
+            parts.append(f"{method} vs {ref} {1e3 * ds.max():.2g} / {df.max():.2g} ({1e3 * np.median(ds):.2g})")
         excess = float((mine_loss - table.exact_losses("nodes", q)).max())
         fails = sum(table.failures[m][q] for m in table.failures)
         print(

@@ -10,13 +10,10 @@ the same readings several ways, in one run:
 * ``static, batched``: :meth:`Estimator.estimate` on consecutive batches of ``--batch-size`` (no tracking);
 * ``static, one at a time``: :meth:`Estimator.estimate` on ``--single`` consecutive readings from the middle of
   the trajectory, one call each (latency: the call's wall time);
-* ``stream, backlog``: :func:`torchrod.stream.stream` over all readings available at once (throughput; latency is
-  then mostly the wait in the read-ahead queue);
-* ``stream, backlog, P processes``: the same backlog over ``--workers`` P processes, as ``StreamOptions(workers=P)``
-  solves it (batches of up to P x ``--batch-size``, each process a chunk of up to ``--batch-size``;
-  :mod:`torchrod.estimate.workers`; a ParallelEstimator given to the stream); the workers, the spare of a live
-  stream's small batches included, started and warmed up before the timing, their CPU time in its cpu ms: how
-  throughput scales from one core to P;
+* ``stream, backlog, 1 thread``: :func:`torchrod.stream.stream` over all readings available at once on one solver
+  thread (throughput; latency is then mostly the wait in the read-ahead queue);
+* ``stream, backlog, P threads``: the same backlog on ``--workers`` P solver threads (``StreamOptions(workers=P)``,
+  each batch whole in one thread): how throughput scales from one core to P;
 * ``stream, backlog, no network`` (when a network is used): the same backlog without it;
 * ``stream, backlog, noise learned`` and ``noise per reading``: the same backlog with an estimator told no noise,
   which the stream learns from its fits (:mod:`torchrod.estimate.noise`, the default) or, as before that existed,
@@ -31,18 +28,17 @@ the same readings several ways, in one run:
   not reach it) fed the first ``--paced`` readings as JSON lines through a pipe at R Hz by a writer thread
   (:mod:`.pacer`), the latency measured by the writing process from the line's due time to reading its answer; at the
   first rate once per ``--external-budgets`` entry (default: the command's own time budget, and 10 ms), all with
-  ``--external-workers`` processes (the command's ``--workers``, default 1). The timing starts after a warm-up
-  of five lines, once the process and its workers are idle (a worker's start-up takes seconds of CPU). A note per
+  ``--external-workers`` threads (the command's ``--workers``, default 0: one per core). The timing starts after a
+  warm-up of five lines, once the process is idle. A note per
   row gives the median latency over each tenth of the run (:func:`tenth_medians`; a stream that cannot keep up
   falls behind: its latency grows from tenth to tenth, where one that keeps up stays level after the first tenths,
   which start from an empty queue; the readings' difficulty varies along the trajectory, so a run needs enough
   seconds to tell the two apart), the answers' statuses (``timeout``: cut by the time budget) and how long the warm-up
-  waited for idle processes. cpu ms is the child's and its workers'; readings per batch and evaluations are not
-  reported (the answers do not carry them).
+  waited for an idle process. cpu ms is the child's; readings per batch and evaluations are not reported (the answers
+  do not carry them).
 
-``--device`` (default cpu) runs every row on that device (e.g. ``cuda``, the torch backend; the estimator's default
-there): the readings are moved to it, the CLI rows get the same ``--device``, and the row of P processes, which
-solve on CPU cores, is left out.
+``--device`` (default cpu) runs every row on that device (e.g. ``cuda``: one GPU thread per reading): the readings
+are moved to it, the CLI rows get the same ``--device``, and the row of P threads is left out.
 
 The stream rows (and the CLI's) start each reading as the static estimator does; with ``--track`` they also start
 small batches from the last answer's forces (``StreamOptions(track=True)``; in ``one at a time`` always one frame
@@ -52,12 +48,11 @@ Per way: readings per second (wall), process CPU time per reading, latency media
 per batch, the accuracy against the truth (count accuracy, and over the readings whose count is right the median
 force error |f_est - f_true| [N] and location error [mm], forces paired in order of location), and the mean number
 of forward-model evaluations per reading (every residual, with or without its Jacobian, of every fit and scan).
-``--profile`` adds where the time goes in a backlog stream of (at most) the first 2000 readings, a separate pass
-under cProfile (cumulative times): the network's guesses, the scans, the Levenberg-Marquardt fits, the exchange,
-L-BFGS, the exact-model steps, count selection, uncertainty, the rest of ``estimate``, and the stream's own work
-(batching, checking readings, result records). Every timing follows a warm-up and, as in ``torchrod stream``, the
-set-up frozen out of the garbage collector's full collections (:func:`torchrod.cli.commands.settle`); torch runs
-on ``--threads`` threads.
+``--profile`` adds where the time goes in a backlog stream of (at most) the first 2000 readings on one thread, a
+separate pass under cProfile (cumulative times): the network's guesses, the kernels (the whole search, compiled),
+the rest of ``estimate`` (its set-up and report), and the stream's own work (batching, checking readings, result
+records). Every timing follows a warm-up and, as in ``torchrod stream``, the set-up frozen out of the garbage
+collector's full collections (:func:`torchrod.cli.commands.settle`); torch runs on ``--threads`` threads.
 """
 
 from __future__ import annotations
@@ -77,8 +72,8 @@ from typing import Any
 import torch
 
 from ...estimate.estimator import Estimator, EstimatorOptions
-from ...estimate.workers import ParallelEstimator
 from ...io.stream import Reading, StreamOptions, StreamResult, StreamStats, stream, warm_up
+from ...kernels.host import cpu_threads
 from ...presets import load as load_rod
 from ..commands import add_device_option, check_device, rod_help, settle
 from . import SUITES
@@ -114,16 +109,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="FIELD=VALUE",
-        help="an EstimatorOptions field for every way (repeatable; e.g. starts=1, lbfgs.max_iter=10)",
+        help="an EstimatorOptions field for every way (repeatable; e.g. starts=1, lm.iterations=20)",
     )
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     add_device_option(parser)
     parser.add_argument(
         "--workers",
         type=int,
-        default=2,
+        default=0,
         metavar="P",
-        help="processes of the parallel backlog row (default 2; 1: no such row)",
+        help="solver threads of the parallel backlog row (default 0: one per CPU core; 1: no such row)",
     )
     parser.add_argument(
         "--external",
@@ -141,9 +136,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--external-workers",
         type=int,
-        default=1,
+        default=0,
         metavar="N",
-        help="--workers of the externally paced rows (default 1)",
+        help="--workers of the externally paced rows (default 0: the command's default, one thread per core)",
     )
     parser.add_argument(
         "--track", action="store_true", help="the stream rows also start from the last answer (StreamOptions.track)"
@@ -237,7 +232,7 @@ def _external_rows(
     checkpoint = "none" if network.startswith("none") else network
     base = ["--rod", args.rod, "--noise", f"{args.noise:g}", "--checkpoint", checkpoint]
     base += ["--batch-size", str(args.batch_size), "--threads", str(args.threads), "--device", args.device]
-    if args.external_workers != 1:
+    if args.external_workers != 0:
         base += ["--workers", str(args.external_workers)]
     if args.track:
         base += ["--track"]
@@ -249,8 +244,8 @@ def _external_rows(
     for rate, budget in runs:
         extra = [] if budget is None else ["--time-budget-ms", f"{budget:g}"]
         name = f"CLI, {rate:g} Hz from outside" + ("" if budget is None else f", budget {budget:g} ms")
-        if args.external_workers != 1:
-            name += f", {args.external_workers} proc."
+        if args.external_workers != 0:
+            name += f", {args.external_workers} thr."
         row = _Row(name)
         row.external = True
         pacer = ExternalStream(base + extra, warm).start()
@@ -346,15 +341,9 @@ class _LockStep:
 
 _PHASES: list[tuple[str, Callable[[str, str], bool]]] = [
     ("network guesses", lambda f, n: f.endswith("warm_start.py") and n == "guess"),
-    ("scans", lambda f, n: f.endswith("search.py") and n == "scan"),
-    ("first fits (LM)", lambda f, n: f.endswith("search.py") and n == "_first_fits"),
-    ("wider search (LM)", lambda f, n: f.endswith("search.py") and n == "_explore"),
-    ("L-BFGS", lambda f, n: f.endswith("finish.py") and n == "refine_open"),
-    ("count selection", lambda f, n: f.endswith("selection.py") and n == "select_count"),
-    ("uncertainty", lambda f, n: f.endswith("uncertainty.py") and n == "fit_uncertainty"),
+    ("kernels", lambda f, n: f.endswith("host.py") and n == "run"),
 ]
-"""Phases of an estimate, each a function's cumulative time (the exchange's fits are in "wider search"; the
-exact-model steps inside the fits that call them)."""
+"""Phases of an estimate, each a function's cumulative time (the kernels: the whole search of every reading)."""
 
 
 def _profile_lines(profile: cProfile.Profile, wall: float, readings: int) -> list[str]:
@@ -375,15 +364,13 @@ def _profile_lines(profile: cProfile.Profile, wall: float, readings: int) -> lis
     lines.append(f"#   {'rest of estimate':<20} {rest:>7.2f} s  {100 * rest / wall:>5.1f}%")
     # The reader thread's work shows up wherever the main thread waits for the GIL, mostly outside estimate.
     lines.append(f"#   {'stream, records':<20} {other:>7.2f} s  {100 * other / wall:>5.1f}%")
-    calls = sum(cc for (f, _, n), (cc, *_rest) in stats.items() if f.endswith("sensitivity.py") and n == "_march")
-    lines.append(f"#   forward-sensitivity marches (batched calls): {calls}")
     return lines
 
 
-def _options(noise: float, settings: list[str], network: Any) -> EstimatorOptions:
+def _options(noise: float | None, settings: list[str], network: Any) -> EstimatorOptions:
     """EstimatorOptions(noise=noise) (with a trusted network, ``trust_guesses``, as ``Estimator.from_checkpoint``
-    sets it), then the ``FIELD=VALUE`` settings (values as Python literals; ``lbfgs.FIELD`` sets a field of the
-    L-BFGS options)."""
+    sets it), then the ``FIELD=VALUE`` settings (values as Python literals; ``lm.FIELD`` and ``search.FIELD`` set a
+    field of the Levenberg-Marquardt policy or of the search options)."""
     from ...learn.warm_start import is_trusted
 
     options = EstimatorOptions(noise=noise, trust_guesses=is_trusted(network))
@@ -396,9 +383,10 @@ def _options(noise: float, settings: list[str], network: Any) -> EstimatorOption
         except (ValueError, SyntaxError):
             raise ValueError(f"--set {setting!r}: the value must be a Python literal") from None
         name = name.strip()
-        if name.startswith("lbfgs."):
-            lbfgs = dataclasses.replace(options.lbfgs, **{name[len("lbfgs.") :]: value})
-            options = dataclasses.replace(options, lbfgs=lbfgs)
+        part, dot, field = name.partition(".")
+        if dot and part in ("lm", "search"):
+            inner = dataclasses.replace(getattr(options, part), **{field: value})
+            options = dataclasses.replace(options, **{part: inner})
         else:
             options = dataclasses.replace(options, **{name: value})
     return options
@@ -411,11 +399,10 @@ def run(args: argparse.Namespace) -> int:
     count, single, paced = (300, 20, 100) if args.quick else (args.count, args.single, args.paced)
     if min(count, single, paced, args.batch_size, args.threads) < 1:
         raise ValueError("--count, --single, --paced, --batch-size and --threads must be >= 1")
-    if args.workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    if args.workers < 0:
+        raise ValueError(f"--workers must be >= 0 (0: one per CPU core), got {args.workers}")
     device = check_device(args)
-    if device.type != "cpu" and args.external_workers > 1:
-        raise ValueError(f"--external-workers {args.external_workers} solve on CPU processes, not on --device")
+    workers = cpu_threads(args.workers or None)
     pace = args.rate if args.pace is None else args.pace
     if not (pace > 0 and args.rate > 0 and args.max_latency_ms >= 0):
         raise ValueError("--pace and --rate must be positive, --max-latency-ms >= 0")
@@ -438,7 +425,9 @@ def run(args: argparse.Namespace) -> int:
         for k in range(count)
     ]
     B = args.batch_size
-    options = StreamOptions(batch_size=B, max_latency=args.max_latency_ms / 1e3, track=args.track, device=device)
+    options = StreamOptions(
+        batch_size=B, max_latency=args.max_latency_ms / 1e3, track=args.track, device=device, workers=1
+    )
     counts = [len(t) for t in truth]
     print(
         f"# torchrod bench stream: {count} readings of a {args.rate:g} Hz trajectory "
@@ -447,11 +436,7 @@ def run(args: argparse.Namespace) -> int:
         f"count chosen in 0..{estimator.options.max_forces}, "
         f"network {network_name}, torch threads {torch.get_num_threads()}, device {_device_name(device)}"
     )
-    print(
-        "# estimator options: "
-        + ", ".join(f"{k}={v!r}" for k, v in dataclasses.asdict(estimator.options).items() if k != "lbfgs")
-        + f"; lbfgs: {dataclasses.asdict(estimator.options.lbfgs)}"
-    )
+    print("# estimator options: " + ", ".join(f"{k}={v!r}" for k, v in dataclasses.asdict(estimator.options).items()))
     warm_up(estimator, device)
     settle()  # as `torchrod stream` does once it is set up (commands.settle)
     rows = []
@@ -465,16 +450,13 @@ def run(args: argparse.Namespace) -> int:
     _timed(row, _static_single(estimator, *on_device, window), truth)
     rows.append(row)
 
-    row = _Row(f"stream, backlog (B<={B})")
+    row = _Row(f"stream, backlog, 1 thread (B<={B})")
     _timed(row, stream(estimator, items, options), truth)
     rows.append(row)
 
-    if args.workers > 1 and device.type == "cpu":
-        # The same backlog over P processes (started and warmed up first: the timing is the solving's).
-        with ParallelEstimator(estimator, args.workers) as parallel:
-            parallel.warm(wait=True, spare=True)  # (a stream's first small batch would start the spare)
-            row = _Row(f"stream, backlog, {args.workers} processes")
-            _timed(row, stream(parallel, items, options), truth, parallel.worker_pids())  # as workers=P does
+    if workers > 1 and device.type == "cpu":
+        row = _Row(f"stream, backlog, {workers} threads")
+        _timed(row, stream(estimator, items, dataclasses.replace(options, workers=workers)), truth)
         rows.append(row)
 
     if network is not None:

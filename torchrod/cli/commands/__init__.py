@@ -85,20 +85,21 @@ def time_budget(args: argparse.Namespace) -> float | None:
 
 
 ESTIMATION_DEVICE_HELP = (
-    "torch device the readings are estimated on: cpu (default), cuda, cuda:1, ... (a GPU runs the torch backend, at "
-    "present far slower than the CPU: docs/results.md, 'On a GPU')"
+    "torch device the readings are estimated on: cpu (default), cuda, cuda:1, ... (on a GPU one thread estimates "
+    "each reading: for large batches; needs numba-cuda, pip install torchrod[cuda])"
 )
 
 
-def add_device_option(parser: argparse.ArgumentParser, text: str = ESTIMATION_DEVICE_HELP) -> None:
+def add_device_option(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup, text: str = ESTIMATION_DEVICE_HELP
+) -> None:
     """``--device`` (default cpu), checked by :func:`check_device`; ``text``, its help, says what runs there."""
     parser.add_argument("--device", default="cpu", help=text)
 
 
-def check_device(args: argparse.Namespace, processes: int = 1) -> torch.device:
-    """``--device`` as a :class:`torch.device`; ``ValueError`` for a name torch does not know, a device this
-    machine does not have (found now, not at the first reading), or worker ``processes`` (which solve on CPU cores)
-    asked for beside a device other than the CPU (where one process solves whole batches)."""
+def check_device(args: argparse.Namespace) -> torch.device:
+    """``--device`` as a :class:`torch.device`; ``ValueError`` for a name torch does not know, or a device this
+    machine does not have (found now, not at the first reading)."""
     import torch
 
     try:
@@ -115,11 +116,6 @@ def check_device(args: argparse.Namespace, processes: int = 1) -> torch.device:
             torch.zeros(1, device=dev)
         except (RuntimeError, AssertionError) as exc:
             raise ValueError(f"--device {args.device!r} cannot be used here: {exc}") from None
-    if dev.type != "cpu" and processes > 1:
-        raise ValueError(
-            f"--workers {args.workers} asks for {processes} processes, which solve on CPU cores; with --device "
-            f"{args.device} one process solves whole batches on the device: leave --workers at 1"
-        )
     return dev
 
 

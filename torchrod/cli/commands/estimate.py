@@ -63,8 +63,9 @@ opened once.
 
 Lines are estimated in batches of ``--batch-size`` (one batched call per batch; should it fail, each reading
 alone), answers in input order; a progress bar on stderr counts readings when stderr is a terminal (not with
-``--quiet``). ``--out FILE`` writes the answers to FILE instead of standard output. ``--workers N`` spreads each
-batch over N processes (default 1; 0: one per CPU core): two use both cores of a 2-core machine on a file.
+``--quiet``). ``--out FILE`` writes the answers to FILE instead of standard output. Each batch is spread over every
+CPU core (``--workers N``: N threads). The first run after an install compiles the estimation kernels once (it says
+so on stderr, and where it keeps them); the answers are the same either way.
 """
 
 from __future__ import annotations
@@ -80,7 +81,7 @@ import torch
 
 from ...errors import MissingFileError
 from ...estimate.estimator import Estimator, EstimatorOptions
-from ...estimate.selection import RULES
+from ...estimate.options import RULES
 from ...io.jsonl import LineWriter, check_input, check_output, open_output, until_interrupted
 from ...io.readings import Reading, ReadingSource, stack_readings
 from ...presets import load as load_rod
@@ -190,29 +191,29 @@ def check_counts(args: argparse.Namespace, rod: Rod | None = None) -> None:
 
 
 def add_workers_option(parser: argparse.ArgumentParser) -> None:
-    """``--workers N``: processes a batch is spread over (:mod:`torchrod.estimate.workers`)."""
+    """``--workers N``: the CPU threads the readings are solved on."""
     parser.add_argument(
         "--workers",
         type=int,
-        default=1,
+        default=0,
         metavar="N",
-        help="spread each batch over N processes, to use every core on a file or a backlog (2 on a 2-core machine; "
-        "0: one per CPU core; default 1); a stream also hands small batches to idle processes",
+        help="solve on N CPU threads (default 0: one per CPU core)",
     )
 
 
 def check_workers(args: argparse.Namespace) -> int:
-    """The process count ``--workers`` asks for (0: one per CPU core); ``ValueError`` below 0."""
-    from ...estimate.workers import resolve_processes
+    """The CPU threads ``--workers`` asks for (0: one per CPU core); ``ValueError`` below 0."""
+    from ...kernels.host import cpu_threads
 
     if args.workers < 0:
         raise ValueError(f"--workers must be >= 1, or 0 for one per CPU core, got {args.workers}")
-    return resolve_processes(args.workers)
+    return cpu_threads(args.workers or None)
 
 
 def options_from_args(args: argparse.Namespace) -> EstimatorOptions:
     """The :class:`EstimatorOptions` the command-line arguments ask for (``ValueError`` for bad values). A network
     (``--checkpoint``) adds its guesses, trusted or not as :func:`trusting` says."""
+    workers = getattr(args, "workers", 0)
     return EstimatorOptions(
         max_forces=args.max_forces,
         num_forces=args.num_forces,
@@ -222,6 +223,7 @@ def options_from_args(args: argparse.Namespace) -> EstimatorOptions:
         starts=EstimatorOptions.starts if args.starts is None else args.starts,
         relative=getattr(args, "relative", False),
         time_budget=time_budget(args),
+        threads=workers or None,
     )
 
 
@@ -301,8 +303,8 @@ def _run(args: argparse.Namespace) -> int:
     check_estimation_options(args)
     sensor_noise(args, rod)
     check_counts(args, rod)
-    processes = check_workers(args)
-    device = check_device(args, processes)
+    check_workers(args)
+    device = check_device(args)
     if args.starts is not None and args.starts < 0:
         raise ValueError(f"--starts must be >= 0, got {args.starts}")
     check_input(args.readings, "READINGS")
@@ -310,11 +312,7 @@ def _run(args: argparse.Namespace) -> int:
     check_output(args.out, inputs)
     network = choose_network(args.checkpoint, rod, "estimate")
     estimator = Estimator(rod, trusting(options_from_args(args), network), warm_start=network)
-    from ...estimate.workers import ParallelEstimator
-
-    solver = ParallelEstimator(estimator, processes)
-    if device.type == "cpu":
-        solver.warm()  # the workers start while the first batch is read
+    estimator.plan(device=device)  # the kernels compiled or loaded before the first reading
     settle()
     readings = reading_source(args, rod, args.readings)
     from tqdm import tqdm
@@ -328,14 +326,13 @@ def _run(args: argparse.Namespace) -> int:
             dynamic_ncols=True,
             leave=False,
         )
-        answers = _Answers(solver, writer, device, bar)
+        answers = _Answers(estimator, writer, device, bar)
         try:
             answers.run(readings, args.batch_size)
         except BrokenPipeError:  # the reader went away (| head): stop quietly
             return 141
         finally:
             bar.close()
-            solver.close()
     return 1 if writer.errors else 0
 
 
@@ -344,7 +341,6 @@ class _Answers:
     reading already read before the interrupt propagates."""
 
     def __init__(self, estimator: Any, writer: LineWriter, device: torch.device, bar: Any) -> None:
-        # estimator: the ParallelEstimator (one process: no pool)
         self.estimator, self.writer, self.device, self.bar = estimator, writer, device, bar
         self.pending: list[Reading] = []  # read, not yet answered
         self.ready: list[dict[str, Any]] = []  # the answers of pending[: len(ready)]
@@ -391,8 +387,7 @@ class _Answers:
         curvature, mask = stack_readings(good)
         start = time.perf_counter()
         try:
-            # The workers' chunks here while they start (seconds): the same answers, and no batch waits for them.
-            result = self.estimator.estimate(curvature.to(self.device), mask.to(self.device), wait_for_workers=False)
+            result = self.estimator.estimate(curvature.to(self.device), mask.to(self.device))
         except Exception as exc:  # noqa: BLE001 - one reading that breaks the solver must not stop the others
             if len(good) == 1:
                 message = str(exc)[:300]

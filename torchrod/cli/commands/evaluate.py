@@ -201,19 +201,22 @@ def evaluate_cell(
     cell_seed = seed * 1000 + 10 * k + round(100 * sigma) + (500 if near_base else 0)
     if near_base:
         edge = (rod.gratings[1] if rod.num_gratings > 1 else rod.gratings[0]) + 0.02 + rod.location_bias
-        curvature, mask, s_true, f_true = [], [], [], []
+        curvature_parts: list[torch.Tensor] = []
+        mask_parts: list[torch.Tensor] = []
+        s_parts: list[torch.Tensor] = []
+        f_parts: list[torch.Tensor] = []
         kept, draw = 0, 0
         while kept < count:
             data = generate(rod, 4 * count, sampler=sampler, sensor=sensor, seed=cell_seed + 7919 * draw)
             near = data.loads.s[:, 0] < edge
-            curvature.append(data.curvature[near])
-            mask.append(data.mask[near])
-            s_true.append(data.loads.s[near])
-            f_true.append(data.loads.f[near])
+            curvature_parts.append(data.curvature[near])
+            mask_parts.append(data.mask[near])
+            s_parts.append(data.loads.s[near])
+            f_parts.append(data.loads.f[near])
             kept += int(near.sum())
             draw += 1
-        curvature, mask = torch.cat(curvature)[:count], torch.cat(mask)[:count]
-        s_true, f_true = torch.cat(s_true)[:count], torch.cat(f_true)[:count]
+        curvature, mask = torch.cat(curvature_parts)[:count], torch.cat(mask_parts)[:count]
+        s_true, f_true = torch.cat(s_parts)[:count], torch.cat(f_parts)[:count]
     else:
         data = generate(rod, count, sampler=sampler, sensor=sensor, seed=cell_seed)
         curvature, mask, s_true, f_true = data.curvature, data.mask, data.loads.s, data.loads.f
@@ -447,7 +450,7 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     if args.recovery:
         return _recovery(rod, args.recovery, args.seed, args.json)
-    fibre = None
+    fibre: Any = None  # a Fibre (strain) or a WavelengthInput (wavelength)
     if args.input == "strain":
         from ...sensors import Fibre
 
@@ -511,7 +514,7 @@ def run(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         fibre=fibre,
     )
-    cells = [("zero", 0)] if "zero" in args.rows else []
+    cells: list[tuple[str, int | None]] = [("zero", 0)] if "zero" in args.rows else []
     if "forces" in args.rows:
         cells += [("k", k) for k in range(1, args.max_forces + 1)]
     if "near-base" in args.rows:
@@ -525,6 +528,7 @@ def run(args: argparse.Namespace) -> int:
             elif kind == "unexplainable":
                 m = misfit_cell(rod, sigma, args.count_per_cell, **common)
             else:
+                assert k is not None  # only the unexplainable row has no count
                 m = evaluate_cell(
                     rod,
                     k,

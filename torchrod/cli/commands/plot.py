@@ -37,7 +37,7 @@ import math
 import os
 import re
 import sys
-from typing import Any
+from typing import Any, cast
 
 from ...io.jsonl import as_number, check_input, check_output, get_list, read_lines, read_records
 from ...presets import load as load_rod
@@ -79,7 +79,7 @@ def parse_forces(obj: dict[str, Any]) -> list[tuple[float, float, float]]:
             rows.append(tuple(as_number(f[key], f"forces[{k}].{key}") for key in ("s", "fx", "fy")))
         except KeyError as exc:
             raise ValueError(f"forces[{k}] lacks {exc.args[0]!r}") from None
-    return rows
+    return cast("list[tuple[float, float, float]]", rows)  # three numbers per row
 
 
 def _time(obj: dict[str, Any]) -> float | None:
@@ -168,11 +168,11 @@ def run(args: argparse.Namespace) -> int:
     by_id = all(i is not None for i in ids) and len(set(map(repr, ids))) == len(ids)
     if by_id:
         table = {repr(e.id): e for e in estimates if e.ok}
-        matched = [table.get(repr(i)) for i in ids]
+        matched: list[Any] = [table.get(repr(i)) for i in ids]  # usable records (value set) or None
     else:
         ok = [e for e in estimates]
         matched = [ok[k] if k < len(ok) and ok[k].ok else None for k in range(len(readings))]
-    truth = None
+    truth: dict[str, Any] | None = None  # usable records (value set) by repr(id)
     if args.truth:
         truth = {repr(t.id): t for t in read_records(args.truth, _forces_and_time) if t.ok}
 
@@ -181,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
         chosen = [k for k, r in enumerate(readings) if r.id is not None and str(r.id) == args.ident]
         if not chosen:
             raise ValueError(f"no reading with id {args.ident!r} in {args.readings}")
-        jobs = [("reading", k) for k in chosen[:1]]
+        jobs: list[tuple[str, int | None]] = [("reading", k) for k in chosen[:1]]
     elif args.all:
         jobs = [("reading", k) for k in range(len(readings))]
     elif stream:
@@ -225,6 +225,7 @@ def run(args: argparse.Namespace) -> int:
             )
             path = target("stream.png")
         else:
+            assert k is not None  # a reading's job holds its index
             r, e = readings[k], matched[k]
             if e is None:
                 raise ValueError(f"no estimate for reading {r.id!r} (line {r.line}) in {args.estimates}")

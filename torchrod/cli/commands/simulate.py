@@ -41,7 +41,7 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Literal
 
 import torch
 
@@ -137,7 +137,7 @@ def simulate_cases(
     *,
     samples: int = 0,
     with_tip_angle: bool = False,
-    scheme: str = "exact",
+    scheme: Literal["exact", "nodes"] = "exact",
     nodes: int = 250,
     device: torch.device | str | None = None,
 ) -> list[dict[str, Any]]:

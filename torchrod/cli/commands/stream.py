@@ -52,10 +52,9 @@ Output: one JSON line per input line, in input order, each written and flushed a
 (the fields of ``torchrod estimate``; ``t`` echoed when given; ``latency_ms`` from the moment the line was read to
 its answer). Readings are solved in batches of up to ``--batch-size``: a line that finds the estimator idle is
 solved at once, and lines that arrive while a batch is solved form the next batch (``--max-latency-ms`` MS makes a
-batch wait up to MS for more lines; ``--workers N``, default 1, 0: one per CPU core, solves batches of up to N x
-``--batch-size`` over N processes in chunks of 8 or more, so that a backlog or a file uses every core, e.g. 2 on a
-2-core machine, and hands a smaller batch whole to an idle process while the next lines are read, so that a live
-source's consecutive readings are solved on different cores).
+batch wait up to MS for more lines; ``--workers N``, default 0: one per CPU core, solves each batch in one of N
+threads while the next lines are read, so that a backlog or a file uses every core and a live source's consecutive
+readings are solved on different cores).
 Each reading starts from the scan of the estimator and the warm-start network's guess (as in
 ``Estimator.from_checkpoint``, a network adds starts, never replaces the scan; ``--track`` adds the previous
 reading's solution); the number of forces is chosen among 0..``--max-forces`` (``--noise``: the sensor's sigma
@@ -68,7 +67,7 @@ short are answered with the best fit found so far and ``"status": "timeout"``. `
 network shipped for the rod's grating layout (``nitinol290``'s, as in ``torchrod estimate``), else the stream runs
 without a network (said once on stderr); ``--checkpoint none`` turns the network off. ``--out FILE`` writes the
 answers to FILE.
-``--device cuda`` estimates on a GPU (one process; the same answers, far more slowly than the CPU at present).
+``--device cuda`` estimates on a GPU (the same kernels compiled by numba-cuda; needs ``torchrod[cuda]``).
 
 Every non-blank input line gets exactly one output line (a CSV header excepted). A line that cannot be used (bad
 JSON or CSV, a wrong number of gratings, NaN, a value out of bounds, all gratings missing) gives
@@ -103,13 +102,13 @@ import json
 import os
 import sys
 import time
-from typing import Any
+from types import GeneratorType
+from typing import Any, cast
 
 from ...errors import ReadingError
 from ...estimate.estimator import Estimator, EstimatorOptions
-from ...estimate.lm import LMPolicy
 from ...estimate.noise import NoiseLearning
-from ...estimate.workers import ParallelEstimator
+from ...estimate.options import LMPolicy
 from ...io.jsonl import (
     LineWriter,
     check_input,
@@ -216,7 +215,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=LMPolicy.iterations,
         metavar="STEPS",
-        help="most Levenberg-Marquardt steps per fit before L-BFGS takes over (default %(default)s)",
+        help="most Levenberg-Marquardt steps per fit while the search compares counts (default %(default)s)",
     )
     add_device_option(parser)
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
@@ -251,12 +250,13 @@ def load_truth(path: str) -> dict[str, list[tuple[float, float, float]]]:
             where = f"forces[{k}]"
             check_keys(force, ("s", "fx", "fy"), where=where)
             out.append(tuple(get_number(force, key, where) for key in ("s", "fx", "fy")))
-        return out
+        return cast("list[tuple[float, float, float]]", out)  # three numbers per force
 
     truth = {}
     for record in parse_records(read_lines(path), parse):
         if not record.ok:
             raise ValueError(f"--truth {path}: {record.error}")
+        assert record.value is not None  # a usable line's value: parse() returns a list
         truth[_key(record.id)] = record.value
     return truth
 
@@ -271,8 +271,8 @@ def _run(args: argparse.Namespace) -> int:
     check_estimation_options(args)
     sensor_noise(args, rod)
     check_counts(args, rod)
-    processes = check_workers(args)
-    device = check_device(args, processes)
+    workers = check_workers(args)
+    device = check_device(args)
     if args.topic is not None and args.input == "-":
         raise ValueError("--topic reads a ROS bag: give its path with --input")
     if args.topic is not None and args.protocol != "lines":
@@ -299,41 +299,37 @@ def _run(args: argparse.Namespace) -> int:
     if args.iterations < 0:
         raise ValueError(f"--iterations must be >= 0, got {args.iterations}")
     # As Estimator.from_checkpoint: a trusted network's guesses start the fits alone, a weak one's are beside.
-    options = EstimatorOptions(
+    estimator_options = EstimatorOptions(
         max_forces=args.max_forces,
         noise=args.noise,
         lm=LMPolicy(iterations=args.iterations),
         relative=args.relative,
         time_budget=time_budget(args),
     )
-    estimator = Estimator(rod, trusting(options, network), warm_start=network)
+    estimator = Estimator(rod, trusting(estimator_options, network), warm_start=network)
     options = StreamOptions(
         batch_size=args.batch_size,
         max_latency=args.max_latency_ms / 1e3,
         learn_noise=None if args.per_reading_noise else NoiseLearning(),
         track=args.track,
         device=device,
+        workers=workers,
     )
-    # The workers start now, beside this process's warm-up (before the first reading: per-rod caches and first-call
-    # costs would otherwise land on its latency), not once the stream begins: they are ready that much sooner.
-    solver = ParallelEstimator(estimator, processes)
-    solver.warm()
-    with solver:
-        warm_up(estimator, device)
-        settle()
-        if args.topic is not None:
-            source = read_stream(args.input, rod, topic=args.topic)
-        else:
-            source = reading_source(args, rod, args.input)
-        with open_output(args.out, inputs) as out:
-            bag = _open_bag(args.output_bag, args.max_forces)
-            status = 2
-            try:
-                status = _answer(args, solver, options, source, LineWriter(out), truth, bag)
-            finally:
-                if bag is not None:
-                    status = _close_bag(bag, status)
-            return status
+    warm_up(estimator, device)  # the kernels and first-call costs before the first reading, not on its latency
+    settle()
+    if args.topic is not None:
+        source = read_stream(args.input, rod, topic=args.topic)
+    else:
+        source = reading_source(args, rod, args.input)
+    with open_output(args.out, inputs) as out:
+        bag = _open_bag(args.output_bag, args.max_forces)
+        status = 2
+        try:
+            status = _answer(args, estimator, options, source, LineWriter(out), truth, bag)
+        finally:
+            if bag is not None:
+                status = _close_bag(bag, status)
+        return status
 
 
 def _inputs(args: argparse.Namespace) -> dict[str, str | None]:
@@ -401,7 +397,7 @@ def _answer(
             known = truth.get(_key(result.id)) if truth is not None and result.ok else None
             stats.add(result, known)
 
-    results = stream(estimator, source, options)
+    results = cast("GeneratorType[StreamResult, None, None]", stream(estimator, source, options))  # a generator
     interrupted: KeyboardInterrupt | None = None
     current: StreamResult | None = None
     written = writer.lines

@@ -1,0 +1,483 @@
+"""The kernels' pieces, each held to an independent reference: the torch simulator and its autograd gradients,
+finite differences, NumPy's linear algebra, SciPy's quantiles and hand-made losses. They run as Python (the same
+source the compiled targets run), one reading at a time through :meth:`torchrod.Estimator.kit`."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from scipy import stats
+
+import torchrod as tr
+from torchrod.estimate.estimator import Estimator, EstimatorOptions
+from torchrod.kernels import counts, covariance, linalg, march, precurved, search
+from torchrod.kernels.fit import evaluate
+from torchrod.kernels.host import chi2_quantile, f_quantile
+from torchrod.kernels.views import march_of, model_of, rows_of
+
+F64 = torch.float64
+ROD = tr.presets.nitinol290()
+
+
+def _kit(rod=ROD, noise=0.1, **options):
+    est = Estimator(rod, EstimatorOptions(noise=noise, **options))
+    return est.kit(torch.zeros(rod.num_gratings, 2, dtype=F64))
+
+
+def _forces(*triples):
+    s = np.array([[t[0] for t in triples]])
+    f = np.array([[[t[1], t[2]] for t in triples]])
+    return s, f
+
+
+def _simulate(rod, s, f, at=None):
+    loads = tr.PointForces(torch.tensor(s, dtype=F64), torch.tensor(f, dtype=F64))
+    if at is None:
+        return tr.grating_curvature(rod, loads)[0].numpy()
+    return tr.simulate(rod, loads, at=torch.tensor(at, dtype=F64)).curvature[0].numpy()
+
+
+# ------------------------------------------------------------------------------------------------ straight marches
+def test_the_fitting_model_is_the_simulator_to_its_accuracy_and_its_jacobian_the_autograd_gradient():
+    k = _kit()
+    q = model_of(k).query
+    s, f = _forces((0.12, -0.9, 1.1), (0.25, 0.6, -0.4))
+    assert march.march_fit(k, q, 14, s[0], f[0], 2, 6, False)
+    curv, jac = march_of(k).curv[:14].copy(), march_of(k).jac[:14, :, :6].copy()
+    ref = _simulate(ROD, s, f)
+    assert np.abs(curv - ref).max() < 2e-3 * np.abs(ref).max()  # the fitting model's accuracy (RKN4, 0.3 rad)
+    # the Jacobian against the simulator's autograd gradient (an independent code, the exact model)
+    st = torch.tensor(s, dtype=F64, requires_grad=True)
+    ft = torch.tensor(f, dtype=F64, requires_grad=True)
+    u = tr.grating_curvature(ROD, tr.PointForces(st, ft))[0]
+    for g in range(14):
+        for c in range(2):
+            gs, gf = torch.autograd.grad(u[g, c], (st, ft), retain_graph=True)
+            want = np.stack([gs[0].numpy(), gf[0, :, 0].numpy(), gf[0, :, 1].numpy()], 1).reshape(-1)
+            assert np.allclose(jac[g, c], want, rtol=2e-3, atol=2e-3 * np.abs(want).max() + 1e-9), (g, c)
+
+
+def test_the_fitting_models_force_columns_are_its_own_finite_differences():
+    """The force columns are the tangent of the discrete scheme: they match central differences of the march itself
+    to the differences' own error; the location columns are the continuous derivative (to the scheme's order)."""
+    k = _kit()
+    q = model_of(k).query
+    s, f = _forces((0.14, 0.7, -0.5), (0.26, -0.3, 0.8))
+    march.march_fit(k, q, 14, s[0], f[0], 2, 6, False)
+    jac = march_of(k).jac[:14, :, :6].copy()
+    eps = 1e-6
+    for j in range(2):
+        for c in range(2):
+            fp, fm = f.copy(), f.copy()
+            fp[0, j, c] += eps
+            fm[0, j, c] -= eps
+            march.march_fit(k, q, 14, s[0], fp[0], 2, 0, False)
+            up = march_of(k).curv[:14].copy()
+            march.march_fit(k, q, 14, s[0], fm[0], 2, 0, False)
+            um = march_of(k).curv[:14].copy()
+            fd = (up - um) / (2 * eps)
+            assert np.allclose(jac[:, :, 3 * j + 1 + c], fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
+        sp, sm = s.copy(), s.copy()
+        sp[0, j] += 1e-5
+        sm[0, j] -= 1e-5
+        march.march_fit(k, q, 14, sp[0], f[0], 2, 0, False)
+        up = march_of(k).curv[:14].copy()
+        march.march_fit(k, q, 14, sm[0], f[0], 2, 0, False)
+        um = march_of(k).curv[:14].copy()
+        fd = (up - um) / 2e-5
+        assert np.allclose(jac[:, :, 3 * j], fd, rtol=1e-3, atol=1e-3 * np.abs(fd).max())
+
+
+def test_the_exact_model_is_the_simulator():
+    k = _kit()
+    q = model_of(k).query
+    for triples in (((0.2, 0.5, 0.5),), ((0.05, 1.5, -0.3), (0.13, -0.8, 0.9), (0.29, 0.4, 0.4))):
+        s, f = _forces(*triples)
+        assert march.march_exact(k, q, 14, s[0], f[0], len(triples))
+        ref = _simulate(ROD, s, f)
+        assert np.abs(march_of(k).curv[:14] - ref).max() <= 1e-10 * np.abs(ref).max()
+
+
+def test_a_grating_at_a_force_sees_it_move_from_the_distal_side():
+    """At a tie the force comes first: the grating at the force's location reads the state after the jump, so its
+    location derivative is the slope jump i (f_x + i f_y) / EI (the distal one-sided derivative)."""
+    k = _kit()
+    q = model_of(k).query
+    s, f = _forces((q[6], 0.4, -0.7))
+    march.march_fit(k, q, 14, s[0], f[0], 1, 3, False)
+    jac = march_of(k).jac
+    ei = ROD.bending_stiffness
+    assert math.isclose(jac[6, 0, 0], 0.7 / ei, rel_tol=1e-12)  # Re(i (f_x + i f_y)) / EI = -f_y / EI
+    assert math.isclose(jac[6, 1, 0], 0.4 / ei, rel_tol=1e-12)
+    assert np.all(march_of(k).curv[7:14] == 0.0)  # distal to the force: no load, no steps
+
+
+def test_the_propagator_gives_the_response_to_a_force_added_anywhere():
+    """Phi(p) Phi(c)^-1 applied to the slope jump of a unit force at c is the linear response of grating p: the
+    finite difference of the march with a small force added at c."""
+    k = _kit()
+    q = model_of(k).query
+    s, f = _forces((0.22, 0.8, 0.3))
+    c = 0.173
+    at = np.concatenate([q, [c]])
+    march.march_fit(k, at, 15, s[0], f[0], 1, 0, True)
+    phi = march_of(k).phi[:15, :4, :4].copy()
+    inv = 1.0 / ROD.bending_stiffness
+    for comp, jump in ((0, np.array([0.0, 0.0, 0.0, inv])), (1, np.array([0.0, 0.0, -inv, 0.0]))):
+        resp = phi[:14, :2] @ np.linalg.solve(phi[14], jump)  # (14, 2)
+        resp[q > c] = 0.0  # a force bends only the gratings proximal to it
+        eps = 1e-5  # (the base with a zero force at c: the same events, so the same discrete scheme)
+        s2, f2 = _forces((0.22, 0.8, 0.3), (c, eps if comp == 0 else 0.0, eps if comp == 1 else 0.0))
+        march.march_fit(k, q, 14, s2[0], f2[0], 2, 0, False)
+        up = march_of(k).curv[:14].copy()
+        s0, f0 = _forces((0.22, 0.8, 0.3), (c, 0.0, 0.0))
+        march.march_fit(k, q, 14, s0[0], f0[0], 2, 0, False)
+        fd = (up - march_of(k).curv[:14]) / eps
+        assert np.allclose(resp, fd, rtol=1e-4, atol=1e-4 * np.abs(fd).max())
+
+
+def test_the_schedule_orders_ties_and_counts_steps_by_its_rules():
+    q = np.array([0.05, 0.15, 0.25])
+    s = np.array([0.15, 0.2])
+    f = np.array([[0.5, 0.0], [0.0, -0.4]])
+    ei, L = 7.4e-3, 0.29
+    jump = np.array([complex(-f[j, 1] / ei, f[j, 0] / ei) for j in range(2)])
+    mag = np.abs(jump)
+    order, seg, steps = np.empty(5, np.int64), np.empty(5), np.empty(5, np.int64)
+    march.schedule(q, 3, s, jump, mag, 2, L, 0.3, 64, True, order, seg, steps)
+    assert order.tolist() == [4, 1, 0, 3, 2]  # tip to base; the force at 0.15 before the grating there
+    assert np.allclose(seg, [0.04, 0.05, 0.05, 0.0, 0.1])
+    assert steps[0] == 0  # the grating at 0.25, distal to every force: the state is zero there
+    # the rigorous rule at the grating at 0.05: |m| <= sum |f| / EI, |U| <= min(sum |f| lever / EI, sqrt(2 M))
+    M = mag.sum()
+    u = min(mag[0] * 0.10 + mag[1] * 0.15, math.sqrt(2 * M))
+    assert steps[4] == math.ceil(max(u, math.sqrt(M)) * 0.1 / 0.3)
+    # the estimator's rule sums the jumps as vectors: never more steps than the rigorous rule
+    est = np.empty(5, np.int64)
+    march.schedule(q, 3, s, jump, mag, 2, L, 0.3, 64, False, order, seg, est)
+    assert np.all(est <= steps)
+    march.schedule(q, 3, s, jump, mag, 2, L, 1e-9, 7, True, order, seg, steps)
+    assert steps.max() == 7  # capped
+
+
+# ------------------------------------------------------------------------------------------------ precurved
+def test_the_precurved_march_is_the_simulator_and_its_jacobian_the_autograd_gradient():
+    rod = tr.presets.load("ctr250")
+    k = _kit(rod)
+    q = model_of(k).query
+    G = rod.num_gratings
+    s, f = _forces((0.195, 0.3, -0.4), (0.24, -0.2, 0.5))  # (not at a grating: autograd takes a side there)
+    assert precurved.march_precurved(k, q, G, s[0], f[0], 2, 6, False, precurved.EXACT_MAX_STEP)
+    curv, jac = march_of(k).curv[:G].copy(), march_of(k).jac[:G, :, :6].copy()
+    st = torch.tensor(s, dtype=F64, requires_grad=True)
+    ft = torch.tensor(f, dtype=F64, requires_grad=True)
+    u = tr.grating_curvature(rod, tr.PointForces(st, ft))[0]
+    assert np.abs(curv - u.detach().numpy()).max() < 1e-7 * np.abs(u.detach().numpy()).max()
+    for g in range(G):
+        for c in range(2):
+            gs, gf = torch.autograd.grad(u[g, c], (st, ft), retain_graph=True)
+            want = np.stack([gs[0].numpy(), gf[0, :, 0].numpy(), gf[0, :, 1].numpy()], 1).reshape(-1)
+            assert np.allclose(jac[g, c], want, rtol=1e-5, atol=1e-6 * np.abs(want).max() + 1e-9), (g, c)
+
+
+def test_the_precurved_propagator_gives_the_response_to_a_force_added_anywhere():
+    rod = tr.presets.load("ctr250")
+    k = _kit(rod)
+    q = model_of(k).query
+    G = rod.num_gratings
+    s, f = _forces((0.2, 0.3, 0.1))
+    c = 0.137
+    at = np.concatenate([q, [c]])
+    precurved.march_precurved(k, at, G + 1, s[0], f[0], 1, 0, True, precurved.FIT_MAX_STEP)
+    phi = march_of(k).phi[: G + 1].copy()
+    for comp in (0, 1):
+        unit = np.zeros(6)
+        unit[comp] = 1.0  # the internal force n jumps by the unit force
+        resp = phi[:G, :2] @ np.linalg.solve(phi[G, 2:8], unit)
+        resp[q > c] = 0.0
+        eps = 1e-5
+        s2, f2 = _forces((0.2, 0.3, 0.1), (c, eps if comp == 0 else 0.0, eps if comp == 1 else 0.0))
+        precurved.march_precurved(k, q, G, s2[0], f2[0], 2, 0, False, precurved.FIT_MAX_STEP)
+        up = march_of(k).curv[:G].copy()
+        s0, f0 = _forces((0.2, 0.3, 0.1), (c, 0.0, 0.0))
+        precurved.march_precurved(k, q, G, s0[0], f0[0], 2, 0, False, precurved.FIT_MAX_STEP)
+        fd = (up - march_of(k).curv[:G]) / eps
+        assert np.allclose(resp, fd, rtol=1e-4, atol=1e-4 * np.abs(fd).max())
+
+
+# ------------------------------------------------------------------------------------------------ linear algebra
+def test_small_solves_are_numpys_and_fail_as_data():
+    rng = np.random.default_rng(0)
+    for P in (1, 3, 6, 9):
+        A = rng.normal(size=(P + 4, P))
+        M = A.T @ A + 1e-3 * np.eye(P)
+        b = rng.normal(size=P)
+        x, L = np.empty(P), np.empty((P, P))
+        assert linalg.spd_solve(M, b, x, P, L)
+        assert np.allclose(x, np.linalg.solve(M, b), rtol=1e-10)
+        G = rng.normal(size=(P, P))
+        LU, piv, y = np.empty((P, P)), np.empty(P, np.int64), np.empty(P)
+        assert linalg.lu_factor(G, LU, piv, P) and linalg.lu_apply(LU, piv, b, y, P)
+        assert np.allclose(y, np.linalg.solve(G, b), rtol=1e-9)
+    x, L = np.ones(2), np.empty((2, 2))
+    assert not linalg.spd_solve(np.array([[1.0, 2.0], [2.0, 1.0]]), np.ones(2), x, 2, L)  # not positive definite
+    assert np.all(x == 0.0)
+    assert not linalg.spd_solve(np.array([[math.nan, 0.0], [0.0, 1.0]]), np.ones(2), x, 2, L)
+    assert not linalg.lu_factor(np.zeros((2, 2)), np.empty((2, 2)), np.empty(2, np.int64), 2)  # singular
+
+
+def test_the_eigenvalues_are_numpys():
+    rng = np.random.default_rng(1)
+    for P in (1, 2, 5, 9):
+        A = rng.normal(size=(P, P))
+        A = A + A.T
+        w, V, a = np.empty(P), np.empty((P, P)), np.empty((P, P))
+        assert linalg.symmetric_eigen(A, w, V, a, P)
+        assert np.allclose(w, np.linalg.eigvalsh(A), rtol=1e-12, atol=1e-12 * np.abs(w).max())
+        assert np.allclose(A @ V, V * w, atol=1e-11 * np.abs(w).max())
+        assert np.allclose(V.T @ V, np.eye(P), atol=1e-12)
+    A = np.diag([1e-20, 1.0, 1e20])  # far apart scales: each eigenvalue to its own relative accuracy
+    w, V, a = np.empty(3), np.empty((3, 3)), np.empty((3, 3))
+    assert linalg.symmetric_eigen(A, w, V, a, 3) and np.allclose(w, [1e-20, 1.0, 1e20], rtol=1e-14)
+    assert not linalg.symmetric_eigen(np.full((2, 2), math.inf), w, V, a, 2)
+    assert np.isnan(w[:2]).all()
+
+
+def test_the_covariance_of_a_linear_model_is_its_inverse_normal_matrix():
+    k = _kit()
+    rng = np.random.default_rng(3)
+    J = rng.normal(size=(28, 6))
+    cov = np.empty((6, 6))
+    cond = covariance.covariance(k, J, 6, np.ones(6, bool), 0.5, cov)
+    assert np.allclose(cov, 0.25 * np.linalg.inv(J.T @ J), rtol=1e-10)
+    d = 1 / np.sqrt(np.diag(J.T @ J))
+    w = np.linalg.eigvalsh(J.T @ J * np.outer(d, d))
+    assert math.isclose(cond, w[-1] / w[0], rel_tol=1e-10)
+    active = np.array([True, True, True, False, False, False])
+    covariance.covariance(k, J, 6, active, 1.0, cov)
+    assert np.allclose(cov[:3, :3], np.linalg.inv(J[:, :3].T @ J[:, :3]), rtol=1e-10)
+    assert np.isnan(cov[3:]).all() and np.isnan(cov[:, 3:]).all()
+    J[4, 2] = math.nan  # a diverged fit: NaN and an infinite condition number, not an exception
+    assert covariance.covariance(k, J, 6, np.ones(6, bool), 1.0, cov) == math.inf
+    assert np.isnan(cov).all()
+
+
+# ------------------------------------------------------------------------------------------------ count tests
+def test_the_tables_are_scipys_quantiles():
+    for p, d in ((0.95, 3), (0.999, 25), (0.5, 1)):
+        assert math.isclose(chi2_quantile(p, d), stats.chi2.ppf(p, d), rel_tol=1e-12)
+        assert math.isclose(f_quantile(p, d, 20), stats.f.ppf(p, d, 20), rel_tol=1e-12)
+    assert chi2_quantile(0.9, 0) == math.inf
+
+
+def _counts_kit(n: int, noise: float | None, **options):
+    k = _kit(noise=noise, noise_floor=0.0, **options)
+    k.info[0].residuals = n
+    k.info[0].known = noise is not None
+    k.info[0].noise2 = 0.0 if noise is None else noise * noise
+    return k
+
+
+def test_the_count_rules_on_given_losses():
+    sigma = 0.1
+    c1 = chi2_quantile(1.0 - 0.05 / 14, 3) * sigma**2  # the largest loss drop one more force may make by noise
+    base, big = 0.25, 50.0  # about sigma^2 (28 - 3); no force
+    rows = [
+        ([big, base, base - 0.5 * c1, base - 0.6 * c1], 1, 1),  # a second force explains noise only
+        ([big, base + 2 * c1, base, base - 0.1 * c1], 2, 1),  # the second force is needed
+        ([big, 50.0, 49.0, base], 3, 3),  # two forces do not help but three do: 3, not 1
+        ([0.28, 0.27, 0.26, 0.25], 0, 0),  # pure noise: no force helps
+        ([big, base, math.nan, math.nan], 1, 1),  # only counts 0 and 1 fitted
+    ]
+    k = _counts_kit(28, sigma)
+    t = _counts_kit(28, sigma, selection="threshold", threshold=1.0)
+    u = _counts_kit(28, None)
+    for losses, want, paper in rows:
+        chosen, used = counts.select_count(k, np.array(losses + [math.nan]), 4)
+        assert (chosen, used) == (want, sigma)
+        assert counts.select_count(t, np.array(losses + [math.nan]), 4)[0] == paper  # the first below the threshold
+        if not math.isnan(losses[3]):  # sigma from the largest fit: the F test decides alike here
+            chosen, used = counts.select_count(u, np.array(losses + [math.nan]), 4)
+            assert chosen == want
+            assert math.isclose(used, math.sqrt(losses[3] / 19), rel_tol=1e-12)
+
+
+def test_with_no_count_accepted_the_fewest_forces_no_larger_count_improves_on_win():
+    sigma = 0.1
+    c1 = chi2_quantile(1.0 - 0.05 / 14, 3) * sigma**2
+    k = _counts_kit(28, sigma)
+    assert counts.select_count(k, np.array([50.0, 30.0, 20.0, 20.0 - 0.5 * c1, math.nan]), 4)[0] == 2
+    assert counts.select_count(k, np.array([50.0, 30.0, 20.0, 10.0, math.nan]), 4)[0] == 3
+    for noise in (sigma, None):  # two residuals: one force fits exactly and no count has a degree of freedom
+        k = _counts_kit(2, noise)
+        k.opt.floor2 = 1e-6
+        assert counts.select_count(k, np.array([5.0, 1e-12, 1e-13, 1e-14, math.nan]), 4)[0] == 1
+
+
+def test_a_count_is_chosen_just_below_its_ceiling_and_not_just_above():
+    rng = np.random.default_rng(7)
+    checked = 0
+    for noise in (0.1, None):
+        for _ in range(40):
+            n, top = int(rng.choice([12, 28])), int(rng.choice([2, 3]))
+            k = _counts_kit(n, noise)
+            k.opt.floor2 = 1e-6
+            if noise is not None:
+                k.info[0].noise2 = noise * noise + 1e-6
+            losses = np.full(5, math.nan)
+            losses[: top + 1] = rng.uniform(0.0, 3.0, top + 1)
+            losses[top] = rng.uniform(0.0, 0.01 * (n - 3 * top))
+            for h in range(top):
+                trial = losses.copy()
+                trial[:h] = 1e6  # beyond every misfit and drop limit: never accepted
+                c = counts.ceiling(k, trial, 4, h)
+                if c <= 1e-6:
+                    continue
+                for delta, chosen in ((-1e-9, True), (1e-9, False)):
+                    trial[h] = c + delta
+                    assert (counts.select_count(k, trial, 4)[0] == h) == chosen, (noise, n, trial.tolist(), h, c)
+                checked += 1
+    assert checked > 100
+
+
+def test_a_count_is_settled_only_when_one_more_force_cannot_change_it():
+    sigma = 0.1
+    drop = chi2_quantile(1.0 - 0.05 / 14, 3) * sigma**2
+    k = _counts_kit(28, sigma)
+    for losses, gain, want in (([50.0, 0.25], 0.1 * drop, True), ([50.0, 0.25], 0.9 * drop, False),
+                               ([50.0, 30.0], 29.0, False)):  # fmt: skip
+        scratch = np.array(losses + [math.nan])
+        assert counts.settled(k, scratch, 2, gain) == want
+        assert math.isnan(scratch[2])  # its scratch slot given back
+    assert not counts.settled(_counts_kit(28, None), np.array([50.0, 0.25, math.nan]), 2, 0.0)
+
+
+def test_the_misfit_test_is_the_chi_square_p_value_below_its_level():
+    k = _counts_kit(28, 0.1)
+    q = stats.chi2.ppf(1 - 1e-3, 28 - 3)
+    assert not counts.unexplained(k, 1, 0.01 * q * 0.999)
+    assert counts.unexplained(k, 1, 0.01 * q * 1.001)
+    assert counts.unexplained(k, 1, math.inf) and counts.unexplained(k, 1, math.nan)
+    assert not counts.unexplained(k, 10, 1e9)  # no degree of freedom left: nothing to test
+
+
+# ------------------------------------------------------------------------------------------------ fits
+def test_one_force_has_one_minimum_per_interval():
+    """What the search's one-force shortcut rests on: within one interval the loss of one force has one local
+    minimum, so every fit that ends converged in an interval ends at the same loss. Checked where it is least
+    obvious: one-force fits of noisy two-force readings (misfits), from five starts in every interval (three
+    locations, two of them also with the force reversed)."""
+    from torchrod.kernels.fit import start
+
+    gen = torch.Generator().manual_seed(11)
+    est = Estimator(ROD, EstimatorOptions(noise=0.1))
+    compared = converged = total = 0
+    for _ in range(6):
+        s = np.sort(0.05 + 0.24 * torch.rand(1, 2, dtype=F64, generator=gen).numpy(), 1)
+        f = 0.8 * torch.randn(1, 2, 2, dtype=F64, generator=gen).numpy()
+        u = _simulate(ROD, s, f) + 0.1 * torch.randn(14, 2, dtype=F64, generator=gen).numpy()
+        k = est.kit(torch.tensor(u))
+        rows = rows_of(k)
+        q = model_of(k).query
+        ends: dict[int, list[float]] = {}
+        for j in range(13):
+            for frac, sign in ((0.15, 1.0), (0.15, -1.0), (0.5, 1.0), (0.85, 1.0), (0.85, -1.0)):
+                i = 5
+                loc = q[j] + frac * (q[j + 1] - q[j])
+                search.load_row(k, i, 1, np.array([loc]), sign * np.array([[0.4, -0.3]]), np.array([j]))
+                start(k, i, 30)
+                search.solve_rows(k, np.array([i]), 1, 30, search.STOP_NONE, 0.0, False)
+                total += 1
+                if rows.converged[i]:
+                    converged += 1
+                    ends.setdefault(int(rows.interval[i, 0]), []).append(float(rows.loss[i]))
+        for found in ends.values():
+            if len(found) > 1:
+                compared += 1
+                assert max(found) - min(found) <= 10.0 * 1e-3 * 0.1**2, found
+    assert converged > 0.8 * total and compared >= 6
+
+
+def test_the_residual_is_the_reading_less_the_model_at_present_gratings_only():
+    s, f = _forces((0.2, 0.5, 0.2))
+    u = _simulate(ROD, s, f)
+    mask = torch.ones(14, dtype=torch.bool)
+    mask[4] = False
+    est = Estimator(ROD, EstimatorOptions(noise=0.1))
+    k = est.kit(torch.tensor(u) + 0.5, mask)
+    r, J = np.empty(28), np.empty((28, 3))
+    loss = evaluate(k, s[0], f[0], 1, True, True, r, J)
+    assert np.all(r[8:10] == 0.0)  # the missing grating
+    want = -0.5 * np.ones(28)
+    want[8:10] = 0.0
+    assert np.allclose(r, want, atol=1e-8)
+    assert math.isclose(loss, 0.25 * 26, rel_tol=1e-6)
+
+
+def _fit(k, i, h, s, f, limit=30):
+    """Row i fitted from (s, f) of h forces in their intervals, then finished on the exact model."""
+    from torchrod.kernels.fit import finish, start
+    from torchrod.kernels.scan import interval_of
+
+    rows = rows_of(k)
+    rows.count[i] = h
+    for j in range(h):
+        interval_of(k, s[j], rows.interval[i], rows.s[i], j)
+        rows.f[i, j] = f[j]
+        rows.held[i, j] = False
+    start(k, i, limit)
+    search.solve_rows(k, np.array([i]), 1, limit, search.STOP_NONE, 0.0, False)
+    finish(k, i, 3)
+    return rows
+
+
+def test_the_fits_cross_gratings_to_the_optimum():
+    """From starts two intervals off, the crossings carry each force across the gratings to the truth, and the
+    exact-model finish lands on it to 1e-9."""
+    s, f = _forces((0.123, 0.8, -0.3), (0.217, -0.5, 0.9))
+    k = Estimator(ROD, EstimatorOptions()).kit(torch.tensor(_simulate(ROD, s, f)))  # noise unknown: the floor
+    rows = _fit(k, 5, 2, [0.085, 0.255], np.array([[0.2, 0.1], [0.1, 0.3]]))
+    assert rows.converged[5]
+    assert np.allclose(rows.s[5, :2], s[0], atol=1e-9) and np.allclose(rows.f[5, :2], f[0], atol=1e-8)
+    assert rows.interval[5, :2].tolist() == [5, 10]
+
+
+def test_a_kink_minimum_holds_the_force_on_the_grating():
+    """A clean reading of a force exactly on a grating: the optimum is on the loss's kink, where no gradient
+    vanishes; the fit converges onto it and is known to sit there."""
+    q = ROD.gratings[8]
+    s, f = _forces((q, 0.4, -0.6))
+    k = Estimator(ROD, EstimatorOptions(noise=0.1)).kit(torch.tensor(_simulate(ROD, s, f)))
+    rows = _fit(k, 5, 1, [q + 0.006], np.array([[0.3, -0.5]]))
+    assert rows.converged[5] and abs(rows.s[5, 0] - q) < 1e-6
+    assert covariance.near_kink(k, rows.s[5], 1)
+
+
+def test_the_scan_finds_where_a_force_is_missing():
+    """From the right one-force fit of a two-force reading, the scan's best interval for the second force is the
+    true one, and its promised gain is most of the one-force fit's loss."""
+    from torchrod.kernels.scan import scan_model, scan_starts
+
+    s, f = _forces((0.115, 0.6, 0.0), (0.237, 0.0, 0.7))
+    k = Estimator(ROD, EstimatorOptions(noise=0.1)).kit(torch.tensor(_simulate(ROD, s, f)))
+    rows = _fit(k, 1, 1, [0.2], np.array([[0.3, 0.3]]))
+    base = scan_model(k, rows.s[1], rows.f[1], rows.interval[1], 1, 1)
+    out_s, out_f, out_i, pred = np.empty((3, 3)), np.empty((3, 3, 2)), np.empty((3, 3), np.int64), np.empty(3)
+    gain = scan_starts(k, rows.s[1], rows.f[1], 1, base, 3, 10.0, out_s, out_f, out_i, pred, 0, 1)
+    assert 0.23 <= out_s[0, 1] <= 0.25 or 0.11 <= out_s[0, 1] <= 0.13
+    assert gain > 0.5 * rows.loss[1]
+    assert pred[0] <= pred[1] <= pred[2]  # the starts by the loss their models promise
+
+
+def test_a_reading_that_overflows_is_data_not_an_exception():
+    """A reading holding 1e300: the residuals overflow; the fit reports a non-finite loss, stops, and raises
+    nothing."""
+    from torchrod.kernels.host import kit
+
+    plan = Estimator(ROD, EstimatorOptions(noise=0.1, target="python")).plan()
+    k = kit(plan.setup, plan.sizes, np.full(28, 1e300), np.ones(28), 0.01)  # (the estimator's input check refuses it)
+    with np.errstate(all="ignore"):
+        rows = _fit(k, 5, 1, [0.2], np.array([[0.3, 0.3]]))
+    assert not rows.converged[5] and not math.isfinite(rows.loss[5])
