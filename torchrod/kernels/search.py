@@ -17,8 +17,9 @@ counts that could still be accepted, the count below a chosen fit the data canno
 a chosen fit that misfits. Their further starts are the scan's other intervals (:func:`explore`: each start takes
 a few steps and goes on only while it promises to beat the fit; a start that reaches the fit's own intervals
 stops there), then the exchange (:func:`exchange`): each force in turn removed and re-placed by the scan among all
-intervals. The chosen fit, where its step budget left it open, takes more steps from where it stands
-(:func:`refine`).
+intervals. A chosen fit holding a force that is zero within its uncertainty starts the count below without that
+force (:func:`drop_negligible`). The chosen fit, where its step budget left it open, takes more steps from where it
+stands (:func:`refine`).
 
 The count is chosen (:mod:`.counts`), its uncertainty judged (:mod:`.covariance`), and the forces reported by
 location with the rod's location bias. The caller's stop flag (a deadline) or an evaluation budget cut the search
@@ -423,6 +424,52 @@ def refine(k, h):
     copy_row(k, i, h)
 
 
+NEGLIGIBLE = 9.21
+"""A force whose (f_x, f_y) lies within this squared distance of zero, in its own standard deviations, is not told
+apart from no force (the Wald test of f = 0 at 1 %: the chi-square law of 2 degrees of freedom)."""
+
+
+def drop_negligible(k):
+    """Where the chosen fit of h >= 2 forces holds a force that is zero within its uncertainty, the fit without it
+    starts the count below, and the count is chosen again. Such a force stands in for nothing: it appears where the
+    search of h - 1 forces ended in a wrong minimum (large bends make the loss far from the small-deflection lever
+    the scan assumes), and without it the fit of h forces is the better fit of h - 1. Repeated while the count
+    falls."""
+    rows = rows_of(k)
+    sw = search_of(k)
+    H = k.opt.max_forces
+    if k.opt.fixed >= 0:
+        return
+    for _ in range(H):
+        chosen = choose(k)
+        if chosen < 2 or not sw.fitted[chosen] or not sw.fitted[chosen - 1]:
+            return
+        if late(k):
+            k.info[0].cut = True
+            return
+        doubtful(k, chosen)
+        drop = -1
+        for j in range(chosen):
+            zx = rows.f[chosen, j, 0] / sw.std[j, 1]
+            zy = rows.f[chosen, j, 1] / sw.std[j, 2]
+            if drop < 0 and not (zx * zx + zy * zy > NEGLIGIBLE):  # (NaN: undetermined, so negligible too)
+                drop = j
+        if drop < 0:
+            return
+        b = 0
+        for j in range(chosen):
+            if j != drop:
+                sw.bs[b] = rows.s[chosen, j]
+                sw.bf[b, 0] = rows.f[chosen, j, 0]
+                sw.bf[b, 1] = rows.f[chosen, j, 1]
+                sw.bint[b] = rows.interval[chosen, j]
+                b += 1
+        load_row(k, H + 1, chosen - 1, sw.bs, sw.bf, sw.bint)
+        try_starts(k, chosen - 1, 1)
+        if choose(k) >= chosen:
+            return
+
+
 # ------------------------------------------------------------------------------------------------ counts
 def choose(k):
     """The count chosen from the best loss of each count so far."""
@@ -570,6 +617,7 @@ def search_further(k):
             try_starts(k, h, opt.starts - 1)
         if wide and h >= 2 and suspicious(k, h, loss_limit, kink_limit):
             exchange(k, h, loss_limit, kink_limit)
+    drop_negligible(k)
     chosen = choose(k)
     if chosen >= 1 and sw.fitted[chosen]:
         if late(k):
