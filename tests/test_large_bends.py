@@ -46,11 +46,11 @@ def test_clean_large_bends_are_one_force_with_no_phantom():
     the search of one force ended in a wrong minimum, far from the small-deflection lever its scan assumes, and
     two forces fitted. A force that is zero within its uncertainty now starts the count below without it."""
     cases = _cases(12, seed=3)
-    readings, turning = zip(*(_reading(c) for c in cases))
+    readings, turning = zip(*(_reading(c) for c in cases), strict=True)
     assert max(turning) >= 150.0  # the stratum this test is for
     u = torch.tensor(np.stack(readings))
     result = tr.Estimator(ROD, tr.EstimatorOptions(noise=0.1)).estimate(u)
-    for i, (case, record) in enumerate(zip(cases, result.to_records())):
+    for i, (case, record) in enumerate(zip(cases, result.to_records(), strict=True)):
         where = f"case {i}: {case}, turning {turning[i]:.0f} deg: {record['status']} {record['forces']}"
         assert record["num_forces"] == 1, where
         assert record["status"] in ("ok", "poorly_determined"), where
@@ -65,7 +65,7 @@ def test_a_fixed_count_at_a_large_bend_is_recovered_or_flagged():
     cases = _cases(4, seed=5)
     u = torch.tensor(np.stack([_reading(c)[0] for c in cases]))
     result = tr.Estimator(ROD, tr.EstimatorOptions(noise=0.1, num_forces=1)).estimate(u)
-    for case, record in zip(cases, result.to_records()):
+    for case, record in zip(cases, result.to_records(), strict=True):
         force = record["forces"][0]
         right = abs(force["s"] - case[0]) <= 1e-4
         assert right or record["status"] == "misfit", (case, record)
