@@ -468,3 +468,16 @@ def test_a_chosen_fit_still_improving_after_its_steps_gets_more_of_them(rod):
     assert float(refined.loss[0]) <= float(raw.loss[0])
     with pytest.raises(ValueError, match="refine_iterations"):
         LMPolicy(refine_iterations=-1)
+
+
+def test_a_status_is_a_string_enum_member_and_a_plain_string_in_records(rod):
+    """``EstimateResult.statuses`` are :class:`torchrod.Status` members, equal to their strings; the records carry
+    the plain strings, so that they serialise as JSON."""
+    import json
+
+    result = Estimator(rod, EstimatorOptions(noise=0.1)).estimate(torch.zeros(2, rod.num_gratings, 2))
+    assert result.statuses == [tr.Status.OK, tr.Status.OK] and result.statuses[0] == "ok"
+    assert isinstance(result.statuses[0], tr.Status) and str(result.statuses[0]) == "ok"
+    record = result.to_records()[0]
+    assert type(record["status"]) is str and json.loads(json.dumps(record))["status"] == "ok"
+    assert [s.value for s in tr.Status] == list(STATUSES)

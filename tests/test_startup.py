@@ -112,3 +112,11 @@ def test_bench_startup_quick_measures_all_four_side_by_side(capsys):
     assert rows["torchrod --version"][1] < 0.5 and rows["torchrod --help"][1] < 0.5
     assert re.search(r"^aim: .* (met|missed) \(\d+\.\d\dx\)$", out, re.MULTILINE)
     assert main(["bench", "startup", "--runs", "0"]) == 2
+
+
+def test_the_top_level_holds_the_public_api_and_no_internals():
+    for name in ("lbfgs", "LBFGSOptions", "RefineResult", "spread_to_nodes", "Any", "TYPE_CHECKING", "annotations"):
+        assert name not in torchrod.__all__ and not hasattr(torchrod, name), name
+    for name in ("Rod", "PointForces", "simulate", "Estimator", "EstimatorOptions", "EstimateResult", "Status",
+                 "stream", "StreamOptions", "calibrate", "presets", "WarmStart", "TorchrodError"):  # fmt: skip
+        assert name in torchrod.__all__, name
