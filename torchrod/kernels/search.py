@@ -360,6 +360,20 @@ def suspicious(k, i, loss_limit, kink_limit):
     return rows.loss[i] > kink_limit and near_kink(k, rows.s[i], rows.count[i])
 
 
+def without_force(k, h, i):
+    """The best fit of h forces less its force i, into the search's base (``bs``, ``bf``, ``bint``: h - 1 forces)."""
+    rows = rows_of(k)
+    sw = search_of(k)
+    b = 0
+    for j in range(h):
+        if j != i:
+            sw.bs[b] = rows.s[h, j]
+            sw.bf[b, 0] = rows.f[h, j, 0]
+            sw.bf[b, 1] = rows.f[h, j, 1]
+            sw.bint[b] = rows.interval[h, j]
+            b += 1
+
+
 def exchange(k, h, loss_limit, kink_limit):
     """Re-place the forces of the best fit of h >= 2 forces one at a time, while it is suspicious (at most
     ``rounds`` times): each force removed, the scan re-places it among all intervals (not its own), and the
@@ -376,14 +390,7 @@ def exchange(k, h, loss_limit, kink_limit):
             k.info[0].cut = True
             return
         for i in range(h):  # the fit without force i, scanned
-            b = 0
-            for j in range(h):
-                if j != i:
-                    sw.bs[b] = rows.s[h, j]
-                    sw.bf[b, 0] = rows.f[h, j, 0]
-                    sw.bf[b, 1] = rows.f[h, j, 1]
-                    sw.bint[b] = rows.interval[h, j]
-                    b += 1
+            without_force(k, h, i)
             base_loss = scan_model(k, sw.bs, sw.bf, sw.bint, h - 1, -1)
             scan_starts(k, sw.bs, sw.bf, h - 1, base_loss, T, opt.max_force_step, sw.ex_s, sw.ex_f, sw.ex_int,
                         sw.ex_pred, i, h)  # fmt: skip
@@ -456,14 +463,7 @@ def drop_negligible(k):
                 drop = j
         if drop < 0:
             return
-        b = 0
-        for j in range(chosen):
-            if j != drop:
-                sw.bs[b] = rows.s[chosen, j]
-                sw.bf[b, 0] = rows.f[chosen, j, 0]
-                sw.bf[b, 1] = rows.f[chosen, j, 1]
-                sw.bint[b] = rows.interval[chosen, j]
-                b += 1
+        without_force(k, chosen, drop)
         load_row(k, H + 1, chosen - 1, sw.bs, sw.bf, sw.bint)
         try_starts(k, chosen - 1, 1)
         if choose(k) >= chosen:
