@@ -334,7 +334,7 @@ def test_stats_say_when_latency_includes_queueing():
         live.add(StreamResult(k, None, rec, latency=0.012, batch=1, solve_time=0.01))
     assert queued.solve_time(0.5) == pytest.approx(0.01, rel=0.011)
     text, plain = "\n".join(queued.summary(5.0)), "\n".join(live.summary(5.0))
-    assert "latency median" in text and "solve time median 10.0 ms per batch" in text
+    assert "latency median" in text and "solve time 10.0 ms per batch of 1 readings, 10.00 ms per reading" in text
     assert "latency includes queueing" in text and "queueing" not in plain
 
 

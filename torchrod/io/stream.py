@@ -704,8 +704,9 @@ class StreamStats:
             lines.append(
                 f"latency median {1e3 * latency:.1f} ms, p99 {1e3 * self.latency(0.99):.1f} ms "
                 "(reading taken to answer made); "
-                f"solve time median {1e3 * solve:.1f} ms per batch of "
-                f"{solved / max(self.batches, 1e-9):.1f} readings, {1e3 * self.busy / solved:.2f} ms per reading"
+                f"solve time {1e3 * self.busy / max(self.batches, 1e-9):.1f} ms per batch of "
+                f"{solved / max(self.batches, 1e-9):.0f} readings, {1e3 * self.busy / solved:.2f} ms per reading "
+                f"(means over {max(1, round(self.batches))} batches)"
             )
             if latency > 2.0 * solve + 0.05:
                 lines.append(
