@@ -336,8 +336,7 @@ class Estimator:
         plan = self.plan(dataclasses.replace(opts, target="python"))
         u = torch.where(mask[0, :, None], curvature[0].to(torch.float64), 0.0).reshape(-1).cpu().numpy()
         w = mask[0, :, None].expand(-1, 2).to(torch.float64).reshape(-1).cpu().numpy()
-        noise2 = -1.0 if opts.noise is None else float(opts.noise) ** 2 + float(opts.noise_floor) ** 2
-        return kit(plan.setup, plan.sizes, u, w, noise2)
+        return kit(plan.setup, plan.sizes, u, w, opts.noise2)
 
     # ------------------------------------------------------------------ the method
     def estimate(
@@ -373,9 +372,7 @@ class Estimator:
             u = u + self.rod.unloaded_curvature(torch.float64, u.device)
         u = torch.where(mask[:, :, None], u, torch.zeros((), dtype=torch.float64, device=device))
         w = mask[:, :, None].expand(B, G, 2).to(torch.float64)
-        floor2 = float(opts.noise_floor) ** 2
-        noise2 = torch.full((B,), -1.0 if opts.noise is None else float(opts.noise) ** 2 + floor2, device=device,
-                            dtype=torch.float64)  # fmt: skip
+        noise2 = torch.full((B,), opts.noise2, device=device, dtype=torch.float64)
         blocks = self._guesses(curvature, mask, opts, extra_starts)
         counts = [h for h, _, _, _ in blocks]
         if opts.starts == 0:
@@ -437,14 +434,20 @@ class Estimator:
         out: list[tuple[int, torch.Tensor, torch.Tensor, torch.Tensor]] = []
         everyone = torch.ones((B,), dtype=torch.bool, device=device)
         per_count: dict[int, list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]] = {h: [] for h in range(1, top + 1)}
+
+        def add(h: int, pf: Any, shift: float, use: torch.Tensor) -> None:
+            # A block of h forces as the kernels take it: locations shifted to model coordinates, inactive forces
+            # NaN (the row then starts from no load).
+            pf = self._check_guess(pf, B, h)
+            s = pf.s.detach().to(device, torch.float64) + shift
+            f = pf.f.detach().to(device, torch.float64)
+            f = torch.where(pf.active.to(device)[:, :, None], f, torch.full_like(f, math.nan))
+            per_count[h].append((s, f, use))
+
         if extra_starts:
             for h, pf in extra_starts.items():
                 if h in per_count:
-                    pf = self._check_guess(pf, B, h)
-                    s = pf.s.detach().to(device, torch.float64) - self.rod.location_bias
-                    f = pf.f.detach().to(device, torch.float64)
-                    f = torch.where(pf.active.to(device)[:, :, None], f, torch.full_like(f, math.nan))
-                    per_count[h].append((s, f, everyone))
+                    add(h, pf, -self.rod.location_bias, everyone)
         if self.warm_start is not None:
             net = (
                 self.warm_start.guess(curvature, mask)
@@ -454,14 +457,10 @@ class Estimator:
             probs = getattr(net, "count_probs", None)
             for h, pf in (net.forces if hasattr(net, "forces") else net).items():
                 if h in per_count:
-                    pf = self._check_guess(pf, B, h)
                     use = everyone
                     if probs is not None and opts.starts > 0 and opts.guess_probability > 0 and h <= probs.shape[1]:
                         use = probs[:, h - 1].detach().to(device) >= opts.guess_probability
-                    s = pf.s.detach().to(device, torch.float64)
-                    f = pf.f.detach().to(device, torch.float64)
-                    f = torch.where(pf.active.to(device)[:, :, None], f, torch.full_like(f, math.nan))
-                    per_count[h].append((s, f, use))
+                    add(h, pf, 0.0, use)
         for h, found in per_count.items():
             for s, f, use in found:
                 if bool(use.any()):

@@ -236,6 +236,11 @@ class EstimatorOptions:
         """Force slots in a result: num_forces if fixed, else max_forces."""
         return self.num_forces if self.num_forces is not None else self.max_forces
 
+    @property
+    def noise2(self) -> float:
+        """The kernels' noise of a reading: sigma^2 + floor^2 [1/m^2] with the noise given, -1.0 without."""
+        return -1.0 if self.noise is None else float(self.noise) ** 2 + float(self.noise_floor) ** 2
+
     def record(self) -> Any:
         """These options as the kernels' :data:`~torchrod.kernels.layout.OPTIONS` record."""
         from ..kernels.host import options_record

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from .counts import MISFIT_FACTOR, RULE_NOISE, RULE_THRESHOLD
-from .layout import OPTIONS, ROD, Arenas, Batch, Outputs, Setup, Sizes, allocate, constants, layout, record
+from .layout import KINDS, OPTIONS, ROD, Arenas, Batch, Outputs, Setup, Sizes, allocate, constants, layout, record
 
 __all__ = ["Plan", "chi2_quantile", "count_tables", "f_quantile", "options_record", "rod_setup", "setup_of"]
 
@@ -307,9 +307,7 @@ class Plan:
 
         B = batch.u.shape[0]
         _, lengths = layout(self.sizes)
-        per_reading = sum(n * np.dtype(dtype).itemsize for n, dtype in zip(
-            (lengths["f"], lengths["i"], lengths["c"], lengths["b"]), (np.float64, np.int64, np.complex128, np.bool_),
-            strict=True))  # fmt: skip
+        per_reading = sum(lengths[kind] * np.dtype(KINDS[kind]).itemsize for kind in "ficb")
         context = contextlib.nullcontext() if simulated() else cuda.gpus[device]
         with self._cuda_lock, context:  # (one batch at a time on the kept scratch)
             try:
