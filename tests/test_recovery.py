@@ -92,3 +92,20 @@ def test_explains_is_an_independent_check():
     assert R.explains(rod, c, u[0], [0.12], [(0.8, -0.2)], 1e-3)
     assert not R.explains(rod, c, u[0], [0.121], [(0.8, -0.2)], 1e-3)
     assert torch.isfinite(u).all()
+
+
+def test_the_gauss_newton_condition_tells_a_determined_force_from_one_the_gratings_cannot_place():
+    """A force between the 5th and 6th gratings of the paper's tube is seen by five gratings: its (s, f_x, f_y) are
+    determined, the scaled normal matrix well conditioned. The same force with only the nearest grating proximal
+    to it present: magnitude and lever cannot be told apart, the matrix is singular to rounding. Two forces in one
+    place: singular too."""
+    rod = tr.presets.nitinol290()
+    G = rod.num_gratings
+    one = R.RecoveryCase([0.10], [(0.4, -0.3)], [True] * G, "anywhere", False)
+    alone = R.RecoveryCase([0.10], [(0.4, -0.3)], [k == 4 for k in range(G)], "missing", False)  # 90 mm only
+    pair = R.RecoveryCase([0.10, 0.10], [(0.4, -0.3), (0.4, -0.3)], [True] * G, "anywhere", False)
+    good = R.gauss_newton_condition(rod, one)
+    assert 1.0 <= good < 1e4
+    assert R.gauss_newton_condition(rod, alone) > 1e8
+    assert R.gauss_newton_condition(rod, pair) > 1e8
+    assert R.identifiable(rod, one) and not R.identifiable(rod, pair)
