@@ -371,3 +371,14 @@ def test_evaluate_recovery_prints_verdicts_per_stratum(capsys):
     assert main(["evaluate", "--recovery", "6", "--json"]) == 0
     record = json.loads(capsys.readouterr().out)
     assert record["summary"]["all"]["cases"] == 6 and isinstance(record["failures"], list)
+
+
+def test_evaluate_recovery_up_to_the_elastic_limit_has_a_large_bend_stratum(capsys):
+    assert main(["evaluate", "--recovery", "4", "--large-bends", "--max-strain", "0.03"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("# 4 clean cases (seed 0) up to a bending strain of 0.03:")
+    table = {line.split()[0]: line.split() for line in out[2:] if line.split()}
+    assert table["large"][:3] == ["large", "bend", "1"]
+    assert main(["evaluate", "--large-bends"]) == 2
+    assert "--large-bends and --max-strain go with --recovery N" in capsys.readouterr().err
+    assert main(["evaluate", "--recovery", "4", "--large-bends", "--max-strain", "5"]) == 2

@@ -49,6 +49,46 @@ def test_stratified_clean_recovery():
     assert sum(r["verdict"] == "exact" for r in decided) >= 0.97 * len(decided)
 
 
+@pytest.mark.slow
+def test_clean_recovery_up_to_the_elastic_limit():
+    """The envelope of the elastic range (bending strain up to 4 %), a quarter of the cases turning the rod beyond
+    135 degrees: no confident wrong answer, no identifiable case missed, every identifiable single force exact.
+    (``torchrod evaluate --recovery 600 --large-bends`` runs more; docs/results.md has its table.)"""
+    rod = tr.presets.nitinol290()
+    rows = R.run(rod, 80, seed=1, elastic=True)
+    summary = R.summarise(rows)
+    print(summary)
+    assert {s: summary[s]["cases"] for s in R.ELASTIC_STRATA} == {s: 20 for s in R.ELASTIC_STRATA}
+    bad = [r for r in rows if r["verdict"] in ("wrong", "missed")]
+    assert not bad, "confident wrong answers or missed identifiable cases:\n" + _show(bad)
+    singles = [r for r in rows if r["decidable"] and len(r["truth"]) == 1]
+    assert len(singles) >= 10
+    assert all(r["verdict"] == "exact" for r in singles), _show([r for r in singles if r["verdict"] != "exact"])
+    large = [r for r in rows if r["stratum"] == "large bend"]
+    assert sum(r["verdict"] == "exact" for r in large) >= 0.7 * len(large)
+
+
+def test_the_elastic_envelope_is_what_it_says():
+    """Every "large bend" case turns the rod beyond 135 degrees, and no case bends it beyond the strain limit."""
+    from torchrod.model.body_frame import simulate
+
+    rod = tr.presets.nitinol290()
+    cases = R.recovery_cases(rod, 16, seed=4, elastic=True, max_strain=0.03)
+    assert [c.stratum for c in cases] == list(R.ELASTIC_STRATA) * 4
+    loads = tr.PointForces.from_lists(
+        [[(s, fx, fy) for s, (fx, fy) in zip(c.s, c.f, strict=True)] for c in cases], max_forces=3
+    )
+    sim = simulate(rod, loads, samples=513)
+    size = sim.curvature_magnitude()
+    turning = torch.trapezoid(size, sim.s, dim=-1)
+    assert float(size.amax()) * rod.outer_diameter / 2 <= 0.03 * 1.01
+    large = torch.tensor([c.stratum == "large bend" for c in cases])
+    assert bool((turning[large] > math.radians(135.0)).all())
+    assert float(turning[large].max()) > math.radians(180.0)  # the envelope reaches past a half turn
+    with pytest.raises(ValueError, match="max_strain"):
+        R.recovery_cases(rod, 1, elastic=True, max_strain=2.0)
+
+
 def test_identifiable_classifier():
     """The classifier's rules, on hand-made cases."""
     rod = tr.presets.nitinol290()

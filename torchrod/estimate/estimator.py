@@ -39,6 +39,16 @@ from .status import Status, verdict
 
 __all__ = ["EstimateResult", "Estimator", "EstimatorOptions", "LMPolicy", "SearchOptions"]
 
+ESCAPE_TURNING = math.pi / 2
+"""[rad] A reading turning the rod by more than this (the integral of |u| over its gratings, the base's segment at the
+first grating's value), fitted with a fixed count and answered ``misfit``, is searched once more from the free
+count's answer (:meth:`Estimator._fixed_count_escape`)."""
+
+
+def _put(old: torch.Tensor, idx: torch.Tensor, better: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
+    """``old`` with its rows ``idx[better]`` replaced by ``new[better]``."""
+    return old.index_put((idx[better],), new[better].to(old.dtype))
+
 
 @dataclass(frozen=True)
 class EstimateResult:
@@ -346,6 +356,7 @@ class Estimator:
         *,
         options: EstimatorOptions | None = None,
         extra_starts: Mapping[int, PointForces] | None = None,
+        _escape: bool = True,
     ) -> EstimateResult:
         """Estimate the forces behind B readings.
 
@@ -415,7 +426,68 @@ class Estimator:
         finally:
             if timer is not None:
                 timer.cancel()
-        return self._report(out, mask, opts, out_dtype)
+        result = self._report(out, mask, opts, out_dtype)
+        if opts.num_forces and _escape:
+            result = self._fixed_count_escape(result, curvature, mask, opts, u)
+        return result
+
+    def _fixed_count_escape(
+        self,
+        result: EstimateResult,
+        curvature: torch.Tensor,
+        mask: torch.Tensor,
+        opts: EstimatorOptions,
+        u: torch.Tensor,
+    ) -> EstimateResult:
+        """A fixed count h's misfits at a large bend, searched once more from the free count's answer.
+
+        The scan's first start of a count assumes small deflections; where the rod turns far (beyond
+        :data:`ESCAPE_TURNING`), the search of h forces alone can end in a wrong minimum that misfits, while the free
+        search reaches the right one through h + 1 forces, one of them zero. So for those readings: the free search
+        up to h + 1 forces, then the fixed count again with the free answer (its h strongest forces) as an extra
+        start; the better fit of the two is kept, and every evaluation is counted."""
+        h = int(opts.num_forces or 0)
+        G = mask.shape[1]
+        q = torch.tensor(self.rod.gratings, dtype=torch.float64, device=u.device)
+        bend = u
+        if self.rod.precurved:
+            bend = u - self.rod.unloaded_curvature(torch.float64, u.device)
+        size = torch.where(mask, torch.linalg.vector_norm(bend, dim=-1), torch.zeros((), dtype=torch.float64))
+        turning = size[:, 0] * q[0] + torch.trapezoid(size, q.expand(size.shape[0], G), dim=-1)
+        chosen = (result.status == Status.MISFIT.code) & (turning.to(result.status.device) > ESCAPE_TURNING)
+        if not bool(chosen.any()):
+            return result
+        idx = chosen.nonzero().flatten()
+        c, m = curvature[idx.to(curvature.device)], mask[idx.to(mask.device)]
+        free = self.estimate(c, m, options=dataclasses.replace(opts, num_forces=None, max_forces=h + 1))
+        n = free.num_forces
+        usable = n >= h
+        if not bool(usable.any()):
+            return result
+        # The free answer's h strongest forces (by magnitude), in reported coordinates, as a start of h forces.
+        strength = torch.where(free.forces.active, torch.linalg.vector_norm(free.forces.f, dim=-1), -1.0)
+        keep = strength.argsort(dim=-1, descending=True)[:, :h]
+        s = torch.gather(free.forces.s, 1, keep)
+        f = torch.gather(free.forces.f, 1, keep[:, :, None].expand(-1, -1, 2))
+        s = torch.where(usable[:, None], s, torch.full_like(s, math.nan))
+        # (A row without a usable answer starts from no load: it cannot win, ``better`` leaves it out.)
+        again = self.estimate(c, m, options=opts, extra_starts={h: PointForces(s, f)}, _escape=False)
+        better = usable.to(again.loss.device) & (again.loss < result.loss[idx])
+        fields: dict[str, Any] = {}
+        for field in dataclasses.fields(result):
+            old = getattr(result, field.name)
+            new = getattr(again, field.name)
+            if isinstance(old, PointForces):
+                fields[field.name] = PointForces(
+                    _put(old.s, idx, better, new.s),
+                    _put(old.f, idx, better, new.f),
+                    _put(old.active, idx, better, new.active),
+                )
+            else:
+                fields[field.name] = _put(old, idx, better, new)
+        spent = result.evaluations[idx] + free.evaluations + again.evaluations
+        fields["evaluations"] = result.evaluations.index_put((idx,), spent)
+        return EstimateResult(**fields)
 
     # ------------------------------------------------------------------ stages
     def _guesses(

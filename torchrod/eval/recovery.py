@@ -11,6 +11,11 @@ and, across all of them, pairs that straddle a grating (one force each side, wit
 it) in a quarter of the cases with two or more forces. 1 to 3 forces of 0.05 to 2 N in any direction, at least
 2 mm apart, the rod's total turning at most 90 degrees (the synthetic envelope).
 
+With ``elastic=True`` the envelope is the rod's elastic range instead: no limit on the turning, but the largest
+bending strain |u| d_out / 2 at most ``max_strain`` (:data:`ELASTIC_STRAIN`; a rod given by its stiffness alone, with
+no diameter, is held to a turning of one full turn instead), and a fourth stratum (``"large bend"``) of cases that
+turn the rod by more than 135 degrees, whose magnitudes are drawn up to :data:`LARGE_BEND_LOAD` times EI / L^2.
+
 Each case is classified (:func:`identifiable`): the data decide it when every force lies in its own interval
 between present gratings, none in the first interval (one grating sees it: its magnitude trades against its
 lever), the gratings that see the forces leave at least three residuals beyond the unknowns (one more force could
@@ -57,6 +62,18 @@ __all__ = [
 ]
 
 STRATA = ("near base", "missing", "anywhere")
+ELASTIC_STRATA = (*STRATA, "large bend")
+
+ELASTIC_STRAIN = 0.04
+"""The largest bending strain of the elastic envelope: inside the 6 to 8 % superelastic nitinol recovers; a rod of
+another material may need a smaller value."""
+
+LARGE_BEND = math.radians(135.0)
+"""[rad] The total turning beyond which a case belongs to the ``"large bend"`` stratum."""
+
+LARGE_BEND_LOAD = 100.0
+"""The ``"large bend"`` stratum's largest magnitude, in units of EI / L^2 (the force whose lever over the whole
+length bends the base by 1/L): about 9 N on the paper's tube, which curls it past a full turn near the tip."""
 VERDICTS = ("exact", "within_error", "missed", "flagged", "parsimonious", "wrong")
 
 
@@ -71,21 +88,49 @@ class RecoveryCase:
     straddle: bool
 
 
-def recovery_cases(rod: Rod, count: int, seed: int = 0, max_bending: float = math.pi / 2) -> list[RecoveryCase]:
-    """``count`` stratified random cases (module docstring), reproducible from ``seed``."""
-    from ..learn.synthetic import total_turning
+def recovery_cases(
+    rod: Rod,
+    count: int,
+    seed: int = 0,
+    max_bending: float = math.pi / 2,
+    *,
+    elastic: bool = False,
+    max_strain: float = ELASTIC_STRAIN,
+) -> list[RecoveryCase]:
+    """``count`` stratified random cases (module docstring), reproducible from ``seed``: within ``max_bending``
+    [rad] of total turning, or with ``elastic`` within the elastic range (bending strain at most ``max_strain``)."""
+    from ..learn.synthetic import PROFILE_SAMPLES
+    from ..model.body_frame import simulate
 
+    if not 0.0 < max_strain < 1.0:
+        raise ValueError(f"max_strain must lie in (0, 1), got {max_strain!r}")
     g = torch.Generator().manual_seed(seed)
     q = list(rod.gratings)
     G, L = len(q), rod.length
     spacing = (q[-1] - q[0]) / max(G - 1, 1)
+    strata = ELASTIC_STRATA if elastic else STRATA
+    radius = 0.5 * rod.outer_diameter if rod.outer_diameter is not None else None
+    big = LARGE_BEND_LOAD * rod.bending_stiffness / L**2
 
     def rand():
         return float(torch.rand(1, generator=g, dtype=torch.float64))
 
+    def inside(loads: PointForces, stratum: str) -> bool:
+        """Whether the case lies in the envelope (and its stratum): its turning and largest curvature."""
+        sim = simulate(rod, loads, samples=PROFILE_SAMPLES)
+        magnitude = sim.curvature_magnitude()
+        turning = float(torch.trapezoid(magnitude, sim.s, dim=-1)[0])  # as learn.synthetic.total_turning
+        if not elastic:
+            return turning <= max_bending
+        if radius is not None and float(magnitude.max()) * radius > max_strain:
+            return False
+        if radius is None and turning > 2.0 * math.pi:
+            return False
+        return turning > LARGE_BEND if stratum == "large bend" else True
+
     out: list[RecoveryCase] = []
     while len(out) < count:
-        stratum = STRATA[len(out) % 3]
+        stratum = strata[len(out) % len(strata)]
         k = 1 + int(torch.randint(0, 3, (1,), generator=g))
         present = [True] * G
         if stratum == "missing":
@@ -105,11 +150,12 @@ def recovery_cases(rod: Rod, count: int, seed: int = 0, max_bending: float = mat
         s = sorted(min(max(x, first), L) for x in s[:k])
         if any(b - a < 0.002 for a, b in zip(s, s[1:], strict=False)):
             continue
-        mag = [0.05 + 1.95 * rand() for _ in range(k)]
+        top = big if stratum == "large bend" else 2.0
+        mag = [0.05 + (top - 0.05) * rand() for _ in range(k)]
         ang = [2.0 * math.pi * rand() for _ in range(k)]
         f = [(m * math.cos(a), m * math.sin(a)) for m, a in zip(mag, ang, strict=False)]
         loads = PointForces(torch.tensor([s], dtype=torch.float64), torch.tensor([f], dtype=torch.float64))
-        if float(total_turning(rod, loads)[0]) > max_bending:
+        if not inside(loads, stratum):
             continue
         out.append(RecoveryCase(s, f, present, stratum, straddle))
     return out
@@ -248,13 +294,23 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, dict[str, int]]:
     return out
 
 
-def run(rod: Rod, count: int, *, seed: int = 0, estimator: Any = None, batch_size: int = 250) -> list[dict[str, Any]]:
-    """Estimate ``count`` stratified clean cases (default estimator: ``EstimatorOptions(noise=0.0)``) and judge each:
-    one dict per case with its ``stratum``, ``straddle``, ``decidable``, ``verdict``, the truth and the answer."""
+def run(
+    rod: Rod,
+    count: int,
+    *,
+    seed: int = 0,
+    estimator: Any = None,
+    batch_size: int = 250,
+    elastic: bool = False,
+    max_strain: float = ELASTIC_STRAIN,
+) -> list[dict[str, Any]]:
+    """Estimate ``count`` stratified clean cases (default estimator: ``EstimatorOptions(noise=0.0)``; ``elastic``,
+    ``max_strain``: the envelope, :func:`recovery_cases`) and judge each: one dict per case with its ``stratum``,
+    ``straddle``, ``decidable``, ``verdict``, the truth and the answer."""
     from ..estimate.estimator import Estimator, EstimatorOptions
 
     est = estimator if estimator is not None else Estimator(rod, EstimatorOptions(noise=0.0))
-    cases = recovery_cases(rod, count, seed)
+    cases = recovery_cases(rod, count, seed, elastic=elastic, max_strain=max_strain)
     rows: list[dict[str, Any]] = []
     for b0 in range(0, len(cases), batch_size):
         chunk = cases[b0 : b0 + batch_size]

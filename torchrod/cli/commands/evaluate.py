@@ -47,7 +47,9 @@ the row's sigma for the curvature (the largest over the gratings, as ``--wavelen
 by the conversion the reading parser applies (:mod:`torchrod.sensors`).
 
 ``--recovery N`` runs the clean-recovery study instead (:mod:`torchrod.eval.recovery`): N stratified noise-free
-cases, the verdicts per stratum, and every case missed or answered wrong.
+cases, the verdicts per stratum, and every case missed or answered wrong. With ``--large-bends`` its envelope is the
+rod's elastic range (bending strain up to ``--max-strain``, 4 % by default) instead of 90 degrees of turning, with a
+fourth stratum of cases turning the rod beyond 135 degrees.
 """
 
 from __future__ import annotations
@@ -140,6 +142,18 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="instead of the table: N stratified clean cases (torchrod.eval.recovery), verdicts per stratum and every "
         "failure (the tests run 1000 at seed 0)",
+    )
+    parser.add_argument(
+        "--large-bends",
+        action="store_true",
+        help="with --recovery: cases up to the rod's elastic limit (bending strain up to --max-strain) instead of 90 "
+        "degrees of turning, a quarter of them turning it beyond 135 degrees",
+    )
+    parser.add_argument(
+        "--max-strain",
+        type=float,
+        default=None,
+        help="with --large-bends: the largest bending strain |u| d_out / 2 (default 0.04)",
     )
     parser.add_argument(
         "--input",
@@ -448,8 +462,12 @@ def run(args: argparse.Namespace) -> int:
     if args.threads < 1:
         raise ValueError(f"--threads must be >= 1, got {args.threads}")
     torch.set_num_threads(args.threads)
+    if (args.large_bends or args.max_strain is not None) and not args.recovery:
+        raise ValueError("--large-bends and --max-strain go with --recovery N")
+    if args.max_strain is not None and not (args.large_bends and 0.0 < args.max_strain < 1.0):
+        raise ValueError(f"--max-strain goes with --large-bends and must lie in (0, 1), got {args.max_strain}")
     if args.recovery:
-        return _recovery(rod, args.recovery, args.seed, args.json)
+        return _recovery(rod, args.recovery, args.seed, args.json, args.large_bends, args.max_strain)
     fibre: Any = None  # a Fibre (strain) or a WavelengthInput (wavelength)
     if args.input == "strain":
         from ...sensors import Fibre
@@ -576,15 +594,16 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _recovery(rod: Rod, count: int, seed: int, as_json: bool) -> int:
+def _recovery(rod: Rod, count: int, seed: int, as_json: bool, elastic: bool, max_strain: float | None) -> int:
     """``--recovery N``: the clean-recovery study (:mod:`torchrod.eval.recovery`), its verdicts per stratum and
-    every case that is missed or wrong."""
+    every case that is missed or wrong (``elastic``: up to the elastic limit, ``--large-bends``)."""
     from ...eval import recovery
 
     if count < 1:
         raise ValueError(f"--recovery must be >= 1, got {count}")
+    strain = recovery.ELASTIC_STRAIN if max_strain is None else max_strain
     start = time.perf_counter()
-    rows = recovery.run(rod, count, seed=seed)
+    rows = recovery.run(rod, count, seed=seed, elastic=elastic, max_strain=strain)
     elapsed = time.perf_counter() - start
     summary = recovery.summarise(rows)
     failures = [r for r in rows if r["verdict"] in ("missed", "wrong")]
@@ -592,12 +611,13 @@ def _recovery(rod: Rod, count: int, seed: int, as_json: bool) -> int:
         print(json.dumps({"summary": summary, "failures": failures, "seconds": elapsed}))
         return 0
     decided = sum(r["decidable"] for r in rows)
+    envelope = f"up to a bending strain of {strain:g}" if elastic else "up to 90 degrees of turning"
     print(
-        f"# {count} clean cases (seed {seed}): {decided} the data decide, "
+        f"# {count} clean cases (seed {seed}) {envelope}: {decided} the data decide, "
         f"{sum(r['straddle'] for r in rows)} with a pair straddling a grating; {elapsed:.1f} s"
     )
     print(f"{'stratum':<10} {'cases':>6} " + " ".join(f"{v:>13}" for v in recovery.VERDICTS))
-    for key in (*recovery.STRATA, "all"):
+    for key in (*(recovery.ELASTIC_STRATA if elastic else recovery.STRATA), "all"):
         cell = summary.get(key, {"cases": 0})
         print(f"{key:<10} {cell['cases']:>6} " + " ".join(f"{cell.get(v, 0):>13}" for v in recovery.VERDICTS))
     for r in failures:
