@@ -291,10 +291,18 @@ class Estimator:
             raise OptionsError(f"target {opts.target!r} does not run readings on {device}: move them, or target 'auto'")
         return opts.target
 
-    def plan(self, options: EstimatorOptions | None = None, guess_counts: Sequence[int] = (), device: Any = "cpu"):
+    def plan(
+        self,
+        options: EstimatorOptions | None = None,
+        guess_counts: Sequence[int] = (),
+        device: Any = "cpu",
+        wait: bool = False,
+    ):
         """The kernels' plan for these options and guess blocks (their counts), made once and kept: its setup, and
-        the compiled kernels of the target (compiled or loaded now, announced the first time; never inside a
-        reading's time budget)."""
+        the compiled kernels of the target, loaded now, or compiled (announced the first time; never inside a
+        reading's time budget): a first CPU compile runs in the background while readings are solved by the
+        kernels run as Python (:meth:`torchrod.kernels.targets.Compiled.start`), unless ``wait`` (then it is done
+        here, as a benchmark needs)."""
         from ..kernels.host import Plan, count_tables, rod_setup, setup_of
         from ..kernels.march import EXACT_MAX_STEPS, EXACT_STEP_ANGLE, FIT_MAX_STEPS
         from ..model.nystrom import RKN8
@@ -333,8 +341,16 @@ class Estimator:
                 if len(self._plans) > 32:
                     self._plans.clear()
                 self._plans[key] = plan
-        plan.compiled.ready()
+        if wait:
+            plan.compiled.ready()
+        else:
+            plan.compiled.start()
         return plan
+
+    def compiling(self) -> bool:
+        """Whether a first compile of the CPU kernels is still running in the background (:meth:`plan`): readings
+        are then solved one at a time, much more slowly, with the same answers."""
+        return any(plan.compiled.compiling() for plan in list(self._plans.values()))
 
     def kit(self, curvature: torch.Tensor, mask: torch.Tensor | None = None, options: EstimatorOptions | None = None):
         """The kernels' :class:`~torchrod.kernels.layout.Kit` of one reading (curvature (G, 2) [1/m], mask (G,)), for
@@ -407,7 +423,7 @@ class Estimator:
         out = _outputs(B, W, device)
         flag = np.zeros(1, np.int64)
         timer = None
-        if opts.time_budget is not None and plan.target != "cuda":
+        if opts.time_budget is not None and plan.target != "cuda" and not plan.compiled.compiling():
             left = began + B * opts.time_budget - time.perf_counter()
             if left <= 0.0:
                 flag.fill(1)

@@ -320,6 +320,8 @@ class _Stream:
         (slower, less accurate) before the stream has the fits it learns from, nor a thousand readings with a sigma
         learned from 32 fits: the batches grow until the sigma comes from enough fits."""
         size = self.batch_size
+        if getattr(self.estimator, "compiling", bool)():  # the kernels compile: one reading at a time, answered at once
+            return 1
         if self.noise is None:
             return size
         learning = self.noise.learning

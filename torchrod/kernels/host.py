@@ -227,6 +227,13 @@ def kit(setup: Setup, sizes: Sizes, u: np.ndarray, w: np.ndarray, noise2: float 
 _local = threading.local()
 
 
+def targets_python() -> Any:
+    """The kernels as written (:func:`.targets.python`)."""
+    from . import targets
+
+    return targets.python()
+
+
 @functools.cache
 def _pool(workers: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="torchrod-kernel")
@@ -263,20 +270,29 @@ class Plan:
         """Estimate every reading of ``batch`` into its outputs (CPU and Python: NumPy arrays; CUDA: arrays on GPU
         ``device``). ``flag`` (1,) int64: set it non-zero (from another thread) to stop every search where it
         stands; ``threads``: CPU threads (None: every core)."""
-        self.compiled.ready()
         B = batch.u.shape[0]
+        first = 0
+        if self.compiled.compiling():  # (a first CPU compile in the background: targets.Compiled.start)
+            python = targets_python()
+            never = np.zeros(1, np.int64)  # no deadline: the answer is the compiled kernels'
+            while first < B and self.compiled.compiling():
+                python.entry(first, first + 1, self.setup, batch, self._work(), never)
+                first += 1
+            if first == B:
+                return
+        self.compiled.ready()
         if self.target == "cuda":
             self._run_cuda(batch, flag, device)
             return
         entry = self.compiled.entry
-        workers = 1 if self.target == "python" else min(cpu_threads(threads), B)
+        workers = 1 if self.target == "python" else min(cpu_threads(threads), B - first)
         if workers <= 1:
-            entry(0, B, self.setup, batch, self._work(), flag)
+            entry(first, B, self.setup, batch, self._work(), flag)
             return
         # Readings differ in cost (a hard one can take many times an easy one's time): small chunks taken in turn.
-        chunk = max(1, B // (4 * workers))
+        chunk = max(1, (B - first) // (4 * workers))
         lock = threading.Lock()
-        state = [0]
+        state = [first]
 
         def worker() -> None:
             work = self._work()

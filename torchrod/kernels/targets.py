@@ -14,15 +14,23 @@ else ``$XDG_CACHE_HOME/torchrod`` or ``~/.cache/torchrod``. It is announced once
 long, where it is kept), and processes that start together take turns through a file lock, so one compiles and
 the others load. A caller compiles before it starts any clock (:func:`ready`): the time never counts against a
 reading's budget, and a cold run answers as a warm one does.
+
+A first compile for the CPU need not hold the first answers back (:meth:`Compiled.start`): it runs in a child
+process (announced as above), and meanwhile readings are solved one at a time by the same source run as Python
+(``"python"``: far slower, the same arithmetic in the same order), with no deadline, so their answers are the
+compiled kernels'. When the child is done the kernels are loaded from the cache and used from the next reading on.
+``TORCHROD_COMPILE=foreground`` compiles in the process instead (before the first reading, as :meth:`ready`).
 """
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import functools
 import hashlib
 import importlib
 import os
+import subprocess
 import sys
 import threading
 import time
@@ -36,6 +44,14 @@ MODULES = ("views", "linalg", "march", "precurved", "fit", "scan", "counts", "co
 TARGETS = ("python", "cpu", "cuda")
 
 _lock = threading.Lock()
+
+COMPILE_CHILD = (
+    "import sys; from torchrod.kernels import targets; targets.die_with_parent(int(sys.argv[1])); targets.cpu().ready()"
+)
+"""The program of the child process that compiles the CPU kernels in the background (argument: the parent's pid)."""
+
+_CHILD = "TORCHROD_COMPILING_CHILD"
+"""Set in the environment of the child process that compiles in the background (:meth:`Compiled.start`)."""
 
 
 def _modules() -> list[types.ModuleType]:
@@ -158,6 +174,57 @@ class Compiled:
         self.quiet = quiet  # nothing to announce (the simulator's "compilation" is none)
         self._warm = warm
         self._ready = False
+        self._child: subprocess.Popen[bytes] | None = None
+
+    def _cached(self) -> bool:
+        """Whether the entry's compiled code is in the on-disk cache (looked at without the lock)."""
+        pattern = f"**/*{self.entry.__name__}*.nbi" if self.target != "cuda" else "**/*.nbi"
+        return self.directory is not None and any(self.directory.glob(pattern))
+
+    def start(self) -> None:
+        """Make the kernels usable: loaded now where they are cached; a first CPU compile started in a child process
+        (module docstring; :meth:`compiling` says while it runs); otherwise compiled now (:meth:`ready`)."""
+        if self._ready or self._child is not None:
+            return
+        background = os.environ.get("TORCHROD_COMPILE", "background") != "foreground"
+        if self.target != "cpu" or self.what != "estimation" or not background or self._cached():
+            self.ready()
+            return
+        with _lock:
+            if self._ready or self._child is not None:
+                return
+            try:
+                self._child = subprocess.Popen(
+                    [sys.executable, "-c", COMPILE_CHILD, str(os.getpid())],
+                    stdin=subprocess.DEVNULL,
+                    stdout=subprocess.DEVNULL,
+                    env={**os.environ, _CHILD: "1"},
+                )
+            except OSError:
+                self._child = None
+        if self._child is None:
+            self.ready()
+        else:
+            atexit.register(_finish, self._child)
+            _say(
+                f"compiling the {self.what} kernels for the CPU in a background process "
+                f"({_expected_seconds(cache_root(), self.target, self.what)}; once per machine and version, kept in "
+                f"{self.directory}); meanwhile readings are solved one at a time by the kernels run as Python: slower, "
+                "the same answers"
+            )
+
+    def compiling(self) -> bool:
+        """Whether the kernels are still being compiled by the child process :meth:`start` began; once it is done,
+        they are loaded (or, should the child have failed, compiled here) before this returns False."""
+        child = self._child
+        if child is None:
+            return False
+        if child.poll() is None:
+            return True
+        with _lock:
+            self._child = None
+        self.ready()
+        return False
 
     def ready(self) -> None:
         """Compile (announced) or load the kernels now, once; processes take turns through the cache's lock."""
@@ -174,7 +241,7 @@ class Compiled:
             with lock:  # (the cache looked at once the lock is held: another process may just have filled it)
                 fresh = not self.quiet and (self.directory is None or not any(self.directory.glob(pattern)))
                 where = f"kept in {self.directory}" if self.directory is not None else "not kept (no writable cache)"
-                if fresh:
+                if fresh and not os.environ.get(_CHILD):  # (a compiling child's parent announced it)
                     _say(
                         f"compiling the {self.what} kernels for {'the CPU' if self.target == 'cpu' else 'CUDA'} "
                         f"({_expected_seconds(root, self.target, self.what)}; once per machine and version, "
@@ -188,6 +255,26 @@ class Compiled:
                     with contextlib.suppress(OSError):
                         (root / f"compile-seconds-{self.target}-{self.what}").write_text(f"{took:.1f}")
             self._ready = True
+
+
+def die_with_parent(parent: int) -> None:
+    """In a compiling child: end as soon as the process that started it is gone (killed: a parent that exits
+    normally waits for the compile first, :meth:`Compiled.start`). A watchdog thread looks every half second."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(0)
+
+    threading.Thread(target=watch, daemon=True, name="torchrod-parent-watch").start()
+
+
+def _finish(child: subprocess.Popen[bytes]) -> None:
+    """At the parent's exit: a compile still running is waited for, so the cache is filled for the next run."""
+    if child.poll() is None:
+        _say("finishing the compile of the kernels before exiting (once: later runs load them)")
+        with contextlib.suppress(KeyboardInterrupt):
+            child.wait()
 
 
 def _cache_directory(target: str, extra: str = "") -> Path | None:

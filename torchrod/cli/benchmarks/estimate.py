@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
         f"{'forces':>6} | {'B=1 ms mean':>11} {'median':>7} {'p90':>7} {'p99':>7} {'cpu':>7} | {'batched rd/s':>12} "
         f"{'ms/rd':>7} {'cpu ms/rd':>9} | {'count ok':>8}"
     )
-    estimator.plan(device=device)
+    estimator.plan(device=device, wait=True)
     for k in (rows[x] for x in wanted):
         data = readings(rod, k, max(single, batched), args.noise, args.seed + (k or 0))
         curvature, mask = data.curvature.to(device), data.mask.to(device)

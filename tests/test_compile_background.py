@@ -1,0 +1,179 @@
+"""A first compile of the CPU kernels in a background process: readings are solved meanwhile by the same source run
+as Python, with the compiled kernels' answers, one at a time, with no deadline; the kernels are used as soon as the
+child is done; the child ends with its parent."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+import torch
+
+import torchrod as tr
+from torchrod.kernels import host, targets
+
+ROD = tr.presets.nitinol290()
+
+
+def _readings(count: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(5)
+    s = 0.08 + 0.2 * torch.rand((count, 2), generator=g, dtype=torch.float64)
+    f = torch.rand((count, 2, 2), generator=g, dtype=torch.float64) - 0.5
+    u = tr.simulate(ROD, tr.PointForces(s, f)).grating_curvature
+    return u + 0.05 * torch.randn(u.shape, generator=g, dtype=torch.float64)
+
+
+class _Compiling:
+    """A stand-in for the compiling child: running until :meth:`end` (it waits on its standard input)."""
+
+    def __init__(self, compiled: targets.Compiled) -> None:
+        self.compiled = compiled
+        self.proc = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"], stdin=subprocess.PIPE)
+        compiled._child = self.proc
+
+    def end(self) -> None:
+        if self.proc.poll() is None:
+            assert self.proc.stdin is not None
+            self.proc.stdin.close()
+            self.proc.wait(10)
+
+    def __enter__(self) -> _Compiling:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.end()
+        self.compiled.compiling()  # (collects the child)
+
+
+def _counting_python(monkeypatch, after=None):
+    """The Python kernels as the plan finds them while compiling, counting the readings they solve, and calling
+    ``after(n)`` after each."""
+    solved = []
+    python = targets.python()
+
+    class Counting:
+        def entry(self, first, last, *args):
+            python.entry(first, last, *args)
+            solved.append(first)
+            if after is not None:
+                after(len(solved))
+
+    monkeypatch.setattr(host, "targets_python", lambda: Counting())
+    return solved
+
+
+def test_readings_are_solved_as_python_while_compiling_and_compiled_after(monkeypatch):
+    u = _readings(5)
+    est = tr.Estimator(ROD, tr.EstimatorOptions(noise=0.05))
+    warm = est.estimate(u)  # the compiled kernels' answers (the suite compiled them before the first test)
+    compiled = est.plan().compiled
+    with _Compiling(compiled) as child:
+        solved = _counting_python(monkeypatch, after=lambda n: child.end() if n == 3 else None)
+        assert est.compiling()
+        cold = est.estimate(u)
+    assert solved == [0, 1, 2]  # the first three as Python, then the child was done: the rest compiled
+    assert not est.compiling()
+    for name in ("num_forces", "status", "evaluations", "iterations"):
+        assert torch.equal(getattr(cold, name), getattr(warm, name)), name
+    torch.testing.assert_close(cold.forces.s, warm.forces.s, rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(cold.forces.f, warm.forces.f, rtol=1e-12, atol=1e-15)
+
+
+def test_no_deadline_cuts_a_reading_solved_while_compiling(monkeypatch):
+    u = _readings(2)
+    est = tr.Estimator(ROD, tr.EstimatorOptions(noise=0.05, time_budget=1e-9))
+    cut = est.estimate(u)
+    assert set(cut.statuses) == {"timeout"}  # the budget binds on the compiled kernels
+    with _Compiling(est.plan().compiled):
+        solved = _counting_python(monkeypatch)
+        cold = est.estimate(u)
+    assert solved == [0, 1] and "timeout" not in cold.statuses
+    assert cold.statuses == tr.Estimator(ROD, tr.EstimatorOptions(noise=0.05)).estimate(u).statuses
+
+
+def test_a_stream_takes_one_reading_at_a_time_while_compiling(monkeypatch):
+    u = _readings(4)
+    est = tr.Estimator(ROD, tr.EstimatorOptions(noise=0.05))
+    est.plan()
+    readings = [{"id": i, "curvature": u[i].tolist()} for i in range(4)]
+    with _Compiling(est.plan().compiled):
+        _counting_python(monkeypatch)
+        results = list(tr.stream(est, readings, tr.StreamOptions(workers=1)))
+    assert [r.id for r in results] == [0, 1, 2, 3] and [r.batch for r in results] == [1, 1, 1, 1]
+    assert all(r.error is None for r in results)
+
+
+def test_start_announces_the_background_compile_and_loads_when_it_is_done(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(targets, "COMPILE_CHILD", "import time; time.sleep(0.5)")
+    monkeypatch.delenv("TORCHROD_COMPILE", raising=False)
+    loaded = []
+
+    def estimate_rows():  # (the entry's name: what the cache is looked for by)
+        pass
+
+    compiled = targets.Compiled("cpu", estimate_rows, tmp_path, lambda entry: loaded.append(entry))
+    compiled.start()
+    err = capsys.readouterr().err
+    assert "compiling the estimation kernels for the CPU in a background process" in err
+    assert "meanwhile readings are solved one at a time by the kernels run as Python" in err
+    assert compiled.compiling() and not loaded
+    deadline = time.monotonic() + 30
+    while compiled.compiling():
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    assert loaded == [estimate_rows] and compiled._ready
+    # Cached (an index file of the entry), or asked to compile in the foreground: loaded or compiled at once.
+    (tmp_path / "x.estimate_rows-1.py311.nbi").write_text("")
+    again = targets.Compiled("cpu", estimate_rows, tmp_path, lambda entry: loaded.append(entry))
+    again.start()
+    assert not again.compiling() and again._ready and len(loaded) == 2
+    monkeypatch.setenv("TORCHROD_COMPILE", "foreground")
+    (tmp_path / "x.estimate_rows-1.py311.nbi").unlink()
+    third = targets.Compiled("cpu", estimate_rows, tmp_path, lambda entry: loaded.append(entry))
+    third.start()
+    assert not third.compiling() and len(loaded) == 3
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_the_compiling_child_ends_with_its_parent(tmp_path):
+    """The parent killed (SIGKILL: no exit handler runs): the child's watchdog ends it within a second or so."""
+    pidfile = tmp_path / "child.pid"
+    parent = textwrap.dedent(
+        f"""
+        import subprocess, sys, time
+        child = subprocess.Popen([sys.executable, "-c",
+            "import os, sys, time; from torchrod.kernels import targets; targets.die_with_parent(int(sys.argv[1])); "
+            "open(sys.argv[2], 'w').write(str(os.getpid())); time.sleep(60)", str(__import__('os').getpid()),
+            {str(pidfile)!r}])
+        time.sleep(60)
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", parent])
+    try:
+        deadline = time.monotonic() + 60
+        while not (pidfile.exists() and pidfile.read_text()):
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.1)
+        child = int(pidfile.read_text())
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+        deadline = time.monotonic() + 10
+        while _alive(child):
+            assert time.monotonic() < deadline, "the compiling child outlived its killed parent"
+            time.sleep(0.1)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as handle:
+            return handle.read().split(")")[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
