@@ -181,7 +181,7 @@ def simulate_cases(
     results: list[dict[str, Any]] = []
     for b, case in enumerate(cases):
         if not (finite[b] and accurate[b]):
-            bound = finite[b] and scheme == "exact" and not rod.precurved  # not accurate, yet finite
+            bound = finite[b] and scheme == "exact"  # not accurate, yet finite
             results.append({"error": _beyond(case, bound)})
             continue
         out: dict[str, Any] = {"curvature": curvature[b], "gratings": gratings}
@@ -195,7 +195,7 @@ def simulate_cases(
 
 def _beyond(case: Sequence[Force], bound: bool) -> str:
     """The error of a case the simulation cannot answer: its values are not finite, or (``bound``: the exact scheme
-    of a straight rod) not within the simulator's error bound (:data:`torchrod.model.body_frame.ACCURACY`)."""
+    ) not within the simulator's error bound (:data:`torchrod.model.body_frame.ACCURACY`)."""
     largest = max((math.hypot(fx, fy) for _, fx, fy in case), default=0.0)
     if bound:
         return (
