@@ -194,8 +194,8 @@ def simulate_cases(
 
 
 def _beyond(case: Sequence[Force], bound: bool) -> str:
-    """The error of a case the simulation cannot answer: its values are not finite, or (``bound``: the exact scheme
-    ) not within the simulator's error bound (:data:`torchrod.model.body_frame.ACCURACY`)."""
+    """The error of a case the simulation cannot answer: its values are not finite, or (``bound``: the exact
+    scheme) not within the simulator's error bound (:data:`torchrod.model.body_frame.ACCURACY`)."""
     largest = max((math.hypot(fx, fy) for _, fx, fy in case), default=0.0)
     if bound:
         return (
