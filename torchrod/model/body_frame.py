@@ -544,7 +544,9 @@ def grating_curvature(
     method: str | None = None,
     adjoint: bool = True,
 ) -> torch.Tensor:
-    """(B, G, 2) curvature at the rod's gratings [1/m] (the measurement model). Unchecked, for hot loops.
+    """(B, G, 2) curvature at the rod's gratings [1/m] (the measurement model). Unchecked, for hot loops: the step
+    rule alone, at most :data:`DEFAULT_MAX_STEPS` steps a segment, without :func:`simulate`'s error control and flag
+    (which matter only for loads far beyond a rod's working range).
 
     Arguments as :func:`simulate`.
     """
