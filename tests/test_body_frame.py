@@ -18,7 +18,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from rod_reference import reference_solution
+from rod_reference import reduced_reference, reference_solution
 
 import torchrod as tr
 from torchrod.model import body_frame
@@ -195,6 +195,39 @@ def test_random_paper_envelope_matches_an_independent_solver(rod, rng):
             ref = reference_solution(rod.length, rod.bending_stiffness, forces, rod.gratings)
             worst = max(worst, relative_error(got[k], ref.u))
     assert worst < 1e-6, worst  # measured worst 3.9e-9 over 300 such cases (RKN8; 2.6e-7 with RKN4)
+
+
+# ---------------------------------------------------------------------------------------------- extreme loads
+@pytest.mark.parametrize(("s_force", "force"), [(0.29, 3e3), (0.2, 1e5)])
+def test_kilonewton_loads_keep_the_error_bound(rod, s_force, force):
+    # Far beyond the tube's range (at 1e5 N from 0.2 m it loops some 165 times) the errors of many steps add up: the
+    # step rule alone gave 1.2e-5 here at 3 kN and 2.6e-2 at 1e5 N. simulate takes smaller steps and checks them.
+    sim = tr.simulate(rod, loads_of([(s_force, 0.0, force)]))
+    want = reduced_reference(rod.length, rod.bending_stiffness, rod.gratings, s_force, 0.0, force)
+    assert bool(getattr(sim, "accurate", torch.tensor([True]))[0])  # within reach of MAX_STEPS: not flagged
+    err = relative_error(sim.grating_curvature[0].numpy(), want)
+    assert err < getattr(body_frame, "ACCURACY", 1e-6), err  # measured 2.5e-8, 1.2e-8
+
+
+def test_a_meganewton_never_gives_nan_silently(rod):
+    # The step rule's cap of 64 steps a segment made the march blow up at 1e6 N: NaN, and nothing said so. Near the
+    # base simulate now keeps the bound; from the tip that takes some 20000 steps, so with max_steps=512 the sample
+    # is flagged, and the ordinary case beside it is not touched.
+    near = tr.simulate(rod, loads_of([(0.05, 0.0, 1e6)]))
+    assert near.grating_curvature.isfinite().all()
+    want = reduced_reference(rod.length, rod.bending_stiffness, rod.gratings, 0.05, 0.0, 1e6)
+    assert relative_error(near.grating_curvature[0].numpy(), want) < 1e-6
+    assert bool(near.accurate[0])
+    loads = loads_of([(0.29, 0.0, 1e6)], [(0.2, 0.5, -0.3)])
+    sim = tr.simulate(rod, loads, max_steps=512)
+    assert sim.accurate.tolist() == [False, True]
+    alone = tr.simulate(rod, loads_of([(0.2, 0.5, -0.3)]))
+    torch.testing.assert_close(sim.grating_curvature[1], alone.grating_curvature[0], rtol=1e-13, atol=1e-13)
+    # Fixed steps and the node scheme give NaN there: flagged too; fixed steps far too long are flagged when finite.
+    for options in ({"steps": 4}, {"scheme": "nodes"}):
+        sim = tr.simulate(rod, loads, **options)
+        assert not bool(sim.grating_curvature[0].isfinite().all()) and sim.accurate.tolist() == [False, True]
+    assert not bool(tr.simulate(rod, loads_of([(0.29, 0.0, 1e5)]), steps=4).accurate[0])
 
 
 # ---------------------------------------------------------------------------------------------- convergence

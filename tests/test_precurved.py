@@ -163,6 +163,20 @@ def test_gradcheck_in_locations_forces_and_stiffness(rod):
     assert torch.autograd.gradcheck(fn, (s, f, ei), eps=1e-7, atol=1e-6, rtol=1e-5)
 
 
+def test_large_forces_keep_the_error_bound_or_are_flagged(rod):
+    # 300 N at the tip: the 0.5 mm RK4 steps alone were off by 1.1e-4; simulate takes shorter ones and checks them.
+    # 1e5 N would need steps shorter than max_steps allows over the rod: flagged. The small case is not touched.
+    loads = tr.PointForces.from_lists([[(0.25, 90.0, 300.0)], [(0.25, 0.0, 1e5)], [(0.2, 0.5, 0.2)]])
+    sim = tr.simulate(rod, loads)
+    accurate = getattr(sim, "accurate", torch.ones(3, dtype=torch.bool))
+    assert accurate.tolist() == [True, False, True]
+    want = P.simulate_torch(rod, loads[0:1], rod.grating_positions(torch.float64), max_step=2.5e-5)[0][0, :, :2]
+    err = (sim.grating_curvature[0] - want).abs().max() / want.abs().max()
+    assert err < body_frame.ACCURACY, float(err)  # measured 5e-10
+    alone = tr.simulate(rod, loads[2:3]).grating_curvature[0]
+    torch.testing.assert_close(sim.grating_curvature[2], alone, rtol=1e-13, atol=1e-13)
+
+
 def test_simulate_dispatches_and_refuses_what_does_not_apply(rod):
     loads = _loads([[(0.12, -0.9, 1.1), (0.22, 0.6, -0.4)]])
     sim = tr.simulate(rod, loads, samples=11)

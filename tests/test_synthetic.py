@@ -98,6 +98,27 @@ def test_bending_limit_has_an_effect(rod):
     assert sy.total_turning(rod, b, samples=1025).max() <= 0.3 + 1e-3
 
 
+def test_cases_the_forward_model_does_not_resolve_are_redrawn(rod, monkeypatch):
+    # Without a bending limit, forces of hundreds of newtons make the fixed steps (one per L/128) longer than the
+    # step rule allows (the readings drift off, and far beyond they are NaN): such cases are redrawn, and the
+    # simulator's flagged cases (here: 1e6 N with 256 steps allowed) are refused by total_turning.
+    import functools
+
+    from torchrod.model import body_frame
+
+    sampler = sy.LoadSampler(max_forces=1, force_range=(1.0, 1000.0), max_bending=math.inf)
+    loads = sy.sample_loads(rod, 64, sampler, torch.Generator().manual_seed(3))
+    clean = sy._profile(rod, loads)[0]
+    sim = tr.simulate(rod, loads)
+    assert bool(getattr(sim, "accurate", torch.ones(1, dtype=torch.bool)).all())
+    err = (clean - sim.grating_curvature).abs().amax(dim=(1, 2)) / sim.grating_curvature.abs().amax(dim=(1, 2))
+    assert err.max() < 1e-5, float(err.max())
+    assert loads.f.norm(dim=-1).max() > 100.0  # large forces stay where the model resolves them
+    monkeypatch.setattr(body_frame, "simulate", functools.partial(body_frame.simulate, max_steps=256))
+    with pytest.raises(ValueError, match="the first case 0 with a force of 1e\\+06 N"):
+        sy.total_turning(rod, tr.PointForces.from_lists([[(0.29, 0.0, 1e6)]]))
+
+
 def test_turning_angle_small_deflection(rod):
     # one small force: |u(s)| = f (s1 - s) / EI, so the turning is f s1^2 / (2 EI)
     f, s1 = 1e-3, 0.2

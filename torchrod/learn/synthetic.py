@@ -13,7 +13,10 @@ Load cases (:class:`LoadSampler`, :func:`sample_loads`)
     129 uniform positions and integrated by the trapezoid rule; |u| has kinks at the forces, so the quadrature error
     is of order (L/128)^2 |f|/EI / 8, about 2e-4 rad at the paper's rod and 2 N (a test checks it against a fine
     grid). A rejected case is redrawn with the same k (only the rejected rows are redrawn, vectorised), so the
-    counts keep their uniform distribution and, given k, the cases are uniform over the admissible set.
+    counts keep their uniform distribution and, given k, the cases are uniform over the admissible set. So is a
+    case the forward model's fixed steps do not resolve (values not finite, or on a straight rod a step longer than
+    the simulator's step rule allows: forces far beyond the rod's range, possible without a bending limit); a
+    trajectory frame, or a case moved by a location bias, that it does not resolve is refused (ValueError).
 
 Sensor effects (:class:`SensorModel`)
     ``clean`` is the noise-free reading: the forward model's curvature at the gratings, for the forces moved to
@@ -79,7 +82,7 @@ import numpy as np
 import torch
 
 from ..loads import PointForces
-from ..model.body_frame import integrate_curvature
+from ..model.body_frame import DEFAULT_STEP_ANGLE, integrate_curvature
 from ..rod import Rod
 
 __all__ = [
@@ -262,8 +265,10 @@ class SensorModel:
 
 
 # ---------------------------------------------------------------------------------------------------- physics
-def _profile(rod: Rod, loads: PointForces) -> tuple[torch.Tensor, torch.Tensor]:
-    """Grating curvature (B, G, 2) [1/m] and total turning angle (B,) [rad] with a fixed step count.
+def _profile(rod: Rod, loads: PointForces) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Grating curvature (B, G, 2) [1/m], total turning angle (B,) [rad] with a fixed step count, and (B,) bool
+    whether these are resolved: finite, and (a straight rod) the fixed steps within the simulator's step rule
+    (:func:`_within_step_rule`; far beyond it the march diverges).
 
     The fixed step count (``_STEPS`` per segment, segments no longer than L/128) makes each case's result
     independent of the rest of the batch; the adaptive default would take its steps from the batch's worst case.
@@ -286,7 +291,23 @@ def _profile(rod: Rod, loads: PointForces) -> tuple[torch.Tensor, torch.Tensor]:
         curv, _ = integrate_curvature(torch.cat((grat, grid)), loads, rod.length, rod.bending_stiffness, steps=_STEPS)
         bend = torch.linalg.vector_norm(curv[:, G:], dim=-1)
     turning = torch.trapezoid(bend, dx=rod.length / (PROFILE_SAMPLES - 1))
-    return curv[:, :G], turning
+    resolved = curv.flatten(1).isfinite().all(dim=1) & turning.isfinite()
+    if not rod.precurved:
+        resolved &= _within_step_rule(rod, loads)
+    return curv[:, :G], turning, resolved
+
+
+def _within_step_rule(rod: Rod, loads: PointForces) -> torch.Tensor:
+    """(B,) bool: whether one step per L/128 keeps the simulator's step rule, rate x step <= its default
+    :data:`~torchrod.model.body_frame.DEFAULT_STEP_ANGLE`, with the rule's rigorous rate bound
+    (:mod:`torchrod.kernels.march`) where it is largest, at the base: max(min(sum |f_i| s_i, sqrt(2 M)), sqrt(M)),
+    M = sum |f_i| / EI (every segment of :func:`_profile` is at most L/128 long)."""
+    magnitude = torch.linalg.vector_norm(loads.f, dim=-1)
+    magnitude = torch.where(loads.active, magnitude, torch.zeros_like(magnitude)) / rod.bending_stiffness
+    total = magnitude.sum(dim=1)
+    lever = (magnitude * torch.where(loads.active, loads.s, torch.zeros_like(loads.s))).sum(dim=1)
+    rate = torch.maximum(torch.minimum(lever, (2.0 * total).sqrt()), total.sqrt())
+    return rate * (rod.length / (PROFILE_SAMPLES - 1)) <= DEFAULT_STEP_ANGLE
 
 
 PROFILE_CHUNK = 4096
@@ -294,13 +315,27 @@ PROFILE_CHUNK = 4096
 every case) grows with the batch, so a long trajectory is profiled in chunks (the results do not depend on it)."""
 
 
-def _profiles(rod: Rod, loads: PointForces) -> tuple[torch.Tensor, torch.Tensor]:
+def _profiles(rod: Rod, loads: PointForces) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`_profile` of any number of cases, :data:`PROFILE_CHUNK` at a time (the same results, in bounded
     working memory)."""
     if loads.batch_size <= PROFILE_CHUNK:
         return _profile(rod, loads)
     parts = [_profile(rod, loads[i : i + PROFILE_CHUNK]) for i in range(0, loads.batch_size, PROFILE_CHUNK)]
-    return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+    return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts]), torch.cat([p[2] for p in parts])
+
+
+def _check_resolved(resolved: torch.Tensor, loads: PointForces, what: str) -> None:
+    """Refuse loads whose readings the fixed-step forward model does not resolve (:func:`_profile`), naming the
+    first such ``what`` (a case, a frame) and its largest force."""
+    bad = (~resolved).nonzero().flatten()
+    if bad.numel():
+        k = int(bad[0])
+        largest = float(torch.linalg.vector_norm(loads.f[k], dim=-1).masked_fill(~loads.active[k], 0.0).max())
+        raise ValueError(
+            f"{bad.numel()} {what}(s), the first {what} {k} with a force of {largest:.3g} N, lie beyond what the "
+            "forward model resolves (values not finite, or beyond its step rule or error bound): lower the forces "
+            "(force_range), or set max_bending"
+        )
 
 
 def _admissible(rod: Rod, loads: PointForces, limit: float) -> torch.Tensor:
@@ -317,12 +352,14 @@ def _admissible(rod: Rod, loads: PointForces, limit: float) -> torch.Tensor:
 
 def total_turning(rod: Rod, loads: PointForces, *, samples: int = PROFILE_SAMPLES) -> torch.Tensor:
     """Total turning angle ``int_0^L |u(s)| ds`` [rad], (B,), from :func:`torchrod.simulate` on ``samples``
-    uniform positions (trapezoid rule). An upper bound of the base-to-tip tangent angle, exact for planar loads."""
+    uniform positions (trapezoid rule). An upper bound of the base-to-tip tangent angle, exact for planar loads.
+    Raises ``ValueError`` for loads the simulation flags (``accurate`` False: far beyond the rod's range)."""
     from ..model.body_frame import simulate
 
     if samples < 2:
         raise ValueError(f"samples must be >= 2, got {samples}")
     sim = simulate(rod, loads, samples=samples)
+    _check_resolved(sim.accurate, loads, "case")
     return torch.trapezoid(sim.curvature_magnitude(), sim.s, dim=-1)
 
 
@@ -413,9 +450,9 @@ def _sample_rows(
         keep = ok.nonzero().flatten()
         grating = torch.zeros(s.shape[0], G, 2, dtype=torch.float64, device=device)
         if keep.numel():
-            grating_kept, turning = _profile(rod, PointForces(s[keep], f[keep], m[keep]))
+            grating_kept, turning, resolved = _profile(rod, PointForces(s[keep], f[keep], m[keep]))
             grating[keep] = grating_kept
-            ok[keep] = turning <= sampler.max_bending
+            ok[keep] = (turning <= sampler.max_bending) & resolved
         ok = ok.reshape(-1, r)  # (P, r)
         has = ok.any(dim=1)
         first = ok.to(torch.int8).argmax(dim=1)  # first accepted candidate of each pending case
@@ -433,9 +470,9 @@ def _sample_rows(
     else:
         left = sum(p.numel() for p in pending)
         raise ValueError(
-            f"{left} load cases still exceed max_bending={sampler.max_bending} rad after {_MAX_ROUNDS} rounds of "
-            "redraws: the sampler almost never meets the bending limit (lower force_range or max_forces, or "
-            "raise max_bending)"
+            f"{left} load cases still exceed max_bending={sampler.max_bending} rad (or what the forward model "
+            f"resolves) after {_MAX_ROUNDS} rounds of redraws: the sampler almost never meets the bending limit "
+            "(lower force_range or max_forces, or raise max_bending)"
         )
     return PointForces(out_s, out_f, out_m), out_c, examined
 
@@ -810,7 +847,9 @@ def generate(
             loads, clean, n_examined = _sample_rows(rod, sampler, chunks, dev)
             examined += n_examined
             if sensor.location_bias != 0.0:
-                clean, _ = _profile(rod, _shifted(rod, loads, -sensor.location_bias))
+                shifted = _shifted(rod, loads, -sensor.location_bias)
+                clean, _, resolved = _profile(rod, shifted)
+                _check_resolved(resolved, shifted, "case")
             draws = [
                 _sensor_draws(sizes[c], G, torch.Generator().manual_seed(_derive_seed(seed, "sensor", c))) for c in idx
             ]
@@ -1142,7 +1181,9 @@ def generate_trajectory(
     if scale is not None:
         loads = PointForces(loads.s, loads.f * scale.view(-1, 1, 1), loads.mask)
     G = rod.num_gratings
-    clean, _ = _profiles(rod, _shifted(rod, loads, -sensor.location_bias))
+    shifted = _shifted(rod, loads, -sensor.location_bias)
+    clean, _, resolved = _profiles(rod, shifted)
+    _check_resolved(resolved, shifted, "frame")
     sg = torch.Generator().manual_seed(_derive_seed(seed, "trajectory-sensor"))
     offsets = sensor.offset_std * torch.randn(G, 2, generator=sg, dtype=torch.float64)
     noise, missing = _sensor_draws(count, G, sg)

@@ -43,8 +43,9 @@ __all__ = ["DEFAULT_MAX_STEP", "EXACT_MAX_STEP", "FIT_MAX_STEP", "Precurved", "g
 
 DEFAULT_MAX_STEP = 5e-4
 """Longest RK4 step [m] of the simulator (relative error ~2e-10 on the presets: at the 12 1/m of a concentric tube's
-curved section the turning per step stays below 0.01 rad). The estimator's models take :data:`FIT_MAX_STEP` and
-:data:`EXACT_MAX_STEP`."""
+curved section the turning per step stays below 0.01 rad); :func:`torchrod.simulate` takes shorter ones, checked,
+where large loads turn the rod faster (:data:`torchrod.model.body_frame.PRECURVED_TRUSTED_ANGLE`). The estimator's
+models take :data:`FIT_MAX_STEP` and :data:`EXACT_MAX_STEP`."""
 
 
 @dataclass(frozen=True)

@@ -24,8 +24,10 @@ Magnus over 128 intervals: within 1e-5 rad); it samples the curvature at 256 mor
 the gratings alone. For a precurved rod, which twists, the angle comes from its shape (2001 samples, twist included).
 
 A line that cannot be used (bad JSON, a missing or unknown key, a non-numeric, NaN or infinite value, a location off
-the rod) gives ``{"id": ... or null, "error": "line N: ..."}`` and the other lines go on; the exit status is 1 if
-any line failed, else 0 (2 for a bad rod file or option, 141 when the reader of the output goes away).
+the rod) gives ``{"id": ... or null, "error": "line N: ..."}`` and the other lines go on; so does a case whose forces
+are so large that the simulation cannot keep its error bound (1e-6 of the largest curvature; torchrod.simulate's
+``accurate``) or gives values that are not finite. The exit status is 1 if any line failed, else 0 (2 for a bad rod
+file or option, 141 when the reader of the output goes away).
 
 ``--noise SIGMA`` adds Gaussian noise of standard deviation SIGMA [1/m] to every component of ``curvature`` (the
 readings an interrogator would give; ``profile`` and ``tip_angle`` stay exact), drawn line by line in input order
@@ -58,7 +60,7 @@ from ...io.jsonl import (
     read_records,
 )
 from ...loads import PointForces
-from ...model.body_frame import simulate
+from ...model.body_frame import ACCURACY, MAX_STEPS, simulate
 from ...model.shape import bending_angle, shape
 from ...presets import load as load_rod
 from ...rod import Rod
@@ -160,7 +162,7 @@ def simulate_cases(
     gauss = _gauss_points(L, TIP_INTERVALS if magnus else 0, dtype, loads.device)
     profile_s = torch.linspace(0.0, L, samples, dtype=dtype, device=loads.device)
     with torch.no_grad():
-        sim = simulate(rod, loads, at=torch.cat((profile_s, gauss)), scheme=scheme, nodes=nodes)
+        sim = simulate(rod, loads, at=torch.cat((profile_s, gauss)), scheme=scheme, nodes=nodes, max_steps=MAX_STEPS)
         u_profile = sim.curvature[:, torch.searchsorted(sim.s, profile_s)]
         checks = [sim.grating_curvature.flatten(1), u_profile.flatten(1)]
         if magnus:
@@ -170,15 +172,17 @@ def simulate_cases(
         if with_tip_angle:
             checks.append(angle.unsqueeze(1))
     finite = torch.cat(checks, dim=1).isfinite().all(dim=1).tolist()
+    accurate = sim.accurate.tolist()
     gratings = list(rod.gratings)
     curvature = sim.grating_curvature.cpu().tolist()
     angle_list = angle.cpu().tolist() if with_tip_angle else []
     profile = u_profile.cpu().tolist()
     s_list = profile_s.cpu().tolist()
     results: list[dict[str, Any]] = []
-    for b in range(len(cases)):
-        if not finite[b]:
-            results.append({"error": "the simulation gave non-finite curvature (forces too large?)"})
+    for b, case in enumerate(cases):
+        if not (finite[b] and accurate[b]):
+            bound = finite[b] and scheme == "exact"  # not accurate, yet finite
+            results.append({"error": _beyond(case, bound)})
             continue
         out: dict[str, Any] = {"curvature": curvature[b], "gratings": gratings}
         if with_tip_angle:
@@ -187,6 +191,18 @@ def simulate_cases(
             out["profile"] = {"s": s_list, "curvature": profile[b]}
         results.append(out)
     return results
+
+
+def _beyond(case: Sequence[Force], bound: bool) -> str:
+    """The error of a case the simulation cannot answer: its values are not finite, or (``bound``: the exact
+    scheme) not within the simulator's error bound (:data:`torchrod.model.body_frame.ACCURACY`)."""
+    largest = max((math.hypot(fx, fy) for _, fx, fy in case), default=0.0)
+    if bound:
+        return (
+            f"the simulation cannot keep its error within {ACCURACY:g} of the largest curvature for these forces "
+            f"(largest {largest:.3g} N) in {MAX_STEPS} steps: they lie far beyond the rod's range"
+        )
+    return f"the simulation gave non-finite values: the forces (largest {largest:.3g} N) are too large"
 
 
 def run(args: argparse.Namespace) -> int:
