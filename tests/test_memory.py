@@ -1,13 +1,18 @@
-"""Memory of the readings commands: a line of tens of MB costs no more than a short one."""
+"""Memory and leftovers of the readings commands: a line of tens of MB costs no more than a short one, and a killed
+stream leaves no process and no file behind. (A long stream's memory: ``torchrod bench memory``, too slow for a
+test at a length that tells.)"""
 
 from __future__ import annotations
 
 import io
 import json
 import os
+import shutil
+import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -115,3 +120,71 @@ def test_lines_of_tens_of_megabytes_cost_no_memory_and_the_next_line_is_answered
         f"line {k}: longer than {MIN_LINE_BYTES} bytes; not read" for k in (1, 2)
     ]
     assert out[2]["id"] == "r0" and out[2]["num_forces"] == 1
+
+
+# ---------------------------------------------------------------------------------------------------- SIGKILL
+def _session(sid: int) -> list[int]:
+    """The live processes of session ``sid`` (Linux's /proc)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            fields = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if fields[0] != "Z" and int(fields[3]) == sid:  # (state, ppid, pgrp, session)
+            out.append(int(entry))
+    return out
+
+
+def _files(folder: Path) -> set[str]:
+    return {str(p.relative_to(folder)) for p in folder.rglob("*")}
+
+
+@LINUX
+def test_a_stream_killed_while_it_solves_leaves_no_process_and_no_file(tmp_path):
+    """SIGKILL on ``torchrod stream --workers 2`` in the middle of a backlog (its solver threads busy, in its one
+    process): within a few seconds no process of its session is left, and it left nothing in its temporary folder,
+    in /tmp or in the kernels' cache (a copy of the warm one, so that only this process writes there)."""
+    from torchrod.kernels.targets import cache_root
+
+    path = tmp_path / "backlog.jsonl"
+    path.write_text("".join(_lines(64)) * 100)  # 6400 readings: seconds of solving
+    cache, temp = tmp_path / "cache", tmp_path / "tmp"
+    shutil.copytree(cache_root(), cache)
+    temp.mkdir()
+    before_cache, before_tmp = _files(cache), set(os.listdir("/tmp"))
+    env = {**ENV, "TORCHROD_CACHE_DIR": str(cache), "TMPDIR": str(temp)}
+    out = tmp_path / "out.jsonl"
+    with open(out, "wb") as fh:
+        proc = subprocess.Popen(
+            _torchrod("stream", *QUICK, "--workers", "2", "--input", str(path)),
+            cwd=ROOT,
+            env=env,
+            stdout=fh,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+    try:
+        deadline = time.monotonic() + 120
+        while out.stat().st_size == 0 and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert proc.poll() is None, "the stream ended before it was killed"
+        assert out.stat().st_size > 0, "no answer within 120 s"
+        assert len(os.listdir(f"/proc/{proc.pid}/task")) >= 3  # the main thread, the reader, the solver threads
+        assert _session(proc.pid) == [proc.pid]  # threads of one process: no worker process
+        os.kill(proc.pid, signal.SIGKILL)
+        assert proc.wait(timeout=10) == -signal.SIGKILL
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    deadline = time.monotonic() + 5
+    while _session(proc.pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert _session(proc.pid) == []
+    answered = out.read_text().splitlines()
+    assert 0 < len(answered) < 6400 and all("status" in json.loads(x) for x in answered[:-1])  # (the last may be cut)
+    assert os.listdir(temp) == []
+    assert _files(cache) == before_cache
+    assert {name for name in set(os.listdir("/tmp")) - before_tmp if name.startswith("torchrod")} == set()
