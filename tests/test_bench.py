@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 
 import pytest
@@ -47,6 +48,20 @@ def test_bench_gpu_without_a_gpu_says_what_it_skips(capsys, monkeypatch):
     assert "PTX: skipped (without --ptx)" in out
     if not torch.cuda.is_available():
         assert "tests and throughput: skipped: torch sees no CUDA device" in out
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="reads /proc (Linux)")
+def test_bench_memory_quick_prints_a_row_per_sample_tenth_and_the_verdict(capsys):
+    """``torchrod bench memory --quick``: a stream process fed 2000 readings; rows of share, answers, seconds, RSS
+    [MiB] and processes, the last at 100 %; the growth and a verdict; no timing or memory checked here."""
+    assert main(["bench", "memory", "--quick", "--workers", "1", "--interval", "0.1"]) == 0
+    out = capsys.readouterr().out
+    assert "torchrod stream --rod nitinol290 --workers 1, 2000 readings" in out
+    rows = re.findall(r"^\s*(\d+)% \|\s+(\d+)\s+([\d.]+) \|\s+([\d.]+)\s+(\d+)$", out, re.MULTILINE)
+    assert rows and rows[-1][:2] == ("100", "2000"), out
+    assert all(float(rss) > 0 and int(procs) >= 1 for *_, rss, procs in rows)
+    assert "2000 answers (0 error lines)" in out
+    assert re.search(r"^# growth from the first tenth .* [+-][\d.]+ %; (flat|GROWS) \(limit 10 %\)$", out, re.MULTILINE)
 
 
 def test_bench_rejects_unknown_and_reports_missing_suites(capsys, monkeypatch):

@@ -227,7 +227,9 @@ def test_every_hostile_line_gets_one_short_error_line_in_order(rod, tmp_path, ca
     # "deeper" may decode (its id then kept) or not, depending on the stack depth: both are one error line.
     path = tmp_path / "hostile.jsonl"
     path.write_text("\n".join(lines) + "\n")
-    status = main(["estimate", "--rod", "nitinol290", "--noise", "0.01", "--max-forces", "1", str(path)])
+    # (the 10 MB line is over the default line limit: --max-line-bytes lets it be read, and its value quoted)
+    args = ["estimate", "--rod", "nitinol290", "--noise", "0.01", "--max-forces", "1", "--max-line-bytes", "16000000"]
+    status = main([*args, str(path)])
     cap = capsys.readouterr()
     out = [json.loads(x) for x in cap.out.splitlines()]
     assert status == 1 and "Traceback" not in cap.err

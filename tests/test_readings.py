@@ -263,18 +263,16 @@ def test_csv_rows_read_like_json_lines():
 
 
 @pytest.mark.parametrize("fmt", ["auto", "csv", "jsonl"])
-def test_an_overlong_line_is_said_to_be_overlong_in_every_format(tmp_path, monkeypatch, fmt):
+def test_an_overlong_line_is_said_to_be_overlong_in_every_format(tmp_path, fmt):
     """A line over the bound is not kept, so it cannot decide the format either: the first line read does (a CSV
     row here, a JSON line there), and the overlong one is an error saying so, not 'got 0 cells'."""
-    from torchrod.io import jsonl
     from torchrod.io.readings import iter_readings
 
-    monkeypatch.setattr(jsonl, "MAX_LINE_BYTES", 1000)
     rows = [[0.1, -0.2]] * 14
     kind = "jsonl" if fmt == "jsonl" else "csv"
     good = json.dumps({"id": 7, "curvature": rows}) if kind == "jsonl" else "7,," + ",".join("0.1,-0.2" for _ in rows)
     path = tmp_path / "in.txt"
     path.write_text("x" * 5000 + "\n" + good + "\n")
-    readings = list(iter_readings(path, 14, fmt=fmt))
+    readings = list(iter_readings(path, 14, fmt=fmt, max_line=1000))
     assert [r.error for r in readings] == ["line 1: longer than 1000 bytes; not read", None]
     assert readings[1].id in (7, "7") and readings[1].curvature.shape == (14, 2)

@@ -552,7 +552,7 @@ def test_cli_hostile_lines_and_out(rod, tmp_path, capsys):
         '{"id": "u400", "curvature": [[' + "2" * 400 + ", 0], " + rest + "}",
         '{"id": "e308", "curvature": [[1e308, 0], ' + rest + "}",
         '{"id": Infinity, "curvature": ' + json.dumps(u) + "}",
-        '{"id": "big", "curvature": [["' + "z" * 10_000_000 + '", 0], ' + rest + "}",
+        '{"id": "big", "curvature": [["' + "z" * 1_000_000 + '", 0], ' + rest + "}",  # (under the 1 MiB limit)
         json.dumps(dict(good, id="last")),
     ]
     path = tmp_path / "in.jsonl"

@@ -157,10 +157,13 @@ def _jig(obj: Any, scale: float) -> tuple[float, float, Any]:
     return kappa * scale, theta, name
 
 
-def read_jig_readings(path: str | os.PathLike, rod: Rod, fmt: str = "auto", *, quantity: str = "wavelength") -> JigData:
+def read_jig_readings(
+    path: str | os.PathLike, rod: Rod, fmt: str = "auto", *, quantity: str = "wavelength", max_line: int | None = None
+) -> JigData:
     """Read jig readings (module docstring) from ``path`` (``"-"``: standard input) in a format of
     :data:`torchrod.io.readings.FORMATS`; every line must be usable (a calibration from a silently thinned set
-    would mislead): ``ReadingError`` naming the bad lines otherwise."""
+    would mislead): ``ReadingError`` naming the bad lines otherwise. ``max_line``: the longest line read [bytes]
+    (None: the rod's, :func:`torchrod.io.readings.line_limit`)."""
     from .io.readings import iter_records, wavelength_shifts, wavelength_values
 
     fibre = rod.fibre
@@ -191,7 +194,7 @@ def read_jig_readings(path: str | os.PathLike, rod: Rod, fmt: str = "auto", *, q
 
     name = "standard input" if os.fspath(path) == "-" else os.fspath(path)
     rows, bad, ids = [], [], []
-    records = iter_records(path, G, parse, fmt, quantity=quantity, fibre=fibre)
+    records = iter_records(path, G, parse, fmt, quantity=quantity, fibre=fibre, max_line=max_line)
     for record in records:
         if not record.ok:
             bad.append(record.error)

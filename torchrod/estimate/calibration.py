@@ -236,13 +236,15 @@ def read_readings(
     device: torch.device | str | None = None,
     fmt: str = "auto",
     quantity: str = "curvature",
+    max_line: int | None = None,
 ) -> CalibrationData:
     """Read a file of readings with known forces (format in the module docstring; ``"-"`` reads standard input):
     JSON lines, or CSV (:data:`torchrod.io.readings.FORMATS`; the known forces in the columns ``s_J, fx_J, fy_J``,
     J = 1, 2, ..., all three empty for a force a row does not have), in the units the rod's fibre says.
 
     Every line is checked; raises ``ValueError`` naming the bad lines (the first five, and how many there are)
-    when any line cannot be used, or when no reading is found.
+    when any line cannot be used, or when no reading is found. ``max_line``: the longest line read [bytes] (None:
+    the rod's, :func:`torchrod.io.readings.line_limit`).
     """
     from ..io.readings import iter_records
 
@@ -252,7 +254,8 @@ def read_readings(
     def parse(obj: Any) -> Any:
         return parse_reading(obj, rod.num_gratings, rod.gratings, rod.fibre)
 
-    for record in iter_records(path, rod.num_gratings, parse, fmt, quantity=quantity, fibre=rod.fibre):
+    records = iter_records(path, rod.num_gratings, parse, fmt, quantity=quantity, fibre=rod.fibre, max_line=max_line)
+    for record in records:
         if not record.ok or record.value is None:
             bad.append(record.error)
             continue

@@ -11,7 +11,8 @@ Reading::
         ...  # record.line, record.id, record.value (what parse returned) or record.error (a message)
 
 A line is what ends with ``\\n``; it is decoded as UTF-8 (undecodable bytes become U+FFFD and fail as bad JSON on
-their own line; a byte-order mark on the first line is dropped); a line longer than :data:`MAX_LINE_BYTES` is an
+their own line; a byte-order mark on the first line is dropped); a line longer than the reader's limit (``max_line``,
+by default :data:`MAX_LINE_BYTES`; readings are read with their rod's, :func:`torchrod.io.readings.line_limit`) is an
 error line and is skipped without being held in memory. JSON is decoded by :func:`decode`: Python's decoder, except
 that an integer of more than 4300 digits becomes a :class:`~torchrod.io.readings.HugeInteger` (refused by the number
 rules, naming its field) instead of aborting the decoding, and nesting too deep for the decoder is an error of its
@@ -93,9 +94,10 @@ STDOUT_CLOSED = (
 )
 
 MAX_LINE_BYTES = 16 * 2**20
-"""The longest input line read [bytes]; a longer one is an error line, read past in chunks without being held.
-A reading of 100 000 gratings fits in a few MB; decoding a line into Python objects costs up to about 20 times
-its size in memory (an array of small numbers), so this bound also bounds what one line can cost."""
+"""The longest input line a reader takes by default [bytes]; a longer one is an error line, read past in chunks
+without being held. Decoding a line into Python objects costs up to about 20 times its size in memory (an array of
+small numbers), so this bound also bounds what one line can cost. Readings are read with a much lower bound, their
+rod's (:func:`torchrod.io.readings.line_limit`)."""
 
 MAX_MESSAGE_CHARS = 600
 """The longest error message written (messages quote at most ~100 characters of a value; this is a safety net)."""
@@ -123,12 +125,29 @@ class Record(Generic[T]):
 
 
 class Overlong(str):
-    """Stands for an input line longer than :data:`MAX_LINE_BYTES` (its text is not kept)."""
+    """Stands for an input line longer than ``limit`` [bytes], the reader's (its text is not kept)."""
+
+    limit: int
+
+    def __new__(cls, limit: int) -> Overlong:
+        self = super().__new__(cls, "")
+        self.limit = limit
+        return self
 
 
-def overlong_error(number: int) -> str:
-    """The error of input line ``number`` when it is an :class:`Overlong` (in every format)."""
-    return f"line {number}: longer than {MAX_LINE_BYTES} bytes; not read"
+def overlong_error(number: int, text: Overlong) -> str:
+    """The error of input line ``number`` when it is the :class:`Overlong` ``text`` (in every format)."""
+    return f"line {number}: longer than {text.limit} bytes; not read"
+
+
+def line_bytes(max_line: int | None) -> int:
+    """The limit of a reader given ``max_line`` [bytes] (None: :data:`MAX_LINE_BYTES`); ``ValueError`` unless it is
+    an integer >= 1."""
+    if max_line is None:
+        return MAX_LINE_BYTES
+    if not isinstance(max_line, int) or isinstance(max_line, bool) or max_line < 1:
+        raise ValueError(f"the line limit must be an integer >= 1 [bytes], got {max_line!r}")
+    return max_line
 
 
 # ---------------------------------------------------------------------------------------------------- reading
@@ -148,7 +167,9 @@ class ReadControl:
         self.halted.set()
 
 
-def read_lines(source: str | os.PathLike | IO[str], control: ReadControl | None = None) -> Iterator[tuple[int, str]]:
+def read_lines(
+    source: str | os.PathLike | IO[str], control: ReadControl | None = None, max_line: int | None = None
+) -> Iterator[tuple[int, str]]:
     """Non-blank lines of ``source`` with their 1-based numbers, lazily.
 
     ``source`` is a path, ``"-"`` for standard input (looked up when reading starts, so tests may replace it),
@@ -156,9 +177,12 @@ def read_lines(source: str | os.PathLike | IO[str], control: ReadControl | None 
     here). Paths and standard input are read as bytes from the file descriptor (no
     buffer lock is held while waiting, so a reader thread blocked on a pipe never hangs the interpreter's exit) and
     decoded line by line as UTF-8 (module docstring); a path is closed when the iterator is exhausted or closed.
-    Raises FileNotFoundError for a missing path when iteration starts. A line over :data:`MAX_LINE_BYTES` comes as
-    an :class:`Overlong`. ``control`` (:class:`ReadControl`) lets another thread end the reading early.
+    Raises FileNotFoundError for a missing path when iteration starts. A line over ``max_line`` bytes (None:
+    :data:`MAX_LINE_BYTES`; characters for a text stream) comes as an :class:`Overlong`, read past in chunks: the
+    reader never holds more than about ``max_line`` + 64 KiB of input. ``control`` (:class:`ReadControl`) lets
+    another thread end the reading early.
     """
+    limit = line_bytes(max_line)
     control = control if control is not None else ReadControl()
     if isinstance(source, (str, os.PathLike)) and os.fspath(source) == "-":
         stdin = sys.stdin
@@ -167,12 +191,12 @@ def read_lines(source: str | os.PathLike | IO[str], control: ReadControl | None 
         try:
             fd = stdin.fileno()
         except (AttributeError, OSError, ValueError):  # a replaced stdin (tests): a text stream
-            yield from _numbered(stdin, control)
+            yield from _numbered(stdin, control, limit)
         else:
-            yield from _numbered_bytes(lambda n: os.read(fd, n), control)
+            yield from _numbered_bytes(lambda n: os.read(fd, n), control, limit)
     elif is_tcp(source):
         with TcpReader(str(source), control.halted) as conn:
-            yield from _numbered_bytes(conn.read, control)
+            yield from _numbered_bytes(conn.read, control, limit)
     elif isinstance(source, (str, os.PathLike)):
         if control.halted.is_set():
             return
@@ -184,20 +208,28 @@ def read_lines(source: str | os.PathLike | IO[str], control: ReadControl | None 
         finally:
             control.waiting.clear()
         with fh:
-            yield from _numbered_bytes(fh.read, control)
+            yield from _numbered_bytes(fh.read, control, limit)
     else:
-        yield from _numbered(source, control)
+        yield from _numbered(source, control, limit)
 
 
-def _numbered(stream: IO[str], control: ReadControl) -> Iterator[tuple[int, str]]:
-    # readline() rather than iteration: a pipe's lines come through as soon as they arrive.
+def _numbered(stream: IO[str], control: ReadControl, limit: int, chunk: int = 2**16) -> Iterator[tuple[int, str]]:
+    # readline() rather than iteration: a pipe's lines come through as soon as they arrive. At most limit + 1
+    # characters are taken at once: a longer line is an Overlong, the rest of it read past in chunks.
     number = 0
     while not control.halted.is_set():
         control.waiting.set()
         try:
-            text = stream.readline()
+            text = stream.readline(limit + 1)
+            overlong = len(text) > limit
+            while overlong and text and not text.endswith("\n"):
+                text = stream.readline(chunk)
         finally:
             control.waiting.clear()
+        if overlong:
+            number += 1
+            yield number, Overlong(limit)
+            continue
         if not text:
             return
         number += 1
@@ -205,9 +237,11 @@ def _numbered(stream: IO[str], control: ReadControl) -> Iterator[tuple[int, str]
             yield number, text
 
 
-def _raw_lines(read: Callable[[int], bytes | None], control: ReadControl, chunk: int = 2**16) -> Iterator[bytes | None]:
+def _raw_lines(
+    read: Callable[[int], bytes | None], control: ReadControl, limit: int, chunk: int = 2**16
+) -> Iterator[bytes | None]:
     """Lines (with their newline) from an unbuffered ``read``, as soon as each is complete; None for a line over
-    :data:`MAX_LINE_BYTES` (dropped as it is read, so memory stays bounded). Once ``control`` is halted, ends when
+    ``limit`` bytes (dropped as it is read, so memory stays bounded). Once ``control`` is halted, ends when
     the complete lines in memory are out (a partial line is dropped); a ``read`` that returns None (it saw the halt
     while waiting) ends it the same way."""
     buf = bytearray()
@@ -218,13 +252,13 @@ def _raw_lines(read: Callable[[int], bytes | None], control: ReadControl, chunk:
         nl = buf.find(b"\n", scanned)
         if nl >= 0:
             # (a memoryview slice: one copy of the line, not two)
-            yield None if overlong or nl + 1 - pos > MAX_LINE_BYTES else bytes(memoryview(buf)[pos : nl + 1])
+            yield None if overlong or nl + 1 - pos > limit else bytes(memoryview(buf)[pos : nl + 1])
             overlong = False
             pos = scanned = nl + 1
             continue
         del buf[:pos]
         pos, scanned = 0, len(buf)
-        if len(buf) > MAX_LINE_BYTES:
+        if len(buf) > limit:
             overlong = True
             buf.clear()
             scanned = 0
@@ -246,10 +280,10 @@ def _raw_lines(read: Callable[[int], bytes | None], control: ReadControl, chunk:
         buf += data
 
 
-def _numbered_bytes(read: Callable[[int], bytes | None], control: ReadControl) -> Iterator[tuple[int, str]]:
-    for number, raw in enumerate(_raw_lines(read, control), start=1):
+def _numbered_bytes(read: Callable[[int], bytes | None], control: ReadControl, limit: int) -> Iterator[tuple[int, str]]:
+    for number, raw in enumerate(_raw_lines(read, control, limit), start=1):
         if raw is None:
-            yield number, Overlong("")
+            yield number, Overlong(limit)
             continue
         text = raw.decode("utf-8", errors="replace")
         if number == 1 and text.startswith("\ufeff"):
@@ -300,7 +334,7 @@ def parse_records(lines: Iterable[tuple[int, str]], parse: Callable[[dict[str, A
 def _record(number: int, text: str, parse: Callable[[dict[str, Any]], T]) -> Record[T]:
     at = f"line {number}: "
     if isinstance(text, Overlong):
-        return Record(number, None, None, overlong_error(number))
+        return Record(number, None, None, overlong_error(number, text))
     try:
         obj = decode(text)
     except ValueError as exc:

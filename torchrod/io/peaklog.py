@@ -183,7 +183,7 @@ class PeakLog:
 
         for number, text in lines:
             if isinstance(text, Overlong):
-                yield Record(number, None, None, overlong_error(number))
+                yield Record(number, None, None, overlong_error(number, text))
                 continue
             try:
                 obj = self.reading_object(text)

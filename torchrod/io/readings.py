@@ -61,6 +61,12 @@ Ids
     deep or too long) makes its line an error whose answer has ``"id": null`` and names the line: the answer is
     still in the line's position, and the message says which line it was.
 
+Lines
+    A line of JSON, CSV or a peak log longer than :func:`line_limit` of the rod (1 MiB, more for a rod whose
+    readings hold more than 16 384 values) is an error line (``longer than N bytes; not read``) and is read past in
+    chunks without being held: no reading of the rod needs such a line, and decoding one would cost up to about 20
+    times its size in memory. ``max_line`` (``--max-line-bytes``) sets another limit.
+
 Messages
     Every message names the field (``curvature[3][0]``, ``t``, ``id``) and quotes at most ``QUOTE_CHARS``
     characters of the offending value (with its full length when cut), so a 10 MB value gives a short message;
@@ -92,6 +98,8 @@ __all__ = [
     "QUOTE_CHARS",
     "CsvLayout",
     "HugeInteger",
+    "LINE_BYTES_PER_VALUE",
+    "MIN_LINE_BYTES",
     "Reading",
     "ReadingSource",
     "as_number",
@@ -107,6 +115,7 @@ __all__ = [
     "id_problem",
     "iter_readings",
     "iter_records",
+    "line_limit",
     "parse_csv_row",
     "parse_reading",
     "polar_curvature",
@@ -133,6 +142,14 @@ MAX_ID_DEPTH = 32
 
 MAX_ID_CHARS = 1000
 """Longest id, as JSON text, that is echoed."""
+
+MIN_LINE_BYTES = 2**20
+"""[bytes] The least :func:`line_limit` gives: a reading line of a rod of a few dozen gratings is a few kB, an id at
+most :data:`MAX_ID_CHARS`; the rest is room for keys a reading may carry besides (they are ignored)."""
+
+LINE_BYTES_PER_VALUE = 64
+"""[bytes] What :func:`line_limit` allows per value of a reading: a double written in full is at most 24
+characters, with its separator and brackets about 30."""
 
 GRATING_TOLERANCE = 1e-9
 """[m] How far a reading's ``gratings`` may lie from the rod's."""
@@ -1140,7 +1157,7 @@ def _csv_records(
     first = True
     for number, text in lines:
         if isinstance(text, Overlong):
-            yield Record(number, None, None, overlong_error(number))
+            yield Record(number, None, None, overlong_error(number, text))
             continue
         try:
             cells = _csv_cells(text)
@@ -1205,6 +1222,7 @@ def iter_records(
     quantity: str = "curvature",
     fibre: Any = None,
     peaks: Any = None,
+    max_line: int | None = None,
 ) -> Iterator[Any]:
     """Each non-blank line of ``source`` (a path, ``"-"``, ``tcp://HOST:PORT`` or an open text stream) as the
     reading's JSON object (a JSON line decoded, a CSV row or a peak log line made into one), handed to ``parse``:
@@ -1218,14 +1236,17 @@ def iter_records(
         quantity: what a CSV row without a header gives per grating (:data:`QUANTITIES`).
         fibre: the rod's :class:`torchrod.sensors.Fibre` (cores, wavelength section, units).
         peaks: a peak log's layout, overriding the rod file's (:meth:`torchrod.sensors.Fibre.peak_layout`).
+        max_line: the longest line read [bytes] (None: the rod's, :func:`line_limit`); a longer one is an error
+            record, read past without being held.
     """
-    from .jsonl import parse_records, read_lines
+    from .jsonl import line_bytes, parse_records, read_lines
 
     if fmt not in FORMATS:
         raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     if quantity not in QUANTITIES:
         raise ValueError(f"quantity must be one of {', '.join(QUANTITIES)}, got {quantity!r}")
-    lines: Iterator[tuple[int, str]] = iter(read_lines(source, control))
+    limit = line_limit(num_gratings, fibre) if max_line is None else line_bytes(max_line)
+    lines: Iterator[tuple[int, str]] = iter(read_lines(source, control, limit))
     if fmt == "auto":
         from .jsonl import Overlong
 
@@ -1259,14 +1280,18 @@ def iter_readings(
     quantity: str = "curvature",
     fibre: Any = None,
     peaks: Any = None,
+    max_line: int | None = None,
 ) -> Iterator[Reading]:
-    """Readings from ``source`` (:func:`iter_records`), lazily, one :class:`Reading` per non-blank line in order (a
-    CSV header row excepted): checked, or with ``error`` set (``"line N: ..."``) for a line that cannot be used."""
+    """Readings from ``source`` (:func:`iter_records`, whose ``max_line`` bounds a line), lazily, one
+    :class:`Reading` per non-blank line in order (a CSV header row excepted): checked, or with ``error`` set
+    (``"line N: ..."``) for a line that cannot be used."""
 
     def parse(obj: Any) -> Reading:
         return parse_reading(obj, num_gratings, gratings, fibre=fibre)
 
-    records = iter_records(source, num_gratings, parse, fmt, control, quantity=quantity, fibre=fibre, peaks=peaks)
+    records = iter_records(
+        source, num_gratings, parse, fmt, control, quantity=quantity, fibre=fibre, peaks=peaks, max_line=max_line
+    )
     for record in records:
         if record.ok and record.value is not None:
             yield _checked(replace(record.value, line=record.line))
@@ -1278,7 +1303,8 @@ class ReadingSource:
     """The readings of a file, standard input or a TCP connection (:func:`iter_readings`), as an iterable that the
     flush after an interrupt can end at the lines already read: :meth:`halt` makes it yield the readings of the
     complete lines it holds in memory and then end instead of reading more; :attr:`waiting` is true while it waits
-    on the input (holding no complete line). :func:`torchrod.io.stream.stream` uses both when its source has them."""
+    on the input (holding no complete line). :func:`torchrod.io.stream.stream` uses both when its source has them.
+    ``max_line`` bounds a line as in :func:`iter_records` (None: the rod's, :func:`line_limit`)."""
 
     def __init__(
         self,
@@ -1290,6 +1316,7 @@ class ReadingSource:
         quantity: str = "curvature",
         fibre: Any = None,
         peaks: Any = None,
+        max_line: int | None = None,
     ) -> None:
         from .jsonl import ReadControl
 
@@ -1297,7 +1324,15 @@ class ReadingSource:
             raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
         self.control = ReadControl()
         self._readings = iter_readings(
-            source, num_gratings, gratings, fmt, self.control, quantity=quantity, fibre=fibre, peaks=peaks
+            source,
+            num_gratings,
+            gratings,
+            fmt,
+            self.control,
+            quantity=quantity,
+            fibre=fibre,
+            peaks=peaks,
+            max_line=max_line,
         )
 
     def __iter__(self) -> Iterator[Reading]:
@@ -1317,6 +1352,16 @@ def _chain(head: list[tuple[int, str]], rest: Iterator[tuple[int, str]]) -> Iter
 
 
 # ---------------------------------------------------------------------------------------------------- tensors
+def line_limit(num_gratings: int, fibre: Any = None) -> int:
+    """The longest line read as a reading of a rod of ``num_gratings`` gratings [bytes]: :data:`MIN_LINE_BYTES`, or
+    :data:`LINE_BYTES_PER_VALUE` per value its largest reading holds when that is more (per grating, one value per
+    core of the fibre's, at least two, and its position in ``gratings``). A longer line is an error line read past
+    without being held (module docstring), so a line costs at most a few tens of MB whatever it holds."""
+    cores = len(getattr(fibre, "cores", None) or ())
+    values = num_gratings * (max(2, cores) + 1)
+    return max(MIN_LINE_BYTES, LINE_BYTES_PER_VALUE * values)
+
+
 def check_readings(curvature: Any, mask: Any, num_gratings: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Validate a batch of readings and return ``(curvature, mask)`` (the estimator's and the network's check).
 

@@ -9,6 +9,7 @@ names ``torchrod bench`` knows (a suite whose module is missing is reported as n
 * ``network``: the warm-start network alone, and the estimator with and without it.
 * ``startup``: time to the first answer (``--version``, ``--help``, a one-reading estimate) against importing torch.
 * ``gpu``: the CUDA kernels: their compiled size (no GPU needed), the CUDA tests and readings per second on a GPU.
+* ``memory``: a ``torchrod stream`` process fed a million readings, its memory sampled: flat or growing.
 """
 
 from __future__ import annotations
@@ -23,4 +24,5 @@ SUITES: dict[str, str] = {
     "network": "what the warm-start network buys: the network alone, the estimator with and without it",
     "startup": "time to the first answer (--version, --help, a one-reading estimate) against importing torch",
     "gpu": "the CUDA kernels: PTX size and registers, the CUDA tests, readings per second on a GPU",
+    "memory": "a long stream's memory: RSS of torchrod stream over a million readings, flat or growing",
 }

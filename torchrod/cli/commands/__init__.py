@@ -272,12 +272,24 @@ def reading_source(args: argparse.Namespace, rod, path: str):
         quantity=args.csv_quantity,
         fibre=rod.fibre,
         peaks=getattr(args, "peaks", None),
+        max_line=getattr(args, "max_line_bytes", None),
     )
 
 
+def _line_bytes(text: str) -> int:
+    """``--max-line-bytes`` for argparse: an integer >= 1, else a usage error naming it."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer number of bytes >= 1, got {text!r}")
+    return value
+
+
 def add_input_options(parser: argparse.ArgumentParser, *, protocol: bool = True) -> None:
-    """``--format`` (and ``--protocol``): how a readings input is read."""
-    from ...io.readings import FORMATS
+    """``--format``, ``--max-line-bytes`` (and ``--protocol``): how a readings input is read."""
+    from ...io.readings import FORMATS, MIN_LINE_BYTES
 
     parser.add_argument(
         "--format",
@@ -285,6 +297,15 @@ def add_input_options(parser: argparse.ArgumentParser, *, protocol: bool = True)
         default="auto",
         help="input format: jsonl, csv, peaks (an interrogator's peak log), or auto (default): by the extension "
         "(.csv; .jsonl, .json), else by the first line ({ for JSON lines, TIME: numbers for a peak log, else CSV)",
+    )
+    parser.add_argument(
+        "--max-line-bytes",
+        type=_line_bytes,
+        default=None,
+        metavar="N",
+        help=f"longest input line read; a longer one is an error line, read past without being held (default: "
+        f"{MIN_LINE_BYTES} bytes, or 64 per value of the rod's largest reading when more; decoding a line can take "
+        "20 times its size in memory)",
     )
     if protocol:
         parser.add_argument(

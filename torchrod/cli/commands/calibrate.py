@@ -135,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--gain-tolerance is an option of --fibre")
     from ...estimate.calibration import calibrate, read_readings, summary
 
-    data = read_readings(args.readings, rod, fmt=args.format, quantity=args.csv_quantity)
+    data = read_readings(args.readings, rod, fmt=args.format, quantity=args.csv_quantity, max_line=args.max_line_bytes)
     result = calibrate(rod, data, directions=args.directions, initial_bias=args.initial_bias, noise=args.noise)
     print(
         f"torchrod calibrate: {data.num_readings} readings, {int(data.forces.count.sum())} known forces",
@@ -159,7 +159,7 @@ def _fibre(args: argparse.Namespace, rod, base) -> int:
     from ...jig import GAIN_TOLERANCE, calibrate_fibre, read_jig_readings, report
 
     quantity = args.csv_quantity if args.csv_quantity in ("wavelength", "wavelength-shift") else "wavelength"
-    data = read_jig_readings(args.readings, rod, args.format, quantity=quantity)
+    data = read_jig_readings(args.readings, rod, args.format, quantity=quantity, max_line=args.max_line_bytes)
     tolerance = GAIN_TOLERANCE if args.gain_tolerance is None else args.gain_tolerance
     result = calibrate_fibre(rod, data, tolerance)
     for line in report(result, data):

@@ -102,6 +102,7 @@ def _readings(args: argparse.Namespace, rod: Rod) -> list[Any]:
         quantity=args.csv_quantity,
         fibre=rod.fibre,
         peaks=args.peaks,
+        max_line=args.max_line_bytes,
     )
     return list(records)
 

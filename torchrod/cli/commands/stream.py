@@ -74,7 +74,8 @@ JSON or CSV, a wrong number of gratings, NaN, a value out of bounds, all grating
 ``{"id": ... or null, "error": "line N: ..."}`` naming the field and quoting at most about 100 characters of the
 value, and the stream goes on; missing gratings are left out of the fit. The end of the input, Ctrl-C and SIGTERM
 answer every line read so far before stopping. Memory stays bounded (a batch and a bounded read-ahead; a line
-longer than 16 MiB is an error line, read past without being held). ``--input`` may be a named pipe or a
+longer than ``--max-line-bytes``, by default 1 MiB, more for a rod of thousands of gratings, is an error line, read
+past without being held). ``--input`` may be a named pipe or a
 device: it is opened once, and SIGTERM ends a stream still waiting for the pipe's writer. ``--out`` and
 ``--output-bag`` never name an input. Exit status: 0, or 1 if any line failed or the output bag could not be written
 (a full disk: said once on stderr, the answers go on), 130 after Ctrl-C, 143 after SIGTERM, 141 when the reader of
