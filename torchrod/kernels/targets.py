@@ -46,9 +46,12 @@ TARGETS = ("python", "cpu", "cuda")
 _lock = threading.Lock()
 
 COMPILE_CHILD = (
-    "import sys; from torchrod.kernels import targets; targets.die_with_parent(int(sys.argv[1])); targets.cpu().ready()"
+    "import sys; sys.path.insert(0, sys.argv[2]); from torchrod.kernels import targets; "
+    "targets.die_with_parent(int(sys.argv[1])); targets.cpu().ready()"
 )
-"""The program of the child process that compiles the CPU kernels in the background (argument: the parent's pid)."""
+"""The program of the child process that compiles the CPU kernels in the background (arguments: the parent's pid,
+and the folder holding the parent's ``torchrod`` package, so that the child compiles the same source whatever its
+import path)."""
 
 _CHILD = "TORCHROD_COMPILING_CHILD"
 """Set in the environment of the child process that compiles in the background (:meth:`Compiled.start`)."""
@@ -195,7 +198,7 @@ class Compiled:
                 return
             try:
                 self._child = subprocess.Popen(
-                    [sys.executable, "-c", COMPILE_CHILD, str(os.getpid())],
+                    [sys.executable, "-c", COMPILE_CHILD, str(os.getpid()), str(Path(__file__).parents[2])],
                     stdin=subprocess.DEVNULL,
                     stdout=subprocess.DEVNULL,
                     env={**os.environ, _CHILD: "1"},
