@@ -137,6 +137,11 @@ def test_start_announces_the_background_compile_and_loads_when_it_is_done(tmp_pa
     third = targets.Compiled("cpu", estimate_rows, tmp_path, lambda entry: loaded.append(entry))
     third.start()
     assert not third.compiling() and len(loaded) == 3
+    # No writable cache: a child's compile would be lost, so it is done here.
+    monkeypatch.delenv("TORCHROD_COMPILE")
+    fourth = targets.Compiled("cpu", estimate_rows, None, lambda entry: loaded.append(entry))
+    fourth.start()
+    assert not fourth.compiling() and len(loaded) == 4
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")

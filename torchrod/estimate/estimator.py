@@ -475,7 +475,10 @@ class Estimator:
             return result
         idx = chosen.nonzero().flatten()
         c, m = curvature[idx.to(curvature.device)], mask[idx.to(mask.device)]
-        free = self.estimate(c, m, options=dataclasses.replace(opts, num_forces=None, max_forces=h + 1))
+        try:
+            free = self.estimate(c, m, options=dataclasses.replace(opts, num_forces=None, max_forces=h + 1))
+        except OptionsError:  # (no start for a count h + 1 where starts=0 asks for the network's alone)
+            return result
         n = free.num_forces
         usable = n >= h
         if not bool(usable.any()):

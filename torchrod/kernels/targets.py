@@ -143,7 +143,11 @@ def _file_lock(path: Path):
 
 
 def _say(message: str) -> None:
-    print(f"torchrod: {message}", file=sys.stderr, flush=True)
+    """One line on stderr; nothing when there is no stderr (a process started with it closed), never stdout."""
+    if sys.stderr is None:
+        return
+    with contextlib.suppress(OSError, ValueError):
+        print(f"torchrod: {message}", file=sys.stderr, flush=True)
 
 
 _FIRST_GUESS = {
@@ -190,7 +194,14 @@ class Compiled:
         if self._ready or self._child is not None:
             return
         background = os.environ.get("TORCHROD_COMPILE", "background") != "foreground"
-        if self.target != "cpu" or self.what != "estimation" or not background or self._cached():
+        # (Without a writable cache a child's compile would be lost: compiled here.)
+        if (
+            self.target != "cpu"
+            or self.what != "estimation"
+            or not background
+            or self.directory is None
+            or self._cached()
+        ):
             self.ready()
             return
         with _lock:
