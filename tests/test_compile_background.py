@@ -4,6 +4,7 @@ child is done; the child ends with its parent."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -106,6 +107,30 @@ def test_a_stream_takes_one_reading_at_a_time_while_compiling(monkeypatch):
         results = list(tr.stream(est, readings, tr.StreamOptions(workers=1)))
     assert [r.id for r in results] == [0, 1, 2, 3] and [r.batch for r in results] == [1, 1, 1, 1]
     assert all(r.error is None for r in results)
+
+
+def test_the_estimate_command_answers_each_reading_as_it_is_solved_while_compiling(tmp_path, monkeypatch, capsys):
+    from torchrod.cli import main
+
+    u = _readings(3)
+    path = tmp_path / "r.jsonl"
+    path.write_text("".join(json.dumps({"id": i, "curvature": u[i].tolist()}) + "\n" for i in range(3)))
+    sizes = []
+    estimate = tr.Estimator.estimate
+
+    def counted(self, curvature, *args, **kwargs):
+        sizes.append(curvature.shape[0])
+        return estimate(self, curvature, *args, **kwargs)
+
+    monkeypatch.setattr(tr.Estimator, "estimate", counted)
+    with _Compiling(targets.cpu()):
+        _counting_python(monkeypatch)
+        assert main(["estimate", "--rod", "nitinol290", "--noise", "0.05", str(path)]) == 0
+    assert sizes == [1, 1, 1]
+    answers = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [a["id"] for a in answers] == [0, 1, 2] and all("forces" in a for a in answers)
+    assert main(["estimate", "--rod", "nitinol290", "--noise", "0.05", str(path)]) == 0  # compiled: one batch
+    assert sizes == [1, 1, 1, 3]
 
 
 def test_start_announces_the_background_compile_and_loads_when_it_is_done(tmp_path, monkeypatch, capsys):

@@ -349,7 +349,8 @@ class _Answers:
         try:
             for reading in readings:
                 self.pending.append(reading)
-                if len(self.pending) >= batch_size:
+                # (While the kernels compile in the background, each reading is answered as it is solved.)
+                if len(self.pending) >= batch_size or self.estimator.compiling():
                     self.flush()
             self.flush()
         except KeyboardInterrupt:
