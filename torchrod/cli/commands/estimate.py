@@ -350,7 +350,7 @@ class _Answers:
             for reading in readings:
                 self.pending.append(reading)
                 # (While the kernels compile in the background, each reading is answered as it is solved.)
-                if len(self.pending) >= batch_size or self.estimator.compiling():
+                if len(self.pending) >= batch_size or getattr(self.estimator, "compiling", bool)():
                     self.flush()
             self.flush()
         except KeyboardInterrupt:
