@@ -554,3 +554,18 @@ def test_shipped_example_stream():
     got = torch.tensor([readings[k]["curvature"] for k in frames], dtype=torch.float64)
     # the readings are the truth's forces seen through noise of sigma 0.1 1/m (84 residuals)
     assert float((got - ref).std()) == pytest.approx(0.1, rel=0.3)
+
+
+def test_turning_and_peak_of_a_small_tip_force_are_the_lever_arm_s():
+    """Small deflection, a force F at the tip: |u(s)| = F (L - s) / EI, so the peak is F L / EI at the base and the
+    turning F L^2 / (2 EI)."""
+    from torchrod.learn.synthetic import total_turning, turning_and_peak
+
+    rod = tr.presets.nitinol290()
+    L, EI, F = rod.length, rod.bending_stiffness, 1e-5
+    loads = tr.PointForces(torch.tensor([[L]], dtype=torch.float64), torch.tensor([[[0.0, F]]], dtype=torch.float64))
+    turning, peak = turning_and_peak(rod, loads)
+    assert peak.shape == turning.shape == (1,)
+    assert float(peak[0]) == pytest.approx(F * L / EI, rel=1e-6)
+    assert float(turning[0]) == pytest.approx(F * L**2 / (2 * EI), rel=1e-3)
+    assert torch.equal(total_turning(rod, loads), turning)

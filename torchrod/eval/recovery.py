@@ -99,8 +99,7 @@ def recovery_cases(
 ) -> list[RecoveryCase]:
     """``count`` stratified random cases (module docstring), reproducible from ``seed``: within ``max_bending``
     [rad] of total turning, or with ``elastic`` within the elastic range (bending strain at most ``max_strain``)."""
-    from ..learn.synthetic import PROFILE_SAMPLES
-    from ..model.body_frame import simulate
+    from ..learn.synthetic import turning_and_peak
 
     if not 0.0 < max_strain < 1.0:
         raise ValueError(f"max_strain must lie in (0, 1), got {max_strain!r}")
@@ -117,12 +116,11 @@ def recovery_cases(
 
     def inside(loads: PointForces, stratum: str) -> bool:
         """Whether the case lies in the envelope (and its stratum): its turning and largest curvature."""
-        sim = simulate(rod, loads, samples=PROFILE_SAMPLES)
-        magnitude = sim.curvature_magnitude()
-        turning = float(torch.trapezoid(magnitude, sim.s, dim=-1)[0])  # as learn.synthetic.total_turning
+        turnings, peaks = turning_and_peak(rod, loads)
+        turning, peak = float(turnings[0]), float(peaks[0])
         if not elastic:
             return turning <= max_bending
-        if radius is not None and float(magnitude.max()) * radius > max_strain:
+        if radius is not None and peak * radius > max_strain:
             return False
         if radius is None and turning > 2.0 * math.pi:
             return False

@@ -99,6 +99,7 @@ __all__ = [
     "generate_trajectory",
     "sample_loads",
     "total_turning",
+    "turning_and_peak",
     "write_trajectory",
 ]
 
@@ -354,13 +355,22 @@ def total_turning(rod: Rod, loads: PointForces, *, samples: int = PROFILE_SAMPLE
     """Total turning angle ``int_0^L |u(s)| ds`` [rad], (B,), from :func:`torchrod.simulate` on ``samples``
     uniform positions (trapezoid rule). An upper bound of the base-to-tip tangent angle, exact for planar loads.
     Raises ``ValueError`` for loads the simulation flags (``accurate`` False: far beyond the rod's range)."""
+    return turning_and_peak(rod, loads, samples=samples)[0]
+
+
+def turning_and_peak(
+    rod: Rod, loads: PointForces, *, samples: int = PROFILE_SAMPLES
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B,) the total turning [rad] (:func:`total_turning`) and (B,) the largest |u| [1/m] among the same samples
+    (the bending strain's peak over d_out / 2), from one simulation; ``ValueError`` as :func:`total_turning`."""
     from ..model.body_frame import simulate
 
     if samples < 2:
         raise ValueError(f"samples must be >= 2, got {samples}")
     sim = simulate(rod, loads, samples=samples)
     _check_resolved(sim.accurate, loads, "case")
-    return torch.trapezoid(sim.curvature_magnitude(), sim.s, dim=-1)
+    size = sim.curvature_magnitude()
+    return torch.trapezoid(size, sim.s, dim=-1), size.amax(dim=-1)
 
 
 def _shifted(rod: Rod, loads: PointForces, bias: float) -> PointForces:
