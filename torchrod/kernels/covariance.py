@@ -58,21 +58,31 @@ def covariance(k, J, P, active, sigma, cov):
                 v = acc * cw.d[p] * cw.d[q]
             cw.C[p, q] = v
             cw.C[q, p] = v
-    ok = symmetric_eigen(cw.C, cw.w, cw.V, cw.a, P)
-    lo = cw.w[0]
-    hi = cw.w[P - 1]
+    # Beyond the last active column the matrix is the identity: its eigenvalues are 1 and its eigenvectors the unit
+    # vectors there, so only the leading block needs the eigensolver (a unit-diagonal matrix has an eigenvalue at
+    # most and one at least 1, so the identity's leave the extremes as they are).
+    m = 0
+    for p in range(P):
+        if active[p]:
+            m = p + 1
+    ok = symmetric_eigen(cw.C, cw.w, cw.V, cw.a, m)
+    lo = 1.0
+    hi = 1.0
+    if m > 0:
+        lo = cw.w[0] if m == P or cw.w[0] < 1.0 else 1.0
+        hi = cw.w[m - 1] if m == P or cw.w[m - 1] > 1.0 else 1.0
     condition = math.inf
     if ok and lo > EPS * abs(hi) and not unscaled and finite_rows:
         condition = hi / lo
     s2 = sigma * sigma
-    for p in range(P):
+    for p in range(m):
         cw.inv[p] = 1.0 / cw.w[p] if cw.w[p] > EPS * abs(hi) else 0.0
     for p in range(P):
         for q in range(P):
             v = math.nan
             if ok and finite_rows and cw.ok[p] and cw.ok[q]:
                 acc = 0.0
-                for e in range(P):
+                for e in range(m):
                     acc += cw.V[p, e] * cw.inv[e] * cw.V[q, e]
                 v = acc * cw.d[p] * cw.d[q] * s2
             cov[p, q] = v
