@@ -156,7 +156,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=int, default=1024, metavar="B", help="readings per batch (default 1024)")
     add_time_budget_option(parser, None)
     add_device_option(parser)
-    parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch CPU threads, for the warm-start network (default 1: the solver threads, --workers, use the cores)",
+    )
     add_workers_option(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 

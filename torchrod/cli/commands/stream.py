@@ -219,7 +219,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="most Levenberg-Marquardt steps per fit while the search compares counts (default %(default)s)",
     )
     add_device_option(parser)
-    parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch CPU threads, for the warm-start network (default 1: the solver threads, --workers, use the cores)",
+    )
     add_workers_option(parser)
     parser.add_argument("--summary", action="store_true", help="a short summary on stderr at the end")
     parser.add_argument("--truth", metavar="FILE", help="true forces per id, for --summary's accuracy")
