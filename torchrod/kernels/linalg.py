@@ -14,6 +14,11 @@ EIGEN_SWEEPS = 60
 """Most sweeps of the cyclic Jacobi eigenvalue method: it converges quadratically, in under ten sweeps for the
 9 x 9 matrices it is given, so reaching this bound means the input was not a number."""
 
+EIGEN_SETTLED = 3
+"""Sweeps after which an off-diagonal entry too small to change either diagonal entry it couples (100 |a_pq| lost
+in the rounding of |a_pp| and of |a_qq|) is set to zero instead of rotated: the eigenvalues are then settled to
+rounding, and the sweeps that would only drive such entries down to underflow are skipped."""
+
 INLINE = (
     "sumsq",
     "dot",
@@ -154,7 +159,7 @@ def symmetric_eigen(A, w, V, a, P):
             V[i, j] = 1.0 if i == j else 0.0
             ok = ok and math.isfinite(A[i, j])
     if ok:
-        for _ in range(EIGEN_SWEEPS):
+        for sweep in range(EIGEN_SWEEPS):
             off = 0.0
             for p in range(P):
                 for q in range(p + 1, P):
@@ -165,6 +170,11 @@ def symmetric_eigen(A, w, V, a, P):
                 for q in range(p + 1, P):
                     apq = a[p, q]
                     if apq == 0.0:
+                        continue
+                    g = 100.0 * abs(apq)
+                    if sweep >= EIGEN_SETTLED and abs(a[p, p]) + g == abs(a[p, p]) and abs(a[q, q]) + g == abs(a[q, q]):
+                        a[p, q] = 0.0
+                        a[q, p] = 0.0
                         continue
                     diff = a[q, q] - a[p, p]
                     if abs(diff) > 1e150 * abs(apq):  # theta^2 would overflow: t ~ 1 / (2 theta)
