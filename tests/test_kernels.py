@@ -245,6 +245,23 @@ def test_the_eigenvalues_are_numpys():
     assert np.isnan(w[:2]).all()
 
 
+def test_jacobi_settles_clustered_and_spread_eigenvalues_to_rounding():
+    # Entries too small to move a diagonal are zeroed after a few sweeps: clustered eigenvalues (the slow case for
+    # the off-diagonal decay) and eigenvalues twelve decades apart keep their relative accuracy and orthogonality.
+    rng = np.random.default_rng(11)
+    for spectrum in ([1.0, 1.0 + 1e-9, 1.0 + 2e-9, 2.0, 2.0 + 1e-12, 3.0, 5.0, 5.0, 7.0],
+                     np.logspace(-6, 6, 9), [0.0, 0.0, 1e-14, 1.0, 1.0, 1.0, 4.0, 4.0, 9.0]):  # fmt: skip
+        Q, _ = np.linalg.qr(rng.normal(size=(9, 9)))
+        A = Q @ np.diag(spectrum) @ Q.T
+        A = 0.5 * (A + A.T)
+        w, V, a = np.empty(9), np.empty((9, 9)), np.empty((9, 9))
+        assert linalg.symmetric_eigen(A, w, V, a, 9)
+        reference = np.linalg.eigvalsh(A)
+        assert np.allclose(w, reference, rtol=0, atol=1e-13 * np.abs(reference).max())
+        assert np.allclose(A @ V, V * w, atol=1e-12 * np.abs(w).max())
+        assert np.allclose(V.T @ V, np.eye(9), atol=1e-12)
+
+
 def test_the_covariance_of_a_linear_model_is_its_inverse_normal_matrix():
     k = _kit()
     rng = np.random.default_rng(3)
@@ -259,6 +276,15 @@ def test_the_covariance_of_a_linear_model_is_its_inverse_normal_matrix():
     covariance.covariance(k, J, 6, active, 1.0, cov)
     assert np.allclose(cov[:3, :3], np.linalg.inv(J[:, :3].T @ J[:, :3]), rtol=1e-10)
     assert np.isnan(cov[3:]).all() and np.isnan(cov[:, 3:]).all()
+    # Inactive columns (trailing, or between active ones) leave the condition number that of the active columns.
+    for active in (np.array([True, True, True, False, False, False]), np.array([True, False, True, True, False, True])):
+        cond = covariance.covariance(k, J, 6, active, 1.0, cov)
+        Ja = J[:, active]
+        d = 1 / np.sqrt(np.diag(Ja.T @ Ja))
+        w = np.linalg.eigvalsh(Ja.T @ Ja * np.outer(d, d))
+        assert math.isclose(cond, w[-1] / w[0], rel_tol=1e-10)
+        assert np.allclose(cov[np.ix_(active, active)], np.linalg.inv(Ja.T @ Ja), rtol=1e-10)
+        assert np.isnan(cov[~active]).all() and np.isnan(cov[:, ~active]).all()
     J[4, 2] = math.nan  # a diverged fit: NaN and an infinite condition number, not an exception
     assert covariance.covariance(k, J, 6, np.ones(6, bool), 1.0, cov) == math.inf
     assert np.isnan(cov).all()
