@@ -382,15 +382,19 @@ def python() -> Compiled:
     return c
 
 
+CPU_FLAGS: dict[str, Any] = {"nogil": True, "_nrt": False}
+"""Numba's options for every CPU kernel function and entry. Without the interpreter lock, so that threads run
+batches side by side. Without reference counting (``_nrt``): the kernels allocate nothing, and every array they see
+is owned by the caller for the whole call; with it, each view made and each array passed between kernel functions
+cost an atomic increment and decrement, about half of a reading's time, and threads sharing the constants' arena
+contended for its count."""
+
+
 @functools.cache
 def _cpu_namespace() -> dict[str, Any]:
     import numba
 
-    # No reference counting (``_nrt=False``): the kernels allocate nothing, and every array they see is owned by the
-    # caller for the whole call. With it, each view made and each array passed between kernel functions costs an
-    # atomic increment and decrement, about half of a reading's time, and threads sharing the constants' arena would
-    # contend for its count.
-    inner: dict[str, Any] = {"nogil": True, "no_cpython_wrapper": True, "no_cfunc_wrapper": True, "_nrt": False}
+    inner: dict[str, Any] = {**CPU_FLAGS, "no_cpython_wrapper": True, "no_cfunc_wrapper": True}
     return namespace(numba.njit(**inner), numba.njit(**inner), numba.njit(inline="always", **inner), "cpu_kernels",
                      _cpu_view())  # fmt: skip
 
@@ -399,8 +403,9 @@ def _cpu_entry(name: str, warm: Any, what: str) -> Compiled:
     import numba
 
     directory = _cache_directory("cpu")
+    flags: dict[str, Any] = {**CPU_FLAGS, "cache": directory is not None}
     with _numba_cache_dir(directory):
-        entry = numba.njit(nogil=True, _nrt=False, cache=directory is not None)(_cpu_namespace()[name].py_func)
+        entry = numba.njit(**flags)(_cpu_namespace()[name].py_func)
     return Compiled("cpu", entry, directory, warm, what)
 
 
