@@ -1,7 +1,9 @@
-"""Readings the tests share: stratified where failures hide (near gratings, near the base, at the tip, gratings
-missing)."""
+"""What the tests share: readings stratified where failures hide (near gratings, near the base, at the tip,
+gratings missing), and a child process that Ctrl-C reaches."""
 
 from __future__ import annotations
+
+import signal
 
 import torch
 
@@ -36,3 +38,11 @@ def stratified_readings(rod: tr.Rod, gen: torch.Generator, n: int) -> tuple[torc
     mask[::3, 3] = False
     mask[::3, 9] = False
     return u, mask
+
+
+def interruptible() -> None:
+    """``preexec_fn`` of a child process that a test interrupts with SIGINT: Ctrl-C reaches it as it reaches a
+    terminal's foreground job. A process started with SIGINT ignored (as background jobs are, or as any library of
+    the parent may have left it) keeps ignoring it, and Python installs no KeyboardInterrupt handler then."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
+from cases import interruptible
 
 import torchrod as tr
 from torchrod.cli import main
@@ -146,7 +147,14 @@ except KeyboardInterrupt:
 """
     try:
         done = subprocess.run(
-            [sys.executable, "-c", script], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=90, check=False
+            [sys.executable, "-c", script],
+            cwd=ROOT,
+            env=ENV,
+            capture_output=True,
+            text=True,
+            timeout=90,
+            check=False,
+            preexec_fn=interruptible,  # (a test run started in the background ignores SIGINT, and its children)
         )
     except subprocess.TimeoutExpired:
         pytest.fail("the interrupted stream waited for a writer of its named pipe")

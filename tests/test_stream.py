@@ -17,6 +17,7 @@ import time
 
 import pytest
 import torch
+from cases import interruptible
 
 import torchrod as tr
 from torchrod.cli import main
@@ -725,16 +726,8 @@ def _start(*options: str) -> subprocess.Popen:
         stderr=subprocess.PIPE,
         text=True,
         bufsize=1,
-        preexec_fn=_interruptible,
+        preexec_fn=interruptible,
     )
-
-
-def _interruptible() -> None:
-    """In the child before it starts: Ctrl-C as a terminal delivers it. A process started with SIGINT ignored (as
-    background jobs are, or as any library of the parent may have left it) keeps ignoring it, and Python installs
-    no KeyboardInterrupt handler then."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
 def _wait(proc: subprocess.Popen, timeout: float) -> int:
