@@ -299,10 +299,15 @@ def _parse_int(text: str) -> int | HugeInteger:
     return int(text)
 
 
+_DECODER = json.JSONDecoder(parse_int=_parse_int)  # one for every line: json.loads with an option makes one per call
+
+
 def decode(text: str) -> Any:
     """One JSON value from ``text`` (module docstring); ``ValueError`` with a short message when it is not JSON."""
     try:
-        return json.loads(text, parse_int=_parse_int)
+        if text.startswith("\ufeff"):  # refused as json.loads refuses it, with its message
+            return json.loads(text, parse_int=_parse_int)
+        return _DECODER.decode(text)
     except json.JSONDecodeError as exc:
         raise ValueError(f"not valid JSON ({exc.msg} at column {exc.colno})") from None
     except RecursionError:
