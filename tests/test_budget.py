@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import time
 
 import pytest
 import torch
@@ -94,6 +95,33 @@ def test_a_deadline_stops_the_searches_where_they_stand(cases):
     got = est.estimate(many, options=_with(est, time_budget=1e-6))
     assert got.statuses.count("timeout") > many.shape[0] // 2
     assert torch.isfinite(got.loss).all()
+
+
+def test_the_time_budgets_alarms_fire_at_their_deadlines_and_not_once_cancelled():
+    """The deadlines of calls are kept by one thread: each flag is set at or after its own deadline (whatever the
+    order they were armed in), none before; a cancelled alarm never sets its flag."""
+    from torchrod.estimate.estimator import _ALARMS
+
+    class Flag:  # stands in for the kernels' stop flag, noting when it was set
+        def __init__(self) -> None:
+            self.at: float | None = None
+
+        def fill(self, value: int) -> None:
+            assert value == 1
+            self.at = time.perf_counter()
+
+    now = time.perf_counter()
+    delays = (0.3, 0.1, 0.2, 0.15)
+    flags = [Flag() for _ in delays]
+    alarms = [_ALARMS.arm(now + delay, flag) for delay, flag in zip(delays, flags, strict=True)]
+    _ALARMS.cancel(alarms[3])
+    give_up = now + 10.0
+    while not all(f.at is not None for f in flags[:3]) and time.perf_counter() < give_up:
+        time.sleep(0.01)
+    time.sleep(0.05)
+    for delay, flag in zip(delays[:3], flags[:3], strict=True):
+        assert flag.at is not None and flag.at >= now + delay
+    assert flags[3].at is None
 
 
 def test_the_budget_is_checked(cases):

@@ -18,6 +18,7 @@ is answered with a status, never an exception.
 from __future__ import annotations
 
 import dataclasses
+import heapq
 import math
 import os
 import threading
@@ -422,15 +423,13 @@ class Estimator:
             guse[:, k] = use
         out = _outputs(B, W, device)
         flag = np.zeros(1, np.int64)
-        timer = None
+        alarm = None
         if opts.time_budget is not None and plan.target != "cuda" and not plan.compiled.compiling():
-            left = began + B * opts.time_budget - time.perf_counter()
-            if left <= 0.0:
+            deadline = began + B * opts.time_budget
+            if deadline <= time.perf_counter():
                 flag.fill(1)
             else:
-                timer = threading.Timer(left, flag.fill, (1,))
-                timer.daemon = True
-                timer.start()
+                alarm = _ALARMS.arm(deadline, flag)
         try:
             batch = _batch(u.reshape(B, 2 * G), w.reshape(B, 2 * G), noise2, gs, gf, guse, out, plan.target)
             gpu = (
@@ -440,8 +439,8 @@ class Estimator:
             )
             plan.run(batch, flag, opts.threads, gpu)
         finally:
-            if timer is not None:
-                timer.cancel()
+            if alarm is not None:
+                _ALARMS.cancel(alarm)
         result = self._report(out, mask, opts, out_dtype)
         if opts.num_forces and _escape:
             result = self._fixed_count_escape(result, curvature, mask, opts, u)
@@ -540,11 +539,15 @@ class Estimator:
                 if h in per_count:
                     add(h, pf, -self.rod.location_bias, everyone)
         if self.warm_start is not None:
-            net = (
-                self.warm_start.guess(curvature, mask)
-                if hasattr(self.warm_start, "guess")
-                else self.warm_start(curvature, mask)
-            )
+            from ..learn.warm_start import WarmStart
+
+            net: Any
+            if isinstance(self.warm_start, WarmStart):
+                net = self.warm_start._guess(curvature, mask)  # checked by estimate
+            elif hasattr(self.warm_start, "guess"):
+                net = self.warm_start.guess(curvature, mask)
+            else:
+                net = self.warm_start(curvature, mask)
             probs = getattr(net, "count_probs", None)
             for h, pf in (net.forces if hasattr(net, "forces") else net).items():
                 if h in per_count:
@@ -592,6 +595,57 @@ class Estimator:
         if pf.s.shape != (B, h):
             raise ValueError(f"the starts for h = {h} must have shape (B, h) = {(B, h)}, got {tuple(pf.s.shape)}")
         return pf
+
+
+class _Alarms:
+    """One daemon thread that sets the kernels' stop flags when their batches' time budgets run out.
+
+    A thread per call (:class:`threading.Timer`) costs more than solving one reading: starting one waits until the
+    new thread runs. Here a call only adds its deadline to a heap. The thread sleeps until the earliest deadline in
+    it; a cancelled alarm stays in the heap until it comes first and is then dropped, so the thread wakes about
+    once per budget, not once per call.
+    """
+
+    def __init__(self) -> None:
+        self._wake = threading.Condition()
+        self._heap: list[list[Any]] = []  # [deadline (perf_counter s), order, flag or None once cancelled]
+        self._order = 0
+        self._until = math.inf  # the deadline the thread sleeps until
+        self._thread: threading.Thread | None = None
+
+    def arm(self, deadline: float, flag: np.ndarray) -> list[Any]:
+        """Set ``flag`` to 1 at ``deadline`` (``time.perf_counter`` seconds); the alarm, for :meth:`cancel`."""
+        with self._wake:
+            self._order += 1
+            alarm = [deadline, self._order, flag]
+            heapq.heappush(self._heap, alarm)
+            if self._thread is None or not self._thread.is_alive():  # (none yet, or a forked child's copy)
+                self._thread = threading.Thread(target=self._run, daemon=True, name="torchrod-time-budget")
+                self._until = math.inf
+                self._thread.start()
+            elif deadline < self._until:
+                self._wake.notify()
+        return alarm
+
+    def cancel(self, alarm: list[Any]) -> None:
+        """The alarm will not fire (its flag is left as it is)."""
+        with self._wake:
+            alarm[2] = None
+
+    def _run(self) -> None:
+        with self._wake:
+            while True:
+                heap = self._heap
+                now = time.perf_counter()
+                while heap and (heap[0][2] is None or heap[0][0] <= now):
+                    _, _, flag = heapq.heappop(heap)
+                    if flag is not None:
+                        flag.fill(1)
+                self._until = heap[0][0] if heap else math.inf
+                self._wake.wait(None if not heap else self._until - now)
+
+
+_ALARMS = _Alarms()
 
 
 def _outputs(B: int, W: int, device: torch.device) -> Any:
