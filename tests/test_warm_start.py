@@ -110,6 +110,42 @@ def test_a_reading_in_any_memory_layout_gets_the_same_guesses(rod, gen):
             torch.testing.assert_close(got.forces[h].f, want.forces[h].f, rtol=0, atol=0)
 
 
+def test_the_traced_forward_pass_gives_the_eager_one_exactly(rod, gen):
+    """Guesses come from a trace of the network (cheaper per call); it must give the eager pass's outputs bit for bit,
+    at any batch size, with missing gratings, and follow later changes to the weights (it shares them)."""
+    ws = WarmStart(_net(rod), rod)
+    u = _readings(rod, gen, B=9)
+    mask = torch.rand(9, rod.num_gratings, generator=gen) > 0.2
+    mask[:, 0] = True
+    ws.guess(u[:1])
+    assert isinstance(ws._forward[torch.device("cpu")], torch.jit.ScriptModule)  # traced, not the eager fallback
+
+    def eager(curvature, present):
+        with torch.inference_mode():
+            return ws.net(curvature * rod.length, present)
+
+    def same(curvature, present):
+        got, want = ws.guess(curvature, present), eager(curvature, present)
+        assert torch.equal(got.count_probs, torch.softmax(want.count_logits, dim=1).double())
+        for h in range(1, ws.max_forces + 1):
+            assert torch.equal(got.forces[h].s, (want.s[h - 1] * rod.length).double())
+            assert torch.equal(got.forces[h].f, (want.f[h - 1] * (rod.bending_stiffness / rod.length**2)).double())
+
+    for rows in (slice(0, 1), slice(0, 2), slice(0, 9), slice(4, 5)):
+        same(u[rows], mask[rows])
+    with torch.no_grad():
+        ws.net.out.bias.add_(0.5)
+    same(u, mask)
+
+
+def test_a_network_the_tracer_cannot_reproduce_runs_eagerly(rod, gen):
+    ws = WarmStart(_net(rod), rod)
+    with mock.patch.object(torch.jit, "trace", side_effect=RuntimeError("no tracer here")):
+        g = ws.guess(_readings(rod, gen, B=2))
+    assert ws._forward[torch.device("cpu")] is ws.net
+    assert torch.isfinite(g.count_probs).all()
+
+
 def test_one_network_serves_any_length_and_stiffness_with_the_same_layout(rod, gen):
     ws = WarmStart(_net(rod), rod)
     other = tr.Rod(length=0.5, bending_stiffness=0.02, gratings=tuple(0.5 * x for x in rod.relative_gratings))

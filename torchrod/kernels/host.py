@@ -241,7 +241,13 @@ def _pool(workers: int) -> ThreadPoolExecutor:
 
 def cpu_threads(threads: int | None) -> int:
     """The CPU threads a batch runs on: ``threads``, or every core for None."""
-    return max(1, threads if threads is not None else (os.cpu_count() or 1))
+    return max(1, threads if threads is not None else _cores())
+
+
+@functools.cache
+def _cores() -> int:
+    """The machine's cores (asked once: the system call costs as much as a small batch's bookkeeping)."""
+    return os.cpu_count() or 1
 
 
 class Plan:
@@ -304,7 +310,7 @@ class Plan:
                     return
                 entry(first, min(B, first + chunk), self.setup, batch, work, flag)
 
-        futures = [_pool(max(1, (os.cpu_count() or 1))).submit(worker) for _ in range(workers - 1)]
+        futures = [_pool(_cores()).submit(worker) for _ in range(workers - 1)]
         try:
             worker()
         finally:
