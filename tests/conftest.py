@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -27,14 +29,57 @@ def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
 
 
+WITHOUT_KERNELS = frozenset(
+    {
+        "test_body_frame",
+        "test_calibration",
+        "test_cli_simulate",
+        "test_errors",
+        "test_global_bvp",
+        "test_jig",
+        "test_jsonl",
+        "test_nystrom",
+        "test_readings",
+        "test_shape",
+    }
+)
+"""Test modules none of whose tests runs the estimation kernels, in this process or in a command it starts. They run
+first, while the kernels compile in a background process on an empty cache (as a first ``torchrod`` command does),
+so that the compile, minutes on a small machine, overlaps them instead of holding every test back."""
+
+
+def _needs_kernels(item: pytest.Item) -> bool:
+    module = getattr(item, "module", None)
+    return module is None or module.__name__.rpartition(".")[2] not in WITHOUT_KERNELS
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    items.sort(key=_needs_kernels)  # stable: the kernel-free modules first, each order otherwise kept
+
+
 @pytest.fixture(autouse=True, scope="session")
-def _kernels_compiled():
-    """The CPU kernels compiled (or loaded from the cache) once, before the first test: tests that run the
-    command line in a subprocess, and time it or interrupt it, then meet loaded kernels and not a first compile."""
+def _kernels_compiling(request):
+    """The schedule kernels (seconds) compiled now, and the estimation kernels started compiling in a background
+    process when a selected test needs them and the cache has none (else loaded now)."""
     from torchrod.kernels import targets
 
-    targets.cpu().ready()
     targets.cpu_schedule().ready()
+    if any(_needs_kernels(item) for item in request.session.items):
+        targets.cpu().start()
+
+
+@pytest.fixture(autouse=True)
+def _kernels_compiled(request, _kernels_compiling):
+    """Before a test that may run the estimation kernels: the background compile finished and the kernels loaded.
+    Tests that run the command line in a subprocess, and time it or interrupt it, then meet loaded kernels and not a
+    first compile."""
+    if _needs_kernels(request.node):
+        from torchrod.kernels import targets
+
+        compiled = targets.cpu()
+        while compiled.compiling():
+            time.sleep(0.2)
+        compiled.ready()
 
 
 @pytest.fixture(autouse=True)
