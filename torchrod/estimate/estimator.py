@@ -527,11 +527,15 @@ class Estimator:
 
         def add(h: int, pf: Any, shift: float, use: torch.Tensor) -> None:
             # A block of h forces as the kernels take it: locations shifted to model coordinates, inactive forces
-            # NaN (the row then starts from no load).
+            # NaN (the row then starts from no load). (Operations that would change nothing are left out: at a
+            # batch of one reading, each costs more than its arithmetic.)
             pf = self._check_guess(pf, B, h)
-            s = pf.s.detach().to(device, torch.float64) + shift
+            s = pf.s.detach().to(device, torch.float64)
+            if shift != 0.0:
+                s = s + shift
             f = pf.f.detach().to(device, torch.float64)
-            f = torch.where(pf.active.to(device)[:, :, None], f, torch.full_like(f, math.nan))
+            if pf.mask is not None:
+                f = torch.where(pf.mask.to(device)[:, :, None], f, torch.full_like(f, math.nan))
             per_count[h].append((s, f, use))
 
         if extra_starts:
@@ -549,15 +553,16 @@ class Estimator:
             else:
                 net = self.warm_start(curvature, mask)
             probs = getattr(net, "count_probs", None)
+            likely = None  # (B, H) whether each count is probable enough for its guess to start a fit
+            if probs is not None and opts.starts > 0 and opts.guess_probability > 0:
+                likely = probs.detach().to(device) >= opts.guess_probability
             for h, pf in (net.forces if hasattr(net, "forces") else net).items():
                 if h in per_count:
-                    use = everyone
-                    if probs is not None and opts.starts > 0 and opts.guess_probability > 0 and h <= probs.shape[1]:
-                        use = probs[:, h - 1].detach().to(device) >= opts.guess_probability
+                    use = likely[:, h - 1] if likely is not None and h <= likely.shape[1] else everyone
                     add(h, pf, 0.0, use)
         for h, found in per_count.items():
             for s, f, use in found:
-                if bool(use.any()):
+                if use is everyone or bool(use.any()):
                     out.append((h, torch.clamp(s, 0.0, self.rod.length), f, use))
         return out
 
