@@ -632,7 +632,8 @@ class WarmStart:
                 forward = self._forward.get(device)
                 if forward is None:
                     net = self._net_on(device)
-                    forward = self._forward[device] = _traced(net, device) or net
+                    traced = _traced(net, device)
+                    forward = self._forward[device] = traced if traced is not None else net
         return forward
 
     def guess(self, curvature: torch.Tensor, mask: torch.Tensor | None = None) -> WarmStartGuess:
