@@ -122,6 +122,9 @@ def test_the_time_budgets_alarms_fire_at_their_deadlines_and_not_once_cancelled(
     for delay, flag in zip(delays[:3], flags[:3], strict=True):
         assert flag.at is not None and flag.at >= now + delay
     assert flags[3].at is None
+    passed = Flag()
+    _ALARMS.arm(time.perf_counter() - 1.0, passed)
+    assert passed.at is not None  # a deadline already past: set before arm returns
 
 
 def test_the_budget_is_checked(cases):

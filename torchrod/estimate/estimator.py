@@ -425,11 +425,7 @@ class Estimator:
         flag = np.zeros(1, np.int64)
         alarm = None
         if opts.time_budget is not None and plan.target != "cuda" and not plan.compiled.compiling():
-            deadline = began + B * opts.time_budget
-            if deadline <= time.perf_counter():
-                flag.fill(1)
-            else:
-                alarm = _ALARMS.arm(deadline, flag)
+            alarm = _ALARMS.arm(began + B * opts.time_budget, flag)
         try:
             batch = _batch(u.reshape(B, 2 * G), w.reshape(B, 2 * G), noise2, gs, gf, guse, out, plan.target)
             gpu = (
@@ -619,7 +615,11 @@ class _Alarms:
         self._thread: threading.Thread | None = None
 
     def arm(self, deadline: float, flag: np.ndarray) -> list[Any]:
-        """Set ``flag`` to 1 at ``deadline`` (``time.perf_counter`` seconds); the alarm, for :meth:`cancel`."""
+        """Set ``flag`` to 1 at ``deadline`` (``time.perf_counter`` seconds), at once if it has passed (before the
+        kernels start); the alarm, for :meth:`cancel`."""
+        if deadline <= time.perf_counter():
+            flag.fill(1)
+            return [deadline, 0, None]
         with self._wake:
             self._order += 1
             alarm = [deadline, self._order, flag]
