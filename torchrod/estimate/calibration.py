@@ -285,14 +285,20 @@ class _Fit:
     converged: bool
 
 
+JACOBIAN_ROWS = 4096
+"""The most simulated rows (copies of the readings) one reverse pass of the calibration's Jacobian takes: it bounds
+the memory of the pass's record, which for every component at once would hold 2 G copies of every reading."""
+
+
 class _Problem:
     """Curvature residuals of R readings as a function of n_g global unknowns and per-reading local ones.
 
     ``model(X)`` maps the per-reading parameter rows X (R, n_g + K) (globals repeated on every row, then the
-    reading's K local slots) to the curvature (R, G, 2). ``local_used`` (R, K) marks the slots that are unknowns;
+    reading's K local slots) to the curvature (R, G, 2), and k copies of them stacked, (k R, n_g + K), to the k
+    copies' curvature (k R, G, 2). ``local_used`` (R, K) marks the slots that are unknowns;
     the others keep ``local_fixed``'s values. The global unknown vector is [globals, used local slots in row-major
-    order]; its Jacobian is assembled from one reverse pass per curvature component (2G passes), each giving the
-    derivative of every reading's residual w.r.t. that reading's own row of X.
+    order]; its Jacobian is assembled from reverse passes over copies of the rows, copy m giving the derivative of every
+    reading's residual in one curvature component w.r.t. that reading's own row of X (readings are independent).
     """
 
     def __init__(
@@ -332,23 +338,41 @@ class _Problem:
         return resid[self.obs].cpu().numpy()
 
     def evaluate(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Observed residuals (n,) and their Jacobian (n, p) w.r.t. all unknowns at ``theta`` (cached)."""
+        """Observed residuals (n,) and their Jacobian (n, p) w.r.t. all unknowns at ``theta`` (cached).
+
+        The rows are simulated in k copies at once, copy m differentiated for its own curvature component: one
+        reverse pass gives k components of every reading's Jacobian (class docstring), with at most
+        :data:`JACOBIAN_ROWS` rows per pass."""
         key = np.asarray(theta, dtype=np.float64).tobytes()
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1], self._cache[2]
-        X = self.rows(theta).requires_grad_(True)
-        with torch.enable_grad():
-            resid = self.model(X) - self.data.curvature  # (R, G, 2)
-            R, G, _ = resid.shape
-            J = torch.zeros(R, G, 2, X.shape[1], dtype=X.dtype, device=X.device)
-            present_any = self.data.present.any(0).tolist()
-            for g in range(G):
-                if not present_any[g]:
-                    continue
-                for c in range(2):
-                    (grad,) = torch.autograd.grad(resid[:, g, c].sum(), X, retain_graph=True)
-                    J[:, g, c] = grad
-        r = resid.detach()[self.obs].cpu().numpy()
+        X = self.rows(theta)
+        R, P = X.shape
+        G = self.data.curvature.shape[1]
+        present_any = self.data.present.any(0).tolist()
+        components = [(g, c) for g in range(G) if present_any[g] for c in range(2)]
+        J = torch.zeros(R, G, 2, P, dtype=X.dtype, device=X.device)
+        per = max(1, JACOBIAN_ROWS // R)
+        curvature = None
+        for first in range(0, len(components), per):
+            chunk = components[first : first + per]
+            k = len(chunk)
+            copies = X.detach().repeat(k, 1).requires_grad_(True)
+            pick = torch.zeros(k, 1, G, 2, dtype=X.dtype, device=X.device)
+            for m, (g, c) in enumerate(chunk):
+                pick[m, 0, g, c] = 1.0
+            with torch.enable_grad():
+                out = self.model(copies).view(k, R, G, 2)
+                (grad,) = torch.autograd.grad((out * pick).sum(), copies)
+            grad = grad.view(k, R, P)
+            for m, (g, c) in enumerate(chunk):
+                J[:, g, c] = grad[m]
+            if curvature is None:
+                curvature = out[0].detach()
+        if curvature is None:  # no grating present in any reading (the data's checks refuse it before)
+            with torch.no_grad():
+                curvature = self.model(X)
+        r = (curvature - self.data.curvature)[self.obs].cpu().numpy()
         Jo = J[self.obs].cpu().numpy()  # (n, n_global + K)
         full = np.zeros((self.num_obs, self.num_unknowns))
         full[:, : self.n_global] = Jo[:, : self.n_global]
@@ -460,10 +484,16 @@ def calibrate(
     h = loads.max_forces
     mask = loads.mask
 
+    def each(t: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+        """``t`` (R, ...) of the readings, for rows X holding k copies of theirs (k R, ...) (:class:`_Problem`)."""
+        k = X.shape[0] // R
+        return t if k == 1 else t.repeat(k, *([1] * (t.dim() - 1)))
+
     # ---- step 1: b with free force components, nominal EI
     def model_bias(X: torch.Tensor) -> torch.Tensor:
-        s = torch.where(active, s_true - X[:, :1], s_true)
-        return grating_curvature(rod, PointForces(s, X[:, 1:].reshape(R, h, 2), mask), bending_stiffness=ei0)
+        s = torch.where(each(active, X), each(s_true, X) - X[:, :1], each(s_true, X))
+        forces = PointForces(s, X[:, 1:].reshape(-1, h, 2), each(mask, X))
+        return grating_curvature(rod, forces, bending_stiffness=ei0)
 
     used = active.unsqueeze(-1).expand(-1, -1, 2).reshape(R, 2 * h)
     fixed = loads.masked_f().reshape(R, 2 * h).detach()
@@ -484,14 +514,15 @@ def calibrate(
     magnitude = loads.magnitude()  # (R, h)
 
     def shifted(X: torch.Tensor) -> torch.Tensor:
-        return torch.where(active, s_true - X[:, :1], s_true)
+        return torch.where(each(active, X), each(s_true, X) - X[:, :1], each(s_true, X))
 
     if directions == "known":
         f_known = loads.masked_f()
 
         def model_stiffness(X: torch.Tensor) -> torch.Tensor:
             scale = torch.exp(-X[:, 1:2]).unsqueeze(-1)
-            return grating_curvature(rod, PointForces(shifted(X), f_known * scale, mask), bending_stiffness=ei0)
+            forces = PointForces(shifted(X), each(f_known, X) * scale, each(mask, X))
+            return grating_curvature(rod, forces, bending_stiffness=ei0)
 
         used2 = torch.zeros(R, 0, dtype=torch.bool, device=active.device)
         fixed2 = torch.zeros(R, 0, dtype=loads.dtype, device=loads.device)
@@ -503,8 +534,8 @@ def calibrate(
         def model_stiffness(X: torch.Tensor) -> torch.Tensor:
             scale = torch.exp(-X[:, 1:2])
             phi = X[:, 2:]
-            f = torch.stack((torch.cos(phi), torch.sin(phi)), -1) * (magnitude * scale).unsqueeze(-1)
-            return grating_curvature(rod, PointForces(shifted(X), f, mask), bending_stiffness=ei0)
+            f = torch.stack((torch.cos(phi), torch.sin(phi)), -1) * (each(magnitude, X) * scale).unsqueeze(-1)
+            return grating_curvature(rod, PointForces(shifted(X), f, each(mask, X)), bending_stiffness=ei0)
 
         used2, fixed2 = active, angle0.detach()
         theta0 = np.concatenate(([bias, 0.0], angle0[active].cpu().numpy()))
