@@ -489,10 +489,13 @@ def calibrate(
         k = X.shape[0] // R
         return t if k == 1 else t.repeat(k, *([1] * (t.dim() - 1)))
 
+    def each_mask(X: torch.Tensor) -> torch.Tensor | None:
+        return None if mask is None else each(mask, X)
+
     # ---- step 1: b with free force components, nominal EI
     def model_bias(X: torch.Tensor) -> torch.Tensor:
         s = torch.where(each(active, X), each(s_true, X) - X[:, :1], each(s_true, X))
-        forces = PointForces(s, X[:, 1:].reshape(-1, h, 2), each(mask, X))
+        forces = PointForces(s, X[:, 1:].reshape(-1, h, 2), each_mask(X))
         return grating_curvature(rod, forces, bending_stiffness=ei0)
 
     used = active.unsqueeze(-1).expand(-1, -1, 2).reshape(R, 2 * h)
@@ -521,7 +524,7 @@ def calibrate(
 
         def model_stiffness(X: torch.Tensor) -> torch.Tensor:
             scale = torch.exp(-X[:, 1:2]).unsqueeze(-1)
-            forces = PointForces(shifted(X), each(f_known, X) * scale, each(mask, X))
+            forces = PointForces(shifted(X), each(f_known, X) * scale, each_mask(X))
             return grating_curvature(rod, forces, bending_stiffness=ei0)
 
         used2 = torch.zeros(R, 0, dtype=torch.bool, device=active.device)
@@ -535,7 +538,7 @@ def calibrate(
             scale = torch.exp(-X[:, 1:2])
             phi = X[:, 2:]
             f = torch.stack((torch.cos(phi), torch.sin(phi)), -1) * (each(magnitude, X) * scale).unsqueeze(-1)
-            return grating_curvature(rod, PointForces(shifted(X), f, each(mask, X)), bending_stiffness=ei0)
+            return grating_curvature(rod, PointForces(shifted(X), f, each_mask(X)), bending_stiffness=ei0)
 
         used2, fixed2 = active, angle0.detach()
         theta0 = np.concatenate(([bias, 0.0], angle0[active].cpu().numpy()))
