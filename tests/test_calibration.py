@@ -282,3 +282,46 @@ def test_cli_refuses_a_dead_sensor_and_writes_no_rod_unless_forced(tmp_path, cap
     assert "times the noise sigma" in capsys.readouterr().err
     assert main(["calibrate", "--rod", "nitinol290", str(sound), "--noise", "0.01", "--out", str(out), "--force"]) == 0
     assert "warning (forced)" in capsys.readouterr().err and Rod.from_json(out).location_bias != 0.0
+
+
+# ---------------------------------------------------------------------------------------------- the Jacobian
+def _free_force_problem():
+    """The calibration's least squares with every known force's components free at the nominal stiffness (its first
+    step without the bias): a model of k copies of the readings' rows, as the Jacobian asks."""
+    from torchrod.estimate import calibration as C
+
+    data = data_of(simulate_readings(noise=0.1, seed=7))
+    loads = data.forces
+    R, h = loads.s.shape
+
+    def model(X: torch.Tensor) -> torch.Tensor:
+        k = X.shape[0] // R
+        mask = None if loads.mask is None else loads.mask.repeat(k, 1)
+        return grating_curvature(ROD, PointForces(loads.s.repeat(k, 1), X.reshape(-1, h, 2), mask))
+
+    used = loads.active.unsqueeze(-1).expand(-1, -1, 2).reshape(R, 2 * h)
+    fixed = loads.masked_f().reshape(R, 2 * h)
+    return C._Problem(model, data, 0, used, fixed), fixed[used].numpy()
+
+
+def test_the_jacobian_over_copies_is_the_finite_difference_of_the_residuals(monkeypatch):
+    """The Jacobian from reverse passes over copies of the readings (every component in one pass) against central
+    differences of the residuals, and bit for bit the same with one component per pass."""
+    import numpy as np
+
+    from torchrod.estimate import calibration as C
+
+    problem, theta = _free_force_problem()
+    r, J = problem.evaluate(theta)
+    assert J.shape == (r.shape[0], theta.shape[0]) and np.array_equal(r, problem.residual(theta))
+    step = 1e-6
+    for j in range(theta.shape[0]):
+        up, down = theta.copy(), theta.copy()
+        up[j] += step
+        down[j] -= step
+        fd = (problem.residual(up) - problem.residual(down)) / (2 * step)
+        np.testing.assert_allclose(J[:, j], fd, rtol=1e-6, atol=1e-6 * np.abs(J).max())
+    monkeypatch.setattr(C, "JACOBIAN_ROWS", 1)  # one component per pass
+    single, _ = _free_force_problem()
+    r1, J1 = single.evaluate(theta)
+    assert np.array_equal(J1, J) and np.array_equal(r1, r)

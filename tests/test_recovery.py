@@ -134,6 +134,29 @@ def test_explains_is_an_independent_check():
     assert torch.isfinite(u).all()
 
 
+def test_the_gauss_newton_condition_is_that_of_the_autograd_jacobian():
+    """The condition from one reverse pass over copies of the case against the Jacobian torch's autograd builds one
+    value at a time (``torch.autograd.functional.jacobian``), on cases with missing gratings and 1-3 forces."""
+    import numpy as np
+
+    from torchrod.model.body_frame import simulate
+
+    rod = tr.presets.nitinol290()
+    for case in R.recovery_cases(rod, 6, seed=2):
+
+        def curvature(s: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+            return simulate(rod, tr.PointForces(s, f)).grating_curvature[0]  # noqa: B023 (used at once)
+
+        s0, f0 = torch.tensor([case.s], dtype=torch.float64), torch.tensor([case.f], dtype=torch.float64)
+        js, jf = torch.autograd.functional.jacobian(curvature, (s0, f0))  # (G, 2, 1, h), (G, 2, 1, h, 2)
+        J = torch.cat((js[:, :, 0, :, None], jf[:, :, 0]), dim=-1)[torch.tensor(case.present)]
+        J = J.reshape(-1, 3 * len(case.s)).numpy()
+        N = J.T @ J
+        d = np.sqrt(np.diag(N))
+        expected = float(np.linalg.cond(N / np.outer(d, d)))
+        assert R.gauss_newton_condition(rod, case) == pytest.approx(expected, rel=1e-9), case
+
+
 def test_the_gauss_newton_condition_tells_a_determined_force_from_one_the_gratings_cannot_place():
     """A force between the 5th and 6th gratings of the paper's tube is seen by five gratings: its (s, f_x, f_y) are
     determined, the scaled normal matrix well conditioned. The same force with only the nearest grating proximal
