@@ -321,6 +321,9 @@ class _Problem:
         obs = self.obs.cpu().numpy()
         self.num_obs = int(obs.sum())
         self.obs_reading = np.broadcast_to(np.arange(R)[:, None, None], obs.shape)[obs]  # reading of each residual
+        # The curvature components (grating, x or y) some reading observes: the Jacobian's, one copy each.
+        present_any = data.present.any(0).tolist()
+        self.components = [(g, c) for g, seen in enumerate(present_any) if seen for c in range(2)]
         self._cache: tuple[bytes, np.ndarray, np.ndarray] | None = None
 
     def rows(self, theta: np.ndarray) -> torch.Tensor:
@@ -349,8 +352,7 @@ class _Problem:
         X = self.rows(theta)
         R, P = X.shape
         G = self.data.curvature.shape[1]
-        present_any = self.data.present.any(0).tolist()
-        components = [(g, c) for g in range(G) if present_any[g] for c in range(2)]
+        components = self.components
         J = torch.zeros(R, G, 2, P, dtype=X.dtype, device=X.device)
         per = max(1, JACOBIAN_ROWS // R)
         curvature = None
@@ -492,10 +494,14 @@ def calibrate(
     def each_mask(X: torch.Tensor) -> torch.Tensor | None:
         return None if mask is None else each(mask, X)
 
+    def shifted(X: torch.Tensor) -> torch.Tensor:
+        """The model locations s_true - b of rows X (b in their first column), both steps' unknown or fixed bias."""
+        s = each(s_true, X)
+        return torch.where(each(active, X), s - X[:, :1], s)
+
     # ---- step 1: b with free force components, nominal EI
     def model_bias(X: torch.Tensor) -> torch.Tensor:
-        s = torch.where(each(active, X), each(s_true, X) - X[:, :1], each(s_true, X))
-        forces = PointForces(s, X[:, 1:].reshape(-1, h, 2), each_mask(X))
+        forces = PointForces(shifted(X), X[:, 1:].reshape(-1, h, 2), each_mask(X))
         return grating_curvature(rod, forces, bending_stiffness=ei0)
 
     used = active.unsqueeze(-1).expand(-1, -1, 2).reshape(R, 2 * h)
@@ -515,9 +521,6 @@ def calibrate(
     # (b, log(EI / EI0), [angles]); b stays at its step-1 value but is kept in the Jacobian so that its
     # uncertainty propagates into the stiffness's standard error.
     magnitude = loads.magnitude()  # (R, h)
-
-    def shifted(X: torch.Tensor) -> torch.Tensor:
-        return torch.where(each(active, X), each(s_true, X) - X[:, :1], each(s_true, X))
 
     if directions == "known":
         f_known = loads.masked_f()
