@@ -1,6 +1,7 @@
 """A first compile of the CPU kernels in a background process: readings are solved meanwhile by the same source run
 as Python, with the compiled kernels' answers, one at a time, with no deadline; the kernels are used as soon as the
-child is done; the child ends with its parent."""
+child is done; the child ends with its parent. And a kernel function is compiled once, not once per constant its
+callers pass."""
 
 from __future__ import annotations
 
@@ -207,3 +208,31 @@ def _alive(pid: int) -> bool:
             return handle.read().split(")")[-1].split()[0] != "Z"
     except FileNotFoundError:
         return False
+
+
+def test_a_kernel_function_is_compiled_once_whatever_constants_its_callers_pass():
+    """Numba compiles a function called with the constant True and with False twice (each a literal type), and
+    everything it calls with it; the kernels' dispatcher compiles it once, for a bool, with the same results."""
+    import numba
+    from numba.core import types as nb_types
+    from numba.core.registry import CPUDispatcher
+
+    def scaled(x, double):
+        return 2.0 * x if double else x
+
+    general = targets._general(CPUDispatcher, nb_types.unliteral)(
+        py_func=scaled, locals={}, targetoptions={"nopython": True}
+    )
+    plain = numba.njit(scaled)
+
+    @numba.njit
+    def through_general(x):
+        return general(x, True) + general(x, False)
+
+    @numba.njit
+    def through_plain(x):
+        return plain(x, True) + plain(x, False)
+
+    assert through_general(1.5) == through_plain(1.5) == 4.5
+    assert len(plain.signatures) == 2  # the behaviour worked around: were it gone, so would be the need
+    assert [tuple(map(str, sig)) for sig in general.signatures] == [("float64", "bool")]

@@ -87,6 +87,11 @@ def test_the_estimation_kernel_types_and_lowers_for_cuda():
     from torchrod.cli.benchmarks.gpu import lowering_seconds
 
     assert lowering_seconds("sm_90") > 0.0
+    # Every device function typed once, for its arguments' types (not again for each constant a caller passes).
+    kernels = vars(sys.modules["torchrod.kernels.cuda_kernels"])
+    typed = {key: len(value.overloads) for key, value in kernels.items() if hasattr(value, "overloads")}
+    assert typed["estimate_one"] == typed["march_model"] == 1
+    assert max(typed.values()) == 1, typed
 
 
 # ---------------------------------------------------------------------------------------------- on a GPU

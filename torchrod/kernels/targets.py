@@ -4,9 +4,10 @@
 The kernel modules (:data:`MODULES`) are plain numeric Python: scalars, loops, and arrays passed in. For a compiled
 target every function of theirs is rebuilt in one namespace of the target's own (the same code objects, their
 global names bound to the target's compiled functions) and decorated for it: ``numba.njit`` for the CPU,
-``numba.cuda.jit(device=True)`` for CUDA. What differs between targets is this thin layer alone: how a reading's
-scratch is found (one per CPU thread, reused reading after reading; one per GPU thread, sliced from batch arrays)
-and how readings are walked.
+``numba.cuda.jit(device=True)`` for CUDA, each function compiled once, for the types of its arguments (not again
+for each constant a caller passes: :func:`_general`). What differs between targets is this thin layer alone: how a
+reading's scratch is found (one per CPU thread, reused reading after reading; one per GPU thread, sliced from batch
+arrays) and how readings are walked.
 
 Compilation is done once per machine and kept on disk, under a directory named after a digest of the kernel
 source and the compiler's version (so a changed kernel or Numba never loads stale code): ``$TORCHROD_CACHE_DIR``,
@@ -390,12 +391,34 @@ cost an atomic increment and decrement, about half of a reading's time, and thre
 contended for its count."""
 
 
+def _general(base: type, unliteral: Any) -> type:
+    """The dispatcher class ``base`` made to compile a kernel function for the types of its arguments, not for the
+    constants a caller passes (``unliteral``: the target's map from a constant's type to its plain type). Numba
+    would otherwise compile a function, and everything it calls, once more for each constant (a flag given as
+    ``True`` in one place and ``False`` in another, a count given as ``0``): a large share of the first compile,
+    for no faster code. The compiled arithmetic is the same, and so are the answers, bit for bit."""
+
+    class General(base):  # type: ignore[misc, valid-type]
+        def get_call_template(self, args: Any, kws: Any) -> Any:
+            return super().get_call_template([unliteral(a) for a in args], {k: unliteral(v) for k, v in kws.items()})
+
+    General.__name__ = General.__qualname__ = f"General{base.__name__}"
+    return General
+
+
 @functools.cache
 def _cpu_namespace() -> dict[str, Any]:
     import numba
+    from numba.core import types as nb_types
+    from numba.core.registry import CPUDispatcher
 
     inner: dict[str, Any] = {**CPU_FLAGS, "no_cpython_wrapper": True, "no_cfunc_wrapper": True}
-    return namespace(numba.njit(**inner), numba.njit(**inner), numba.njit(inline="always", **inner), "cpu_kernels",
+    general = _general(CPUDispatcher, nb_types.unliteral)
+
+    def decorate(fn: Any) -> Any:
+        return general(py_func=fn, locals={}, targetoptions={**inner, "nopython": True})
+
+    return namespace(decorate, numba.njit(**inner), numba.njit(inline="always", **inner), "cpu_kernels",
                      _cpu_view())  # fmt: skip
 
 
@@ -447,8 +470,27 @@ def cuda_namespace() -> dict[str, Any]:
     # Inlined by NVVM (forceinline), not by Numba's IR inliner: that one types an inlined function again at every
     # call site, which over this source takes far longer than the compile itself.
     jit: Any = cuda.jit  # (numba's stubs type the simulator's jit, which takes fewer options)
-    inline = jit(device=True) if simulated() else jit(device=True, forceinline=True)
-    ns = namespace(jit(device=True), inline, inline, "cuda_kernels", None if simulated() else _cuda_view())
+    if simulated():
+        inline = decorate = jit(device=True)
+    else:
+        unliteral = importlib.import_module("numba.cuda.types").unliteral  # (numba-cuda's own type system)
+        classes: dict[type, type] = {}
+
+        def general(options: dict[str, Any]) -> Any:
+            def make(fn: Any) -> Any:
+                dispatcher = jit(**options)(fn)
+                base = type(dispatcher)
+                if base not in classes:
+                    classes[base] = _general(base, unliteral)
+                dispatcher.__class__ = classes[base]  # (numba-cuda's jit sets it up; only the typing of calls changes)
+                return dispatcher
+
+            return make
+
+        decorate = general({"device": True})
+        inline = general({"device": True, "forceinline": True})
+
+    ns = namespace(decorate, inline, inline, "cuda_kernels", None if simulated() else _cuda_view())
     ns.update({"cuda": cuda, "Arenas": Arenas})
     exec(compile(_CUDA_ENTRY, "<torchrod.kernels.targets cuda entry>", "exec"), ns)  # noqa: S102
     return ns
