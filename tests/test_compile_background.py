@@ -215,14 +215,11 @@ def test_a_kernel_function_is_compiled_once_whatever_constants_its_callers_pass(
     everything it calls with it; the kernels' dispatcher compiles it once, for a bool, with the same results."""
     import numba
     from numba.core import types as nb_types
-    from numba.core.registry import CPUDispatcher
 
     def scaled(x, double):
         return 2.0 * x if double else x
 
-    general = targets._general(CPUDispatcher, nb_types.unliteral)(
-        py_func=scaled, locals={}, targetoptions={"nopython": True}
-    )
+    general = targets._general(numba.njit(scaled), nb_types.unliteral)
     plain = numba.njit(scaled)
 
     @numba.njit

@@ -391,32 +391,31 @@ cost an atomic increment and decrement, about half of a reading's time, and thre
 contended for its count."""
 
 
-def _general(base: type, unliteral: Any) -> type:
-    """The dispatcher class ``base`` made to compile a kernel function for the types of its arguments, not for the
-    constants a caller passes (``unliteral``: the target's map from a constant's type to its plain type). Numba
-    would otherwise compile a function, and everything it calls, once more for each constant (a flag given as
-    ``True`` in one place and ``False`` in another, a count given as ``0``): a large share of the first compile,
-    for no faster code. The compiled arithmetic is the same, and so are the answers, bit for bit."""
+def _general(dispatcher: Any, unliteral: Any) -> Any:
+    """``dispatcher`` (a compiled kernel function) made to be compiled for the types of its arguments, not for the
+    constants a caller passes (``unliteral``: the target's map from a constant's type to its plain type), and
+    returned. Numba would otherwise compile a function, and everything it calls, once more for each constant (a flag
+    given as ``True`` in one place and ``False`` in another, a count given as ``0``): a large share of the first
+    compile, for no faster code. The compiled arithmetic is the same, and so are the answers, bit for bit. (Set on
+    the one dispatcher, which the compiler asks for the signature of a call: its class and all else stay Numba's.)"""
+    by_constants = dispatcher.get_call_template
 
-    class General(base):  # type: ignore[misc, valid-type]
-        def get_call_template(self, args: Any, kws: Any) -> Any:
-            return super().get_call_template([unliteral(a) for a in args], {k: unliteral(v) for k, v in kws.items()})
+    def get_call_template(args: Any, kws: Any) -> Any:
+        return by_constants([unliteral(a) for a in args], {k: unliteral(v) for k, v in kws.items()})
 
-    General.__name__ = General.__qualname__ = f"General{base.__name__}"
-    return General
+    dispatcher.get_call_template = get_call_template
+    return dispatcher
 
 
 @functools.cache
 def _cpu_namespace() -> dict[str, Any]:
     import numba
     from numba.core import types as nb_types
-    from numba.core.registry import CPUDispatcher
 
     inner: dict[str, Any] = {**CPU_FLAGS, "no_cpython_wrapper": True, "no_cfunc_wrapper": True}
-    general = _general(CPUDispatcher, nb_types.unliteral)
 
     def decorate(fn: Any) -> Any:
-        return general(py_func=fn, locals={}, targetoptions={**inner, "nopython": True})
+        return _general(numba.njit(**inner)(fn), nb_types.unliteral)
 
     return namespace(decorate, numba.njit(**inner), numba.njit(inline="always", **inner), "cpu_kernels",
                      _cpu_view())  # fmt: skip
@@ -474,18 +473,9 @@ def cuda_namespace() -> dict[str, Any]:
         inline = decorate = jit(device=True)
     else:
         unliteral = importlib.import_module("numba.cuda.types").unliteral  # (numba-cuda's own type system)
-        classes: dict[type, type] = {}
 
         def general(options: dict[str, Any]) -> Any:
-            def make(fn: Any) -> Any:
-                dispatcher = jit(**options)(fn)
-                base = type(dispatcher)
-                if base not in classes:
-                    classes[base] = _general(base, unliteral)
-                dispatcher.__class__ = classes[base]  # (numba-cuda's jit sets it up; only the typing of calls changes)
-                return dispatcher
-
-            return make
+            return lambda fn: _general(jit(**options)(fn), unliteral)
 
         decorate = general({"device": True})
         inline = general({"device": True, "forceinline": True})
