@@ -118,7 +118,7 @@ def test_the_traced_forward_pass_gives_the_eager_one_exactly(rod, gen):
     mask = torch.rand(9, rod.num_gratings, generator=gen) > 0.2
     mask[:, 0] = True
     ws.guess(u[:1])
-    assert isinstance(ws._forward[torch.device("cpu")], torch.jit.ScriptModule)  # traced, not the eager fallback
+    assert isinstance(ws._forward[torch.device("cpu"), torch.float64], torch.jit.ScriptModule)  # traced, not eager
 
     def eager(curvature, present):
         with torch.inference_mode():
@@ -126,13 +126,16 @@ def test_the_traced_forward_pass_gives_the_eager_one_exactly(rod, gen):
 
     def same(curvature, present):
         got, want = ws.guess(curvature, present), eager(curvature, present)
-        assert torch.equal(got.count_probs, torch.softmax(want.count_logits, dim=1).double())
+        dtype = curvature.dtype
+        assert torch.equal(got.count_probs, torch.softmax(want.count_logits, dim=1).to(dtype))
         for h in range(1, ws.max_forces + 1):
-            assert torch.equal(got.forces[h].s, (want.s[h - 1] * rod.length).double())
-            assert torch.equal(got.forces[h].f, (want.f[h - 1] * (rod.bending_stiffness / rod.length**2)).double())
+            assert torch.equal(got.forces[h].s, (want.s[h - 1] * rod.length).to(dtype))
+            assert torch.equal(got.forces[h].f, (want.f[h - 1] * (rod.bending_stiffness / rod.length**2)).to(dtype))
 
     for rows in (slice(0, 1), slice(0, 2), slice(0, 9), slice(4, 5)):
         same(u[rows], mask[rows])
+        same(u[rows].float(), mask[rows])  # readings in float32: a trace of their own, answers in float32
+    assert isinstance(ws._forward[torch.device("cpu"), torch.float32], torch.jit.ScriptModule)
     with torch.no_grad():
         ws.net.out.bias.add_(0.5)
     same(u, mask)
@@ -142,7 +145,8 @@ def test_a_network_the_tracer_cannot_reproduce_runs_eagerly(rod, gen):
     ws = WarmStart(_net(rod), rod)
     with mock.patch.object(torch.jit, "trace", side_effect=RuntimeError("no tracer here")):
         g = ws.guess(_readings(rod, gen, B=2))
-    assert ws._forward[torch.device("cpu")] is ws.net
+    eager = ws._forward[torch.device("cpu"), torch.float64]
+    assert not isinstance(eager, torch.jit.ScriptModule) and eager.net is ws.net
     assert torch.isfinite(g.count_probs).all()
 
 

@@ -554,7 +554,7 @@ class WarmStart:
         if not self.matches(rod):
             raise ValueError(self._mismatch(rod))
         self._on: dict[torch.device, WarmStartNet] = {next(net.parameters()).device: self.net}
-        self._forward: dict[torch.device, Callable[[torch.Tensor, torch.Tensor], Any]] = {}
+        self._forward: dict[tuple[torch.device, torch.dtype], Callable[[torch.Tensor, torch.Tensor], Any]] = {}
         self._forward_lock = threading.Lock()
 
     @classmethod
@@ -623,17 +623,19 @@ class WarmStart:
             self._on[device] = net
         return net
 
-    def _forward_on(self, device: torch.device) -> Callable[[torch.Tensor, torch.Tensor], Any]:
-        """The network's forward pass for inference on ``device``: traced (:func:`_traced`) where tracing gives the
-        eager pass's outputs, else the eager pass."""
-        forward = self._forward.get(device)
+    def _forward_on(self, device: torch.device, dtype: torch.dtype) -> Callable[[torch.Tensor, torch.Tensor], Any]:
+        """The guesses' forward pass for inference on ``device`` (:class:`_SI`: readings of ``dtype`` [1/m] in, the
+        count probabilities and the forces in SI and ``dtype`` out): traced (:func:`_traced`) where tracing gives
+        the eager pass's outputs, else the eager pass."""
+        key = (device, dtype)
+        forward = self._forward.get(key)
         if forward is None:
             with self._forward_lock:
-                forward = self._forward.get(device)
+                forward = self._forward.get(key)
                 if forward is None:
-                    net = self._net_on(device)
-                    traced = _traced(net, device)
-                    forward = self._forward[device] = traced if traced is not None else net
+                    si = _SI(self._net_on(device), self.rod.length, self.rod.bending_stiffness, dtype)
+                    traced = _traced(si, device, dtype)
+                    forward = self._forward[key] = traced if traced is not None else si
         return forward
 
     def guess(self, curvature: torch.Tensor, mask: torch.Tensor | None = None) -> WarmStartGuess:
@@ -651,33 +653,46 @@ class WarmStart:
 
     def _guess(self, curvature: torch.Tensor, mask: torch.Tensor) -> WarmStartGuess:
         """:meth:`guess` of readings already checked (the estimator's, which checks its input once)."""
-        dtype, device = curvature.dtype, curvature.device
-        L, EI = self.rod.length, self.rod.bending_stiffness
-        forward = self._forward_on(device)
+        forward = self._forward_on(curvature.device, curvature.dtype)
         with torch.inference_mode():  # cheaper than no_grad at small batch
-            out = NetOutput(*forward(curvature.detach() * L, mask))
+            probs, s, f = forward(curvature.detach(), mask)
         # Outside inference mode: the results are ordinary tensors (callers may modify them in place).
-        probs = torch.softmax(out.count_logits, dim=1).to(dtype)
-        forces = {
-            h: PointForces((s * L).to(dtype), (f * (EI / (L * L))).to(dtype))
-            for h, (s, f) in enumerate(zip(out.s, out.f, strict=False), start=1)
-        }
+        forces = {h: PointForces(s_h, f_h) for h, (s_h, f_h) in enumerate(zip(s, f, strict=True), start=1)}
         return WarmStartGuess(probs, forces)
 
 
-def _traced(net: WarmStartNet, device: torch.device) -> Any:
+class _SI(nn.Module):
+    """A network's guesses in SI units: readings [1/m] -> (count probabilities (B, H), locations s[h-1] (B, h) [m],
+    forces f[h-1] (B, h, 2) [N]), each in ``dtype``. The scaling is part of the traced pass (:func:`_traced`), so
+    that a batch of one reading does not pay Python's dispatch for each of its small operations."""
+
+    def __init__(self, net: WarmStartNet, length: float, bending_stiffness: float, dtype: torch.dtype) -> None:
+        super().__init__()
+        self.net, self.length, self.force_scale, self.dtype = net, length, bending_stiffness / length**2, dtype
+
+    def forward(
+        self, curvature: torch.Tensor, mask: torch.Tensor
+    ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...], tuple[torch.Tensor, ...]]:
+        out = NetOutput(*self.net(curvature * self.length, mask))
+        probs = torch.softmax(out.count_logits, dim=1).to(self.dtype)
+        s = tuple((s_h * self.length).to(self.dtype) for s_h in out.s)
+        f = tuple((f_h * self.force_scale).to(self.dtype) for f_h in out.f)
+        return probs, s, f
+
+
+def _traced(net: _SI, device: torch.device, dtype: torch.dtype) -> Any:
     """``net``'s forward pass for inference traced by :func:`torch.jit.trace` (None where that fails or disagrees).
 
     Run from the trace, the same operations skip Python's dispatch of each one: at a batch of one reading, where the
     network's many small operations cost more than its arithmetic, this halves its cost. The trace shares the
     network's parameters, so it follows any later change to them. It is kept only if it reproduces the eager pass's
-    outputs exactly on two test batches; torch marks the tracer deprecated, so its warnings are silenced here, and a
-    torch without it leaves the eager pass in use.
+    outputs exactly on two test batches (readings of ``dtype``); torch marks the tracer deprecated, so its warnings
+    are silenced here, and a torch without it leaves the eager pass in use.
     """
-    G = net.config.num_gratings
+    G = net.net.config.num_gratings
     examples = []
     for B in (1, 3):
-        reading = torch.linspace(-3.0, 2.0, B * G * 2, dtype=torch.float64, device=device).reshape(B, G, 2)
+        reading = torch.linspace(-3.0, 2.0, B * G * 2, dtype=dtype, device=device).reshape(B, G, 2)
         mask = torch.ones((B, G), dtype=torch.bool, device=device)
         if G > 1:
             mask[-1, G // 2] = False  # a missing grating
@@ -687,8 +702,7 @@ def _traced(net: WarmStartNet, device: torch.device) -> Any:
             warnings.simplefilter("ignore")
             traced = torch.jit.trace(net, examples[1], check_trace=False)
             for example in examples:
-                eager = NetOutput(*net(*example))
-                again = NetOutput(*traced(*example))
+                eager, again = net(*example), traced(*example)
                 if not all(torch.equal(a, b) for a, b in zip(_flat(eager), _flat(again), strict=True)):
                     return None
     except Exception:  # noqa: BLE001 - any failure of the tracer leaves the eager pass, which is always right
@@ -696,8 +710,8 @@ def _traced(net: WarmStartNet, device: torch.device) -> Any:
     return traced
 
 
-def _flat(out: NetOutput) -> list[torch.Tensor]:
-    return [out.count_logits, *out.s, *out.f]
+def _flat(out: tuple[torch.Tensor, tuple[torch.Tensor, ...], tuple[torch.Tensor, ...]]) -> list[torch.Tensor]:
+    return [out[0], *out[1], *out[2]]
 
 
 # ---------------------------------------------------------------------------------------------------- quality
