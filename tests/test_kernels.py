@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 from scipy import stats
 
@@ -387,6 +388,58 @@ def test_the_misfit_test_is_the_chi_square_p_value_below_its_level():
     assert counts.unexplained(k, 1, 0.01 * q * 1.001)
     assert counts.unexplained(k, 1, math.inf) and counts.unexplained(k, 1, math.nan)
     assert not counts.unexplained(k, 10, 1e9)  # no degree of freedom left: nothing to test
+
+
+def test_the_chi_square_survival_matches_scipy_over_its_range():
+    """The reported p-value's special function (run as the kernel source), against scipy's chi2.sf: from p near 1
+    to 1e-250, for small and large degrees of freedom, both parities, and either side of the switch to logarithms
+    (x / 2 = 700)."""
+    worst = 0.0
+    for dof in [*range(1, 40), 57, 100, 255, 1001, 4001]:
+        for p in (1 - 1e-12, 0.999, 0.5, 1e-3, 1e-9, 1e-40, 1e-120, 1e-250):
+            x = stats.chi2.isf(p, dof)
+            want = stats.chi2.sf(x, dof)
+            worst = max(worst, abs(counts.chi2_survival(x, dof) - want) / want)
+    assert worst < 1e-11
+    for x in (1399.0, 1401.0):
+        for dof in (1, 2, 1300, 1301, 1500, 1501):
+            want, got = stats.chi2.sf(x, dof), counts.chi2_survival(x, dof)
+            assert abs(got - want) <= 1e-11 * want if want > 1e-290 else got <= 1e-290
+    assert counts.chi2_survival(0.0, 3) == 1.0 and counts.chi2_survival(-1.0, 4) == 1.0
+    assert counts.chi2_survival(math.inf, 3) == 0.0 and math.isnan(counts.chi2_survival(math.nan, 3))
+
+
+def test_the_status_codes_the_kernels_write_are_the_statuses_in_order():
+    from torchrod.estimate.status import STATUSES
+
+    assert [tr.Status(name).code for name in STATUSES] == [
+        counts.OK,
+        counts.MISFIT,
+        counts.UNCONVERGED,
+        counts.POORLY_DETERMINED,
+        counts.TIMEOUT,
+    ]
+
+
+def test_a_readings_status_and_p_value_follow_its_chosen_fit():
+    """The verdict's order (timeout, misfit, unconverged, poorly determined, ok) and the p-value at the noise given
+    or, unknown, at the largest believed; checked against scipy's chi-square law."""
+    k = _counts_kit(28, 0.1)
+    q = stats.chi2.ppf(1 - 1e-3, 28 - 3)
+    loss = 0.01 * q * 0.5
+    assert counts.p_value(k, 1, loss) == pytest.approx(stats.chi2.sf(loss / 0.01, 25), rel=1e-12)
+    assert counts.verdict(k, 1, loss, True, False) == counts.OK
+    assert counts.verdict(k, 1, loss, True, True) == counts.POORLY_DETERMINED
+    assert counts.verdict(k, 1, loss, False, True) == counts.UNCONVERGED
+    assert counts.verdict(k, 1, 0.01 * q * 1.01, False, True) == counts.MISFIT
+    assert counts.p_value(k, 1, math.inf) == 0.0 and counts.verdict(k, 1, math.nan, True, False) == counts.MISFIT
+    assert math.isnan(counts.p_value(k, 10, 1.0))  # no degree of freedom left: no p-value, no misfit
+    assert counts.verdict(k, 10, 1e9, True, False) == counts.OK
+    k.info[0].cut = True
+    assert counts.verdict(k, 1, 0.01 * q * 1.01, False, True) == counts.TIMEOUT
+    unknown = _counts_kit(28, None)
+    s2 = unknown.opt.max_noise2
+    assert counts.p_value(unknown, 2, 3.0) == pytest.approx(stats.chi2.sf(3.0 / s2, 22), rel=1e-12)
 
 
 # ------------------------------------------------------------------------------------------------ fits

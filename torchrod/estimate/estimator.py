@@ -32,11 +32,11 @@ import numpy as np
 import torch
 
 from ..errors import MissingFileError, OptionsError
-from ..io.readings import check_readings
+from ..io.readings import check_readings, host_view
 from ..loads import PointForces
 from ..rod import Rod
 from .options import EstimatorOptions, LMPolicy, SearchOptions
-from .status import Status, verdict
+from .status import Status
 
 __all__ = ["EstimateResult", "Estimator", "EstimatorOptions", "LMPolicy", "SearchOptions"]
 
@@ -176,13 +176,6 @@ class EstimateResult:
 WarmStartLike = Callable[[torch.Tensor, torch.Tensor], Mapping[int, PointForces]]
 
 
-def chi2_survival(x: torch.Tensor, dof: torch.Tensor) -> torch.Tensor:
-    """P(chi2_dof > x), elementwise on tensors (NaN where dof <= 0)."""
-    d = dof.to(x.dtype)
-    p = torch.special.gammaincc(torch.clamp(d, min=1.0) / 2.0, torch.clamp(x, min=0.0) / 2.0)
-    return torch.where(d > 0, p, torch.full_like(x, math.nan))
-
-
 class Estimator:
     """Force estimation for one rod (module docstring: the method).
 
@@ -279,7 +272,7 @@ class Estimator:
         curvature, mask = check_readings(curvature, mask, self.rod.num_gratings)
         if curvature.shape[0] == 0:
             raise ValueError(f"curvature must hold at least one reading, got shape {tuple(curvature.shape)}")
-        if not bool(mask.any(dim=1).all()):
+        if not bool(host_view(mask).any(1).all()):
             rows = (~mask.any(dim=1)).nonzero().squeeze(1).tolist()
             raise ValueError(f"readings {rows[:10]} have no present grating (mask all False)")
         return curvature, mask
@@ -361,9 +354,8 @@ class Estimator:
         opts = self.options if options is None else options
         curvature, mask = self._check(curvature[None], None if mask is None else mask[None])
         plan = self.plan(dataclasses.replace(opts, target="python"))
-        u = torch.where(mask[0, :, None], curvature[0].to(torch.float64), 0.0).reshape(-1).cpu().numpy()
-        w = mask[0, :, None].expand(-1, 2).to(torch.float64).reshape(-1).cpu().numpy()
-        return kit(plan.setup, plan.sizes, u, w, opts.noise2)
+        u, w, _ = self._kernel_readings(curvature.cpu(), mask.cpu(), opts)
+        return kit(plan.setup, plan.sizes, u[0], w[0], opts.noise2)
 
     # ------------------------------------------------------------------ the method
     def estimate(
@@ -395,12 +387,7 @@ class Estimator:
         device, out_dtype = curvature.device, curvature.dtype
         B, G = mask.shape
         W = opts.width
-        u = curvature.to(torch.float64)
-        if opts.relative and self.rod.precurved:  # readings of the change from the unloaded shape: add it back
-            u = u + self.rod.unloaded_curvature(torch.float64, u.device)
-        u = torch.where(mask[:, :, None], u, torch.zeros((), dtype=torch.float64, device=device))
-        w = mask[:, :, None].expand(B, G, 2).to(torch.float64)
-        noise2 = torch.full((B,), opts.noise2, device=device, dtype=torch.float64)
+        u, w, noise2 = self._kernel_readings(curvature, mask, opts)
         blocks = self._guesses(curvature, mask, opts, extra_starts)
         counts = [h for h, _, _, _ in blocks]
         if opts.starts == 0:
@@ -414,20 +401,18 @@ class Estimator:
         began = time.perf_counter()
         H = max(W, 1)
         K = max(len(blocks), 1)
-        gs = torch.zeros((B, K, H), dtype=torch.float64, device=device)
-        gf = torch.zeros((B, K, H, 2), dtype=torch.float64, device=device)
-        guse = torch.zeros((B, K), dtype=torch.bool, device=device)
+        gs, gf, guse = _zeros(device, ((B, K, H), torch.float64), ((B, K, H, 2), torch.float64), ((B, K), torch.bool))
         for k, (h, s, f, use) in enumerate(blocks):
-            gs[:, k, :h] = s
-            gf[:, k, :h] = f
-            guse[:, k] = use
+            gs[:, k, :h] = host_view(s)
+            gf[:, k, :h] = host_view(f)
+            guse[:, k] = host_view(use)
         out = _outputs(B, W, device)
         flag = np.zeros(1, np.int64)
         alarm = None
         if opts.time_budget is not None and plan.target != "cuda" and not plan.compiled.compiling():
             alarm = _ALARMS.arm(began + B * opts.time_budget, flag)
         try:
-            batch = _batch(u.reshape(B, 2 * G), w.reshape(B, 2 * G), noise2, gs, gf, guse, out, plan.target)
+            batch = _batch(u, w, noise2, gs, gf, guse, out, plan.target)
             gpu = (
                 device.index
                 if device.index is not None
@@ -439,8 +424,30 @@ class Estimator:
                 _ALARMS.cancel(alarm)
         result = self._report(out, mask, opts, out_dtype)
         if opts.num_forces and _escape:
-            result = self._fixed_count_escape(result, curvature, mask, opts, u)
+            u3 = torch.as_tensor(u, device=device).view(B, G, 2)
+            result = self._fixed_count_escape(result, curvature, mask, opts, u3)
         return result
+
+    def _kernel_readings(self, curvature: torch.Tensor, mask: torch.Tensor, opts: EstimatorOptions) -> tuple[Any, ...]:
+        """The kernels' readings of checked ``curvature`` (B, G, 2) [1/m] and ``mask`` (B, G): u (B, 2G) float64
+        [1/m] (zero at a missing grating; a precurved rod's unloaded shape added back to ``relative`` readings), w
+        (B, 2G) 1.0 where present, noise2 (B,) (``opts.noise2``); NumPy arrays for a CPU batch (cheaper than
+        torch's operations on a few readings), tensors on curvature's device otherwise."""
+        B, G = mask.shape
+        values, present = host_view(curvature.to(torch.float64)), host_view(mask)
+        if opts.relative and self.rod.precurved:  # readings of the change from the unloaded shape: add it back
+            values = values + host_view(self.rod.unloaded_curvature(torch.float64, curvature.device))
+        if isinstance(values, np.ndarray):
+            return (
+                np.where(present[:, :, None], values, 0.0).reshape(B, 2 * G),
+                np.repeat(present, 2, axis=1).astype(np.float64),
+                np.full(B, opts.noise2),
+            )
+        return (
+            torch.where(present[:, :, None], values, 0.0).reshape(B, 2 * G),
+            present.repeat_interleave(2, dim=1).to(torch.float64),
+            torch.full((B,), opts.noise2, device=curvature.device, dtype=torch.float64),
+        )
 
     def _fixed_count_escape(
         self,
@@ -550,37 +557,30 @@ class Estimator:
                 net = self.warm_start(curvature, mask)
             probs = getattr(net, "count_probs", None)
             likely = None  # (B, H) whether each count is probable enough for its guess to start a fit
+            anyone: list[bool] = []  # whether any reading uses the guess of each count
             if probs is not None and opts.starts > 0 and opts.guess_probability > 0:
                 likely = probs.detach().to(device) >= opts.guess_probability
+                anyone = likely.any(0).tolist()  # (one transfer for every count)
             for h, pf in (net.forces if hasattr(net, "forces") else net).items():
-                if h in per_count:
+                if h in per_count and (h > len(anyone) or anyone[h - 1]):
                     use = likely[:, h - 1] if likely is not None and h <= likely.shape[1] else everyone
                     add(h, pf, 0.0, use)
-        for h, found in per_count.items():
-            for s, f, use in found:
-                if use is everyone or bool(use.any()):
-                    out.append((h, torch.clamp(s, 0.0, self.rod.length), f, use))
+        for h, found in per_count.items():  # (every block added is used by some reading)
+            out.extend((h, torch.clamp(s, 0.0, self.rod.length), f, use) for s, f, use in found)
         return out
 
     def _report(self, out: Any, mask: torch.Tensor, opts: EstimatorOptions, dtype: torch.dtype) -> EstimateResult:
-        """The kernels' outputs as an :class:`EstimateResult`: the p-values and the verdict added."""
+        """The kernels' outputs (p-values and statuses included) as an :class:`EstimateResult`."""
         t = _tensors(out, mask.device)
         count = t["count"]
-        B, W = t["s"].shape
-        floor2 = float(opts.noise_floor) ** 2
-        test_sigma2 = (float(opts.noise) if opts.noise is not None else float(opts.max_noise)) ** 2 + floor2
-        residuals = 2 * mask.sum(1)
-        loss = t["loss"]
-        p_value = chi2_survival(loss / test_sigma2, residuals - 3 * count)
-        p_value = torch.where(torch.isfinite(loss), p_value, torch.zeros_like(p_value))
-        status = verdict(p_value, t["converged"], t["poorly"], opts.misfit_level, t["cut"])
+        W = t["s"].shape[1]
         active = torch.arange(W, device=count.device)[None, :] < count[:, None]
         return EstimateResult(
             forces=PointForces(t["s"].to(dtype), t["f"].to(dtype), active),
             num_forces=count,
-            status=status,
-            p_value=p_value.to(dtype),
-            loss=loss.to(dtype),
+            status=t["status"],
+            p_value=t["p_value"].to(dtype),
+            loss=t["loss"].to(dtype),
             converged=t["converged"],
             iterations=t["iterations"],
             std=t["std"].to(dtype),
@@ -654,9 +654,12 @@ _ALARMS = _Alarms()
 
 
 def _outputs(B: int, W: int, device: torch.device) -> Any:
-    """The kernels' outputs for B readings of width W, as torch tensors on ``device``."""
+    """The kernels' outputs for B readings of width W: NumPy arrays for the CPU (the kernels' own type there, made
+    without torch's dispatch; :func:`_tensors` shares their memory), torch tensors on any other device."""
     from ..kernels.host import outputs
 
+    if device.type == "cpu":
+        return outputs(B, W)
     return outputs(B, W, lambda shape, dtype: torch.empty(shape, dtype=_TORCH[np.dtype(dtype)], device=device))
 
 
@@ -677,15 +680,26 @@ def _batch(u, w, noise2, gs, gf, guse, out, target: str) -> Any:
     if target == "cuda" and not _simulated_cuda():
         from numba import cuda
 
-        def view(x: torch.Tensor) -> Any:
+        def view(x: Any) -> Any:
             return cuda.as_cuda_array(x.contiguous())
     else:
 
-        def view(x: torch.Tensor) -> Any:
-            return x.contiguous().numpy()
+        def view(x: Any) -> Any:
+            return x if isinstance(x, np.ndarray) else x.contiguous().numpy()
 
     return Batch(view(u), view(w), view(noise2), view(gs), view(gf), view(guse), type(out)(*(view(x) for x in out)))
 
 
+def _zeros(device: torch.device, *shapes: tuple[tuple[int, ...], torch.dtype]) -> list[Any]:
+    """Zero arrays of these (shape, dtype): NumPy ones for the CPU (:func:`_outputs`), tensors on another device."""
+    if device.type == "cpu":
+        return [np.zeros(shape, _NUMPY[dtype]) for shape, dtype in shapes]
+    return [torch.zeros(shape, dtype=dtype, device=device) for shape, dtype in shapes]
+
+
+_NUMPY = {torch.float64: np.float64, torch.bool: np.bool_}
+
+
 def _tensors(out: Any, device: torch.device) -> dict[str, torch.Tensor]:
-    return dict(zip(out._fields, out, strict=True))
+    """The kernels' outputs by name, as tensors (sharing the memory of NumPy ones)."""
+    return {k: torch.from_numpy(x) if isinstance(x, np.ndarray) else x for k, x in zip(out._fields, out, strict=True)}

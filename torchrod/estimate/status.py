@@ -34,9 +34,8 @@ Each reading's result carries one status; when several apply, the first in this 
 from __future__ import annotations
 
 from enum import Enum
-from typing import Any
 
-__all__ = ["MISFIT_LEVEL", "STATUSES", "Status", "verdict"]
+__all__ = ["MISFIT_LEVEL", "STATUSES", "Status"]
 
 
 class Status(str, Enum):
@@ -65,16 +64,4 @@ MISFIT_LEVEL = 1e-3
 """Default significance of the misfit test: the chance that a correct fit is called a misfit."""
 
 OK, MISFIT, UNCONVERGED, POORLY_DETERMINED, TIMEOUT = range(5)
-
-
-def verdict(p_value: Any, converged: Any, poorly_determined: Any, level: float, timeout: Any = None) -> Any:
-    """(B,) int64 status codes (indices into :data:`STATUSES`) from (B,) tensors: timeout where ``timeout``, then
-    misfit where ``p_value < level``, then unconverged, then poorly determined, else ok."""
-    import torch
-
-    code = torch.where(poorly_determined, POORLY_DETERMINED, OK)
-    code = torch.where(~converged, UNCONVERGED, code)
-    code = torch.where(p_value < level, MISFIT, code)
-    if timeout is not None:
-        code = torch.where(timeout, TIMEOUT, code)
-    return code.to(torch.int64)
+"""The codes, as the kernels write them (:func:`torchrod.kernels.counts.verdict` applies the order above)."""

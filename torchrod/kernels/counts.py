@@ -17,11 +17,13 @@ rules (``Options.rule``):
     misfit guard: the misfit is what estimates sigma). sigma^2 includes the floor^2 in both cases.
 
 The quantiles come from tables the caller makes once (:class:`torchrod.kernels.layout.Tables`, indexed by the
-count difference and by the degrees of freedom): the kernels compute no special functions.
+count difference and by the degrees of freedom). The one special function computed here is the chi-square
+survival of the reported p-value (:func:`chi2_survival`), once per reading.
 """
 
 import math
 
+from ..estimate.status import MISFIT, OK, POORLY_DETERMINED, TIMEOUT, UNCONVERGED
 from .views import tables_of
 
 RULE_NOISE = 0
@@ -190,6 +192,37 @@ def plausible_limit(k, losses, C, h):
     return k.opt.hopeless * (guard if guard < c else c)
 
 
+def chi2_survival(x, dof):
+    """P(X > x) for X ~ chi-square with an integer ``dof`` >= 1 degrees of freedom.
+
+    With y = x / 2, the closed forms of an integer dof: for an even dof 2n, the chance of fewer than n events of a
+    Poisson law of mean y, ``sum_{j<n} e^-y y^j / j!``; for an odd dof 2n + 1, ``erfc(sqrt(y))`` plus ``sum_{j<n}
+    e^-y y^(j+1/2) / Gamma(j + 3/2)``. Every term is positive, so the sums lose no digits to cancellation; each term
+    follows from the previous one by a factor y / (j + d + 1), or, where e^-y would underflow (y > 700), by its
+    logarithm.
+    """
+    if not x > 0.0:
+        return 1.0 if x == x else x
+    if x == math.inf:
+        return 0.0
+    y = 0.5 * x
+    d = 0.5 * (dof % 2)  # the terms' half-integer offset for an odd dof
+    n = dof // 2
+    total = math.erfc(math.sqrt(y)) if d > 0.0 else 0.0
+    if y <= 700.0:
+        term = math.exp(-y) if d == 0.0 else math.exp(-y) * math.sqrt(y) / math.gamma(1.5)
+        for j in range(n):
+            total += term
+            term *= y / (j + d + 1.0)
+    else:
+        log_y = math.log(y)
+        log_term = -y + d * log_y - math.lgamma(d + 1.0)
+        for j in range(n):
+            total += math.exp(log_term)
+            log_term += log_y - math.log(j + d + 1.0)
+    return total if total < 1.0 else 1.0
+
+
 def unexplained(k, h, loss):
     """Whether a fit of h forces with this loss is a misfit (its chi-square p-value at the given noise, or at the
     largest believed, below ``misfit_level``): the loss over that sigma^2 above the level's quantile, or a loss
@@ -202,3 +235,30 @@ def unexplained(k, h, loss):
     info = k.info[0]
     s2 = info.noise2 if info.known else k.opt.max_noise2
     return loss / s2 > tables_of(k).verdict[d]
+
+
+def verdict(k, h, loss, converged, poorly):
+    """The reading's status code (:mod:`torchrod.estimate.status`: the first that applies of timeout, misfit,
+    unconverged, poorly determined, ok) for its chosen fit of h forces."""
+    if k.info[0].cut:
+        return TIMEOUT
+    if unexplained(k, h, loss):
+        return MISFIT
+    if not converged:
+        return UNCONVERGED
+    if poorly:
+        return POORLY_DETERMINED
+    return OK
+
+
+def p_value(k, h, loss):
+    """The chi-square p-value of a fit of h forces with this loss at the given noise, or at the largest believed
+    (the misfit test's: :func:`unexplained`): 0 for a loss that is not a number, NaN with no degree of freedom
+    left."""
+    if not math.isfinite(loss):
+        return 0.0
+    d = k.info[0].residuals - 3 * h
+    if d <= 0:
+        return math.nan
+    info = k.info[0]
+    return chi2_survival(loss / (info.noise2 if info.known else k.opt.max_noise2), d)

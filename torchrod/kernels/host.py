@@ -177,6 +177,8 @@ def outputs(B: int, W: int, empty: Any = np.empty) -> Outputs:
         sigma=empty((B,), np.float64),
         evaluations=empty((B,), np.int64),
         cut=empty((B,), np.bool_),
+        p_value=empty((B,), np.float64),
+        status=empty((B,), np.int64),
     )
 
 

@@ -180,10 +180,13 @@ Setup = namedtuple("Setup", "rod opt lay const gcount")
 """What the batch shares: the :data:`ROD`, :data:`OPTIONS` and :data:`LAYOUT` records (one element each), the
 constants' arena and gcount (K,), the count of each guess block."""
 
-Outputs = namedtuple("Outputs", "count s f std loss converged iterations poorly losses sigma evaluations cut")
+Outputs = namedtuple(
+    "Outputs", "count s f std loss converged iterations poorly losses sigma evaluations cut p_value status"
+)
 """Per reading (batch first, W = the result width): count (B,), s (B, W) [m] by location with the bias, f (B, W, 2)
 [N], std (B, W, 3), loss (B,) [1/m^2], converged (B,), iterations (B,), poorly (B,), losses (B, W + 1) by count,
-sigma (B,) [1/m], evaluations (B,), cut (B,)."""
+sigma (B,) [1/m], evaluations (B,), cut (B,), p_value (B,), status (B,) (a code of
+:data:`torchrod.estimate.status.STATUSES`)."""
 
 Batch = namedtuple("Batch", "u w noise2 gs gf guse out")
 """Per reading: u (B, 2G) the readings [1/m] (zero at missing gratings), w (B, 2G) 1.0 where present, noise2 (B,)

@@ -22,18 +22,21 @@ force (:func:`drop_negligible`). The chosen fit, where its step budget left it o
 stands (:func:`refine`).
 
 The count is chosen (:mod:`.counts`), its uncertainty judged (:mod:`.covariance`), and the forces reported by
-location with the rod's location bias. The caller's stop flag (a deadline) or an evaluation budget cut the search
-where it stands; the reading is then marked ``cut`` and answered with the best fit so far.
+location with the rod's location bias, with the fit's p-value and the reading's status (:func:`.counts.verdict`).
+The caller's stop flag (a deadline) or an evaluation budget cut the search where it stands; the reading is then
+marked ``cut`` and answered with the best fit so far.
 """
 
 import math
 
 from .counts import (
+    p_value,
     plausible_limit,
     select_count,
     settled,
     suspect_limits,
     unexplained,
+    verdict,
 )
 from .covariance import near_kink, uncertainty
 from .fit import bounds, finish, late, sided, start, step
@@ -731,14 +734,17 @@ def report(k, b, out):
             for c in range(3):
                 out.std[b, j, c] = math.nan
     loss = rows.loss[chosen]
+    converged = rows.converged[chosen] and math.isfinite(loss)
     out.count[b] = chosen
     out.loss[b] = loss
-    out.converged[b] = rows.converged[chosen] and math.isfinite(loss)
+    out.converged[b] = converged
     out.iterations[b] = rows.steps[chosen]
     out.poorly[b] = poorly
     out.sigma[b] = sigma
     out.evaluations[b] = info.evaluations
     out.cut[b] = info.cut
+    out.p_value[b] = p_value(k, chosen, loss)
+    out.status[b] = verdict(k, chosen, loss, converged, poorly)
     for h in range(W + 1):
         out.losses[b, h] = math.nan
         if (opt.fixed < 0 or h == opt.fixed) and h <= H and sw.fitted[h]:

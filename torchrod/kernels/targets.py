@@ -111,6 +111,7 @@ def source_digest(extra: str = "") -> str:
     here = Path(__file__).parent
     for name in (*MODULES, "layout", "targets"):
         h.update((here / f"{name}.py").read_bytes())
+    h.update((here.parent / "estimate" / "status.py").read_bytes())  # the status codes the kernels write
     import numba
 
     h.update(f"numba {numba.__version__} python {sys.version_info[:2]} {extra}".encode())
