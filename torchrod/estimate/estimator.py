@@ -128,17 +128,18 @@ class EstimateResult:
         def num(x: float) -> float | None:
             return x if math.isfinite(x) else None
 
-        s = self.forces.s.detach().cpu().tolist()
-        f = self.forces.f.detach().cpu().tolist()
-        active = self.forces.active.cpu().tolist()
-        std = self.std.detach().cpu().tolist()
-        n = self.num_forces.cpu().tolist()
+        # (tolist reads any tensor, on any device, with or without a gradient: one call each)
+        s = self.forces.s.tolist()
+        f = self.forces.f.tolist()
+        active = self.forces.active.tolist()
+        std = self.std.tolist()
+        n = self.num_forces.tolist()
         status = self.statuses
-        p = self.p_value.detach().cpu().tolist()
-        loss = self.loss.detach().cpu().tolist()
-        conv = self.converged.cpu().tolist()
-        it = self.iterations.cpu().tolist()
-        poor = self.poorly_determined.cpu().tolist()
+        p = self.p_value.tolist()
+        loss = self.loss.tolist()
+        conv = self.converged.tolist()
+        it = self.iterations.tolist()
+        poor = self.poorly_determined.tolist()
         out = []
         for b in range(B):
             forces = []

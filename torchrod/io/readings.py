@@ -85,6 +85,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, cast
 
+import numpy as np
 import torch
 
 from ..errors import ReadingError
@@ -867,9 +868,11 @@ def _at(line: int | None, message: str) -> str:
 
 def stack_readings(readings: Sequence[Reading]) -> tuple[torch.Tensor, torch.Tensor]:
     """Checked readings -> (curvature (B, G, 2) float64 [1/m] with 0 at missing gratings, mask (B, G) bool)."""
-    curvature = torch.stack([r.curvature for r in readings])
-    mask = ~torch.isnan(curvature).any(-1)
-    return torch.where(mask.unsqueeze(-1), curvature, torch.zeros((), dtype=curvature.dtype)), mask
+    curvature = torch.stack([r.curvature for r in readings])  # (a new tensor: zeroed in place below)
+    values = curvature.numpy()
+    missing = np.isnan(values).any(-1)
+    values[missing] = 0.0
+    return curvature, torch.from_numpy(~missing)
 
 
 # ---------------------------------------------------------------------------------------------------- CSV
