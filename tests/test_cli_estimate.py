@@ -160,9 +160,25 @@ def test_evaluate_json_and_bench_quick(capsys):
     finally:
         torch.set_num_threads(threads)
     out = capsys.readouterr().out
-    assert "B=1" in out and out.count("|") >= 12
+    assert "B=1" in out and out.count("|") >= 12 and "network none" in out
     with pytest.raises(SystemExit):
         main(["evaluate", "--rows", "nonsense"])
+
+
+def test_bench_estimate_with_the_network_and_idle_gaps(capsys):
+    """The one-at-a-time row as a paced live source meets it: the shipped network's guesses, and the estimator idle
+    before each call; a negative gap is refused."""
+    threads = torch.get_num_threads()
+    try:
+        args = ["bench", "estimate", "--quick", "--forces", "1", "--checkpoint", "shipped", "--gap-ms", "2"]
+        assert main(args) == 0
+    finally:
+        torch.set_num_threads(threads)
+    out = capsys.readouterr().out
+    assert "network torchrod/data/nitinol290.pt" in out
+    assert "2 ms idle before each one-at-a-time call" in out
+    assert main(["bench", "estimate", "--quick", "--gap-ms", "-1"]) == 2
+    assert "--gap-ms must be" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------------------------------------- hostile input

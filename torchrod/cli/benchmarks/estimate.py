@@ -12,7 +12,10 @@ readings in calls of ``--batch-size``: readings per second, wall and CPU). Count
 check. Every timing follows a warm-up call (the kernels compiled or loaded, per-rod set-up). ``--threads`` is the
 CPU threads of a batched call (a single reading is never split); the one-at-a-time rows run on one.
 ``--device`` estimates on that device (e.g. ``cuda``, the readings made on the CPU and moved there; the batched
-time includes reading the counts back); ``--forces`` picks the rows.
+time includes reading the counts back); ``--forces`` picks the rows. ``--checkpoint`` adds a warm-start network's
+guesses (``shipped``: the one shipped for the rod's layout; by default none). ``--gap-ms`` waits that long before
+each one-at-a-time call, as a live source paced at 1000 / MS Hz leaves the estimator idle between its readings:
+the processor's caches then start cold, which costs more than the arithmetic at a batch of one.
 """
 
 from __future__ import annotations
@@ -25,10 +28,11 @@ import time
 
 import torch
 
-from ...estimate.estimator import Estimator, EstimatorOptions
+from ...estimate.estimator import Estimator
 from ...presets import load as load_rod
 from ..commands import add_device_option, check_device, rod_help
 from . import SUITES
+from .stream import _network, _options
 
 HELP = SUITES["estimate"]
 
@@ -45,6 +49,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the readings (default 0)")
     parser.add_argument(
         "--forces", default="1,2,3,1-3", metavar="K,...", help="the rows: counts 1, 2, 3 and the mix 1-3 (default all)"
+    )
+    parser.add_argument(
+        "--checkpoint", default="none", help="warm-start network: a checkpoint, 'shipped' or 'none' (default none)"
+    )
+    parser.add_argument(
+        "--gap-ms", type=float, default=0.0, help="idle time before each one-at-a-time call [ms] (default 0)"
     )
     add_device_option(parser)
     parser.add_argument("--quick", action="store_true", help="a smoke run: 3 single and 20 batched readings")
@@ -76,17 +86,25 @@ def run(args: argparse.Namespace) -> int:
         single, batched = 3, 20
     if min(single, batched, batch_size) < 1:
         raise ValueError("--single, --batched and --batch-size must be >= 1")
+    if not (0.0 <= args.gap_ms < math.inf):
+        raise ValueError(f"--gap-ms must be a finite number >= 0, got {args.gap_ms}")
     rows = {"1": 1, "2": 2, "3": 3, "1-3": None}
     wanted = [x.strip() for x in args.forces.split(",")]
     if not wanted or any(x not in rows for x in wanted):
         raise ValueError(f"--forces takes some of 1, 2, 3 and 1-3, comma-separated, got {args.forces!r}")
     device = check_device(args)
     torch.set_num_threads(1)
-    estimator = Estimator(rod, EstimatorOptions(noise=args.noise, threads=args.threads))
+    network, network_name = _network(None if args.checkpoint == "shipped" else args.checkpoint, rod)
+    if args.checkpoint == "shipped" and network is None:
+        raise ValueError(f"no shipped network fits this rod: {network_name}")
+    options = dataclasses.replace(_options(args.noise, [], network), threads=args.threads)
+    estimator = Estimator(rod, options, warm_start=network)
     one = dataclasses.replace(estimator.options, threads=1)
+    gap = args.gap_ms / 1e3
     print(
         f"# torchrod bench estimate: {rod.num_gratings} gratings, noise {args.noise:g} 1/m (known), "
-        f"count chosen in 0..3, CPU threads of a batch {args.threads}, device {device}"
+        f"count chosen in 0..3, CPU threads of a batch {args.threads}, device {device}, network {network_name}"
+        + (f", {args.gap_ms:g} ms idle before each one-at-a-time call" if gap else "")
     )
     print(
         f"{'forces':>6} | {'B=1 ms mean':>11} {'median':>7} {'p90':>7} {'p99':>7} {'cpu':>7} | {'batched rd/s':>12} "
@@ -100,6 +118,8 @@ def run(args: argparse.Namespace) -> int:
         estimator.estimate(curvature[:1], mask[:1])  # warm-up
         walls, cpus, right = [], [], 0
         for b in range(single):
+            if gap:
+                time.sleep(gap)
             w0, c0 = time.perf_counter(), time.process_time()
             res = estimator.estimate(curvature[b : b + 1], mask[b : b + 1], options=one)
             walls.append(time.perf_counter() - w0)
