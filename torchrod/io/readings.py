@@ -868,7 +868,7 @@ def _at(line: int | None, message: str) -> str:
 
 def stack_readings(readings: Sequence[Reading]) -> tuple[torch.Tensor, torch.Tensor]:
     """Checked readings -> (curvature (B, G, 2) float64 [1/m] with 0 at missing gratings, mask (B, G) bool)."""
-    curvature = torch.stack([r.curvature for r in readings])  # (a new tensor: zeroed in place below)
+    curvature = torch.stack([r.curvature for r in readings]).detach()  # (a new tensor: zeroed in place below)
     values = curvature.numpy()
     missing = np.isnan(values).any(-1)
     values[missing] = 0.0
