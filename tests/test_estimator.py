@@ -279,6 +279,11 @@ def test_input_checks_and_dtype(rod):
         est.estimate(torch.zeros(1, rod.num_gratings, 2, dtype=F64), options={"noise": 0.1})
     with pytest.raises(ValueError, match="max_noise"):
         EstimatorOptions(max_noise=0.0)
+    with pytest.raises(ValueError, match=r"noise = 0.0 with noise_floor = 0.0 leaves no noise"):
+        EstimatorOptions(noise=0.0, noise_floor=0.0)  # (the kernels would divide by sigma^2 = 0)
+    with pytest.raises(ValueError, match=r"max_noise = 1e-200 with noise_floor = 0.0"):
+        EstimatorOptions(max_noise=1e-200, noise_floor=0.0)  # squares to zero
+    assert EstimatorOptions(noise=0.0).noise2 > 0.0  # the default floor keeps sigma^2 positive
     _, u = readings(rod, CLEAN_CASES[:1])
     res32 = est.estimate(u.float(), options=options(est, noise=0.01))
     res64 = est.estimate(u, options=options(est, noise=0.01))

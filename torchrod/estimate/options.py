@@ -217,6 +217,13 @@ class EstimatorOptions:
         _number(self, "significance", lambda v: 0.0 < v < 1.0, "in (0, 1)")
         _number(self, "misfit_level", lambda v: 0.0 < v < 1.0, "in (0, 1)")
         _number(self, "noise_floor", lambda v: v >= 0.0, ">= 0 [1/m]")
+        for name in ("noise", "max_noise"):
+            sigma = getattr(self, name)
+            if sigma is not None and not float(sigma) ** 2 + float(self.noise_floor) ** 2 > 0.0:
+                raise OptionsError(
+                    f"{name} = {sigma!r} with noise_floor = {self.noise_floor!r} leaves no noise at all (sigma^2 + "
+                    "floor^2 = 0): every residual would be infinitely significant; give a positive noise_floor"
+                )
         _number(self, "max_step_angle", lambda v: v > 0.0, "positive")
         _number(self, "condition_limit", lambda v: v > 1.0, "above 1")
         _number(self, "guess_probability", lambda v: 0.0 <= v < 1.0, "in [0, 1)")
