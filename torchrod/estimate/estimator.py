@@ -7,9 +7,10 @@ For B readings, :meth:`Estimator.estimate`
 2. asks the warm-start network, when the estimator has one, for a first guess of each count;
 3. runs the kernels (:mod:`torchrod.kernels`) on every reading, on the CPU's cores or one GPU thread per reading:
    the fit of every count 0..max_forces, each from the one below, the search for each count's global minimum, the
-   count chosen by the significance tests, the verdict's ingredients and the Gauss-Newton uncertainty;
-4. gives every reading its status (:mod:`.status`: ``ok``, ``misfit``, ``unconverged``, ``poorly_determined``,
-   ``timeout``) and the chi-square p-value of its fit, in the input's dtype and on its device.
+   count chosen by the significance tests, the Gauss-Newton uncertainty, the chi-square p-value of the chosen fit
+   and the reading's status (:mod:`.status`: ``ok``, ``misfit``, ``unconverged``, ``poorly_determined``,
+   ``timeout``);
+4. returns them as tensors in the input's dtype and on its device.
 
 Locations are reported as ``s_model + rod.location_bias``, forces sorted by location. A reading the numerics fail on
 is answered with a status, never an exception.
