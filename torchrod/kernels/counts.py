@@ -232,9 +232,14 @@ def unexplained(k, h, loss):
     d = k.info[0].residuals - 3 * h
     if d <= 0:
         return False
+    return loss / misfit_sigma2(k) > tables_of(k).verdict[d]
+
+
+def misfit_sigma2(k):
+    """The misfit test's sigma^2 [1/m^2]: the given noise's, else the largest believed (``max_noise``), with the
+    floor."""
     info = k.info[0]
-    s2 = info.noise2 if info.known else k.opt.max_noise2
-    return loss / s2 > tables_of(k).verdict[d]
+    return info.noise2 if info.known else k.opt.max_noise2
 
 
 def verdict(k, h, loss, converged, poorly):
@@ -260,5 +265,4 @@ def p_value(k, h, loss):
     d = k.info[0].residuals - 3 * h
     if d <= 0:
         return math.nan
-    info = k.info[0]
-    return chi2_survival(loss / (info.noise2 if info.known else k.opt.max_noise2), d)
+    return chi2_survival(loss / misfit_sigma2(k), d)
