@@ -222,7 +222,7 @@ class _Stream:
 
         self.estimator, self.options = estimator, options
         self.estimate_options = estimate  # the EstimatorOptions of every batch
-        self._options: dict[float | None, Any] = {}  # those options for each learned noise (None: none learned)
+        self._options_by_noise: dict[float | None, Any] = {}  # those options per learned noise (None: none learned)
         self.workers = cpu_threads(options.workers)
         # Solver threads: each batch whole in one (the kernels release the interpreter lock), unless tracking.
         self.pool = None
@@ -416,14 +416,14 @@ class _Stream:
         reading, else each reading's own call, as this returns it)."""
         curvature, mask = stack_readings([p.reading for p in good])
         curvature, mask = curvature.to(self.device), mask.to(self.device)
-        options = self._options.get(learned)
+        options = self._options_by_noise.get(learned)
         if options is None:  # (made once per noise: a replace checks every option again, a cost at one reading)
             options = dataclasses.replace(self.estimate_options, threads=self.threads)
             if learned is not None:
                 options = dataclasses.replace(options, noise=learned)
-            if len(self._options) > 64:
-                self._options.clear()
-            self._options[learned] = options
+            if len(self._options_by_noise) > 64:
+                self._options_by_noise.clear()
+            self._options_by_noise[learned] = options
         starts = self._tracking_starts(len(good))
         try:
             result = self.estimator.estimate(curvature, mask, options=options, extra_starts=starts)
