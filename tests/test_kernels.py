@@ -163,6 +163,58 @@ def test_the_schedule_orders_ties_and_counts_steps_by_its_rules():
     assert steps.max() == 7  # capped
 
 
+def test_the_events_are_sorted_tip_to_base_by_position_then_index():
+    """The event order is Python's sort by (position descending, index) whatever the queries hold: one or two
+    increasing runs (merged), more runs or ties (insertion-sorted); forces and queries at equal positions."""
+    rng = np.random.default_rng(3)
+    for trial in range(600):
+        h, Q = int(rng.integers(0, 5)), int(rng.integers(0, 30))
+        grid = np.round(rng.uniform(0.0, 0.3, 60), 2 if trial % 2 else 6)  # coarse grids make ties
+        runs = 1 + trial % 4  # 1-2: the merge; 3-4: the insertion sort, as are repeated positions in a run
+        query = np.concatenate([np.sort(part) for part in np.array_split(grid[:Q], runs)]) if Q else grid[:0]
+        s = rng.choice(np.concatenate([grid[30:35], query]) if Q else grid[30:35], size=h)
+        order = np.empty(h + Q, np.int64)
+        march.event_order(query, Q, s, h, order)
+        expected = sorted(range(h + Q), key=lambda i: (-(s[i] if i < h else query[i - h]), i))
+        assert order.tolist() == expected, (query, s)
+
+
+def test_the_scans_model_of_one_more_force_is_the_full_damped_normal_system():
+    """Each candidate's decrement and force from the Schur complement (its sums cut at the last grating its
+    response reaches) are those of the whole damped normal system solved by NumPy; a grating missing."""
+    from torchrod.kernels.fit import FLOOR, TINY
+    from torchrod.kernels.scan import scan_model
+    from torchrod.kernels.views import scan_of
+
+    s, f = _forces((0.115, 0.6, 0.0), (0.237, 0.0, 0.7))
+    u = torch.tensor(_simulate(ROD, s, f))
+    u[6] = math.nan
+    k = Estimator(ROD, EstimatorOptions(noise=0.1)).kit(u)
+    for h0, s0, f0 in ((1, [0.2], [[0.3, 0.3]]), (2, [0.1, 0.25], [[0.5, 0.1], [0.1, 0.5]])):
+        rows = _fit(k, h0, h0, s0, np.array(f0))
+        scan_model(k, rows.s[h0], rows.f[h0], rows.interval[h0], h0, h0)
+        sw = scan_of(k)
+        P, n = 3 * h0, 2 * ROD.num_gratings
+        J, r = sw.J[:n, :P], sw.r[:n]
+        Jc = sw.Jc[: sw.dec.shape[0]]
+        C = Jc.shape[0]
+        assert (Jc[:, 2 * 6 : 2 * 6 + 2] == 0).all() and (Jc[-1, : 2 * ROD.num_gratings - 2] != 0).any()
+        scale = max(np.diag(J.T @ J).max(), max(np.diag(Jc[c].T @ Jc[c]).max() for c in range(C)))
+        checked = 0
+        for c in range(C):
+            Jf = np.concatenate([J, Jc[c]], axis=1)
+            A = Jf.T @ Jf
+            M = A + np.diag(TINY * np.diag(A) + FLOOR * scale)
+            g = Jf.T @ r
+            x = np.linalg.solve(M, g)
+            if not (sw.xc[c] == 0).all():
+                bound = 1e-14 * np.linalg.cond(M) * np.abs(x).max()  # rounding, amplified by the system's condition
+                assert np.abs(sw.xc[c] - x[P:]).max() <= bound
+                assert sw.dec[c] == pytest.approx(g @ x, rel=1e-9)
+                checked += 1
+        assert checked > C // 2
+
+
 # ------------------------------------------------------------------------------------------------ precurved
 def test_the_precurved_march_is_the_simulator_and_its_jacobian_the_autograd_gradient():
     rod = tr.presets.load("ctr250")

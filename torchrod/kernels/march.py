@@ -54,25 +54,82 @@ def slope_jump(fx, fy, inv):
     return complex(-fy * inv, fx * inv)
 
 
+def event_order(query, Q, s, h, order):
+    """The ``h`` forces at ``s`` and the ``Q`` queries sorted tip to base into ``order`` (h + Q,): an index < h for a
+    force, ``h + q`` for query q; by position, descending, and at equal positions by that index (a force before a
+    query). Queries in at most two strictly increasing runs (a rod's gratings; the scan's gratings, then its
+    candidates) are merged with the sorted forces, in one pass; others, or a NaN anywhere, are insertion-sorted.
+    Both give the one order the rule defines."""
+    E = h + Q
+    split = Q  # the second run's first query (Q: one run)
+    merge = True
+    for q in range(Q):
+        if query[q] != query[q]:
+            merge = False
+        elif q > 0 and not query[q] > query[q - 1]:
+            if split < Q:
+                merge = False
+            split = q
+    for j in range(h):
+        if s[j] != s[j]:
+            merge = False
+    if not merge:
+        for e in range(E):
+            order[e] = e
+        for i in range(1, E):  # stable insertion sort, descending: a force (lower index) first at a tie
+            k = order[i]
+            p = s[k] if k < h else query[k - h]
+            j = i
+            while j > 0:
+                o = order[j - 1]
+                if (s[o] if o < h else query[o - h]) >= p:
+                    break
+                order[j] = o
+                j -= 1
+            order[j] = k
+        return
+    # The forces sorted into the last h places (stable, descending); then each place from the first takes the
+    # largest of the next force and the two runs read backwards (a force, then the first run, wins a tie). The place
+    # written is never after the next force's, so no force is overwritten before it is taken.
+    first = E - h
+    for j in range(h):
+        i = first + j
+        while i > first and s[order[i - 1]] < s[j]:
+            order[i] = order[i - 1]
+            i -= 1
+        order[i] = j
+    fi = first
+    a = split - 1
+    b = Q - 1
+    for e in range(E):
+        pick = -1
+        best = 0.0
+        if fi < E:
+            pick = 0
+            best = s[order[fi]]
+        if a >= 0 and (pick < 0 or query[a] > best):
+            pick = 1
+            best = query[a]
+        if b >= split and (pick < 0 or query[b] > best):
+            pick = 2
+        if pick == 0:
+            order[e] = order[fi]
+            fi += 1
+        elif pick == 1:
+            order[e] = h + a
+            a -= 1
+        else:
+            order[e] = h + b
+            b -= 1
+
+
 def schedule(query, Q, s, jump, mag, h, length, step_angle, max_steps, bound, order, seg, steps):
     """The events of ``h`` forces at ``s`` and ``Q`` queries, tip to base (module docstring): ``order`` (E,) an
     index < h for a force, ``h + q`` for query q; ``seg`` (E,) [m] the segment ending at each event; ``steps`` (E,)
     its steps (0 distal to every force). ``jump`` (h,) complex slope jumps [1/m^2] (rule ``estimate``), ``mag`` (h,)
     their magnitudes |f| / EI (rule ``bound``)."""
     E = h + Q
-    for e in range(E):
-        order[e] = e
-    for i in range(1, E):  # stable insertion sort, descending: a force (lower index) first at a tie
-        k = order[i]
-        p = s[k] if k < h else query[k - h]
-        j = i
-        while j > 0:
-            o = order[j - 1]
-            if (s[o] if o < h else query[o - h]) >= p:
-                break
-            order[j] = o
-            j -= 1
-        order[j] = k
+    event_order(query, Q, s, h, order)
     start = length
     reached = False
     cap = float(max_steps)

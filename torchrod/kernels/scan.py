@@ -18,7 +18,7 @@ from .linalg import cholesky_apply, cholesky_factor, lu_apply, lu_factor, sumsq
 from .march import slope_jump
 from .views import lm_of, march_of, model_of, reading_of, rows_of, scan_of
 
-INLINE = ("interval_of",)
+INLINE = ("interval_of", "response_rows")
 """Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
 
 
@@ -150,6 +150,15 @@ def scan_model(k, bs, bf, bint, h0, known_row):
     return sumsq(r, n)
 
 
+def response_rows(Jc, c, n, finite):
+    """The rows of candidate c's response Jc[c] (n, 2) up to its last one that is not zero (n unless ``finite``)."""
+    rows = n
+    if finite:
+        while rows > 0 and Jc[c, rows - 1, 0] == 0.0 and Jc[c, rows - 1, 1] == 0.0:
+            rows -= 1
+    return rows
+
+
 def added_force(k, h0):
     """The Gauss-Newton model of the base with one more force at each candidate, every unknown free.
 
@@ -174,15 +183,23 @@ def added_force(k, h0):
         d = sw.Abb[p, p]
         if d != d or d > d_max:
             d_max = d
+    # A candidate's response is zero at the gratings distal to it: its sums stop at its last nonzero row. (Exactly
+    # the full sums: the terms left out are zeros, unless r or J is not finite there, when nothing is left out.)
+    finite = True
+    for m in range(n):
+        finite = finite and math.isfinite(r[m])
+        for p in range(Pb):
+            finite = finite and math.isfinite(J[m, p])
     for c in range(C):
+        rows = response_rows(Jc, c, n, finite)
         for a in range(2):
             for b in range(2):
                 v = 0.0
-                for m in range(n):
+                for m in range(rows):
                     v += Jc[c, m, a] * Jc[c, m, b]
                 sw.Acc[c, a, b] = v
             v = 0.0
-            for m in range(n):
+            for m in range(rows):
                 v += r[m] * Jc[c, m, a]
             sw.gc[c, a] = v
             d = sw.Acc[c, a, a]
@@ -222,10 +239,11 @@ def added_force(k, h0):
         z0 = sw.gc[c, 0]
         z1 = sw.gc[c, 1]
         if Pb:
+            rows = response_rows(Jc, c, n, finite)
             for a in range(2):
                 for p in range(Pb):
                     v = 0.0
-                    for m in range(n):
+                    for m in range(rows):
                         v += Jc[c, m, a] * J[m, p]
                     sw.Acb[a, p] = v
             for a in range(2):
