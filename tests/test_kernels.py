@@ -164,19 +164,21 @@ def test_the_schedule_orders_ties_and_counts_steps_by_its_rules():
 
 
 def test_the_events_are_sorted_tip_to_base_by_position_then_index():
-    """The event order is Python's sort by (position descending, index) whatever the queries hold: one or two
-    increasing runs (merged), more runs or ties (insertion-sorted); forces and queries at equal positions."""
+    """The event order is Python's sort by (position descending, index) whatever the queries and the extra events
+    hold: one or two increasing runs of queries and increasing extra events (merged), more runs or ties
+    (insertion-sorted); forces, queries and extra events at equal positions."""
     rng = np.random.default_rng(3)
-    for trial in range(600):
-        h, Q = int(rng.integers(0, 5)), int(rng.integers(0, 30))
-        grid = np.round(rng.uniform(0.0, 0.3, 60), 2 if trial % 2 else 6)  # coarse grids make ties
+    for trial in range(800):
+        h, Q, X = int(rng.integers(0, 5)), int(rng.integers(0, 30)), int(rng.integers(0, 4)) * (trial % 2)
+        grid = np.round(rng.uniform(0.0, 0.3, 60), 2 if trial % 3 else 6)  # coarse grids make ties
         runs = 1 + trial % 4  # 1-2: the merge; 3-4: the insertion sort, as are repeated positions in a run
         query = np.concatenate([np.sort(part) for part in np.array_split(grid[:Q], runs)]) if Q else grid[:0]
-        s = rng.choice(np.concatenate([grid[30:35], query]) if Q else grid[30:35], size=h)
-        order = np.empty(h + Q, np.int64)
-        march.event_order(query, Q, s, h, order)
-        expected = sorted(range(h + Q), key=lambda i: (-(s[i] if i < h else query[i - h]), i))
-        assert order.tolist() == expected, (query, s)
+        extra = np.sort(grid[40 : 40 + X]) if trial % 5 else grid[40 : 40 + X]
+        s = rng.choice(np.concatenate([grid[30:35], query, extra]), size=h)
+        order = np.empty(h + Q + X, np.int64)
+        march.event_order(query, Q, extra, X, s, h, order)
+        at = np.concatenate([s, query, extra])
+        assert order.tolist() == sorted(range(h + Q + X), key=lambda i: (-at[i], i)), (query, extra, s)
 
 
 def test_the_scans_model_of_one_more_force_is_the_full_damped_normal_system():

@@ -30,7 +30,7 @@ import math
 
 from .views import march_of, model_of
 
-INLINE = ("slope_jump",)
+INLINE = ("slope_jump", "event_position")
 
 FIT_STEP_ANGLE = 0.3
 """Default bound on (local rate) x (step) of the fitting model. Over the synthetic envelope (1-3 forces, 0.05-2 N,
@@ -54,13 +54,23 @@ def slope_jump(fx, fy, inv):
     return complex(-fy * inv, fx * inv)
 
 
-def event_order(query, Q, s, h, order):
-    """The ``h`` forces at ``s`` and the ``Q`` queries sorted tip to base into ``order`` (h + Q,): an index < h for a
-    force, ``h + q`` for query q; by position, descending, and at equal positions by that index (a force before a
-    query). Queries in at most two strictly increasing runs (a rod's gratings; the scan's gratings, then its
-    candidates) are merged with the sorted forces, in one pass; others, or a NaN anywhere, are insertion-sorted.
-    Both give the one order the rule defines."""
-    E = h + Q
+def event_position(s, query, extra, h, Q, e):
+    """The position [m] of event e: force e (e < h), query e - h, or ``extra[e - h - Q]``."""
+    if e < h:
+        return s[e]
+    if e < h + Q:
+        return query[e - h]
+    return extra[e - h - Q]
+
+
+def event_order(query, Q, extra, X, s, h, order):
+    """The ``h`` forces at ``s``, the ``Q`` queries and ``X`` extra events (the precurved rod's base and segment
+    ends) sorted tip to base into ``order`` (h + Q + X,): an index < h for a force, ``h + q`` for query q,
+    ``h + Q + x`` for extra event x; by position, descending, and at equal positions by that index (a force before
+    a query). Queries in at most two strictly increasing runs (a rod's gratings; the scan's gratings, then its
+    candidates) and increasing extra events are merged with the sorted forces in one pass; others, or a NaN
+    anywhere, are insertion-sorted. Both give the one order the rule defines."""
+    E = h + Q + X
     split = Q  # the second run's first query (Q: one run)
     merge = True
     for q in range(Q):
@@ -70,27 +80,31 @@ def event_order(query, Q, s, h, order):
             if split < Q:
                 merge = False
             split = q
+    for x in range(X):
+        if not (extra[x] == extra[x] and (x == 0 or extra[x] > extra[x - 1])):
+            merge = False
     for j in range(h):
         if s[j] != s[j]:
             merge = False
     if not merge:
         for e in range(E):
             order[e] = e
-        for i in range(1, E):  # stable insertion sort, descending: a force (lower index) first at a tie
+        for i in range(1, E):  # stable insertion sort, descending: the lower index first at a tie
             k = order[i]
-            p = s[k] if k < h else query[k - h]
+            p = event_position(s, query, extra, h, Q, k)
             j = i
             while j > 0:
                 o = order[j - 1]
-                if (s[o] if o < h else query[o - h]) >= p:
+                if event_position(s, query, extra, h, Q, o) >= p:
                     break
                 order[j] = o
                 j -= 1
             order[j] = k
         return
     # The forces sorted into the last h places (stable, descending); then each place from the first takes the
-    # largest of the next force and the two runs read backwards (a force, then the first run, wins a tie). The place
-    # written is never after the next force's, so no force is overwritten before it is taken.
+    # largest of the next force and of the runs read backwards (at a tie the lower index: a force, then the first
+    # run, the second, the extra events). The place written is never after the next force's, so no force is
+    # overwritten before it is taken.
     first = E - h
     for j in range(h):
         i = first + j
@@ -101,6 +115,7 @@ def event_order(query, Q, s, h, order):
     fi = first
     a = split - 1
     b = Q - 1
+    x = X - 1
     for e in range(E):
         pick = -1
         best = 0.0
@@ -112,15 +127,21 @@ def event_order(query, Q, s, h, order):
             best = query[a]
         if b >= split and (pick < 0 or query[b] > best):
             pick = 2
+            best = query[b]
+        if x >= 0 and (pick < 0 or extra[x] > best):
+            pick = 3
         if pick == 0:
             order[e] = order[fi]
             fi += 1
         elif pick == 1:
             order[e] = h + a
             a -= 1
-        else:
+        elif pick == 2:
             order[e] = h + b
             b -= 1
+        else:
+            order[e] = h + Q + x
+            x -= 1
 
 
 def schedule(query, Q, s, jump, mag, h, length, step_angle, max_steps, bound, order, seg, steps):
@@ -129,7 +150,7 @@ def schedule(query, Q, s, jump, mag, h, length, step_angle, max_steps, bound, or
     its steps (0 distal to every force). ``jump`` (h,) complex slope jumps [1/m^2] (rule ``estimate``), ``mag`` (h,)
     their magnitudes |f| / EI (rule ``bound``)."""
     E = h + Q
-    event_order(query, Q, s, h, order)
+    event_order(query, Q, query, 0, s, h, order)
     start = length
     reached = False
     cap = float(max_steps)

@@ -19,6 +19,7 @@ anywhere). :mod:`torchrod.model.precurved` integrates the same equations in torc
 
 import math
 
+from .march import event_order, event_position
 from .views import march_of, model_of, precurved_of
 
 FIT_MAX_STEP = 1e-2
@@ -31,7 +32,6 @@ EXACT_MAX_STEP = 1e-3
 INLINE = (
     "intrinsic_x",
     "intrinsic_y",
-    "precurved_position",
 )
 """Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
 
@@ -101,15 +101,6 @@ def precurved_rates(Yn, Ym, Rn, Rm, ux0, uy0, k1, k3, NC):
         Rm[2, c] = q2
 
 
-def precurved_position(s, query, extra, h, Q, k):
-    """The position of event k: force k (k < h), query k - h, or ``extra`` (the base and the segment ends)."""
-    if k < h:
-        return s[k]
-    if k < h + Q:
-        return query[k - h]
-    return extra[k - h - Q]
-
-
 def march_precurved(k, query, Q, s, f, h, F, seeds, max_step):
     """The precurved rod at ``Q`` queries (module docstring), into the march views: curvature ``curv`` (Q, 2)
     [1/m] (u_x, u_y, the total curvature); with ``F`` = 3h the Jacobian ``jac`` (Q, 2, F) w.r.t. each force's
@@ -142,19 +133,7 @@ def march_precurved(k, query, Q, s, f, h, F, seeds, max_step):
     NX = rod.nextra
     E = h + Q + NX
     order = mw.order
-    for e in range(E):
-        order[e] = e
-    for i in range(1, E):  # stable insertion sort, descending: forces, then queries, then the rest at a tie
-        k = order[i]
-        p = precurved_position(s, query, extra, h, Q, k)
-        j = i
-        while j > 0:
-            o = order[j - 1]
-            if precurved_position(s, query, extra, h, Q, o) >= p:
-                break
-            order[j] = o
-            j -= 1
-        order[j] = k
+    event_order(query, Q, extra, NX, s, h, order)
     NC = 1 + F + (6 if seeds else 0)
     Yn = pw.yn
     Ym = pw.ym
@@ -175,7 +154,7 @@ def march_precurved(k, query, Q, s, f, h, F, seeds, max_step):
     cur = L
     for e in range(E):
         k = order[e]
-        target = precurved_position(s, query, extra, h, Q, k)
+        target = event_position(s, query, extra, h, Q, k)
         seg = cur - target
         n_steps = 0
         if seg > 0.0:
