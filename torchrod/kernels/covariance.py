@@ -12,7 +12,7 @@ of the loss) is judged from both one-sided Jacobians, and the worse counts.
 
 import math
 
-from .fit import KINK
+from .fit import KINK, gram
 from .linalg import symmetric_eigen
 from .views import cov_of, model_of, reading_of
 
@@ -40,11 +40,10 @@ def covariance(k, J, P, active, sigma, cov):
                 finite_rows = False
                 v = 0.0
             cw.Jm[m, p] = v if active[p] else 0.0
+    gram(cw.Jm, n, P, cw.C, cw.tail)  # J^T J, scaled to unit diagonal in place
     unscaled = False
     for p in range(P):
-        acc = 0.0
-        for m in range(n):
-            acc += cw.Jm[m, p] * cw.Jm[m, p]
+        acc = cw.C[p, p]
         cw.ok[p] = active[p] and acc > DIAG_MIN and math.isfinite(acc)
         cw.d[p] = 1.0 / math.sqrt(acc) if cw.ok[p] else 0.0
         unscaled = unscaled or (active[p] and not cw.ok[p])
@@ -52,10 +51,7 @@ def covariance(k, J, P, active, sigma, cov):
         for q in range(p + 1):
             v = 1.0 if p == q else 0.0
             if cw.ok[p] and cw.ok[q]:
-                acc = 0.0
-                for m in range(n):
-                    acc += cw.Jm[m, p] * cw.Jm[m, q]
-                v = acc * cw.d[p] * cw.d[q]
+                v = cw.C[p, q] * cw.d[p] * cw.d[q]
             cw.C[p, q] = v
             cw.C[q, p] = v
     # Beyond the last active column the matrix is the identity: its eigenvalues are 1 and its eigenvectors the unit

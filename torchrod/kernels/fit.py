@@ -143,12 +143,25 @@ def gradient(J, r, n, P, g):
         g[p] = t
 
 
-def gram(J, n, P, A):
-    """A = J^T J over P columns."""
+def gram(J, n, P, A, tail):
+    """A = J^T J over P columns. A force moves only the gratings proximal to it, so each column ends in zero rows:
+    the sums stop where either column's last nonzero row is (``tail`` (P,), scratch). That is exactly the full sums
+    when J is finite (the terms left out are zeros); where it is not, the sums are full."""
+    finite = True
+    for p in range(P):
+        last = n
+        while last > 0 and J[last - 1, p] == 0.0:
+            last -= 1
+        tail[p] = last
+        for m in range(last):
+            finite = finite and math.isfinite(J[m, p])
     for p in range(P):
         for q in range(p, P):
+            rows = n
+            if finite:
+                rows = tail[p] if tail[p] < tail[q] else tail[q]
             t = 0.0
-            for m in range(n):
+            for m in range(rows):
                 t += J[m, p] * J[m, q]
             A[p, q] = t
             A[q, p] = t
@@ -263,7 +276,7 @@ def analyse(k, i, limit):
         for p in range(P):
             gi[p] = gi[p] * free[p]
     A = rows.A[i]
-    gram(Js, n, P, A)
+    gram(Js, n, P, A, lw.tail)
     for p in range(P):
         rows.g[i, p] = gi[p]
     damped(A, free, P, TINY, lw.M)
@@ -476,7 +489,7 @@ def finish(k, i, exact_steps):
     for m in range(n):
         for p in range(P):
             Js[m, p] = Js[m, p] * lw.free[p]
-    gram(Js, n, P, lw.A)
+    gram(Js, n, P, lw.A, lw.tail)
     damped(lw.A, lw.free, P, TINY, lw.M)
     for _ in range(exact_steps):
         gradient(Js, r, n, P, lw.gi)

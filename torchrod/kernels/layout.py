@@ -131,7 +131,7 @@ SPEC: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
         "new_s": (("W",), "f"), "M": (("P", "P"), "f"), "L": (("P", "P"), "f"), "x": (("P",), "f"),
         "A": (("P", "P"), "f"), "prop": (("P",), "f"), "v": (("P",), "f"), "dx": (("P",), "f"), "pv": (("P",), "f"),
         "st": (("W",), "f"), "ft": (("W", 2), "f"), "rt": (("n",), "f"), "Jt": (("n", "P"), "f"),
-        "taken": (("P",), "f"), "rv": (("n",), "f"), "rhs": (("P",), "f"),
+        "taken": (("P",), "f"), "rv": (("n",), "f"), "rhs": (("P",), "f"), "tail": (("P",), "i"),
     },
     "scan": {  # the scan's candidates, responses and Gauss-Newton models
         "cand": (("C",), "f"), "cint": (("C",), "i"), "valid": (("C",), "b"), "at": (("Q",), "f"),
@@ -147,6 +147,7 @@ SPEC: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
         "Jm": (("n", "P"), "f"), "ok": (("P",), "b"), "d": (("P",), "f"), "C": (("P", "P"), "f"),
         "w": (("P",), "f"), "V": (("P", "P"), "f"), "a": (("P", "P"), "f"), "inv": (("P",), "f"),
         "cov": (("P", "P"), "f"), "active": (("P",), "b"), "Js": (("n", "P"), "f"), "std2": (("W", 3), "f"),
+        "tail": (("P",), "i"),
     },
     "search": {  # the search's bookkeeping: counts fitted, scans kept, exchange starts, stop rules, the report
         "fitted": (("R",), "b"), "have_scan": (("R",), "b"), "unscanned": (("R",), "b"), "losses": (("R",), "f"),

@@ -178,7 +178,7 @@ def added_force(k, h0):
     Jc = sw.Jc
     r = sw.r
     d_max = -math.inf
-    gram(J, n, Pb, sw.Abb)
+    gram(J, n, Pb, sw.Abb, lm_of(k).tail)
     for p in range(Pb):
         d = sw.Abb[p, p]
         if d != d or d > d_max:
