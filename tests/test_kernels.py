@@ -363,6 +363,13 @@ def test_the_covariance_of_a_linear_model_is_its_inverse_normal_matrix():
     J[4, 2] = math.nan  # a diverged fit: NaN and an infinite condition number, not an exception
     assert covariance.covariance(k, J, 6, np.ones(6, bool), 1.0, cov) == math.inf
     assert np.isnan(cov).all()
+    # The eigensolver's last results serve again only for the same matrix (the second pass), never after another.
+    J[4, 2] = 0.5
+    d = 1 / np.sqrt(np.diag(J.T @ J))
+    w = np.linalg.eigvalsh(J.T @ J * np.outer(d, d))
+    for _ in range(2):
+        assert math.isclose(covariance.covariance(k, J, 6, np.ones(6, bool), 0.5, cov), w[-1] / w[0], rel_tol=1e-10)
+        assert np.allclose(cov, 0.25 * np.linalg.inv(J.T @ J), rtol=1e-10)
 
 
 # ------------------------------------------------------------------------------------------------ count tests

@@ -61,7 +61,7 @@ def covariance(k, J, P, active, sigma, cov):
     for p in range(P):
         if active[p]:
             m = p + 1
-    ok = symmetric_eigen(cw.C, cw.w, cw.V, cw.a, m)
+    ok = eigen_again(k, cw.C, cw.w, cw.V, cw.a, m)
     lo = 1.0
     hi = 1.0
     if m > 0:
@@ -83,6 +83,30 @@ def covariance(k, J, P, active, sigma, cov):
                 v = acc * cw.d[p] * cw.d[q] * s2
             cov[p, q] = v
     return condition
+
+
+def eigen_again(k, C, w, V, a, m):
+    """:func:`.linalg.symmetric_eigen` of C's leading m x m block into w and V, unless that block is the one the
+    last call of this reading took, bit for bit: then w and V hold its results already (a chosen fit is judged when
+    the search doubts it and again when it is reported)."""
+    info = k.info[0]
+    last = cov_of(k).last
+    same = info.eigen_m == m
+    for p in range(m if same else 0):
+        for q in range(m):
+            x = C[p, q]
+            y = last[p, q]
+            if not (x == y and math.copysign(1.0, x) == math.copysign(1.0, y)):  # (NaN: never the same)
+                same = False
+    if same:
+        return info.eigen_ok
+    ok = symmetric_eigen(C, w, V, a, m)
+    for p in range(m):
+        for q in range(m):
+            last[p, q] = C[p, q]
+    info.eigen_m = m
+    info.eigen_ok = ok
+    return ok
 
 
 def judge(k, J, W, count, s, interval, sigma, std):

@@ -87,6 +87,8 @@ INFO = np.dtype(
         ("evaluations", np.int64),
         ("cut", np.bool_),
         ("home_known", np.bool_),
+        ("eigen_m", np.int64),  # the size of the last matrix the covariance's eigensolver took (-1: none yet)
+        ("eigen_ok", np.bool_),  # and whether it was finite
     ],
     align=True,
 )
@@ -147,7 +149,7 @@ SPEC: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
         "Jm": (("n", "P"), "f"), "ok": (("P",), "b"), "d": (("P",), "f"), "C": (("P", "P"), "f"),
         "w": (("P",), "f"), "V": (("P", "P"), "f"), "a": (("P", "P"), "f"), "inv": (("P",), "f"),
         "cov": (("P", "P"), "f"), "active": (("P",), "b"), "Js": (("n", "P"), "f"), "std2": (("W", 3), "f"),
-        "tail": (("P",), "i"),
+        "tail": (("P",), "i"), "last": (("P", "P"), "f"),
     },
     "search": {  # the search's bookkeeping: counts fitted, scans kept, exchange starts, stop rules, the report
         "fitted": (("R",), "b"), "have_scan": (("R",), "b"), "unscanned": (("R",), "b"), "losses": (("R",), "f"),

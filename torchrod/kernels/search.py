@@ -660,6 +660,7 @@ def prepare(k, noise2):
             intervals += 1
     info.intervals = intervals
     info.residuals = 2 * m
+    info.eigen_m = -1
     info.known = noise2 >= 0.0
     info.noise2 = noise2 if noise2 >= 0.0 else 0.0
     info.evaluations = 0
