@@ -181,7 +181,8 @@ def _reader(state: _Stream, source: Iterable[Any]) -> None:
             reading = to_reading(item, state.G, fibre=state.fibre)
             if not put(_Pending(reading, arrived)):
                 return
-            state.wake.set()
+            if state.hungry:  # (the stream waits for batches alone while every solver thread has its own)
+                state.wake.set()
         else:
             put(_HALTED)
             return
@@ -237,7 +238,8 @@ class _Stream:
         self.q: queue.Queue = queue.Queue(maxsize=read_ahead)
         self.stop = threading.Event()
         self.halt = threading.Event()
-        self.wake = threading.Event()  # set by the reader after each reading and by a solver thread's finished batch
+        self.wake = threading.Event()  # set by the reader after a reading (while hungry) and by a finished batch
+        self.hungry = True  # False while the stream waits for a batch alone: a new reading could not be sent yet
         self.in_source = threading.Event()
         self.pending: list[_Pending] = []
         # The last solved reading's forces, in reported coordinates, (1, h).
@@ -294,6 +296,7 @@ class _Stream:
         interrupt loses none."""
         while True:
             self.wake.clear()  # (before the checks: what happens after them sets it again)
+            self.hungry = True  # (before the queue is looked at: a reading put after that sets wake)
             if flight and flight[0].done():
                 results = self.receive(flight[0])
                 flight.popleft()
@@ -306,7 +309,9 @@ class _Stream:
                 self.wake.wait(_POLL)  # for a reading, or the first batch in flight
                 continue
             if self.pool is not None and (len(flight) >= 2 * self.workers or (flight and self.learning)):
-                # every thread has its batches, or the next batch's size and noise wait on the fits in flight
+                # every thread has its batches, or the next batch's size and noise wait on the fits in flight: wait
+                # for a batch, not woken by each reading that arrives meanwhile (a backlog's thousands)
+                self.hungry = False
                 self.wake.wait(_POLL)
                 continue
             batch = self.pending[: self.batch_limit()]
