@@ -826,6 +826,40 @@ def test_bench_stream_runs_and_reports_every_way(capsys):
     assert "max_forces=2" in out and "kernels" in out  # the options, and where the time goes
 
 
+def test_a_stream_whose_solver_threads_are_busy_waits_for_a_batch_not_for_each_reading(rod, estimator, monkeypatch):
+    """A source faster than two busy solver threads: while both hold their batches, a reading that arrives cannot be
+    sent, so the stream sleeps until a batch is done instead of waking for each reading (a backlog's thousands of
+    wake-ups): fewer passes of its loop than half the readings, where waking for each made more than one each."""
+    import torchrod.io.stream as streaming
+
+    class Slow:
+        def __init__(self, inner):
+            self.inner, self.rod, self.options = inner, inner.rod, inner.options
+
+        def estimate(self, *args, **kwargs):
+            time.sleep(0.05)
+            return self.inner.estimate(*args, **kwargs)
+
+    passes = [0]
+    fill = streaming._Stream.fill
+
+    def counted(self, wait=True):
+        passes[0] += 1
+        return fill(self, wait)
+
+    monkeypatch.setattr(streaming._Stream, "fill", counted)
+    u = torch.tensor(_one_force_lines(rod, 1)[0]["curvature"])
+
+    def source():
+        for k in range(300):
+            time.sleep(0.0005)
+            yield Reading(k, u)
+
+    got = list(stream(Slow(estimator), source(), StreamOptions(batch_size=8, read_ahead=1000, workers=2)))
+    assert [r.id for r in got] == list(range(300)) and all(r.ok for r in got)
+    assert passes[0] < 150
+
+
 def test_bench_paced_latency_counts_the_wait_of_a_stream_that_falls_behind(rod, estimator):
     """The paced rows count latency from each reading's release time. A stream solving 25 ms per reading fed at
     1 kHz, with room for one queued reading, takes each reading late: the wait between release and the stream taking
