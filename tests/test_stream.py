@@ -41,6 +41,17 @@ def _one_force_lines(rod: tr.Rod, count: int) -> list[dict]:
     return [{"id": f"r{k}", "t": 0.01 * k, "curvature": u[k]} for k in range(count)]
 
 
+class _Slow:
+    """An estimator that takes ``delay`` [s] longer over each batch."""
+
+    def __init__(self, inner: tr.Estimator, delay: float) -> None:
+        self.inner, self.rod, self.options, self.delay = inner, inner.rod, inner.options, delay
+
+    def estimate(self, *args, **kwargs):
+        time.sleep(self.delay)
+        return self.inner.estimate(*args, **kwargs)
+
+
 @pytest.fixture(scope="module")
 def estimator() -> tr.Estimator:
     return tr.Estimator(tr.presets.nitinol290(), tr.EstimatorOptions(max_forces=2, noise=NOISE))
@@ -832,14 +843,6 @@ def test_a_stream_whose_solver_threads_are_busy_waits_for_a_batch_not_for_each_r
     wake-ups): fewer passes of its loop than half the readings, where waking for each made more than one each."""
     import torchrod.io.stream as streaming
 
-    class Slow:
-        def __init__(self, inner):
-            self.inner, self.rod, self.options = inner, inner.rod, inner.options
-
-        def estimate(self, *args, **kwargs):
-            time.sleep(0.05)
-            return self.inner.estimate(*args, **kwargs)
-
     passes = [0]
     fill = streaming._Stream.fill
 
@@ -855,7 +858,7 @@ def test_a_stream_whose_solver_threads_are_busy_waits_for_a_batch_not_for_each_r
             time.sleep(0.0005)
             yield Reading(k, u)
 
-    got = list(stream(Slow(estimator), source(), StreamOptions(batch_size=8, read_ahead=1000, workers=2)))
+    got = list(stream(_Slow(estimator, 0.05), source(), StreamOptions(batch_size=8, read_ahead=1000, workers=2)))
     assert [r.id for r in got] == list(range(300)) and all(r.ok for r in got)
     assert passes[0] < 150
 
@@ -866,18 +869,10 @@ def test_bench_paced_latency_counts_the_wait_of_a_stream_that_falls_behind(rod, 
     the reading grows with every reading, and the latency counts it."""
     from torchrod.cli.benchmarks.stream import _paced, _since_due
 
-    class Slow:
-        def __init__(self, inner):
-            self.inner, self.rod, self.options = inner, inner.rod, inner.options
-
-        def estimate(self, *args, **kwargs):
-            time.sleep(0.025)
-            return self.inner.estimate(*args, **kwargs)
-
     items = [Reading(k, torch.tensor(line["curvature"])) for k, line in enumerate(_one_force_lines(rod, 12))]
     due: dict = {}
     options = StreamOptions(batch_size=1, read_ahead=1, workers=1)  # one solver thread: it falls behind
-    got = list(_since_due(stream(Slow(estimator), _paced(items, 1000.0, due), options), due))
+    got = list(_since_due(stream(_Slow(estimator, 0.025), _paced(items, 1000.0, due), options), due))
     assert [r.id for r in got] == list(range(12)) and sorted(due) == list(range(12))
     waited = [r.latency - 1e-3 * r.record["latency_ms"] for r in got]  # from release until the stream took it
     assert waited[-1] > 0.2 and waited[-1] > waited[0] + 0.15
