@@ -183,7 +183,7 @@ def test_the_events_are_sorted_tip_to_base_by_position_then_index():
 
 def test_the_gram_matrix_stops_at_each_columns_zero_tail_and_equals_the_full_sums():
     """J^T J with each column's trailing zero rows left out equals the full sums in order, bit for bit; a J that is
-    not finite gets the full sums (inf times a zero is NaN there)."""
+    not finite gets the full sums (inf times a zero is NaN there), and gram says whether J is finite."""
     from torchrod.kernels.fit import gram
 
     rng = np.random.default_rng(5)
@@ -196,9 +196,10 @@ def test_the_gram_matrix_stops_at_each_columns_zero_tail_and_equals_the_full_sum
             J[n - 1, int(rng.integers(0, P))] = math.inf if trial % 10 else math.nan
         A, tail = np.empty((P, P)), np.empty(P, np.int64)
         with np.errstate(invalid="ignore"):
-            gram(J, n, P, A, tail)
+            finite = gram(J, n, P, A, tail)
             full = [[sum((J[m, p] * J[m, q] for m in range(n)), 0.0) for q in range(P)] for p in range(P)]
         assert np.array_equal(A, np.array(full), equal_nan=True)
+        assert finite == bool(np.isfinite(J).all())
 
 
 def test_the_scans_model_of_one_more_force_is_the_full_damped_normal_system():

@@ -146,7 +146,8 @@ def gradient(J, r, n, P, g):
 def gram(J, n, P, A, tail):
     """A = J^T J over P columns. A force moves only the gratings proximal to it, so each column ends in zero rows:
     the sums stop where either column's last nonzero row is (``tail`` (P,), scratch). That is exactly the full sums
-    when J is finite (the terms left out are zeros); where it is not, the sums are full."""
+    when J is finite (the terms left out are zeros); where it is not, the sums are full. Returns whether J is
+    finite."""
     finite = True
     for p in range(P):
         last = n
@@ -165,6 +166,7 @@ def gram(J, n, P, A, tail):
                 t += J[m, p] * J[m, q]
             A[p, q] = t
             A[q, p] = t
+    return finite
 
 
 def damped(A, free, P, damping, out):

@@ -178,18 +178,15 @@ def added_force(k, h0):
     Jc = sw.Jc
     r = sw.r
     d_max = -math.inf
-    gram(J, n, Pb, sw.Abb, lm_of(k).tail)
+    finite = gram(J, n, Pb, sw.Abb, lm_of(k).tail)
     for p in range(Pb):
         d = sw.Abb[p, p]
         if d != d or d > d_max:
             d_max = d
     # A candidate's response is zero at the gratings distal to it: its sums stop at its last nonzero row. (Exactly
     # the full sums: the terms left out are zeros, unless r or J is not finite there, when nothing is left out.)
-    finite = True
     for m in range(n):
         finite = finite and math.isfinite(r[m])
-        for p in range(Pb):
-            finite = finite and math.isfinite(J[m, p])
     for c in range(C):
         rows = response_rows(Jc, c, n, finite)
         for a in range(2):
