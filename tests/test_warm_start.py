@@ -11,10 +11,12 @@ import torch
 import torchrod as tr
 from torchrod.data import path as shipped_file
 from torchrod.learn.warm_start import (
+    COMPILED_MAX_BATCH,
     LAYOUT_TOLERANCE,
     NetConfig,
     WarmStart,
     WarmStartNet,
+    _canonical_frame,
     load_checkpoint,
     save_checkpoint,
 )
@@ -111,13 +113,14 @@ def test_a_reading_in_any_memory_layout_gets_the_same_guesses(rod, gen):
 
 
 def test_the_traced_forward_pass_gives_the_eager_one_exactly(rod, gen):
-    """Guesses come from a trace of the network (cheaper per call); it must give the eager pass's outputs bit for bit,
-    at any batch size, with missing gratings, and follow later changes to the weights (it shares them)."""
+    """A batch too large for the compiled pass takes its guesses from a trace of the network; the trace must give the
+    eager pass's outputs bit for bit, at any batch size, with missing gratings, and follow later changes to the
+    weights (it shares them)."""
     ws = WarmStart(_net(rod), rod)
-    u = _readings(rod, gen, B=9)
-    mask = torch.rand(9, rod.num_gratings, generator=gen) > 0.2
+    u = _readings(rod, gen, B=COMPILED_MAX_BATCH + 2)
+    mask = torch.rand(u.shape[0], rod.num_gratings, generator=gen) > 0.2
     mask[:, 0] = True
-    ws.guess(u[:1])
+    ws.guess(u, mask)
     assert isinstance(ws._forward[torch.device("cpu"), torch.float64], torch.jit.ScriptModule)  # traced, not eager
 
     def eager(curvature, present):
@@ -125,14 +128,16 @@ def test_the_traced_forward_pass_gives_the_eager_one_exactly(rod, gen):
             return ws.net(curvature * rod.length, present)
 
     def same(curvature, present):
-        got, want = ws.guess(curvature, present), eager(curvature, present)
+        with torch.inference_mode():
+            probs, s, f = ws._forward_on(curvature.device, curvature.dtype)(curvature, present)
+        want = eager(curvature, present)
         dtype = curvature.dtype
-        assert torch.equal(got.count_probs, torch.softmax(want.count_logits, dim=1).to(dtype))
+        assert torch.equal(probs, torch.softmax(want.count_logits, dim=1).to(dtype))
         for h in range(1, ws.max_forces + 1):
-            assert torch.equal(got.forces[h].s, (want.s[h - 1] * rod.length).to(dtype))
-            assert torch.equal(got.forces[h].f, (want.f[h - 1] * (rod.bending_stiffness / rod.length**2)).to(dtype))
+            assert torch.equal(s[h - 1], (want.s[h - 1] * rod.length).to(dtype))
+            assert torch.equal(f[h - 1], (want.f[h - 1] * (rod.bending_stiffness / rod.length**2)).to(dtype))
 
-    for rows in (slice(0, 1), slice(0, 2), slice(0, 9), slice(4, 5)):
+    for rows in (slice(0, 1), slice(0, 2), slice(0, 9), slice(4, 5), slice(None)):
         same(u[rows], mask[rows])
         same(u[rows].float(), mask[rows])  # readings in float32: a trace of their own, answers in float32
     assert isinstance(ws._forward[torch.device("cpu"), torch.float32], torch.jit.ScriptModule)
@@ -144,10 +149,77 @@ def test_the_traced_forward_pass_gives_the_eager_one_exactly(rod, gen):
 def test_a_network_the_tracer_cannot_reproduce_runs_eagerly(rod, gen):
     ws = WarmStart(_net(rod), rod)
     with mock.patch.object(torch.jit, "trace", side_effect=RuntimeError("no tracer here")):
-        g = ws.guess(_readings(rod, gen, B=2))
+        g = ws.guess(_readings(rod, gen, B=COMPILED_MAX_BATCH + 1))
     eager = ws._forward[torch.device("cpu"), torch.float64]
     assert not isinstance(eager, torch.jit.ScriptModule) and eager.net is ws.net
     assert torch.isfinite(g.count_probs).all()
+
+
+def _torch_guess(ws: WarmStart, u: torch.Tensor, mask: torch.Tensor):
+    with torch.inference_mode():
+        return ws._forward_on(u.device, u.dtype)(u, mask)
+
+
+@pytest.mark.parametrize("shipped", [False, True])
+def test_the_compiled_forward_pass_gives_the_torch_one(rod, gen, shipped):
+    """The network's forward pass for small CPU batches (torchrod.kernels.network, compiled) against the torch module
+    it was trained as, on readings with missing gratings, one of them with a single grating read: the same outputs up
+    to float32 rounding."""
+    ws = WarmStart.load(shipped_file("nitinol290.pt"), rod) if shipped else WarmStart(_net(rod, seed=5), rod)
+    u = _readings(rod, gen, B=12) * (4.0 if shipped else 1.0)
+    mask = torch.rand(12, rod.num_gratings, generator=gen) > 0.25
+    mask[:, 3] = True
+    mask[0] = False
+    mask[0, 6] = True
+    # A reading whose curvature lies in one plane is its own mirror image: the sum of u_y in its frame, whose sign
+    # picks the reflection, is then rounding, in either pass. Such readings are left out (the frame is ambiguous).
+    x = torch.where(mask[:, :, None], (u * rod.length).float(), 0.0).contiguous()
+    _, _, turned = _canonical_frame(x, mask)
+    plain = turned.imag.sum(1).abs() > 1e-3 * turned.abs().sum(1)
+    assert int(plain.sum()) >= 9
+    u, mask = u[plain], mask[plain]
+    got = ws.guess(u, mask)
+    probs, s, f = _torch_guess(ws, u, mask)
+    torch.testing.assert_close(got.count_probs, probs, rtol=0, atol=2e-5)
+    for h in range(1, ws.max_forces + 1):
+        torch.testing.assert_close(got.forces[h].s, s[h - 1], rtol=0, atol=2e-5 * rod.length)
+        torch.testing.assert_close(got.forces[h].f, f[h - 1], rtol=0, atol=2e-5 * float(f[h - 1].abs().max()))
+        assert bool((got.forces[h].s[:, 1:] > got.forces[h].s[:, :-1]).all())
+    # float32 readings: answers in float32, the same guesses
+    got32 = ws.guess(u.float(), mask)
+    assert got32.count_probs.dtype == torch.float32
+    torch.testing.assert_close(got32.forces[2].f, got.forces[2].f.float(), rtol=1e-5, atol=1e-6)
+
+
+def test_the_compiled_pass_is_its_source_and_the_same_in_any_batch(rod, gen):
+    """The compiled pass gives what its source run as Python gives, bit for bit, and a reading's guesses do not
+    depend on the batch around it (readings go through the layers in blocks)."""
+    ws = WarmStart(_net(rod, seed=2), rod)
+    u = _readings(rod, gen, B=40)
+    mask = torch.rand(40, rod.num_gratings, generator=gen) > 0.2
+    mask[:, 0] = True
+    whole = ws._compiled_guess(u, mask)
+    for rows in (slice(0, 1), slice(17, 18), slice(5, 25)):
+        part = ws._compiled_guess(u[rows], mask[rows])
+        python = ws._compiled_guess(u[rows][:1], mask[rows][:1], compiled=False)
+        assert torch.equal(part.count_probs, whole.count_probs[rows])
+        assert torch.equal(python.count_probs, whole.count_probs[rows][:1])
+        for h in (1, 2, 3):
+            assert torch.equal(part.forces[h].f, whole.forces[h].f[rows])
+            assert torch.equal(python.forces[h].s, whole.forces[h].s[rows][:1])
+            assert torch.equal(python.forces[h].f, whole.forces[h].f[rows][:1])
+
+
+def test_the_compiled_pass_follows_changes_to_the_weights(rod, gen):
+    ws = WarmStart(_net(rod), rod)
+    u = _readings(rod, gen, B=3)
+    before = ws.guess(u).count_probs
+    with torch.no_grad():
+        ws.net.out.bias[:3].add_(torch.tensor([2.0, -1.0, 0.0]))
+    after = ws.guess(u).count_probs
+    assert not torch.allclose(before, after)
+    want = _torch_guess(ws, u, torch.ones(3, rod.num_gratings, dtype=torch.bool))[0]
+    torch.testing.assert_close(after, want, rtol=0, atol=2e-5)
 
 
 def test_one_network_serves_any_length_and_stiffness_with_the_same_layout(rod, gen):

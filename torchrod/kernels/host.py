@@ -211,6 +211,43 @@ def schedule_rows(
     return order, steps
 
 
+NETWORK_BLOCK = 16
+"""Readings that go through the network's layers together (each layer's weights read once for all of them)."""
+
+
+def network_rows(
+    u: np.ndarray,
+    present: np.ndarray,
+    length: float,
+    force_si: float,
+    net: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int],
+    max_forces: int,
+    compiled: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The warm-start network's guesses (:func:`.network.network_rows`) for readings u (B, G, 2) [1/m] with
+    ``present`` (B, G) on a rod of ``length`` [m] with EI / L^2 = ``force_si`` [N]: the count probabilities (B, H),
+    the locations (B, H, H) [m] and forces (B, H, H, 2) [N] of each count h in ``[:, h - 1, :h]``. ``net``: the
+    packed network (params, layers, scales, stencil as the module's docstring says, and the widest layer).
+    ``compiled`` False: the kernel source run as Python (debugging, tests)."""
+    from . import network, targets
+
+    params, layers, scales, stencil, widest = net
+    B, G = present.shape
+    H = int(max_forces)
+    probs, s, f = np.empty((B, H)), np.empty((B, H, H)), np.empty((B, H, H, 2))
+    R = max(1, min(B, NETWORK_BLOCK))
+    args = (np.ascontiguousarray(u, np.float64), np.ascontiguousarray(present, np.bool_), float(length),
+            float(force_si), params, layers, H, scales, stencil, probs, s, f, np.empty((G, 2)), np.empty((R, 4)),
+            np.empty((R, widest), np.float32), np.empty((R, widest), np.float32))  # fmt: skip
+    if compiled:
+        entry = targets.cpu_network()
+        entry.ready()
+        entry.entry(*args)
+    else:
+        network.network_rows(*args)
+    return probs, s, f
+
+
 def kit(setup: Setup, sizes: Sizes, u: np.ndarray, w: np.ndarray, noise2: float = -1.0) -> Any:
     """A :class:`.layout.Kit` of one reading (u (2G,) [1/m], w (2G,) 1.0 where present, noise2 sigma^2 + floor^2
     [1/m^2] or -1: unknown) on fresh scratch, its intervals prepared: for calling kernel functions one by one, as

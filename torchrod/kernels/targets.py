@@ -39,7 +39,7 @@ import types
 from pathlib import Path
 from typing import Any
 
-MODULES = ("views", "linalg", "march", "precurved", "fit", "scan", "counts", "covariance", "search")
+MODULES = ("views", "linalg", "march", "precurved", "fit", "scan", "counts", "covariance", "search", "network")
 """The kernel source, in the order its functions are rebuilt (callees before callers)."""
 
 TARGETS = ("python", "cpu", "cuda")
@@ -155,6 +155,7 @@ def _say(message: str) -> None:
 _FIRST_GUESS = {
     "cpu-estimation": "one to three minutes",
     "cpu-schedule": "a few seconds",
+    "cpu-network": "a few seconds",
     "cuda-estimation": "tens of minutes: NVIDIA's optimiser takes long over the whole search",
 }
 """How long a first compile takes (a 2-core machine at the top of each range), before one was timed here."""
@@ -447,6 +448,14 @@ def cpu_schedule() -> Compiled:
     from .warmup import warm_up_schedule
 
     return _cpu_entry("schedule_rows", warm_up_schedule, "schedule")
+
+
+@functools.cache
+def cpu_network() -> Compiled:
+    """The warm-start network's forward pass (:func:`.network.network_rows`) compiled by Numba for this CPU."""
+    from .warmup import warm_up_network
+
+    return _cpu_entry("network_rows", warm_up_network, "network")
 
 
 _CUDA_ENTRY = """

@@ -79,3 +79,15 @@ def warm_up_schedule(entry: Any) -> None:
     entry(np.array([0.2, 0.6]), np.full((B, h), 0.5), np.ones((B, h, 2)), np.ones(B), 1.0, 0.8, 4,
           np.empty((B, h + Q), np.int64), np.empty((B, h + Q)), np.empty((B, h + Q), np.int64),
           np.empty(h, np.complex128), np.empty(h))  # fmt: skip
+
+
+def warm_up_network(entry: Any) -> None:
+    """Run the network's ``entry`` once on one reading of three gratings through one hidden layer of width 2."""
+    G, H, W = 3, 1, 2
+    n_in = 3 * G + 1 + 3 * (G - 2)
+    params = np.zeros(n_in * W + 3 * W + W * 4 + 4, np.float32)
+    layers = np.array([[n_in, W, 0, n_in * W, n_in * W + W, n_in * W + 2 * W],
+                       [W, 4, n_in * W + 3 * W, n_in * W + 3 * W + W * 4, -1, -1]], np.int64)  # fmt: skip
+    entry(np.ones((1, G, 2)), np.ones((1, G), np.bool_), 1.0, 1.0, params, layers, H, np.ones(4), np.ones((G - 2, 3)),
+          np.empty((1, H)), np.empty((1, H, H)), np.empty((1, H, H, 2)), np.empty((G, 2)), np.empty((1, 4)),
+          np.empty((1, n_in), np.float32), np.empty((1, n_in), np.float32))  # fmt: skip

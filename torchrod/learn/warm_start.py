@@ -36,6 +36,7 @@ from torch import nn
 
 from ..errors import MissingFileError
 from ..io.readings import check_readings
+from ..kernels import network as network_kernel
 from ..loads import PointForces
 from ..rod import Rod
 
@@ -65,7 +66,16 @@ LAYOUT_TOLERANCE = 1e-6
 
 CHECKPOINT_FORMAT = "torchrod.warm_start/1"
 
-MIN_GAP = 1e-3
+COMPILED_MAX_BATCH = 16
+"""A CPU batch of at most this many readings takes its guesses from the network's compiled forward pass
+(:mod:`torchrod.kernels.network`), a larger one from torch's. Torch's pass costs a few hundred microseconds a call
+whatever the batch (its many small operations, each dispatched), then little per reading; the compiled one costs
+little a call and more per reading (its products are not blocked as a matrix library's are): the two cost about the
+same at a batch of 16 (docs/core.md). Both give the network's outputs up to float32 rounding, as torch's own pass
+does from one batch size to another."""
+
+# The network's rules, shared with its forward pass for inference (torchrod.kernels.network).
+MIN_GAP = network_kernel.MIN_GAP
 """Least gap between guessed locations, and between them and the rod's ends, as a fraction of the length."""
 
 
@@ -218,7 +228,9 @@ class WarmStartNet(nn.Module):
         # In the small-deflection regime forces are linear in the reading, so forces are predicted relative to it.
         pf = present.to(dtype)
         rms = (
-            ((xc.square().sum(-1) * pf).sum(1) / pf.sum(1).clamp(min=1.0)).sqrt().clamp(min=1e-3 * cfg.curvature_scale)
+            ((xc.square().sum(-1) * pf).sum(1) / pf.sum(1).clamp(min=1.0))
+            .sqrt()
+            .clamp(min=network_kernel.RMS_FLOOR * cfg.curvature_scale)
         )
         parts = [(xc / rms.view(-1, 1, 1)).flatten(1), pf, torch.log(rms / cfg.curvature_scale).unsqueeze(1)]
         if cfg.num_gratings >= 3:
@@ -556,6 +568,7 @@ class WarmStart:
         self._on: dict[torch.device, WarmStartNet] = {next(net.parameters()).device: self.net}
         self._forward: dict[tuple[torch.device, torch.dtype], Callable[[torch.Tensor, torch.Tensor], Any]] = {}
         self._forward_lock = threading.Lock()
+        self._cpu: tuple[Any, ...] | None = None  # (the parameters, their versions, _pack's arrays)
 
     @classmethod
     def load(cls, path: str | os.PathLike, rod: Rod) -> WarmStart:
@@ -638,6 +651,17 @@ class WarmStart:
                     forward = self._forward[key] = traced if traced is not None else si
         return forward
 
+    def _packed(self) -> tuple[Any, ...]:
+        """The network's parameters as its forward pass for inference on the CPU takes them (:func:`_pack`), packed
+        again whenever one of them has changed in place since (torch counts each tensor's changes, and
+        ``load_state_dict`` copies into them)."""
+        packed = self._cpu
+        if packed is None or tuple(p._version for p in packed[0]) != packed[1]:
+            with self._forward_lock:
+                tensors = tuple(self.net.parameters())
+                packed = self._cpu = (tensors, tuple(p._version for p in tensors), _pack(self.net))
+        return packed[2]
+
     def guess(self, curvature: torch.Tensor, mask: torch.Tensor | None = None) -> WarmStartGuess:
         """Guesses for every count 1..H, and the count probabilities.
 
@@ -652,13 +676,78 @@ class WarmStart:
         return self._guess(curvature, mask)
 
     def _guess(self, curvature: torch.Tensor, mask: torch.Tensor) -> WarmStartGuess:
-        """:meth:`guess` of readings already checked (the estimator's, which checks its input once)."""
+        """:meth:`guess` of readings already checked (the estimator's, which checks its input once): a small CPU
+        batch by the network's compiled forward pass (:mod:`torchrod.kernels.network`), anything else by torch's
+        (:data:`COMPILED_MAX_BATCH`)."""
+        if curvature.device.type == "cpu" and curvature.shape[0] <= COMPILED_MAX_BATCH:
+            return self._compiled_guess(curvature, mask)
         forward = self._forward_on(curvature.device, curvature.dtype)
         with torch.inference_mode():  # cheaper than no_grad at small batch
             probs, s, f = forward(curvature.detach(), mask)
         # Outside inference mode: the results are ordinary tensors (callers may modify them in place).
         forces = {h: PointForces(s_h, f_h) for h, (s_h, f_h) in enumerate(zip(s, f, strict=True), start=1)}
         return WarmStartGuess(probs, forces)
+
+    def compiled_arrays(self, curvature: torch.Tensor, mask: torch.Tensor, compiled: bool = True) -> tuple[Any, ...]:
+        """The guesses of checked CPU readings from the network's forward pass in :mod:`torchrod.kernels.network`
+        (``compiled`` False: its source run as Python), as NumPy arrays (float64, SI): the count probabilities
+        (B, H), and the locations (B, H, H) [m] and forces (B, H, H, 2) [N] of each count h in ``[:, h - 1, :h]``."""
+        from ..kernels.host import network_rows
+
+        rod = self.rod
+        u = curvature.detach().to(torch.float64).numpy()
+        force_si = rod.bending_stiffness / rod.length**2
+        return network_rows(u, mask.numpy(), rod.length, force_si, self._packed(), self.max_forces, compiled)
+
+    def _compiled_guess(self, curvature: torch.Tensor, mask: torch.Tensor, compiled: bool = True) -> WarmStartGuess:
+        """:meth:`compiled_arrays` as a :class:`WarmStartGuess` in ``curvature``'s dtype."""
+        probs, s, f = self.compiled_arrays(curvature, mask, compiled)
+        dtype = curvature.dtype
+
+        def tensor(x: Any) -> torch.Tensor:
+            t = torch.from_numpy(x)
+            return t if dtype == torch.float64 else t.to(dtype)
+
+        s_all, f_all = tensor(s), tensor(f)
+        out = {h: PointForces(s_all[:, h - 1, :h], f_all[:, h - 1, :h]) for h in range(1, self.max_forces + 1)}
+        return WarmStartGuess(tensor(probs), out)
+
+
+def _pack(net: WarmStartNet) -> tuple[Any, ...]:
+    """``net``'s parameters for :mod:`torchrod.kernels.network` (its docstring): float32 weights transposed to (in,
+    out), biases, the layer norms' gains and shifts in one array, the layers' offsets into it, the scales, the
+    second-derivative stencil, and the widest layer (the scratch's size)."""
+    import numpy as np
+
+    cfg = net.config
+    modules = [*net.body, net.out]
+    linears = [m for m in modules if isinstance(m, nn.Linear)]
+    norms = [m for m in modules if isinstance(m, nn.LayerNorm)]
+    chunks: list[np.ndarray] = []
+    table = []
+    at = 0
+
+    def put(t: torch.Tensor) -> int:
+        nonlocal at
+        chunks.append(t.detach().to("cpu", torch.float32).contiguous().numpy().ravel())
+        start, at = at, at + chunks[-1].size
+        return start
+
+    for k, linear in enumerate(linears):
+        row = [linear.in_features, linear.out_features, put(linear.weight.t()), put(linear.bias), -1, -1]
+        if k < len(norms):
+            row[4:] = [put(norms[k].weight), put(norms[k].bias)]
+        table.append(row)
+    eps = norms[0].eps if norms else 1e-5
+    scales = np.array([cfg.curvature_scale, cfg.force_scale, net._spacing2, eps])
+    layers = np.array(table, np.int64)
+    return (
+        np.concatenate(chunks),
+        layers,
+        scales,
+        net.stencil.detach().to("cpu", torch.float64).numpy().copy(),
+        int(max(layers[0, 0], layers[:, 1].max())),
+    )
 
 
 class _SI(nn.Module):
