@@ -405,9 +405,9 @@ class Estimator:
         K = max(len(blocks), 1)
         gs, gf, guse = _zeros(device, ((B, K, H), torch.float64), ((B, K, H, 2), torch.float64), ((B, K), torch.bool))
         for k, (h, s, f, use) in enumerate(blocks):
-            gs[:, k, :h] = host_view(s)
-            gf[:, k, :h] = host_view(f)
-            guse[:, k] = host_view(use)
+            gs[:, k, :h] = _host(s)
+            gf[:, k, :h] = _host(f)
+            guse[:, k] = _host(use)
         out = _outputs(B, W, device)
         flag = np.zeros(1, np.int64)
         alarm = None
@@ -519,16 +519,17 @@ class Estimator:
         mask: torch.Tensor,
         opts: EstimatorOptions,
         extra_starts: Mapping[int, PointForces] | None,
-    ) -> list[tuple[int, torch.Tensor, torch.Tensor, torch.Tensor]]:
+    ) -> list[tuple[int, Any, Any, Any]]:
         """The starts other than the scan's, per count 1..top, as blocks (h, s (B, h) [m] in model coordinates, f
-        (B, h, 2) [N], use (B,) bool): the caller's ``extra_starts`` (location bias removed), then the warm start's
-        guesses (used where the network gives the count at least ``guess_probability``)."""
+        (B, h, 2) [N], use (B,) bool; tensors, or NumPy arrays from the network's compiled pass): the caller's
+        ``extra_starts`` (location bias removed), then the warm start's guesses (used where the network gives the
+        count at least ``guess_probability``)."""
         B = curvature.shape[0]
         top = opts.width
         device = curvature.device
-        out: list[tuple[int, torch.Tensor, torch.Tensor, torch.Tensor]] = []
+        out: list[tuple[int, Any, Any, Any]] = []
         everyone = torch.ones((B,), dtype=torch.bool, device=device)
-        per_count: dict[int, list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]] = {h: [] for h in range(1, top + 1)}
+        per_count: dict[int, list[tuple[Any, Any, Any]]] = {h: [] for h in range(1, top + 1)}
 
         def add(h: int, pf: Any, shift: float, use: torch.Tensor) -> None:
             # A block of h forces as the kernels take it: locations shifted to model coordinates, inactive forces
@@ -547,28 +548,41 @@ class Estimator:
             for h, pf in extra_starts.items():
                 if h in per_count:
                     add(h, pf, -self.rod.location_bias, everyone)
+        gated = opts.starts > 0 and opts.guess_probability > 0  # the guesses start fits only where probable
         if self.warm_start is not None:
-            from ..learn.warm_start import WarmStart
+            from ..learn.warm_start import COMPILED_MAX_BATCH, WarmStart
 
-            net: Any
-            if isinstance(self.warm_start, WarmStart):
-                net = self.warm_start._guess(curvature, mask)  # checked by estimate
-            elif hasattr(self.warm_start, "guess"):
-                net = self.warm_start.guess(curvature, mask)
+            if isinstance(self.warm_start, WarmStart) and device.type == "cpu" and B <= COMPILED_MAX_BATCH:
+                # The compiled pass's arrays as they are: at a batch of one reading, each torch operation on them
+                # would cost more than the network itself.
+                probs_np, s_np, f_np = self.warm_start.compiled_arrays(curvature, mask)
+                likely_np = probs_np >= opts.guess_probability
+                for h in range(1, probs_np.shape[1] + 1):
+                    if h in per_count and (not gated or likely_np[:, h - 1].any()):
+                        use_np = likely_np[:, h - 1] if gated else np.ones(B, np.bool_)
+                        per_count[h].append((s_np[:, h - 1, :h], f_np[:, h - 1, :h], use_np))
             else:
-                net = self.warm_start(curvature, mask)
-            probs = getattr(net, "count_probs", None)
-            likely = None  # (B, H) whether each count is probable enough for its guess to start a fit
-            anyone: list[bool] = []  # whether any reading uses the guess of each count
-            if probs is not None and opts.starts > 0 and opts.guess_probability > 0:
-                likely = probs.detach().to(device) >= opts.guess_probability
-                anyone = likely.any(0).tolist()  # (one transfer for every count)
-            for h, pf in (net.forces if hasattr(net, "forces") else net).items():
-                if h in per_count and (h > len(anyone) or anyone[h - 1]):
-                    use = likely[:, h - 1] if likely is not None and h <= likely.shape[1] else everyone
-                    add(h, pf, 0.0, use)
+                net: Any
+                if isinstance(self.warm_start, WarmStart):
+                    net = self.warm_start._guess(curvature, mask)  # checked by estimate
+                elif hasattr(self.warm_start, "guess"):
+                    net = self.warm_start.guess(curvature, mask)
+                else:
+                    net = self.warm_start(curvature, mask)
+                probs = getattr(net, "count_probs", None)
+                likely = None  # (B, H) whether each count is probable enough for its guess to start a fit
+                anyone: list[bool] = []  # whether any reading uses the guess of each count
+                if probs is not None and gated:
+                    likely = probs.detach().to(device) >= opts.guess_probability
+                    anyone = likely.any(0).tolist()  # (one transfer for every count)
+                for h, pf in (net.forces if hasattr(net, "forces") else net).items():
+                    if h in per_count and (h > len(anyone) or anyone[h - 1]):
+                        use = likely[:, h - 1] if likely is not None and h <= likely.shape[1] else everyone
+                        add(h, pf, 0.0, use)
         for h, found in per_count.items():  # (every block added is used by some reading)
-            out.extend((h, torch.clamp(s, 0.0, self.rod.length), f, use) for s, f, use in found)
+            for s, f, use in found:
+                clamp = np.clip if isinstance(s, np.ndarray) else torch.clamp
+                out.append((h, clamp(s, 0.0, self.rod.length), f, use))
         return out
 
     def _report(self, out: Any, mask: torch.Tensor, opts: EstimatorOptions, dtype: torch.dtype) -> EstimateResult:
@@ -576,19 +590,26 @@ class Estimator:
         t = _tensors(out, mask.device)
         count = t["count"]
         W = t["s"].shape[1]
-        active = torch.arange(W, device=count.device)[None, :] < count[:, None]
+        if isinstance(out.count, np.ndarray):  # (NumPy's comparison: cheaper than torch's at a batch of one)
+            active = torch.from_numpy(np.arange(W)[None, :] < out.count[:, None])
+        else:
+            active = torch.arange(W, device=count.device)[None, :] < count[:, None]
+
+        def cast(x: torch.Tensor) -> torch.Tensor:
+            return x if x.dtype == dtype else x.to(dtype)
+
         return EstimateResult(
-            forces=PointForces(t["s"].to(dtype), t["f"].to(dtype), active),
+            forces=PointForces(cast(t["s"]), cast(t["f"]), active),
             num_forces=count,
             status=t["status"],
-            p_value=t["p_value"].to(dtype),
-            loss=t["loss"].to(dtype),
+            p_value=cast(t["p_value"]),
+            loss=cast(t["loss"]),
             converged=t["converged"],
             iterations=t["iterations"],
-            std=t["std"].to(dtype),
+            std=cast(t["std"]),
             poorly_determined=t["poorly"],
-            losses_by_count=t["losses"].to(dtype),
-            noise=t["sigma"].to(dtype),
+            losses_by_count=cast(t["losses"]),
+            noise=cast(t["sigma"]),
             evaluations=t["evaluations"],
         )
 
@@ -690,6 +711,11 @@ def _batch(u, w, noise2, gs, gf, guse, out, target: str) -> Any:
             return x if isinstance(x, np.ndarray) else x.contiguous().numpy()
 
     return Batch(view(u), view(w), view(noise2), view(gs), view(gf), view(guse), type(out)(*(view(x) for x in out)))
+
+
+def _host(x: Any) -> Any:
+    """A start's values for the kernels' arrays: NumPy ones as they are, a tensor as :func:`host_view` gives it."""
+    return x if isinstance(x, np.ndarray) else host_view(x)
 
 
 def _zeros(device: torch.device, *shapes: tuple[tuple[int, ...], torch.dtype]) -> list[Any]:

@@ -1403,12 +1403,14 @@ def check_readings(curvature: Any, mask: Any, num_gratings: int) -> tuple[torch.
         raise ValueError(f"curvature must have shape (B, {G}, 2) for this rod, got {tuple(curvature.shape)}")
     B = curvature.shape[0]
     if mask is None:
-        nan = torch.isnan(curvature)
-        mask = ~nan.all(-1)
+        values = host_view(curvature)  # (NumPy's operations where it can: cheaper than torch's on a few readings)
+        nan = values != values
+        present = ~nan.all(-1)
         # One device sync: half-NaN rows, and present values that are infinite or beyond the bound.
-        bad = (nan.any(-1) & mask) | (mask & ~(curvature.abs() <= MAX_CURVATURE).all(-1))
+        bad = (nan.any(-1) & present) | (present & ~(abs(values) <= MAX_CURVATURE).all(-1))
+        mask = torch.from_numpy(present) if isinstance(present, np.ndarray) else present
         if bool(bad.any()):
-            b, g = (int(x) for x in bad.nonzero()[0])
+            b, g = (int(x) for x in torch.as_tensor(bad).nonzero()[0])
             pair = [float(x) for x in curvature[b, g]]
             if any(math.isnan(x) for x in pair):
                 raise ValueError(
