@@ -590,8 +590,9 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
 
 
 def warm_up(estimator: Any, device: str | torch.device = "cpu") -> None:
-    """Estimate two simulated readings (one and two forces) so that first-call costs (the kernels' compilation or
-    loading, per-rod setup, lazy initialisation in torch) do not land on the first real reading's latency."""
+    """Estimate two simulated readings (one and two forces), and make the warm-start network's forward passes for
+    small and large batches, so that first-call costs (the kernels' compilation or loading, per-rod setup, the
+    network's trace, lazy initialisation in torch) do not land on the first real readings' latency."""
     from ..model.body_frame import simulate
 
     rod = estimator.rod
@@ -599,6 +600,9 @@ def warm_up(estimator: Any, device: str | torch.device = "cpu") -> None:
     loads = PointForces.from_lists([[(0.6 * L, 0.3, 0.2)], [(0.4 * L, -0.2, 0.3), (0.8 * L, 0.2, 0.1)]])
     u = simulate(rod, loads).grating_curvature.to(device)
     estimator.estimate(u)
+    ready = getattr(estimator.warm_start, "ready", None)
+    if callable(ready):  # (a large batch's forward pass too: the estimate above ran a small one's)
+        ready(u.device, u.dtype)
 
 
 # ---------------------------------------------------------------------------------------------------- statistics

@@ -662,6 +662,15 @@ class WarmStart:
                 packed = self._cpu = (tensors, tuple(p._version for p in tensors), _pack(self.net))
         return packed[2]
 
+    def ready(self, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float64) -> None:
+        """Make the forward passes for readings of ``dtype`` on ``device`` now (first calls then pay nothing): the
+        trace that large batches run, and on the CPU the compiled pass of small batches (compiled or loaded)."""
+        device = torch.device(device)
+        self._forward_on(device, dtype)
+        if device.type == "cpu":
+            G = self.net.config.num_gratings
+            self.compiled_arrays(torch.zeros(1, G, 2, dtype=dtype), torch.ones(1, G, dtype=torch.bool))
+
     def guess(self, curvature: torch.Tensor, mask: torch.Tensor | None = None) -> WarmStartGuess:
         """Guesses for every count 1..H, and the count probabilities.
 

@@ -29,6 +29,7 @@ import time
 import torch
 
 from ...estimate.estimator import Estimator
+from ...io.stream import warm_up
 from ...presets import load as load_rod
 from ..commands import add_device_option, check_device, rod_help
 from . import SUITES
@@ -115,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         data = readings(rod, k, max(single, batched), args.noise, args.seed + (k or 0))
         curvature, mask = data.curvature.to(device), data.mask.to(device)
         truth = data.loads.count
-        estimator.estimate(curvature[:1], mask[:1])  # warm-up
+        warm_up(estimator, device)
         walls, cpus, right = [], [], 0
         for b in range(single):
             if gap:
