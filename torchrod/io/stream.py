@@ -290,8 +290,9 @@ class _Stream:
 
     def step(self, flight: collections.deque[_Slot]) -> list[StreamResult] | None:
         """The results of the next batch in input order, or None at the end of the input. Batches are taken from
-        the pending readings as they come and handed to an idle solver thread (or solved here without a pool),
-        while this thread goes on taking readings; at most two batches per thread are in flight. A batch leaves
+        the pending readings as they come and handed to an idle solver thread (or solved here without a pool, or
+        when one reading comes to an idle stream), while this thread goes on taking readings; at most two batches
+        per thread are in flight. A batch leaves
         ``pending`` only once it is handed out or solved, and ``flight`` only once its results are returned, so an
         interrupt loses none."""
         while True:
@@ -315,7 +316,11 @@ class _Stream:
                 self.wake.wait(_POLL)
                 continue
             batch = self.pending[: self.batch_limit()]
-            slot = self.send(batch) if self.pool is not None else _Slot(batch, results=self.solve(batch))
+            # A lone reading that finds every solver thread idle is solved here: handing it to a thread and back
+            # would cost two thread wake-ups, a large share of a paced reading's latency. Readings that come
+            # meanwhile wait in the queue and go out together once it is answered (after it, in any case).
+            alone = not flight and len(batch) == 1 and self.q.empty()
+            slot = self.send(batch) if self.pool is not None and not alone else _Slot(batch, results=self.solve(batch))
             del self.pending[: len(batch)]
             flight.append(slot)
 
