@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import termios
+import threading
 import time
 
 import pytest
@@ -877,3 +878,38 @@ def test_bench_paced_latency_counts_the_wait_of_a_stream_that_falls_behind(rod, 
     waited = [r.latency - 1e-3 * r.record["latency_ms"] for r in got]  # from release until the stream took it
     assert waited[-1] > 0.2 and waited[-1] > waited[0] + 0.15
     assert got[-1].latency > 2 * 1e-3 * got[-1].record["latency_ms"]
+
+
+class _Where(_Slow):
+    """An estimator that records the thread and batch size of each call."""
+
+    def __init__(self, inner: tr.Estimator, delay: float = 0.0) -> None:
+        super().__init__(inner, delay)
+        self.calls: list[tuple[str, int]] = []
+
+    def estimate(self, curvature, *args, **kwargs):
+        self.calls.append((threading.current_thread().name, curvature.shape[0]))
+        return super().estimate(curvature, *args, **kwargs)
+
+
+def test_a_lone_reading_is_solved_on_the_streams_thread_and_a_burst_by_the_solver_threads(rod, estimator):
+    """A paced source (each reading arrives after the last is answered) has its readings solved on the thread that
+    iterates the stream, with no hand-off to a solver thread and back; readings that arrive together still go to the
+    solver threads, and every answer comes in input order."""
+    u = torch.tensor(_one_force_lines(rod, 1)[0]["curvature"])
+    where = _Where(estimator)
+
+    def paced():
+        for k in range(5):
+            time.sleep(0.05)
+            yield Reading(k, u)
+
+    got = list(stream(where, paced(), StreamOptions(workers=2)))
+    assert [r.id for r in got] == list(range(5)) and all(r.ok for r in got)
+    here = threading.current_thread().name
+    assert where.calls == [(here, 1)] * 5
+
+    burst = _Where(estimator, delay=0.05)
+    got = list(stream(burst, (Reading(k, u) for k in range(40)), StreamOptions(batch_size=8, workers=2)))
+    assert [r.id for r in got] == list(range(40)) and all(r.ok for r in got)
+    assert any(name.startswith("torchrod-stream") for name, _ in burst.calls)

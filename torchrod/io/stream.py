@@ -292,9 +292,8 @@ class _Stream:
         """The results of the next batch in input order, or None at the end of the input. Batches are taken from
         the pending readings as they come and handed to an idle solver thread (or solved here without a pool, or
         when one reading comes to an idle stream), while this thread goes on taking readings; at most two batches
-        per thread are in flight. A batch leaves
-        ``pending`` only once it is handed out or solved, and ``flight`` only once its results are returned, so an
-        interrupt loses none."""
+        per thread are in flight. A batch leaves ``pending`` only once it is handed out or solved, and ``flight``
+        only once its results are returned, so an interrupt loses none."""
         while True:
             self.wake.clear()  # (before the checks: what happens after them sets it again)
             self.hungry = True  # (before the queue is looked at: a reading put after that sets wake)
@@ -605,7 +604,7 @@ def warm_up(estimator: Any, device: str | torch.device = "cpu") -> None:
     loads = PointForces.from_lists([[(0.6 * L, 0.3, 0.2)], [(0.4 * L, -0.2, 0.3), (0.8 * L, 0.2, 0.1)]])
     u = simulate(rod, loads).grating_curvature.to(device)
     estimator.estimate(u)
-    ready = getattr(estimator.warm_start, "ready", None)
+    ready = getattr(getattr(estimator, "warm_start", None), "ready", None)
     if callable(ready):  # (a large batch's forward pass too: the estimate above ran a small one's)
         ready(u.device, u.dtype)
 
