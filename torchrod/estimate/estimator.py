@@ -528,8 +528,10 @@ class Estimator:
         top = opts.width
         device = curvature.device
         out: list[tuple[int, Any, Any, Any]] = []
-        everyone = torch.ones((B,), dtype=torch.bool, device=device)
         per_count: dict[int, list[tuple[Any, Any, Any]]] = {h: [] for h in range(1, top + 1)}
+
+        def everyone() -> torch.Tensor:
+            return torch.ones((B,), dtype=torch.bool, device=device)
 
         def add(h: int, pf: Any, shift: float, use: torch.Tensor) -> None:
             # A block of h forces as the kernels take it: locations shifted to model coordinates, inactive forces
@@ -544,11 +546,19 @@ class Estimator:
                 f = torch.where(pf.mask.to(device)[:, :, None], f, torch.full_like(f, math.nan))
             per_count[h].append((s, f, use))
 
+        def gate(probs: Any) -> tuple[Any, list[bool]]:
+            # Where each count's guess starts a fit, (B, H) (None: everywhere), and whether it does anywhere, per
+            # count: where the network gives the count at least guess_probability (a tensor or a NumPy array).
+            if probs is None or opts.starts <= 0 or opts.guess_probability <= 0:
+                return None, []
+            likely = probs >= opts.guess_probability
+            return likely, likely.any(0).tolist()  # (one transfer for every count)
+
         if extra_starts:
+            use = everyone()
             for h, pf in extra_starts.items():
                 if h in per_count:
-                    add(h, pf, -self.rod.location_bias, everyone)
-        gated = opts.starts > 0 and opts.guess_probability > 0  # the guesses start fits only where probable
+                    add(h, pf, -self.rod.location_bias, use)
         if self.warm_start is not None:
             from ..learn.warm_start import COMPILED_MAX_BATCH, WarmStart
 
@@ -556,10 +566,10 @@ class Estimator:
                 # The compiled pass's arrays as they are: at a batch of one reading, each torch operation on them
                 # would cost more than the network itself.
                 probs_np, s_np, f_np = self.warm_start.compiled_arrays(curvature, mask)
-                likely_np = probs_np >= opts.guess_probability
+                likely, anyone = gate(probs_np)
                 for h in range(1, probs_np.shape[1] + 1):
-                    if h in per_count and (not gated or likely_np[:, h - 1].any()):
-                        use_np = likely_np[:, h - 1] if gated else np.ones(B, np.bool_)
+                    if h in per_count and (h > len(anyone) or anyone[h - 1]):
+                        use_np = likely[:, h - 1] if likely is not None else np.ones(B, np.bool_)
                         per_count[h].append((s_np[:, h - 1, :h], f_np[:, h - 1, :h], use_np))
             else:
                 net: Any
@@ -570,14 +580,10 @@ class Estimator:
                 else:
                     net = self.warm_start(curvature, mask)
                 probs = getattr(net, "count_probs", None)
-                likely = None  # (B, H) whether each count is probable enough for its guess to start a fit
-                anyone: list[bool] = []  # whether any reading uses the guess of each count
-                if probs is not None and gated:
-                    likely = probs.detach().to(device) >= opts.guess_probability
-                    anyone = likely.any(0).tolist()  # (one transfer for every count)
+                likely, anyone = gate(None if probs is None else probs.detach().to(device))
                 for h, pf in (net.forces if hasattr(net, "forces") else net).items():
                     if h in per_count and (h > len(anyone) or anyone[h - 1]):
-                        use = likely[:, h - 1] if likely is not None and h <= likely.shape[1] else everyone
+                        use = likely[:, h - 1] if likely is not None and h <= likely.shape[1] else everyone()
                         add(h, pf, 0.0, use)
         for h, found in per_count.items():  # (every block added is used by some reading)
             for s, f, use in found:
