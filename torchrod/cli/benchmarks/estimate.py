@@ -112,11 +112,12 @@ def run(args: argparse.Namespace) -> int:
         f"{'ms/rd':>7} {'cpu ms/rd':>9} | {'count ok':>8}"
     )
     estimator.plan(device=device, wait=True)
+    warm_up(estimator, device)  # (the network's passes for small and large batches too)
     for k in (rows[x] for x in wanted):
         data = readings(rod, k, max(single, batched), args.noise, args.seed + (k or 0))
         curvature, mask = data.curvature.to(device), data.mask.to(device)
         truth = data.loads.count
-        warm_up(estimator, device)
+        estimator.estimate(curvature[:1], mask[:1])  # warm-up
         walls, cpus, right = [], [], 0
         for b in range(single):
             if gap:
