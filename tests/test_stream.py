@@ -8,6 +8,7 @@ import fcntl
 import json
 import math
 import os
+import re
 import select
 import signal
 import subprocess
@@ -826,12 +827,16 @@ def test_bench_stream_runs_and_reports_every_way(capsys):
         "stream, paced 400 Hz",
         "CLI, 400 Hz from outside",
         "CLI, 400 Hz from outside, budget 0 ms",
+        "CLI, backlog from a file",
         "stream, one at a time",
     ]
     readings = [int(r.split("|")[1].split()[0]) for r in rows]
-    assert readings == [40, 3, 40, *([40] if threads > 1 else []), 40, 40, 20, 20, 20, 3]
+    assert readings == [40, 3, 40, *([40] if threads > 1 else []), 40, 40, 20, 20, 20, 40, 3]
     # the process paced from outside answers every line; with no time at all, every answer says so
     assert "# CLI, 400 Hz from outside, budget 0 ms: latency median" in out and "statuses: timeout 20" in out
+    # the process given the whole trajectory in a file answers every reading, as the stream in process does
+    note = next(line for line in out.splitlines() if line.startswith("# CLI, backlog from a file: 40 readings in"))
+    assert sum(int(n) for n in re.findall(r"[a-z_]+ (\d+)", note.split("statuses: ")[1])) == 40
     # the stream over the same readings as the static batches agrees with them on the count
     static, backlog = (float(rows[k].split("|")[4].split()[0].rstrip("%")) for k in (0, 2))
     assert abs(static - backlog) <= 10.0

@@ -36,6 +36,11 @@ the same readings several ways, in one run:
   seconds to tell the two apart), the answers' statuses (``timeout``: cut by the time budget) and how long the warm-up
   waited for an idle process. cpu ms is the child's; readings per batch and evaluations are not reported (the answers
   do not carry them).
+* ``CLI, backlog from a file`` (with the ``--external`` rows): a ``torchrod stream`` process with the same options
+  given every reading of the trajectory in a file (``--input FILE --summary``, answers to a file), as a recorded
+  experiment is answered; readings/s by the command's own clock, from its first reading taken to its last answer
+  written (its start-up and warm-up left out). Beside ``static, batched``, the estimate alone on every core over the
+  same readings, it shows what reading the lines and writing the answers cost.
 
 ``--device`` (default cpu) runs every row on that device (e.g. ``cuda``: one GPU thread per reading): the readings
 are moved to it, the CLI rows get the same ``--device``, and the row of P threads is left out.
@@ -61,9 +66,13 @@ import argparse
 import ast
 import cProfile
 import dataclasses
+import json
 import math
 import os
 import pstats
+import re
+import subprocess
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -77,7 +86,7 @@ from ...kernels.host import cpu_threads
 from ...presets import load as load_rod
 from ..commands import add_device_option, check_device, rod_help, settle
 from . import SUITES
-from .pacer import ExternalStream, cpu_time, reading_line
+from .pacer import ExternalStream, child_command, cpu_time, reading_line
 
 HELP = SUITES["stream"]
 
@@ -237,7 +246,7 @@ def _external_rows(
     if args.track:
         base += ["--track"]
     u = torch.where(trajectory.mask.unsqueeze(-1), trajectory.curvature, math.nan).tolist()
-    lines = [reading_line(k, float(trajectory.t[k]), u[k]) for k in range(paced)]
+    lines = [reading_line(k, float(trajectory.t[k]), u[k]) for k in range(len(u))]
     warm = [reading_line(f"warm-up {k}", None, u[k]) for k in range(min(5, paced))]
     runs = [(rates[0], b) for b in budgets] + [(r, None) for r in rates[1:]]
     notes = []
@@ -251,7 +260,7 @@ def _external_rows(
         pacer = ExternalStream(base + extra, warm).start()
         latencies = []
         w0 = time.perf_counter()
-        for r in pacer.run(lines, list(range(paced)), rate):
+        for r in pacer.run(lines[:paced], list(range(paced)), rate):
             row.stats.add(r, truth[r.id])
             latencies.append(r.latency)
         row.wall, row.cpu = time.perf_counter() - w0, pacer.cpu
@@ -262,7 +271,49 @@ def _external_rows(
             f"# {name}: latency median over each tenth of the run {tenths} ms; statuses: {statuses}; "
             f"{pacer.settled:.1f} s waited after the warm-up for idle processes"
         )
+    notes.append(_backlog_row(base, lines, rows, truth))
     return notes
+
+
+def _backlog_row(base: list[str], lines: list[str], rows: list[_Row], truth: list) -> str:
+    """The row of a ``torchrod stream`` process given every line at once in a file (``--input FILE --summary``, its
+    output to a file, as a recorded experiment is answered): its own readings/s over its stream (from the first
+    reading taken to the last answer written, its start-up and warm-up left out), its answers' accuracy and their
+    latency (the wait in its queue, mostly); cpu ms is not reported (the child's CPU time holds its start-up)."""
+    row = _Row("CLI, backlog from a file")
+    row.external = True
+    with tempfile.TemporaryDirectory(prefix="torchrod-bench-") as folder:
+        source, answers = os.path.join(folder, "readings.jsonl"), os.path.join(folder, "answers.jsonl")
+        with open(source, "w") as fh:
+            fh.writelines(line + "\n" for line in lines)
+        with open(answers, "w") as out:
+            done = subprocess.run(
+                child_command("stream", *base, "--input", source, "--summary"),
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=subprocess.PIPE,
+                text=True,
+                check=False,
+            )
+        rate = re.search(r"(\d+) readings, \d+ errors, \d+ readings/s over ([0-9.]+) s", done.stderr)
+        if done.returncode != 0 or rate is None:
+            raise RuntimeError(
+                f"torchrod stream {' '.join(base)} --input FILE --summary failed (exit status {done.returncode}): "
+                f"{done.stderr.strip()[-500:]}"
+            )
+        with open(answers) as fh:
+            for text in fh:
+                record = json.loads(text)
+                latency = 1e-3 * record.get("latency_ms", math.nan)
+                row.stats.add(
+                    StreamResult(record.get("id"), record.get("t"), record, latency, record.get("error")),
+                    truth[record["id"]],
+                )
+    row.wall, row.cpu = float(rate.group(2)), math.nan
+    rows.append(row)
+    statuses = ", ".join(f"{k} {v}" for k, v in row.stats.statuses.items())
+    seconds = float(rate.group(2))
+    return f"# {row.name}: {rate.group(1)} readings in {seconds:.2f} s by its own clock; statuses: {statuses}"
 
 
 def tenth_medians(values: Sequence[float]) -> list[float]:
