@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+import time
 
 import pytest
 import torch
@@ -76,6 +77,17 @@ def test_bench_rejects_unknown_and_reports_missing_suites(capsys, monkeypatch):
 def test_bench_forward_rejects_bad_options(capsys):
     assert main(["bench", "forward", "--threads", "0"]) == 2
     assert "--threads" in capsys.readouterr().err
+
+
+def test_the_pacer_sends_a_line_no_sooner_than_it_is_due():
+    """``pacer.sleep_until`` (the pacer's wait for a line's due time, asleep and then active): it never returns before
+    the time asked for, whether that is further away than its active wait, within it, or past."""
+    from torchrod.cli.benchmarks import pacer
+
+    for ahead in (0.0, -0.01, 0.1 * pacer.SPIN, 0.5 * pacer.SPIN, 2 * pacer.SPIN, 0.01):
+        due = time.perf_counter() + ahead
+        pacer.sleep_until(due)
+        assert time.perf_counter() >= due
 
 
 def test_the_pacer_waits_until_the_stream_and_its_workers_are_idle():

@@ -8,10 +8,10 @@ answer, in two rounds: the first reading, and the rest; after each round the pac
 worker processes (``--workers``) are idle. A worker starts in the background (it imports torch and warms up:
 seconds of CPU), the pool when the stream starts and any worker started by the stream's first batches in the
 second round, and timing while one does would measure its start-up, not the stream. Then the paced lines go out
-on a writer thread at ``rate`` Hz, line k due at k / ``rate`` s (one the writer could not send on time, because
-the pipe was full or the writer was slow, goes out at once), while the calling thread reads the answers. Latency
-counts from the line's due time, as a sensor's reading is taken on schedule whether or not its reader keeps up: a
-stream that falls behind and stops reading its input cannot hide the wait.
+on a writer thread at ``rate`` Hz, line k due at k / ``rate`` s and sent then (:func:`sleep_until`; one the writer
+could not send on time, because the pipe was full or the writer was slow, goes out at once), while the calling
+thread reads the answers. Latency counts from the line's due time, as a sensor's reading is taken on schedule
+whether or not its reader keeps up: a stream that falls behind and stops reading its input cannot hide the wait.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from typing import Any
 
 from ...io.stream import StreamResult
 
-__all__ = ["ExternalStream", "child_command", "cpu_time", "reading_line"]
+__all__ = ["ExternalStream", "child_command", "cpu_time", "reading_line", "sleep_until"]
 
 _CHILD = "import sys; sys.path.insert(0, sys.argv.pop(1)); from torchrod.cli import main; sys.exit(main(sys.argv[1:]))"
 
@@ -118,9 +118,7 @@ class ExternalStream:
                 for k, (ident, line) in enumerate(zip(ids, lines, strict=True)):
                     due = t0 + k / rate
                     sent[json.dumps(ident)] = due
-                    wait = due - time.perf_counter()
-                    if wait > 0:
-                        time.sleep(wait)
+                    sleep_until(due)
                     self._send(line)
                 stdin.close()
             except BaseException as exc:  # noqa: BLE001 - reported by the reading thread
@@ -146,6 +144,23 @@ class ExternalStream:
             raise RuntimeError(f"the pacer could not write to torchrod stream: {failed[0]}")
         if got != len(lines):
             raise RuntimeError(f"torchrod stream answered {got} of {len(lines)} lines (exit status {proc.returncode})")
+
+
+SPIN = 5e-4
+"""[s] :func:`sleep_until` sleeps until this long before the time it waits for, then waits actively."""
+
+
+def sleep_until(due: float) -> None:
+    """Return at ``due`` (``time.perf_counter`` seconds), not later than the clock allows: a sleep alone ends late by
+    the system's timer slack and wake-up (about 0.1 ms at the median on a small shared machine), and a pacer that
+    sends a line late would count its own delay as the stream's latency. So sleep until :data:`SPIN` before it, then
+    wait actively (holding the interpreter lock for at most that long: another thread of the process waits no
+    longer)."""
+    wait = due - time.perf_counter() - SPIN
+    if wait > 0:
+        time.sleep(wait)
+    while time.perf_counter() < due:
+        pass
 
 
 IDLE = 0.1

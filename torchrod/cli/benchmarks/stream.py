@@ -86,7 +86,7 @@ from ...kernels.host import cpu_threads
 from ...presets import load as load_rod
 from ..commands import add_device_option, check_device, rod_help, settle
 from . import SUITES
-from .pacer import ExternalStream, child_command, cpu_time, reading_line
+from .pacer import ExternalStream, child_command, cpu_time, reading_line, sleep_until
 
 HELP = SUITES["stream"]
 
@@ -358,9 +358,7 @@ def _paced(items: list[Reading], rate: float, due: dict[Any, float]) -> Iterator
     t0 = time.perf_counter()
     for k, item in enumerate(items):
         due[item.id] = t0 + k / rate
-        wait = due[item.id] - time.perf_counter()
-        if wait > 0:
-            time.sleep(wait)
+        sleep_until(due[item.id])
         yield item
 
 
