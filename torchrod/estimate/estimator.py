@@ -34,6 +34,8 @@ import torch
 
 from ..errors import MissingFileError, OptionsError
 from ..io.readings import check_readings, host_view
+from ..kernels import host as _kernels
+from ..kernels.layout import Batch
 from ..loads import PointForces
 from ..rod import Rod
 from .options import EstimatorOptions, LMPolicy, SearchOptions
@@ -98,8 +100,7 @@ class EstimateResult:
     @property
     def statuses(self) -> list[Status]:
         """The verdicts, one per reading (each a string: ``result.statuses[0] == "ok"``)."""
-        members = list(Status)
-        return [members[int(c)] for c in self.status.tolist()]
+        return [_MEMBERS[c] for c in self.status.tolist()]
 
     @property
     def ok(self) -> torch.Tensor:
@@ -142,23 +143,31 @@ class EstimateResult:
         it = self.iterations.tolist()
         poor = self.poorly_determined.tolist()
         out = []
+        isfinite, hypot = math.isfinite, math.hypot
         for b in range(B):
             forces = []
             for j in range(len(s[b])):
                 if not active[b][j]:
                     continue
                 fx, fy = f[b][j]
-                forces.append(
-                    {
-                        "s": num(s[b][j]),
-                        "fx": num(fx),
-                        "fy": num(fy),
-                        "magnitude": num(math.hypot(fx, fy)),
-                        "std_s": num(std[b][j][0]),
-                        "std_fx": num(std[b][j][1]),
-                        "std_fy": num(std[b][j][2]),
-                    }
-                )
+                sj, (s0, s1, s2), size = s[b][j], std[b][j], hypot(fx, fy)
+                # (a sum is finite only where every term is: one test for the usual force, each value's otherwise)
+                if isfinite(sj + fx + fy + size + s0 + s1 + s2):
+                    forces.append(
+                        {"s": sj, "fx": fx, "fy": fy, "magnitude": size, "std_s": s0, "std_fx": s1, "std_fy": s2}
+                    )
+                else:
+                    forces.append(
+                        {
+                            "s": num(sj),
+                            "fx": num(fx),
+                            "fy": num(fy),
+                            "magnitude": num(size),
+                            "std_s": num(s0),
+                            "std_fx": num(s1),
+                            "std_fy": num(s2),
+                        }
+                    )
             out.append(
                 {
                     "id": ids[b],
@@ -203,6 +212,7 @@ class Estimator:
         self.options = options
         self.warm_start = warm_start
         self._plans: dict[Any, Any] = {}
+        self._compiled: list[Any] = []  # the plans' compiled kernels, each once (few: one per target)
         self._lock = threading.Lock()
 
     @classmethod
@@ -299,16 +309,16 @@ class Estimator:
         reading's time budget): a first CPU compile runs in the background while readings are solved by the
         kernels run as Python (:meth:`torchrod.kernels.targets.Compiled.start`), unless ``wait`` (then it is done
         here, as a benchmark needs)."""
-        from ..kernels.host import Plan, count_tables, rod_setup, setup_of
-        from ..kernels.march import EXACT_MAX_STEPS, EXACT_STEP_ANGLE, FIT_MAX_STEPS
-        from ..model.nystrom import RKN8
-
         opts = self.options if options is None else options
         target = self._target(opts, torch.device(device))
         key = (opts, tuple(guess_counts), target)
         with self._lock:
             plan = self._plans.get(key)
             if plan is None:
+                from ..kernels.host import Plan, count_tables, rod_setup, setup_of
+                from ..kernels.march import EXACT_MAX_STEPS, EXACT_STEP_ANGLE, FIT_MAX_STEPS
+                from ..model.nystrom import RKN8
+
                 rod = self.rod
                 rec, model = rod_setup(
                     length=rod.length,
@@ -337,6 +347,8 @@ class Estimator:
                 if len(self._plans) > 32:
                     self._plans.clear()
                 self._plans[key] = plan
+                if plan.compiled not in self._compiled:
+                    self._compiled.append(plan.compiled)
         if wait:
             plan.compiled.ready()
         else:
@@ -346,7 +358,7 @@ class Estimator:
     def compiling(self) -> bool:
         """Whether a first compile of the CPU kernels is still running in the background (:meth:`plan`): readings
         are then solved one at a time, much more slowly, with the same answers."""
-        return any(plan.compiled.compiling() for plan in list(self._plans.values()))
+        return any(compiled.compiling() for compiled in self._compiled)
 
     def kit(self, curvature: torch.Tensor, mask: torch.Tensor | None = None, options: EstimatorOptions | None = None):
         """The kernels' :class:`~torchrod.kernels.layout.Kit` of one reading (curvature (G, 2) [1/m], mask (G,)), for
@@ -593,29 +605,28 @@ class Estimator:
 
     def _report(self, out: Any, mask: torch.Tensor, opts: EstimatorOptions, dtype: torch.dtype) -> EstimateResult:
         """The kernels' outputs (p-values and statuses included) as an :class:`EstimateResult`."""
-        t = _tensors(out, mask.device)
+        t = _tensors(out)
         count = t["count"]
         W = t["s"].shape[1]
         if isinstance(out.count, np.ndarray):  # (NumPy's comparison: cheaper than torch's at a batch of one)
             active = torch.from_numpy(np.arange(W)[None, :] < out.count[:, None])
         else:
             active = torch.arange(W, device=count.device)[None, :] < count[:, None]
-
-        def cast(x: torch.Tensor) -> torch.Tensor:
-            return x if x.dtype == dtype else x.to(dtype)
-
+        if dtype != torch.float64:  # (the kernels' real outputs are float64)
+            for name in _REAL_OUTPUTS:
+                t[name] = t[name].to(dtype)
         return EstimateResult(
-            forces=PointForces(cast(t["s"]), cast(t["f"]), active),
+            forces=PointForces(t["s"], t["f"], active),
             num_forces=count,
             status=t["status"],
-            p_value=cast(t["p_value"]),
-            loss=cast(t["loss"]),
+            p_value=t["p_value"],
+            loss=t["loss"],
             converged=t["converged"],
             iterations=t["iterations"],
-            std=cast(t["std"]),
+            std=t["std"],
             poorly_determined=t["poorly"],
-            losses_by_count=cast(t["losses"]),
-            noise=cast(t["sigma"]),
+            losses_by_count=t["losses"],
+            noise=t["sigma"],
             evaluations=t["evaluations"],
         )
 
@@ -685,11 +696,9 @@ _ALARMS = _Alarms()
 def _outputs(B: int, W: int, device: torch.device) -> Any:
     """The kernels' outputs for B readings of width W: NumPy arrays for the CPU (the kernels' own type there, made
     without torch's dispatch; :func:`_tensors` shares their memory), torch tensors on any other device."""
-    from ..kernels.host import outputs
-
     if device.type == "cpu":
-        return outputs(B, W)
-    return outputs(B, W, lambda shape, dtype: torch.empty(shape, dtype=_TORCH[np.dtype(dtype)], device=device))
+        return _kernels.outputs(B, W)
+    return _kernels.outputs(B, W, lambda shape, dtype: torch.empty(shape, dtype=_TORCH[np.dtype(dtype)], device=device))
 
 
 _TORCH = {np.dtype(np.float64): torch.float64, np.dtype(np.int64): torch.int64, np.dtype(np.bool_): torch.bool}
@@ -697,15 +706,14 @@ _TORCH = {np.dtype(np.float64): torch.float64, np.dtype(np.int64): torch.int64, 
 
 def _simulated_cuda() -> bool:
     """Whether numba-cuda's simulator stands in for a GPU: the CUDA target then takes readings on the CPU."""
-    from ..kernels.host import simulated
-
-    return simulated()
+    return _kernels.simulated()
 
 
 def _batch(u, w, noise2, gs, gf, guse, out, target: str) -> Any:
     """The kernels' batch: NumPy views of CPU tensors, or CUDA arrays sharing the tensors' memory."""
-    from ..kernels.layout import Batch
-
+    # A CPU batch: the readings (u, w, noise2 made together), the starts (gs, gf, guse) and the outputs NumPy arrays.
+    if isinstance(u, np.ndarray) and isinstance(gs, np.ndarray) and isinstance(out.count, np.ndarray):
+        return Batch(u, w, noise2, gs, gf, guse, out)
     if target == "cuda" and not _simulated_cuda():
         from numba import cuda
 
@@ -734,6 +742,15 @@ def _zeros(device: torch.device, *shapes: tuple[tuple[int, ...], torch.dtype]) -
 _NUMPY = {torch.float64: np.float64, torch.bool: np.bool_}
 
 
-def _tensors(out: Any, device: torch.device) -> dict[str, torch.Tensor]:
+def _tensors(out: Any) -> dict[str, torch.Tensor]:
     """The kernels' outputs by name, as tensors (sharing the memory of NumPy ones)."""
-    return {k: torch.from_numpy(x) if isinstance(x, np.ndarray) else x for k, x in zip(out._fields, out, strict=True)}
+    if isinstance(out.count, np.ndarray):
+        return dict(zip(out._fields, map(torch.from_numpy, out), strict=True))
+    return dict(zip(out._fields, out, strict=True))
+
+
+_REAL_OUTPUTS = ("s", "f", "std", "p_value", "loss", "losses", "sigma")
+"""The kernels' float64 outputs (:func:`torchrod.kernels.host.outputs`), cast to the readings' dtype."""
+
+_MEMBERS = tuple(Status)
+"""The statuses by code."""

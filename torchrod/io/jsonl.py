@@ -426,6 +426,10 @@ def batched(items: Iterable[T], size: int) -> Iterator[list[T]]:
 
 
 # ---------------------------------------------------------------------------------------------------- writing
+_ENCODER = json.JSONEncoder(allow_nan=False)
+"""``json.dumps(obj, allow_nan=False)``'s encoder, made once (``dumps`` with an option makes one per call)."""
+
+
 class LineWriter:
     """Writes one JSON object per line and flushes; counts the lines and the error lines.
 
@@ -465,7 +469,7 @@ class LineWriter:
         """Write ``obj``; if JSON cannot hold it (NaN, an unwritable value), write an error line naming ``line`` in
         its place and count it as an error. Returns whether ``obj`` itself was written."""
         try:
-            text = json.dumps(obj, allow_nan=False)
+            text = _ENCODER.encode(obj)
         except (ValueError, TypeError, OverflowError, RecursionError) as exc:
             at = f"line {line}: " if line is not None else ""
             self.error(obj.get("id"), f"{at}the answer cannot be written as JSON ({_clip(str(exc), 200)})")

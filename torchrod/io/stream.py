@@ -424,7 +424,8 @@ class _Stream:
         None), or, should it fail, (None, the mask, the noise, what came instead: the error message of a single
         reading, else each reading's own call, as this returns it)."""
         curvature, mask = stack_readings([p.reading for p in good])
-        curvature, mask = curvature.to(self.device), mask.to(self.device)
+        if self.device.type != "cpu":
+            curvature, mask = curvature.to(self.device), mask.to(self.device)
         options = self._options_by_noise.get(learned)
         if options is None:  # (made once per noise: a replace checks every option again, a cost at one reading)
             options = dataclasses.replace(self.estimate_options, threads=self.threads)

@@ -23,6 +23,7 @@ import dataclasses
 import itertools
 import math
 import numbers
+import operator
 import os
 import threading
 import warnings
@@ -37,6 +38,7 @@ from torch import nn
 from ..errors import MissingFileError
 from ..io.readings import check_readings
 from ..kernels import network as network_kernel
+from ..kernels.host import network_rows
 from ..loads import PointForces
 from ..rod import Rod
 
@@ -73,6 +75,9 @@ whatever the batch (its many small operations, each dispatched), then little per
 little a call and more per reading (its products are not blocked as a matrix library's are): the two cost about the
 same at a batch of 16 (docs/core.md). Both give the network's outputs up to float32 rounding, as torch's own pass
 does from one batch size to another."""
+
+_VERSION = operator.attrgetter("_version")
+"""A tensor's count of its in-place changes (torch's), read without a Python call per parameter."""
 
 # The network's rules, shared with its forward pass for inference (torchrod.kernels.network).
 MIN_GAP = network_kernel.MIN_GAP
@@ -656,10 +661,10 @@ class WarmStart:
         again whenever one of them has changed in place since (torch counts each tensor's changes, and
         ``load_state_dict`` copies into them)."""
         packed = self._cpu
-        if packed is None or tuple(p._version for p in packed[0]) != packed[1]:
+        if packed is None or tuple(map(_VERSION, packed[0])) != packed[1]:
             with self._forward_lock:
                 tensors = tuple(self.net.parameters())
-                packed = self._cpu = (tensors, tuple(p._version for p in tensors), _pack(self.net))
+                packed = self._cpu = (tensors, tuple(map(_VERSION, tensors)), _pack(self.net))
         return packed[2]
 
     def ready(self, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float64) -> None:
@@ -701,8 +706,6 @@ class WarmStart:
         """The guesses of checked CPU readings from the network's forward pass in :mod:`torchrod.kernels.network`
         (``compiled`` False: its source run as Python), as NumPy arrays (float64, SI): the count probabilities
         (B, H), and the locations (B, H, H) [m] and forces (B, H, H, 2) [N] of each count h in ``[:, h - 1, :h]``."""
-        from ..kernels.host import network_rows
-
         rod = self.rod
         u = curvature.detach().to(torch.float64).numpy()
         force_si = rod.bending_stiffness / rod.length**2
