@@ -259,11 +259,13 @@ def _external_rows(
         row.external = True
         pacer = ExternalStream(base + extra, warm).start()
         latencies = []
-        w0 = time.perf_counter()
+        w0 = last = time.perf_counter()
         for r in pacer.run(lines[:paced], list(range(paced)), rate):
+            last = time.perf_counter()
             row.stats.add(r, truth[r.id])
             latencies.append(r.latency)
-        row.wall, row.cpu = time.perf_counter() - w0, pacer.cpu
+        # (readings/s up to the last answer: the child's exit after it is not the stream's time)
+        row.wall, row.cpu = last - w0, pacer.cpu
         rows.append(row)
         statuses = ", ".join(f"{k} {v}" for k, v in row.stats.statuses.items())
         tenths = " ".join(f"{1e3 * m:.0f}" for m in tenth_medians(latencies))
