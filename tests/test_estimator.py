@@ -497,6 +497,22 @@ def test_a_chosen_fit_still_improving_after_its_steps_gets_more_of_them(rod):
         LMPolicy(refine_iterations=-1)
 
 
+def test_a_record_writes_a_value_that_is_not_finite_as_null_and_keeps_the_others(rod):
+    """JSON holds no NaN or infinity: a force's value that is not finite (here a standard deviation NaN, another
+    infinite) becomes null in the record, alone; the other values of that force and of every other force stay."""
+    result = Estimator(rod, EstimatorOptions(noise=0.1, num_forces=2)).estimate(
+        tr.grating_curvature(rod, tr.PointForces.from_lists([[(0.1, 0.3, 0.2), (0.2, -0.2, 0.1)]]))
+    )
+    clean = result.to_records()[0]["forces"]
+    result.std[0, 0, 1] = math.nan
+    result.std[0, 1, 2] = math.inf
+    forces = result.to_records()[0]["forces"]
+    assert forces[0]["std_fx"] is None and forces[1]["std_fy"] is None
+    assert {k: v for k, v in forces[0].items() if k != "std_fx"} == {k: v for k, v in clean[0].items() if k != "std_fx"}
+    assert {k: v for k, v in forces[1].items() if k != "std_fy"} == {k: v for k, v in clean[1].items() if k != "std_fy"}
+    assert all(v is not None for f in clean for v in f.values())
+
+
 def test_a_status_is_a_string_enum_member_and_a_plain_string_in_records(rod):
     """``EstimateResult.statuses`` are :class:`torchrod.Status` members, equal to their strings; the records carry
     the plain strings, so that they serialise as JSON."""

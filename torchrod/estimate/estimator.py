@@ -152,22 +152,10 @@ class EstimateResult:
                 fx, fy = f[b][j]
                 sj, (s0, s1, s2), size = s[b][j], std[b][j], hypot(fx, fy)
                 # (a sum is finite only where every term is: one test for the usual force, each value's otherwise)
-                if isfinite(sj + fx + fy + size + s0 + s1 + s2):
-                    forces.append(
-                        {"s": sj, "fx": fx, "fy": fy, "magnitude": size, "std_s": s0, "std_fx": s1, "std_fy": s2}
-                    )
-                else:
-                    forces.append(
-                        {
-                            "s": num(sj),
-                            "fx": num(fx),
-                            "fy": num(fy),
-                            "magnitude": num(size),
-                            "std_s": num(s0),
-                            "std_fx": num(s1),
-                            "std_fy": num(s2),
-                        }
-                    )
+                values = (sj, fx, fy, size, s0, s1, s2)
+                v: tuple[float | None, ...] = values if isfinite(sum(values)) else tuple(map(num, values))
+                forces.append({"s": v[0], "fx": v[1], "fy": v[2], "magnitude": v[3], "std_s": v[4], "std_fx": v[5],
+                               "std_fy": v[6]})  # fmt: skip
             out.append(
                 {
                     "id": ids[b],
@@ -612,9 +600,10 @@ class Estimator:
             active = torch.from_numpy(np.arange(W)[None, :] < out.count[:, None])
         else:
             active = torch.arange(W, device=count.device)[None, :] < count[:, None]
-        if dtype != torch.float64:  # (the kernels' real outputs are float64)
-            for name in _REAL_OUTPUTS:
-                t[name] = t[name].to(dtype)
+        if dtype != torch.float64:  # the kernels' real outputs (float64) in the readings' dtype
+            for name, x in t.items():
+                if x.dtype == torch.float64:
+                    t[name] = x.to(dtype)
         return EstimateResult(
             forces=PointForces(t["s"], t["f"], active),
             num_forces=count,
@@ -748,9 +737,6 @@ def _tensors(out: Any) -> dict[str, torch.Tensor]:
         return dict(zip(out._fields, map(torch.from_numpy, out), strict=True))
     return dict(zip(out._fields, out, strict=True))
 
-
-_REAL_OUTPUTS = ("s", "f", "std", "p_value", "loss", "losses", "sigma")
-"""The kernels' float64 outputs (:func:`torchrod.kernels.host.outputs`), cast to the readings' dtype."""
 
 _MEMBERS = tuple(Status)
 """The statuses by code."""
