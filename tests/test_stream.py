@@ -127,6 +127,118 @@ def test_source_error_comes_after_the_readings_before_it(rod, estimator):
     assert got == ["r0", "r1", "r2"]
 
 
+def _answers(results) -> list[dict]:
+    return [{k: v for k, v in r.record.items() if k != "latency_ms"} for r in results]
+
+
+def test_a_source_that_never_waits_is_read_without_a_reader_thread_and_answered_alike(
+    rod, estimator, tmp_path, monkeypatch
+):
+    """A list, or a file through a ReadingSource, is read by the stream's own thread between batches; a generator
+    (it may wait) by the reader thread. The answers are the same."""
+    import torchrod.io.stream as stream_module
+    from torchrod.io.readings import ReadingSource
+
+    readers: set[str] = set()
+    original = stream_module.to_reading
+
+    def to_reading(*args, **kwargs):
+        readers.add(threading.current_thread().name)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(stream_module, "to_reading", to_reading)
+
+    lines = _one_force_lines(rod, 12)
+    lines[5] = {"id": "bad", "curvature": [[1.0, 2.0]]}
+    path = tmp_path / "in.jsonl"
+    path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+    options = StreamOptions(batch_size=4, max_latency=0.0, workers=2)
+    got, threads = {}, {}
+    sources = {
+        "generator": lambda: (line for line in lines),
+        "list": lambda: lines,
+        "file": lambda: ReadingSource(str(path), rod.num_gratings, rod.gratings),
+    }
+    for name, make in sources.items():
+        readers.clear()
+        got[name] = _answers(stream(estimator, make(), options))
+        threads[name] = sorted(readers)
+    main = threading.current_thread().name
+    assert threads == {"generator": ["torchrod-reader"], "list": [main], "file": [main]}
+    assert [a["id"] for a in got["list"]] == [line["id"] for line in lines] and "error" in got["list"][5]
+    assert got["list"] == got["generator"]
+    assert [{k: v for k, v in a.items() if k != "error"} for a in got["file"]] == [
+        {k: v for k, v in a.items() if k != "error"} for a in got["list"]
+    ]
+    assert got["file"][5]["error"].startswith("line 6: ")
+
+
+def test_a_source_read_by_the_stream_raises_after_the_readings_before_it(rod, estimator, tmp_path):
+    lines = _one_force_lines(rod, 3)
+    path = tmp_path / "named.jsonl"
+    path.write_text("")
+
+    class Source:  # names a regular file, so the stream reads it itself
+        def __init__(self) -> None:
+            self.path = str(path)
+
+        def __iter__(self):
+            yield from lines
+            raise OSError("disk gone")
+
+    got = []
+    with pytest.raises(OSError, match="disk gone"):
+        for r in stream(estimator, Source(), StreamOptions(batch_size=8)):
+            got.append(r.id)
+            assert not any(t.name == "torchrod-reader" for t in threading.enumerate())
+    assert got == ["r0", "r1", "r2"]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["sigint", "sigterm"])
+def test_a_signal_while_the_stream_reads_a_file_comes_between_readings_and_loses_none(
+    rod, estimator, tmp_path, monkeypatch, sig
+):
+    """A signal that arrives while the stream's own thread reads a file is held until the reading in hand is taken,
+    then raised as it would have been (KeyboardInterrupt; the CLI's Terminated for SIGTERM), and the flush answers
+    every line already read: a prefix of the file longer than the readings taken, shorter than the file."""
+    import torchrod.io.stream as stream_module
+    from torchrod.io.jsonl import Terminated, sigterm_as_interrupt
+    from torchrod.io.readings import ReadingSource
+
+    lines = [{**line, "id": f"r{k}"} for k, line in enumerate(_one_force_lines(rod, 60) * 5)]
+    path = tmp_path / "in.jsonl"
+    path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+    assert path.stat().st_size > 2 * 2**16  # more than the first read of the file
+    calls = [0]
+    original = stream_module.to_reading
+
+    def to_reading(*args, **kwargs):
+        calls[0] += 1
+        if calls[0] == 20:
+            os.kill(os.getpid(), sig)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(stream_module, "to_reading", to_reading)
+    source = ReadingSource(str(path), rod.num_gratings, rod.gratings)
+    got = []
+    expected = KeyboardInterrupt if sig == signal.SIGINT else Terminated
+
+    def run() -> None:
+        for r in stream(estimator, source, StreamOptions(batch_size=8, workers=1)):
+            assert r.ok
+            got.append(r.id)
+
+    with pytest.raises(expected):
+        if sig == signal.SIGTERM:
+            with sigterm_as_interrupt():
+                run()
+        else:
+            run()
+    assert got == [f"r{k}" for k in range(len(got))]
+    assert calls[0] >= 20 and 20 <= len(got) < len(lines)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 class _Flaky:
     """An estimator that fails on any batch holding a reading whose first value is 123 (as a batch can fail on one
     reading that breaks a solver)."""

@@ -1308,7 +1308,9 @@ class ReadingSource:
     flush after an interrupt can end at the lines already read: :meth:`halt` makes it yield the readings of the
     complete lines it holds in memory and then end instead of reading more; :attr:`waiting` is true while it waits
     on the input (holding no complete line). :func:`torchrod.io.stream.stream` uses both when its source has them.
-    ``max_line`` bounds a line as in :func:`iter_records` (None: the rod's, :func:`line_limit`)."""
+    ``max_line`` bounds a line as in :func:`iter_records` (None: the rod's, :func:`line_limit`). ``path``: the
+    source when it names a file (None for an open stream); the stream reads a regular file without a reader
+    thread."""
 
     def __init__(
         self,
@@ -1327,6 +1329,7 @@ class ReadingSource:
         if fmt not in FORMATS:
             raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
         self.control = ReadControl()
+        self.path = source if isinstance(source, (str, os.PathLike)) else None
         self._readings = iter_readings(
             source,
             num_gratings,

@@ -3,7 +3,10 @@
 An FBG interrogator sends curvature readings at 100 Hz or more while the robot moves. :func:`stream` takes any
 iterable of readings and yields one result per reading, in input order, as soon as its batch is solved:
 
-- a reader thread pulls the input into a bounded queue, so a slow source never holds a batch back;
+- a reader thread pulls the input into a bounded queue, so a slow source never holds a batch back; a source that
+  never waits (a regular file, a list or tuple of readings) is read instead by the stream's own thread, a batch at
+  a time while the solver threads work: two threads running Python at once cost the interpreter more than
+  reading does (docs/results.md, "What bounds a backlog on two cores");
 - readings are gathered into batches, closed when ``batch_size`` readings (times ``workers``) are pending or when
   the oldest pending reading has waited ``max_latency`` seconds (by default 0: a reading that finds the estimator
   idle is solved at once); readings that queued up while a batch was being solved all join the next one (up to a
@@ -26,7 +29,9 @@ iterable of readings and yields one result per reading, in input order, as soon 
   the stream waits or solves, or thrown into the generator at a ``yield``, first flushes: the reader thread stops
   taking from the source (a :class:`~torchrod.io.readings.ReadingSource`, the CLI's, first gives the readings of
   the lines it has already read), every reading already taken from it (queued, or in the reader's hands) is
-  solved and yielded, then the same exception is raised again. The end of the input flushes the same way.
+  solved and yielded, then the same exception is raised again. A source read by the stream's own thread is
+  read with SIGINT and SIGTERM held (in the main thread), so the signal is raised between readings, never
+  inside the source. The end of the input flushes the same way.
 
 Readings are :class:`~torchrod.io.readings.Reading` objects or dicts with the same keys; results are
 :class:`StreamResult`.
@@ -38,7 +43,9 @@ import collections
 import concurrent.futures
 import dataclasses
 import math
+import os
 import queue
+import signal
 import threading
 import time
 from collections.abc import Iterable, Iterator, Sequence
@@ -250,8 +257,10 @@ class _Stream:
         self.noise = RunningNoise(cast(NoiseLearning, options.learn_noise)) if learn else None  # learn: it is set
         self.max_noise = float(estimate.max_noise)
         # Started by the first ``next``: a stream that is never iterated takes nothing from its source.
-        self.thread = threading.Thread(target=_reader, args=(self, readings), daemon=True)
+        self.thread = threading.Thread(target=_reader, args=(self, readings), daemon=True, name="torchrod-reader")
         self.source: Any = readings  # any iterable; a ReadingSource also has halt() and waiting (drain)
+        # A source that never waits is read here, between batches (module docstring), not by the reader thread.
+        self.direct: Iterator[Any] | None = iter(readings) if _never_waits(readings) else None
 
     def _take(self, entry: Any) -> None:
         if entry is _END or entry is _HALTED:
@@ -267,6 +276,9 @@ class _Stream:
         (everything already queued still joins, up to a full batch), or the source ended. ``wait`` False: take
         only what is queued now."""
         opts = self.options
+        if self.direct is not None:
+            self._read(self.batch_size)
+            return
         while not wait and len(self.pending) < self.batch_size and not self.finished:
             try:
                 self._take(self.q.get_nowait())
@@ -287,6 +299,24 @@ class _Stream:
                 except queue.Empty:
                     continue
             self._take(entry)
+
+    def _read(self, size: float) -> None:
+        """Read the source here (one that never waits) until ``size`` readings are pending or it ends, with SIGINT
+        and SIGTERM held: a signal arrives between two readings, not inside the source, which the flush reads on."""
+        assert self.direct is not None
+        G, fibre, pending = self.G, self.fibre, self.pending
+        with _HeldSignals() as held:
+            while len(pending) < size and not held.caught:
+                try:
+                    item = next(self.direct)
+                except StopIteration:
+                    self.finished = True
+                    break
+                except Exception as exc:  # noqa: BLE001 - raised once the readings before it are answered
+                    self.finished = True
+                    self.error = exc
+                    break
+                pending.append(_Pending(to_reading(item, G, fibre=fibre), time.perf_counter()))
 
     def step(self, flight: collections.deque[_Slot]) -> list[StreamResult] | None:
         """The results of the next batch in input order, or None at the end of the input. Batches are taken from
@@ -353,6 +383,12 @@ class _Stream:
         is left alone once it waits on the source (it then holds nothing)."""
         halt: Any = getattr(self.source, "halt", None)
         cooperative = callable(halt) and hasattr(self.source, "waiting")
+        if self.direct is not None:
+            if cooperative and not self.finished:
+                halt()
+                self._read(math.inf)  # (ends with the lines already read)
+            self.finished = True
+            return
         if cooperative:
             halt()
         else:
@@ -500,6 +536,45 @@ class _Stream:
             self.pool.shutdown(wait=True)
 
 
+def _never_waits(source: Any) -> bool:
+    """Whether taking a reading from ``source`` never waits: a list or tuple, or a
+    :class:`~torchrod.io.readings.ReadingSource` of a regular file."""
+    if isinstance(source, (list, tuple)):
+        return True
+    path = getattr(source, "path", None)
+    return isinstance(path, (str, os.PathLike)) and os.fspath(path) != "-" and os.path.isfile(path)
+
+
+class _HeldSignals:
+    """SIGINT and SIGTERM, where Python handles them, held while the block runs (in the main thread; elsewhere no
+    signal is delivered): the first one that came is handled, as it would have been, when the block ends."""
+
+    _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.caught: tuple[int, Any] | None = None
+        self._saved: dict[int, Any] = {}
+
+    def _hold(self, signum: int, frame: Any) -> None:
+        if self.caught is None:
+            self.caught = (signum, frame)
+
+    def __enter__(self) -> _HeldSignals:
+        if threading.current_thread() is threading.main_thread():
+            for sig in self._SIGNALS:
+                handler = signal.getsignal(sig)
+                if callable(handler):
+                    self._saved[sig] = handler
+                    signal.signal(sig, self._hold)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._saved.items():
+            signal.signal(sig, handler)
+        if self.caught is not None:
+            self._saved[self.caught[0]](*self.caught)
+
+
 def _exception_text(exc: BaseException) -> str:
     """A short message for a failed estimate (the exception's type too when it is not a ValueError/RuntimeError)."""
     text = str(exc)
@@ -553,7 +628,8 @@ def stream(
 
 
 def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
-    state.thread.start()
+    if state.direct is None:
+        state.thread.start()
     flight: collections.deque[_Slot] = collections.deque()  # batches taken from pending, not yet yielded
     try:
         interrupted: KeyboardInterrupt | None = None
