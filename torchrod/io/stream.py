@@ -110,7 +110,8 @@ class StreamOptions:
             solved (0, the default: solve whatever is available at once; a wait lets a fast source fill larger
             batches at the cost of latency).
         read_ahead: bound on readings taken from the source and queued beyond the pending batch; None: twice
-            the batch (with less, a backlog cannot fill whole batches: a batch takes what is queued).
+            the batch (with less, a backlog cannot fill whole batches: a batch takes what is queued). A source
+            that never waits (module docstring) is read a batch at a time, with nothing queued.
         track: start the readings of a batch from the last solved reading's forces too, when the batch holds
             at most ``track_limit`` readings (loads change slowly between frames). Off by default: the search
             finds what these starts find, and they cost time (docs/results.md, "Tracking starts in a stream"). A
