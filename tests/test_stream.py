@@ -173,14 +173,24 @@ def test_a_source_that_never_waits_is_read_without_a_reader_thread_and_answered_
     assert got["file"][5]["error"].startswith("line 6: ")
 
 
-def test_a_source_read_by_the_stream_raises_after_the_readings_before_it(rod, estimator, tmp_path):
-    lines = _one_force_lines(rod, 3)
-    path = tmp_path / "named.jsonl"
-    path.write_text("")
+def test_only_a_regular_file_is_a_reading_source_that_never_waits(rod, tmp_path):
+    from torchrod.io.readings import ReadingSource
 
-    class Source:  # names a regular file, so the stream reads it itself
-        def __init__(self) -> None:
-            self.path = str(path)
+    path, fifo = tmp_path / "in.jsonl", tmp_path / "fifo"
+    path.write_text("")
+    os.mkfifo(fifo)
+    never = {
+        name: ReadingSource(source, rod.num_gratings).never_waits
+        for name, source in {"file": str(path), "fifo": str(fifo), "stdin": "-", "tcp": "tcp://127.0.0.1:9"}.items()
+    }
+    assert never == {"file": True, "fifo": False, "stdin": False, "tcp": False}
+
+
+def test_a_source_read_by_the_stream_raises_after_the_readings_before_it(rod, estimator):
+    lines = _one_force_lines(rod, 3)
+
+    class Source:  # the stream reads it itself
+        never_waits = True
 
         def __iter__(self):
             yield from lines

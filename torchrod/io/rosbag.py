@@ -70,6 +70,9 @@ class BagSource:
     Raises ``ValueError`` (at construction) for a path that is not a bag, a missing topic (the message lists the
     bag's topics) or a topic of another message type."""
 
+    never_waits = True
+    """A bag is read from disk: a stream reads it on its own thread (:func:`torchrod.io.stream.stream`)."""
+
     def __init__(self, path: str | os.PathLike, topic: str, num_gratings: int) -> None:
         require_rosbags()
         from rosbags.highlevel import AnyReader

@@ -4,9 +4,10 @@ An FBG interrogator sends curvature readings at 100 Hz or more while the robot m
 iterable of readings and yields one result per reading, in input order, as soon as its batch is solved:
 
 - a reader thread pulls the input into a bounded queue, so a slow source never holds a batch back; a source that
-  never waits (a regular file, a list or tuple of readings) is read instead by the stream's own thread, a batch at
-  a time while the solver threads work: two threads running Python at once cost the interpreter more than
-  reading does (docs/results.md, "What bounds a backlog on two cores");
+  never waits (a list or tuple of readings, or a source whose ``never_waits`` is true: a
+  :class:`~torchrod.io.readings.ReadingSource` of a regular file, a ROS bag) is read instead by the stream's own
+  thread, a batch at a time while the solver threads work: two threads running Python at once cost the
+  interpreter more than the reading does (docs/results.md, "What bounds a backlog on two cores");
 - readings are gathered into batches, closed when ``batch_size`` readings (times ``workers``) are pending or when
   the oldest pending reading has waited ``max_latency`` seconds (by default 0: a reading that finds the estimator
   idle is solved at once); readings that queued up while a batch was being solved all join the next one (up to a
@@ -43,7 +44,6 @@ import collections
 import concurrent.futures
 import dataclasses
 import math
-import os
 import queue
 import signal
 import threading
@@ -538,12 +538,9 @@ class _Stream:
 
 
 def _never_waits(source: Any) -> bool:
-    """Whether taking a reading from ``source`` never waits: a list or tuple, or a
-    :class:`~torchrod.io.readings.ReadingSource` of a regular file."""
-    if isinstance(source, (list, tuple)):
-        return True
-    path = getattr(source, "path", None)
-    return isinstance(path, (str, os.PathLike)) and os.fspath(path) != "-" and os.path.isfile(path)
+    """Whether taking a reading from ``source`` never waits: a list or tuple, or a source that says so by a true
+    ``never_waits`` (a :class:`~torchrod.io.readings.ReadingSource` of a regular file, a ROS bag)."""
+    return isinstance(source, (list, tuple)) or getattr(source, "never_waits", False) is True
 
 
 class _HeldSignals:
