@@ -173,6 +173,14 @@ def test_a_source_that_never_waits_is_read_without_a_reader_thread_and_answered_
     assert got["file"][5]["error"].startswith("line 6: ")
 
 
+def test_what_is_left_when_a_source_that_never_waits_ends_is_shared_among_the_idle_solver_threads(rod, estimator):
+    lines = _one_force_lines(rod, 13)
+    batches = [r.batch for r in stream(estimator, lines, StreamOptions(batch_size=64, workers=2))]
+    assert batches == [7] * 7 + [6] * 6
+    batches = [r.batch for r in stream(estimator, lines, StreamOptions(batch_size=4, workers=2))]
+    assert batches == [4] * 12 + [1]  # (full batches while the input lasts)
+
+
 def test_only_a_regular_file_is_a_reading_source_that_never_waits(rod, tmp_path):
     from torchrod.io.readings import ReadingSource
 

@@ -345,7 +345,12 @@ class _Stream:
                 self.hungry = False
                 self.wake.wait(_POLL)
                 continue
-            batch = self.pending[: self.batch_limit()]
+            limit = self.batch_limit()
+            if self.direct is not None and self.finished and self.pool is not None:
+                # The input is all read: what is left is shared among the idle solver threads (a short file is not
+                # one batch on one thread while the others wait).
+                limit = min(limit, -(-len(self.pending) // max(1, self.workers - len(flight))))
+            batch = self.pending[:limit]
             # A lone reading that finds every solver thread idle is solved here: handing it to a thread and back
             # would cost two thread wake-ups, a large share of a paced reading's latency. Readings that come
             # meanwhile wait in the queue and go out together once it is answered (after it, in any case).
