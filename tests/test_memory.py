@@ -172,7 +172,7 @@ def test_a_stream_killed_while_it_solves_leaves_no_process_and_no_file(tmp_path)
             time.sleep(0.05)
         assert proc.poll() is None, "the stream ended before it was killed"
         assert out.stat().st_size > 0, "no answer within 120 s"
-        assert len(os.listdir(f"/proc/{proc.pid}/task")) >= 3  # the main thread, the reader, the solver threads
+        assert len(os.listdir(f"/proc/{proc.pid}/task")) >= 3  # the main thread and the solver threads
         assert _session(proc.pid) == [proc.pid]  # threads of one process: no worker process
         os.kill(proc.pid, signal.SIGKILL)
         assert proc.wait(timeout=10) == -signal.SIGKILL
@@ -187,4 +187,6 @@ def test_a_stream_killed_while_it_solves_leaves_no_process_and_no_file(tmp_path)
     assert 0 < len(answered) < 6400 and all("status" in json.loads(x) for x in answered[:-1])  # (the last may be cut)
     assert os.listdir(temp) == []
     assert _files(cache) == before_cache
-    assert {name for name in set(os.listdir("/tmp")) - before_tmp if name.startswith("torchrod")} == set()
+    # (torchrod-startup-*: `torchrod bench startup`'s own folder, made by a test that may run beside this one)
+    made = {name for name in set(os.listdir("/tmp")) - before_tmp if name.startswith("torchrod")}
+    assert {name for name in made if not name.startswith("torchrod-startup-")} == set()

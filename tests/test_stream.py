@@ -388,7 +388,7 @@ def test_read_ahead_is_bounded(rod, estimator, workers):
 
 def test_interrupt_at_a_yield_flushes_everything_taken(rod, estimator):
     lines = _one_force_lines(rod, 10)
-    results = stream(estimator, lines, StreamOptions(batch_size=4, max_latency=0.0, read_ahead=16))
+    results = stream(estimator, iter(lines), StreamOptions(batch_size=4, max_latency=0.0, read_ahead=16))
     got = [next(results).id]
     time.sleep(0.2)  # the reader has queued every line by now
     got.append(results.throw(KeyboardInterrupt()).id)
@@ -396,6 +396,19 @@ def test_interrupt_at_a_yield_flushes_everything_taken(rod, estimator):
         for r in results:
             got.append(r.id)
     assert got == [f"r{k}" for k in range(10)]
+
+
+def test_interrupt_at_a_yield_of_a_list_flushes_the_readings_read_and_no_more(rod, estimator):
+    """A list is read by the stream's own thread a batch at a time: the flush answers the batches read so far (at
+    least the one answered before the interrupt), in order, and takes nothing more from the list."""
+    lines = _one_force_lines(rod, 40)
+    results = stream(estimator, lines, StreamOptions(batch_size=4, max_latency=0.0, workers=1))
+    got = [next(results).id]
+    got.append(results.throw(KeyboardInterrupt()).id)
+    with pytest.raises(KeyboardInterrupt):
+        got.extend(r.id for r in results)
+    assert got == [f"r{k}" for k in range(len(got))]
+    assert 4 <= len(got) < 40 and len(got) % 4 == 0
 
 
 def test_interrupt_answers_the_reading_the_reader_holds(rod, estimator):
