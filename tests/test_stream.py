@@ -451,9 +451,9 @@ def test_an_interrupt_is_raised_again_as_it_came(rod, estimator):
     """A subclass of KeyboardInterrupt (the CLI's SIGTERM) comes out of the flush as itself."""
     from torchrod.io.jsonl import Terminated
 
-    results = stream(estimator, _one_force_lines(rod, 4), StreamOptions(batch_size=2, max_latency=0.0))
+    results = stream(estimator, iter(_one_force_lines(rod, 4)), StreamOptions(batch_size=2, max_latency=0.0))
     got = [next(results).id]
-    time.sleep(0.2)  # the reader has queued every line by now (else the flush answers only those it read)
+    time.sleep(0.2)  # the reader thread has queued every line by now (else the flush answers only those it read)
     got.append(results.throw(Terminated()).id)
     with pytest.raises(Terminated):
         got.extend(r.id for r in results)
