@@ -194,6 +194,22 @@ def test_only_a_regular_file_is_a_reading_source_that_never_waits(rod, tmp_path)
     assert never == {"file": True, "fifo": False, "stdin": False, "tcp": False}
 
 
+def test_a_file_read_by_the_stream_is_closed_with_it(rod, estimator, tmp_path):
+    from torchrod.io.readings import ReadingSource
+
+    path = tmp_path / "in.jsonl"
+    path.write_text("".join(json.dumps(line) + "\n" for line in _one_force_lines(rod, 40)))
+
+    def open_here() -> int:
+        return sum(os.path.realpath(f"/proc/self/fd/{fd}") == str(path) for fd in os.listdir("/proc/self/fd"))
+
+    results = stream(estimator, ReadingSource(str(path), rod.num_gratings), StreamOptions(batch_size=4))
+    next(results)
+    assert open_here() == 1
+    results.close()
+    assert open_here() == 0
+
+
 def test_a_source_read_by_the_stream_raises_after_the_readings_before_it(rod, estimator):
     lines = _one_force_lines(rod, 3)
 

@@ -540,6 +540,9 @@ class _Stream:
             self.thread.join(timeout=2 * _POLL)
         if self.pool is not None:
             self.pool.shutdown(wait=True)
+        close = getattr(self.direct, "close", None)
+        if callable(close):  # (a file read here is closed with the stream, not when its reader is collected)
+            close()
 
 
 def _never_waits(source: Any) -> bool:
