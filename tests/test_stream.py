@@ -175,7 +175,8 @@ def test_a_source_that_never_waits_is_read_without_a_reader_thread_and_answered_
 
 def test_what_is_left_when_a_source_that_never_waits_ends_is_shared_among_the_idle_solver_threads(rod, estimator):
     lines = _one_force_lines(rod, 13)
-    batches = [r.batch for r in stream(estimator, lines, StreamOptions(batch_size=64, workers=2))]
+    slow = _Slow(estimator, 0.3)  # (the first batch is still in flight when the second is formed)
+    batches = [r.batch for r in stream(slow, lines, StreamOptions(batch_size=64, workers=2))]
     assert batches == [7] * 7 + [6] * 6
     batches = [r.batch for r in stream(estimator, lines, StreamOptions(batch_size=4, workers=2))]
     assert batches == [4] * 12 + [1]  # (full batches while the input lasts)
@@ -201,7 +202,8 @@ def test_a_file_read_by_the_stream_is_closed_with_it(rod, estimator, tmp_path):
     path.write_text("".join(json.dumps(line) + "\n" for line in _one_force_lines(rod, 40)))
 
     def open_here() -> int:
-        return sum(os.path.realpath(f"/proc/self/fd/{fd}") == str(path) for fd in os.listdir("/proc/self/fd"))
+        real = os.path.realpath(path)
+        return sum(os.path.realpath(f"/proc/self/fd/{fd}") == real for fd in os.listdir("/proc/self/fd"))
 
     results = stream(estimator, ReadingSource(str(path), rod.num_gratings), StreamOptions(batch_size=4))
     next(results)
