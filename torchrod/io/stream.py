@@ -386,7 +386,8 @@ class _Stream:
         its hands) and no more. A source with ``halt()`` and ``waiting`` (:class:`~torchrod.io.readings.
         ReadingSource`) is asked to end after the lines it already read, and the reader runs until it ends or
         waits on its input; any other source is left at once: the reader stops after the reading in its hands and
-        is left alone once it waits on the source (it then holds nothing)."""
+        is left alone once it waits on the source (it then holds nothing). A source read on this thread is read
+        here to the end of the lines it already read (a ReadingSource), or left at once."""
         halt: Any = getattr(self.source, "halt", None)
         cooperative = callable(halt) and hasattr(self.source, "waiting")
         if self.direct is not None:
