@@ -998,6 +998,7 @@ def test_bench_stream_runs_and_reports_every_way(capsys):
     # the process given the whole trajectory in a file answers every reading, as the stream in process does
     note = next(line for line in out.splitlines() if line.startswith("# CLI, backlog from a file: 40 readings in"))
     assert sum(int(n) for n in re.findall(r"[a-z_]+ (\d+)", note.split("statuses: ")[1])) == 40
+    assert re.search(r"\(\d+ % of the readings/s of 'static, batched \(B=\d+\)' in this run\)", note), note
     # the stream over the same readings as the static batches agrees with them on the count
     static, backlog = (float(rows[k].split("|")[4].split()[0].rstrip("%")) for k in (0, 2))
     assert abs(static - backlog) <= 10.0
