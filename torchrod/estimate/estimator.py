@@ -281,7 +281,7 @@ class Estimator:
     def _target(opts: EstimatorOptions, device: torch.device) -> str:
         if opts.target == "auto":
             return "cuda" if device.type == "cuda" else "cpu"
-        if (opts.target == "cuda") != (device.type == "cuda") and not _simulated_cuda():
+        if (opts.target == "cuda") != (device.type == "cuda") and not _kernels.simulated():
             raise OptionsError(f"target {opts.target!r} does not run readings on {device}: move them, or target 'auto'")
         return opts.target
 
@@ -693,17 +693,12 @@ def _outputs(B: int, W: int, device: torch.device) -> Any:
 _TORCH = {np.dtype(np.float64): torch.float64, np.dtype(np.int64): torch.int64, np.dtype(np.bool_): torch.bool}
 
 
-def _simulated_cuda() -> bool:
-    """Whether numba-cuda's simulator stands in for a GPU: the CUDA target then takes readings on the CPU."""
-    return _kernels.simulated()
-
-
 def _batch(u, w, noise2, gs, gf, guse, out, target: str) -> Any:
     """The kernels' batch: NumPy views of CPU tensors, or CUDA arrays sharing the tensors' memory."""
     # A CPU batch: the readings (u, w, noise2 made together), the starts (gs, gf, guse) and the outputs NumPy arrays.
     if isinstance(u, np.ndarray) and isinstance(gs, np.ndarray) and isinstance(out.count, np.ndarray):
         return Batch(u, w, noise2, gs, gf, guse, out)
-    if target == "cuda" and not _simulated_cuda():
+    if target == "cuda" and not _kernels.simulated():
         from numba import cuda
 
         def view(x: Any) -> Any:

@@ -1309,8 +1309,9 @@ class ReadingSource:
     flush after an interrupt can end at the lines already read: :meth:`halt` makes it yield the readings of the
     complete lines it holds in memory and then end instead of reading more; :attr:`waiting` is true while it waits
     on the input (holding no complete line). :func:`torchrod.io.stream.stream` uses both when its source has them.
-    ``max_line`` bounds a line as in :func:`iter_records` (None: the rod's, :func:`line_limit`).
-    :attr:`never_waits` is true for a regular file (the stream then reads it without a reader thread)."""
+    ``max_line`` bounds a line as in :func:`iter_records` (None: the rod's, :func:`line_limit`). ``never_waits``
+    is true for a regular file, not a pipe, a device, standard input or a TCP connection (the stream then reads it
+    without a reader thread)."""
 
     def __init__(
         self,
@@ -1329,7 +1330,9 @@ class ReadingSource:
         if fmt not in FORMATS:
             raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
         self.control = ReadControl()
-        self._regular = isinstance(source, (str, os.PathLike)) and os.fspath(source) != "-" and os.path.isfile(source)
+        self.never_waits = (
+            isinstance(source, (str, os.PathLike)) and os.fspath(source) != "-" and os.path.isfile(source)
+        )
         self._readings = iter_readings(
             source,
             num_gratings,
@@ -1351,12 +1354,6 @@ class ReadingSource:
     @property
     def waiting(self) -> bool:
         return self.control.waiting.is_set()
-
-    @property
-    def never_waits(self) -> bool:
-        """Whether a reading is never waited for: the source is a regular file (not a pipe, a device, standard
-        input or a TCP connection)."""
-        return self._regular
 
 
 def _chain(head: list[tuple[int, str]], rest: Iterator[tuple[int, str]]) -> Iterator[tuple[int, str]]:

@@ -314,7 +314,6 @@ def _backlog_row(base: list[str], lines: list[str], rows: list[_Row], truth: lis
     row.wall, row.cpu = float(rate.group(2)), math.nan
     rows.append(row)
     statuses = ", ".join(f"{k} {v}" for k, v in row.stats.statuses.items())
-    seconds = float(rate.group(2))
     # Beside the estimate alone in the same run: on a machine whose speed changes from minute to minute, the share
     # says more than either rate.
     alone = next((r for r in rows if r.name.startswith("static, batched")), None)
@@ -322,7 +321,7 @@ def _backlog_row(base: list[str], lines: list[str], rows: list[_Row], truth: lis
     if alone is not None and alone.stats.readings and alone.wall > 0 and row.wall > 0:
         ratio = (row.stats.readings / row.wall) / (alone.stats.readings / alone.wall)
         share = f" ({100 * ratio:.0f} % of the readings/s of '{alone.name}' in this run)"
-    return f"# {row.name}: {rate.group(1)} readings in {seconds:.2f} s by its own clock{share}; statuses: {statuses}"
+    return f"# {row.name}: {rate.group(1)} readings in {row.wall:.2f} s by its own clock{share}; statuses: {statuses}"
 
 
 def tenth_medians(values: Sequence[float]) -> list[float]:
