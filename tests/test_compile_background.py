@@ -233,3 +233,39 @@ def test_a_kernel_function_is_compiled_once_whatever_constants_its_callers_pass(
     assert through_general(1.5) == through_plain(1.5) == 4.5
     assert len(plain.signatures) == 2  # the behaviour worked around: were it gone, so would be the need
     assert [tuple(map(str, sig)) for sig in general.signatures] == [("float64", "bool")]
+
+
+def test_a_compile_optimises_the_whole_module_at_the_entry_alone():
+    """Inside ``_optimised_at_entry``, Numba optimises the linked module of the entry only (a callee's library is
+    linked into its caller and optimised there), with the same results; afterwards Numba is as it was."""
+    import numba
+    from numba.core import codegen
+
+    original = codegen.CPUCodeLibrary._optimize_final_module
+    optimised: list[str] = []
+
+    def spy(lib):
+        optimised.append(lib.name)
+        original(lib)
+
+    codegen.CPUCodeLibrary._optimize_final_module = spy
+    try:
+
+        @numba.njit(no_cpython_wrapper=True)
+        def half_square(x):
+            return 0.5 * x * x
+
+        def whole_entry(x, n):
+            t = 0.0
+            for k in range(n):
+                t += half_square(x + k)
+            return t
+
+        entry = numba.njit(whole_entry)
+        with targets._optimised_at_entry(whole_entry.__qualname__):
+            got = entry(0.25, 7)
+        assert codegen.CPUCodeLibrary._optimize_final_module is spy  # restored
+    finally:
+        codegen.CPUCodeLibrary._optimize_final_module = original
+    assert got == sum(0.5 * (0.25 + k) ** 2 for k in range(7))
+    assert optimised == [whole_entry.__qualname__]  # half_square's library was compiled, and not optimised as a whole
