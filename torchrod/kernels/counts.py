@@ -49,7 +49,7 @@ INLINE = (
     "plausible_limit",
     "ceiling",
 )
-"""Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
+"""Small functions the CUDA target inlines where they are called (:func:`.targets.cuda_namespace`)."""
 
 
 def dof_index(k, d):

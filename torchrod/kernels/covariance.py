@@ -23,7 +23,7 @@ EPS = 2.220446049250313e-16
 """float64's machine epsilon: eigenvalues below EPS x the largest count as zero."""
 
 INLINE = ("near_kink",)
-"""Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
+"""Small functions the CUDA target inlines where they are called (:func:`.targets.cuda_namespace`)."""
 
 
 def covariance(k, J, P, active, sigma, cov):

@@ -65,7 +65,7 @@ INLINE = (
     "sided",
     "damped",
 )
-"""Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
+"""Small functions the CUDA target inlines where they are called (:func:`.targets.cuda_namespace`)."""
 
 
 def late(k):

@@ -24,7 +24,7 @@ INLINE = (
     "dot",
     "spd_solve",
 )
-"""Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
+"""Small functions the CUDA target inlines where they are called (:func:`.targets.cuda_namespace`)."""
 
 
 def sumsq(x, n):

@@ -28,7 +28,7 @@ RMS_FLOOR = 1e-3
 
 
 INLINE = ("wide",)
-"""Small functions a compiled target inlines where they are called."""
+"""Small functions the CUDA target inlines where they are called (:func:`.targets.cuda_namespace`)."""
 
 
 def wide(x):

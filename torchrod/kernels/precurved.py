@@ -33,7 +33,7 @@ INLINE = (
     "intrinsic_x",
     "intrinsic_y",
 )
-"""Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
+"""Small functions the CUDA target inlines where they are called (:func:`.targets.cuda_namespace`)."""
 
 
 def intrinsic_x(segments, nseg, length, s):

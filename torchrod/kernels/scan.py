@@ -19,7 +19,7 @@ from .march import slope_jump
 from .views import lm_of, march_of, model_of, reading_of, rows_of, scan_of
 
 INLINE = ("interval_of", "response_rows")
-"""Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
+"""Small functions the CUDA target inlines where they are called (:func:`.targets.cuda_namespace`)."""
 
 
 def interval_of(k, s, j_out, s_out, idx):

@@ -98,7 +98,7 @@ INLINE = (
     "blank_row",
     "load_row",
 )
-"""Small functions a compiled target inlines where they are called (fewer separately compiled functions)."""
+"""Small functions the CUDA target inlines where they are called (:func:`.targets.cuda_namespace`)."""
 
 
 def load_row(k, i, h, s, f, interval):

@@ -264,7 +264,8 @@ class Compiled:
                         f"{where})"
                     )
                 began = time.perf_counter()
-                at_entry = _optimised_at_entry(self.entry.py_func.__qualname__) if self.target == "cpu" else None
+                source = getattr(self.entry, "py_func", self.entry)  # (a Numba dispatcher's Python function)
+                at_entry = _optimised_at_entry(source.__qualname__) if self.target == "cpu" else None
                 with at_entry or contextlib.nullcontext():
                     self._warm(self.entry)
                 took = time.perf_counter() - began
@@ -459,8 +460,10 @@ def _cpu_namespace() -> dict[str, Any]:
     def decorate(fn: Any) -> Any:
         return _general(numba.njit(**inner)(fn), nb_types.unliteral)
 
-    return namespace(decorate, numba.njit(**inner), numba.njit(inline="always", **inner), "cpu_kernels",
-                     _cpu_view())  # fmt: skip
+    # The functions a module lists in its INLINE are compiled as the others are: LLVM inlines what it sees fit when it
+    # optimises the entry's module (_optimised_at_entry). Numba's own inliner would type such a function again at each
+    # call site, a longer compile for the same machine code.
+    return namespace(decorate, numba.njit(**inner), decorate, "cpu_kernels", _cpu_view())
 
 
 def _cpu_entry(name: str, warm: Any, what: str) -> Compiled:
