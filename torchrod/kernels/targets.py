@@ -334,8 +334,8 @@ def _optimised_at_entry(entry: str):
     links it in again and optimises its own module anew: the code of a kernel deep in the search is optimised once
     per function above it, most of a first compile's time in LLVM. Here each function's own code is still optimised
     when it is made (Numba's function passes), and the whole search once, in the entry's module, which inlines and
-    optimises across every function as before: the machine code runs as fast, and its arithmetic is the same (no
-    fast-math: LLVM keeps every IEEE operation), so the answers are the same, bit for bit. The functions compiled
+    optimises across every function as before: the machine code runs at least as fast, and its arithmetic is the same
+    (no fast-math: LLVM keeps every IEEE operation), so the answers are the same, bit for bit. The functions compiled
     here are the kernels' callees, called only from compiled code, which links them into a caller's module.
 
     Holds Numba's compiler lock, so that no other thread's compile runs with the change. Without the Numba internal
@@ -462,7 +462,7 @@ def _cpu_namespace() -> dict[str, Any]:
 
     # The functions a module lists in its INLINE are compiled as the others are: LLVM inlines what it sees fit when it
     # optimises the entry's module (_optimised_at_entry). Numba's own inliner would type such a function again at each
-    # call site, a longer compile for the same machine code.
+    # call site: a longer compile, for code no faster (the same answers either way).
     return namespace(decorate, numba.njit(**inner), decorate, "cpu_kernels", _cpu_view())
 
 
