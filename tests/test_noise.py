@@ -160,3 +160,58 @@ def test_fits_cut_by_the_time_budget_teach_nothing():
     out = list(stream(est, readings, StreamOptions(batch_size=8), dataclasses.replace(est.options, time_budget=0.0)))
     assert [r.record["status"] for r in out] == ["timeout"] * 60
     assert not any("noise" in r.record for r in out)
+
+
+class _Jittery:
+    """An estimator that waits a random time (0 to 20 ms, seeded) before each batch: the solver threads finish in
+    another order than in a plain run."""
+
+    def __init__(self, inner: tr.Estimator, seed: int) -> None:
+        self.inner, self.rod, self.options = inner, inner.rod, inner.options
+        self.rng = np.random.default_rng(seed)
+
+    def estimate(self, *args, **kwargs):
+        import time
+
+        time.sleep(0.02 * float(self.rng.random()))
+        return self.inner.estimate(*args, **kwargs)
+
+
+def _learning_lines(n: int) -> list[dict]:
+    """n readings of one force (sigma 0.1), ids 0..n-1."""
+    rod = tr.presets.nitinol290()
+    g = torch.Generator().manual_seed(5)
+    s = 0.08 + 0.2 * torch.rand(n, 1, generator=g, dtype=torch.float64)
+    f = 0.3 + 0.5 * torch.rand(n, 1, 2, generator=g, dtype=torch.float64)
+    u = tr.simulate(rod, tr.PointForces(s, f)).grating_curvature
+    u = u + 0.1 * torch.randn(u.shape, generator=g, dtype=u.dtype)
+    return [{"id": k, "curvature": u[k].tolist()} for k in range(n)]
+
+
+def test_a_backlogs_learned_noise_and_answers_do_not_depend_on_the_solver_threads_timing(monkeypatch):
+    """A backlog read at once, the noise learned, two solver threads: the learning's rounds are shared among the
+    threads (each round's parts with one noise, the next round after all of them), and every later batch takes the
+    noise learned once all but the last three batches handed out were answered. So the noise of each reading, and
+    its answer, are the same however long each batch takes."""
+    import torchrod.io.stream as streaming
+
+    monkeypatch.setattr(streaming, "_LEARNING_PART", 4)  # (rounds of 8 readings or more split in two)
+    rod = tr.presets.nitinol290()
+    lines = _learning_lines(424)
+    options = StreamOptions(batch_size=64, track=False, workers=2, learn_noise=NoiseLearning(after=8, growth=4))
+    estimator = tr.Estimator(rod, tr.EstimatorOptions(max_forces=2))
+    plain = list(stream(estimator, lines, options))
+    # rounds of 8 (two parts of 4), then 32 (growth x 8 fits; two parts of 16), then full batches
+    assert [r.batch for r in plain] == [4] * 8 + [16] * 32 + [64] * 384
+    noise = [r.record.get("noise") for r in plain]
+    assert noise[:8] == [None] * 8 and len(set(noise[8:40])) == 1
+    # batches 4-7 take the noise after the learning (4 batches answered); batches 8 and 9 that after 5 and 6
+    assert len(set(noise[40:296])) == 1 and len({noise[40], noise[296], noise[360]}) == 3
+    assert len(set(noise[296:360])) == 1 and len(set(noise[360:])) == 1
+
+    def answers(results):
+        return [{k: v for k, v in r.record.items() if k != "latency_ms"} for r in results]
+
+    for seed in (1, 2):
+        jittery = list(stream(_Jittery(estimator, seed), lines, options))
+        assert answers(jittery) == answers(plain)

@@ -14,6 +14,11 @@ iterable of readings and yields one result per reading, in input order, as soon 
   full batch), so under load batches form by themselves and grow instead of falling behind; with ``workers`` > 1
   each batch goes to an idle solver thread while the next readings are taken, so consecutive batches are solved
   at once on different cores (the kernels run without the interpreter lock) and their answers still come in order;
+  once a file is read to its end, its last batches' readings are shared among every core;
+- a stream that learns its noise (``learn_noise``) sends its first batches in rounds that grow with the fits
+  learned from, each round shared among the solver threads and solved with the noise from every round before;
+  after that a batch takes the noise learned once all but the last ``2 * workers - 1`` batches handed out were
+  answered, so a file's answers are the same whatever the threads' timing;
 - each reading is estimated as :meth:`~torchrod.Estimator.estimate` would alone (the warm-start network's
   guesses when the estimator has one, the scan's starts, the count chosen per reading), so the stream's answers
   are the static estimator's; with ``track``, readings in batches of at most ``track_limit`` also start from the
@@ -158,6 +163,7 @@ class StreamOptions:
 _END = object()
 _HALTED = object()  # the reader stopped taking from the source, as asked (a flush)
 _POLL = 0.1  # [s] longest uninterrupted wait (keeps the reader thread responsive to stop)
+_LEARNING_PART = 64  # fewest readings of a part when a batch of the noise's learning is shared among threads
 
 
 def _reader(state: _Stream, source: Iterable[Any]) -> None:
@@ -231,7 +237,8 @@ class _Stream:
 
         self.estimator, self.options = estimator, options
         self.estimate_options = estimate  # the EstimatorOptions of every batch
-        self._options_by_noise: dict[float | None, Any] = {}  # those options per learned noise (None: none learned)
+        # those options per learned noise (None: none learned) and CPU threads
+        self._options: dict[tuple[float | None, int], Any] = {}
         self.workers = cpu_threads(options.workers)
         # Solver threads: each batch whole in one (the kernels release the interpreter lock), unless tracking.
         self.pool = None
@@ -256,6 +263,13 @@ class _Stream:
         self.error: BaseException | None = None
         learn = options.learn_noise is not None and estimate.noise is None and estimate.selection == "noise"
         self.noise = RunningNoise(cast(NoiseLearning, options.learn_noise)) if learn else None  # learn: it is set
+        # Batches handed out and answered, in order; the learned noise after each count of answered batches (those
+        # a batch may take its noise from); the count answered when the learning's last round was (None: before).
+        self.sent = self.received = 0
+        self._noise_after: dict[int, float | None] = {0: None}
+        self._learned_at: int | None = None
+        # At most this many batches are in flight when one is handed out (and none when one is solved here).
+        self._lag = 2 * self.workers - 1 if self.pool is not None else 0
         self.max_noise = float(estimate.max_noise)
         # Started by the first ``next``: a stream that is never iterated takes nothing from its source.
         self.thread = threading.Thread(target=_reader, args=(self, readings), daemon=True, name="torchrod-reader")
@@ -328,10 +342,10 @@ class _Stream:
         while True:
             self.wake.clear()  # (before the checks: what happens after them sets it again)
             self.hungry = True  # (before the queue is looked at: a reading put after that sets wake)
-            if flight and flight[0].done():
-                results = self.receive(flight[0])
-                flight.popleft()
-                return results
+            if flight and flight[0].done() and not self._may_send(flight):
+                # (readings waiting for a free solver thread go out first: at the end of a backlog the threads
+                # would otherwise stand idle while this one writes a batch's answers)
+                return self.take(flight)
             if not self.finished:
                 self.fill(wait=not flight)
             if not self.pending:
@@ -339,14 +353,28 @@ class _Stream:
                     return None  # fill waits for a reading unless something is in flight: the input ended
                 self.wake.wait(_POLL)  # for a reading, or the first batch in flight
                 continue
-            if self.pool is not None and (len(flight) >= 2 * self.workers or (flight and self.learning)):
+            if self.pool is not None and not self._may_send(flight):
                 # every thread has its batches, or the next batch's size and noise wait on the fits in flight: wait
                 # for a batch, not woken by each reading that arrives meanwhile (a backlog's thousands)
                 self.hungry = False
                 self.wake.wait(_POLL)
                 continue
             limit = self.batch_limit()
-            if self.direct is not None and self.finished and self.pool is not None:
+            if self.noise is not None and self._learned_at is None and limit >= self.batch_size:
+                self._learned_at = self.received  # (every batch before is answered: learning waits for them)
+            parts = min(self.workers, min(limit, len(self.pending)) // _LEARNING_PART)
+            if self.pool is not None and self.learning and parts > 1:
+                # Learning the noise: this round's readings go out at once, shared among the solver threads (each
+                # part with the same noise, so the answers are those of one batch), and the next round waits for
+                # them all.
+                batch = self.pending[:limit]
+                size = -(-len(batch) // parts)
+                for k in range(0, len(batch), size):
+                    flight.append(self.send(batch[k : k + size]))
+                del self.pending[: len(batch)]
+                continue
+            last = self.direct is not None and self.finished and self.pool is not None
+            if last:
                 # The input is all read: what is left is shared among the idle solver threads (a short file is not
                 # one batch on one thread while the others wait).
                 limit = min(limit, -(-len(self.pending) // max(1, self.workers - len(flight))))
@@ -355,9 +383,24 @@ class _Stream:
             # would cost two thread wake-ups, a large share of a paced reading's latency. Readings that come
             # meanwhile wait in the queue and go out together once it is answered (after it, in any case).
             alone = not flight and len(batch) == 1 and self.q.empty()
-            slot = self.send(batch) if self.pool is not None and not alone else _Slot(batch, results=self.solve(batch))
+            if self.pool is not None and not alone:
+                # The input's last batches spread their readings over every core: a thread that finishes first
+                # takes readings of the batch still running, rather than waiting idle at the end.
+                slot = self.send(batch, self.workers if last else 1)
+            else:
+                slot = _Slot(batch, results=self.solve(batch))
             del self.pending[: len(batch)]
             flight.append(slot)
+
+    def _may_send(self, flight: collections.deque[_Slot]) -> bool:
+        """Whether pending readings can go to a solver thread now: one is pending, fewer than two batches per thread
+        are in flight, and the next batch's size and noise do not wait on the fits in flight."""
+        return (
+            self.pool is not None
+            and bool(self.pending)
+            and len(flight) < 2 * self.workers
+            and not (flight and self.learning)
+        )
 
     def batch_limit(self) -> int:
         """The most pending readings the next batch takes: ``batch_size``, but while the stream learns its noise no
@@ -377,9 +420,31 @@ class _Stream:
 
     @property
     def learning(self) -> bool:
-        """Whether the stream is still learning its noise: the next batch is held to fewer than ``batch_size``
-        readings by the fits learned from so far (:meth:`batch_limit`), so it waits for the batches in flight."""
-        return self.noise is not None and self.batch_limit() < self.batch_size
+        """Whether the stream is still learning its noise: its batches go out in rounds, each held to fewer than
+        ``batch_size`` readings by the fits learned from so far (:meth:`batch_limit`), and a round waits for the
+        batches of the one before."""
+        return self.noise is not None and self._learned_at is None
+
+    def next_noise(self) -> float | None:
+        """The learned noise the next batch handed out is solved with (None: none), the same whatever the solver
+        threads' timing, so that a file's answers are the same in every run: while learning, the noise from every
+        batch before (a round waits for them); then the noise once all but the last ``2 * workers - 1`` batches
+        handed out were answered (at most that many are in flight when one is handed out), but never older than
+        the learning's end."""
+        if self._learned_at is None:
+            return self.learned_noise
+        return self._noise_after[max(self.sent - self._lag, self._learned_at)]
+
+    def take(self, flight: collections.deque[_Slot]) -> list[StreamResult]:
+        """The results of the oldest batch in flight (waiting for them), which leaves ``flight``; the learned noise
+        after it is kept for :meth:`next_noise`."""
+        results = self.receive(flight[0])
+        flight.popleft()
+        self.received += 1
+        self._noise_after[self.received] = self.learned_noise if self.noise is not None else None
+        if self.received - self._lag - 1 != self._learned_at:  # (no longer needed; the learning's end is kept)
+            self._noise_after.pop(self.received - self._lag - 1, None)
+        return results
 
     def drain(self) -> None:
         """The flush after an interrupt: take everything the reader already took (the queue, and the reading in
@@ -415,17 +480,22 @@ class _Stream:
         """Estimate the usable readings of ``batch`` together, here; one result per reading, in order."""
         good = [p for p in batch if p.ok]
         start = time.perf_counter()
-        answers = self._answers(good, *self._estimate(good, self.learned_noise)) if good else []
+        noise = self.next_noise()
+        self.sent += 1
+        answers = self._answers(good, *self._estimate(good, noise)) if good else []
         return self._results(batch, answers, start)
 
-    def send(self, batch: list[_Pending]) -> _Slot:
-        """Hand ``batch`` to a solver thread; :meth:`receive` gives its results."""
+    def send(self, batch: list[_Pending], threads: int = 1) -> _Slot:
+        """Hand ``batch`` to a solver thread, its kernels on ``threads`` CPU threads; :meth:`receive` gives its
+        results."""
         good = [p for p in batch if p.ok]
         start = time.perf_counter()
+        noise = self.next_noise()
+        self.sent += 1
         if not good:
             return _Slot(batch, results=self._results(batch, [], start))
         assert self.pool is not None  # step() sends only with a pool
-        future = self.pool.submit(self._estimate, good, self.learned_noise)
+        future = self.pool.submit(self._estimate, good, noise, threads)
         future.add_done_callback(lambda _: self.wake.set())
         return _Slot(batch, future=future, start=start)
 
@@ -462,28 +532,32 @@ class _Stream:
             out.append(StreamResult(r.id, r.t, rec, latency, None, len(good), elapsed, result, index, line=r.line))
         return out
 
-    def _estimate(self, good: Sequence[_Pending], learned: float | None) -> tuple[Any, torch.Tensor, float | None, Any]:
-        """The batched call on ``good`` with the ``learned`` noise (None: none): (its result, the mask, that noise,
-        None), or, should it fail, (None, the mask, the noise, what came instead: the error message of a single
-        reading, else each reading's own call, as this returns it)."""
+    def _estimate(
+        self, good: Sequence[_Pending], learned: float | None, threads: int | None = None
+    ) -> tuple[Any, torch.Tensor, float | None, Any]:
+        """The batched call on ``good`` with the ``learned`` noise (None: none), its kernels on ``threads`` CPU
+        threads (None: the stream's own): (its result, the mask, that noise, None), or, should it fail, (None, the
+        mask, the noise, what came instead: the error message of a single reading, else each reading's own call, as
+        this returns it)."""
         curvature, mask = stack_readings([p.reading for p in good])
         if self.device.type != "cpu":
             curvature, mask = curvature.to(self.device), mask.to(self.device)
-        options = self._options_by_noise.get(learned)
+        threads = self.threads if threads is None else threads
+        options = self._options.get((learned, threads))
         if options is None:  # (made once per noise: a replace checks every option again, a cost at one reading)
-            options = dataclasses.replace(self.estimate_options, threads=self.threads)
+            options = dataclasses.replace(self.estimate_options, threads=threads)
             if learned is not None:
                 options = dataclasses.replace(options, noise=learned)
-            if len(self._options_by_noise) > 64:
-                self._options_by_noise.clear()
-            self._options_by_noise[learned] = options
+            if len(self._options) > 64:
+                self._options.clear()
+            self._options[learned, threads] = options
         starts = self._tracking_starts(len(good))
         try:
             result = self.estimator.estimate(curvature, mask, options=options, extra_starts=starts)
         except Exception as exc:  # noqa: BLE001 - a reading that breaks the solver must not stop the stream
             if len(good) == 1:
                 return None, mask, learned, f"estimation failed: {_exception_text(exc)}"
-            return None, mask, learned, [self._estimate(good[k : k + 1], learned) for k in range(len(good))]
+            return None, mask, learned, [self._estimate(good[k : k + 1], learned, threads) for k in range(len(good))]
         return result, mask, learned, None
 
     def _answers(
@@ -662,14 +736,12 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
             # Flush: everything already taken from the source (a second interrupt is not caught).
             state.drain()
             while flight:
-                results = state.receive(flight[0])
-                flight.popleft()
-                yield from results
+                yield from state.take(flight)
             while state.pending:
                 batch = state.pending[: state.batch_limit()]
-                results = state.solve(batch)
+                flight.append(_Slot(batch, results=state.solve(batch)))
                 del state.pending[: len(batch)]
-                yield from results
+                yield from state.take(flight)
             raise interrupted
         if state.error is not None:
             raise state.error
