@@ -625,20 +625,58 @@ def test_cli_jsonl_with_bad_lines(rod, tmp_path, capsys):
 
 
 def test_cli_freezes_what_it_set_up_and_gives_it_back(rod, tmp_path, capsys, monkeypatch):
-    """``torchrod stream`` moves what it set up out of the garbage collector's full collections before the
-    readings come (``commands.settle``), and :func:`main` gives it back when the command returns, so a process that
-    calls it, as this test does, goes on as before."""
+    """``torchrod stream`` moves what it set up out of the garbage collector's full collections and shortens the
+    interpreter's switch interval before the readings come (``commands.settle``), and :func:`main` undoes both when
+    the command returns, so a process that calls it, as this test does, goes on as before."""
     import gc
 
-    frozen = []
+    from torchrod.cli import commands
+
+    frozen, interval = [], []
     freeze = gc.freeze
     monkeypatch.setattr(gc, "freeze", lambda: (freeze(), frozen.append(gc.get_freeze_count())))
+    estimate = tr.Estimator.estimate
+    monkeypatch.setattr(
+        tr.Estimator, "estimate", lambda *a, **k: (interval.append(sys.getswitchinterval()), estimate(*a, **k))[1]
+    )
+    before = sys.getswitchinterval()
     path = tmp_path / "in.jsonl"
     path.write_text("".join(json.dumps(x) + "\n" for x in _one_force_lines(rod, 2)))
     args = ["stream", "--rod", "nitinol290", "--checkpoint", "none", "--noise", str(NOISE), "--input", str(path)]
     assert main(args) == 0
     assert len(capsys.readouterr().out.splitlines()) == 2
     assert len(frozen) == 1 and frozen[0] > 0 and gc.get_freeze_count() == 0
+    assert interval[-1] == commands.SWITCH_INTERVAL != before and sys.getswitchinterval() == before
+
+
+class _CountingOut:
+    """Standard output that counts its flushes and keeps its text."""
+
+    def __init__(self) -> None:
+        self.text, self.flushes = [], 0
+
+    def write(self, text: str) -> int:
+        self.text.append(text)
+        return len(text)
+
+    def flush(self) -> None:
+        self.flushes += 1
+
+
+@pytest.mark.parametrize("command", ["stream", "estimate"])
+def test_cli_flushes_once_per_batch_not_once_per_line(rod, tmp_path, monkeypatch, command):
+    """A batch's answers are written together and flushed once, after the last of them: a flush per line cost a
+    system call per reading. Every line is written, in order."""
+    path = tmp_path / "in.jsonl"
+    path.write_text("".join(json.dumps(x) + "\n" for x in _one_force_lines(rod, 10)))
+    out = _CountingOut()
+    monkeypatch.setattr(sys, "stdout", out)
+    given = ["--input", str(path)] if command == "stream" else [str(path)]
+    args = [command, "--rod", "nitinol290", "--checkpoint", "none", "--noise", str(NOISE), *given]
+    assert main([*args, "--batch-size", "4"]) == 0
+    lines = "".join(out.text).splitlines()
+    assert [json.loads(x)["id"] for x in lines] == [f"r{k}" for k in range(10)]
+    assert 1 <= out.flushes <= 4  # (batches of at most 4 readings: 10 lines)
 
 
 def test_cli_csv_with_header_and_missing_gratings(rod, tmp_path, capsys):

@@ -8,7 +8,6 @@ only when their subcommand runs, and ``import torchrod`` loads nothing heavy, so
 from __future__ import annotations
 
 import argparse
-import gc
 import importlib
 import os
 import sys
@@ -154,8 +153,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     finally:
         restore()
-        gc.unfreeze()  # what the command froze (commands.settle) is the collector's again: main() may be called in a
-        # process that goes on (a test, a script)
+        from .commands import unsettle
+
+        unsettle()  # what the command froze (commands.settle) is the collector's again, and the interpreter as it
+        # was: main() may be called in a process that goes on (a test, a script)
 
 
 def _standard_streams() -> Callable[[], None]:

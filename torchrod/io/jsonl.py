@@ -455,26 +455,37 @@ class LineWriter:
         """
         self._emit(json.dumps(obj, allow_nan=False))
 
-    def _emit(self, text: str) -> None:
+    def _emit(self, text: str, flush: bool = True) -> None:
         out = self.stream
         try:
             out.write(text + "\n")
-            out.flush()
+            if flush:
+                out.flush()
         except BrokenPipeError:
             quiet_closed_pipe(out)
             raise
         self.lines += 1
 
-    def answer(self, obj: Mapping[str, Any], line: int | None = None) -> bool:
+    def flush(self) -> None:
+        """Flush the lines written so far (see :meth:`answer`)."""
+        try:
+            self.stream.flush()
+        except BrokenPipeError:
+            quiet_closed_pipe(self.stream)
+            raise
+
+    def answer(self, obj: Mapping[str, Any], line: int | None = None, *, flush: bool = True) -> bool:
         """Write ``obj``; if JSON cannot hold it (NaN, an unwritable value), write an error line naming ``line`` in
-        its place and count it as an error. Returns whether ``obj`` itself was written."""
+        its place and count it as an error. Returns whether ``obj`` itself was written. ``flush`` False leaves the
+        line in the stream's buffer, for answers that come together (a batch's): one flush after the last of them
+        costs less than one per line, and none is held back longer than the batch takes to write."""
         try:
             text = _ENCODER.encode(obj)
         except (ValueError, TypeError, OverflowError, RecursionError) as exc:
             at = f"line {line}: " if line is not None else ""
             self.error(obj.get("id"), f"{at}the answer cannot be written as JSON ({_clip(str(exc), 200)})")
             return False
-        self._emit(text)
+        self._emit(text, flush)
         return True
 
     def error(self, ident: Any, message: str, **extra: Any) -> None:

@@ -408,6 +408,8 @@ def csv_number(text: str, what: str, *, bound: float | None = None, unit: str = 
 # ---------------------------------------------------------------------------------------------------- fields
 def id_problem(value: Any) -> str | None:
     """Why JSON cannot echo ``value`` as an id (module docstring), or None when it can. Never recurses."""
+    if value is None or (type(value) is str and len(value) + 2 <= MAX_ID_CHARS):  # (the usual ids, at once)
+        return None
     size = 0
     stack: list[tuple[Any, int]] = [(value, 0)]
     while stack:
@@ -805,7 +807,7 @@ def parse_reading(
     Raises:
         ValueError: naming the first bad field.
     """
-    if not isinstance(obj, Mapping):
+    if type(obj) is not dict and not isinstance(obj, Mapping):  # (a decoded line is a dict: no ABC check)
         raise ValueError(  # noqa: TRY004 (bad data, one kind of error)
             f'a reading must be an object {{"id": ..., "curvature": [[ux, uy], ...]}}, got {describe(obj)}'
         )

@@ -80,6 +80,8 @@ class StreamResult:
         error: why the reading could not be used; None for a solved reading.
         batch: readings solved together with this one (itself included); solve_time: [s] that batch's estimate.
         line: the reading's input line, when it came with one (:attr:`Reading.line`).
+        batch_end: whether it is the last result of its batch: the next comes from another solve (a writer that
+            holds a batch's lines flushes here).
     """
 
     id: Any
@@ -92,6 +94,7 @@ class StreamResult:
     _result: Any = field(default=None, repr=False, compare=False)
     _index: int = field(default=0, repr=False, compare=False)
     line: int | None = None
+    batch_end: bool = True
 
     @property
     def ok(self) -> bool:
@@ -513,7 +516,8 @@ class _Stream:
         elapsed = time.perf_counter() - start
         done = time.perf_counter()
         out, answers_it = [], iter(answers)
-        for p in batch:
+        end = len(batch) - 1
+        for k, p in enumerate(batch):
             r = p.reading
             latency = done - p.arrived
             result, index, rec, error = (None, 0, None, r.error) if not p.ok else next(answers_it)
@@ -523,13 +527,15 @@ class _Stream:
                 rec = {"id": r.id, "error": error}
                 if r.t is not None:
                     rec["t"] = r.t
-                out.append(StreamResult(r.id, r.t, rec, latency, error, len(batch), elapsed, line=r.line))
+                out.append(
+                    StreamResult(r.id, r.t, rec, latency, error, len(batch), elapsed, line=r.line, batch_end=k == end)
+                )
                 continue
             assert rec is not None  # an answer without an error holds its record
             if r.t is not None:
                 rec["t"] = r.t
             rec["latency_ms"] = round(1e3 * latency, 3)
-            out.append(StreamResult(r.id, r.t, rec, latency, None, len(good), elapsed, result, index, line=r.line))
+            out.append(StreamResult(r.id, r.t, rec, latency, None, len(good), elapsed, result, index, r.line, k == end))
         return out
 
     def _estimate(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import sys
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # (torch is imported where a command needs it: `torchrod --help` starts without it)
@@ -34,15 +35,35 @@ def rod_help(default: str | None = None, what: str = "") -> str:
     return text if default is None else f"{text[:-1]}; default {default})"
 
 
+SWITCH_INTERVAL = 0.0005
+"""[s] How long a thread running Python keeps the interpreter lock while another asks for it, during a command's
+readings (Python's default is 5 ms). A stream's solver threads need the lock for a moment before and after each
+batch's kernels, and the thread reading and writing lines holds it nearly all the time: at the default, a solver
+thread waited milliseconds for each short step while its core stood idle."""
+
+_saved: list[float] = []  # the switch interval settle() replaced
+
+
 def settle() -> None:
     """Move everything the command has made so far (torch, the rod, the estimator and its network) out of reach
-    of the garbage collector (:func:`gc.freeze`), once it is set up and before the readings come. Each reading's
-    records and results are many small objects, which set off collections; a full one walked every object torch
-    made at its import, and in a stream that cost as much per reading as making the records.
-    :func:`torchrod.cli.main` gives them back (:func:`gc.unfreeze`) when the command returns, so a program or test
-    that calls it goes on as before; the library's own functions never freeze: they do not change the interpreter of
-    the program that calls them."""
+    of the garbage collector (:func:`gc.freeze`), once it is set up and before the readings come, and hand the
+    interpreter lock between threads sooner (:data:`SWITCH_INTERVAL`). Each reading's records and results are many
+    small objects, which set off collections; a full one walked every object torch made at its import, and in a
+    stream that cost as much per reading as making the records. :func:`unsettle` undoes both when the command
+    returns (:func:`torchrod.cli.main`), so a program or test that calls it goes on as before; the library's own
+    functions do neither: they do not change the interpreter of the program that calls them."""
     gc.freeze()
+    if not _saved:
+        _saved.append(sys.getswitchinterval())
+    sys.setswitchinterval(SWITCH_INTERVAL)
+
+
+def unsettle() -> None:
+    """Undo :func:`settle` (nothing when it was not called): the objects frozen are the collector's again, and the
+    interpreter's switch interval is what it was."""
+    gc.unfreeze()
+    if _saved:
+        sys.setswitchinterval(_saved.pop())
 
 
 def check_estimation_options(args: argparse.Namespace) -> None:

@@ -376,7 +376,7 @@ class _Answers:
             if "error" in answer:
                 self.writer.error(answer["id"], answer["error"])
             else:
-                self.writer.answer(answer, reading.line)
+                self.writer.answer(answer, reading.line, flush=len(self.pending) == 1)
             del self.pending[0], self.ready[0]
             self.bar.update(1)
 

@@ -398,7 +398,7 @@ def _answer(
         if result.error is not None:
             writer.error(result.id, result.error, **extra)
         else:
-            writer.answer(result.record, result.line)
+            writer.answer(result.record, result.line, flush=result.batch_end)
         if args.summary:
             known = truth.get(_key(result.id)) if truth is not None and result.ok else None
             stats.add(result, known)
