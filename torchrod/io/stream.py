@@ -14,7 +14,8 @@ iterable of readings and yields one result per reading, in input order, as soon 
   full batch), so under load batches form by themselves and grow instead of falling behind; with ``workers`` > 1
   each batch goes to an idle solver thread while the next readings are taken, so consecutive batches are solved
   at once on different cores (the kernels run without the interpreter lock) and their answers still come in order;
-  once a file is read to its end, its last batches' readings are shared among every core;
+  once a file is read to its end, what is left goes out in ``workers`` parts, their readings shared among every
+  core;
 - a stream that learns its noise (``learn_noise``) sends its first batches in rounds that grow with the fits
   learned from, each round shared among the solver threads and solved with the noise from every round before;
   after that a batch takes the noise learned once all but the last ``2 * workers - 1`` batches handed out were
@@ -271,6 +272,7 @@ class _Stream:
         self.sent = self.received = 0
         self._noise_after: dict[int, float | None] = {0: None}
         self._learned_at: int | None = None
+        self._tail: int | None = None  # the readings of each part of what was left when the input ended (step)
         # At most this many batches are in flight when one is handed out (and none when one is solved here).
         self._lag = 2 * self.workers - 1 if self.pool is not None else 0
         self.max_noise = float(estimate.max_noise)
@@ -378,9 +380,12 @@ class _Stream:
                 continue
             last = self.direct is not None and self.finished and self.pool is not None
             if last:
-                # The input is all read: what is left is shared among the idle solver threads (a short file is not
-                # one batch on one thread while the others wait).
-                limit = min(limit, -(-len(self.pending) // max(1, self.workers - len(flight))))
+                # The input is all read: what is left is shared among the solver threads (a short file is not one
+                # batch on one thread while the others wait), in parts fixed when the input ended, so that the
+                # batches, and the noise each takes, do not depend on the threads' timing.
+                if self._tail is None:
+                    self._tail = -(-len(self.pending) // self.workers)
+                limit = min(limit, self._tail)
             batch = self.pending[:limit]
             # A lone reading that finds every solver thread idle is solved here: handing it to a thread and back
             # would cost two thread wake-ups, a large share of a paced reading's latency. Readings that come
