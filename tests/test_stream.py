@@ -173,7 +173,7 @@ def test_a_source_that_never_waits_is_read_without_a_reader_thread_and_answered_
     assert got["file"][5]["error"].startswith("line 6: ")
 
 
-def test_what_is_left_when_a_source_that_never_waits_ends_is_shared_among_the_idle_solver_threads(rod, estimator):
+def test_what_is_left_when_a_source_that_never_waits_ends_is_shared_among_the_solver_threads(rod, estimator):
     lines = _one_force_lines(rod, 13)
     slow = _Slow(estimator, 0.3)  # (the first batch is still in flight when the second is formed)
     batches = [r.batch for r in stream(slow, lines, StreamOptions(batch_size=64, workers=2))]
