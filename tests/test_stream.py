@@ -24,6 +24,7 @@ from cases import interruptible
 import torchrod as tr
 from torchrod.cli import main
 from torchrod.data import path as shipped_file
+from torchrod.io.jsonl import LineWriter
 from torchrod.io.stream import Reading, StreamOptions, StreamResult, StreamStats, stream
 
 NOISE = 0.05
@@ -677,6 +678,12 @@ def test_cli_flushes_once_per_batch_not_once_per_line(rod, tmp_path, monkeypatch
     lines = "".join(out.text).splitlines()
     assert [json.loads(x)["id"] for x in lines] == [f"r{k}" for k in range(10)]
     assert 1 <= out.flushes <= 4  # (batches of at most 4 readings: 10 lines)
+    held = _CountingOut()  # (the writer's own: lines held, then one flush)
+    writer = LineWriter(held)
+    assert all(writer.answer({"id": k}, flush=False) for k in range(3))
+    assert held.flushes == 0 and writer.lines == 3
+    writer.flush()
+    assert held.flushes == 1 and "".join(held.text) == '{"id": 0}\n{"id": 1}\n{"id": 2}\n'
 
 
 def test_cli_csv_with_header_and_missing_gratings(rod, tmp_path, capsys):
