@@ -459,11 +459,11 @@ class LineWriter:
         out = self.stream
         try:
             out.write(text + "\n")
-            if flush:
-                out.flush()
         except BrokenPipeError:
             quiet_closed_pipe(out)
             raise
+        if flush:
+            self.flush()
         self.lines += 1
 
     def flush(self) -> None:

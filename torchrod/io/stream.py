@@ -433,23 +433,24 @@ class _Stream:
         batches of the one before."""
         return self.noise is not None and self._learned_at is None
 
-    def next_noise(self) -> float | None:
-        """The learned noise the next batch handed out is solved with (None: none), the same whatever the solver
-        threads' timing, so that a file's answers are the same in every run: while learning, the noise from every
-        batch before (a round waits for them); then the noise once all but the last ``2 * workers - 1`` batches
-        handed out were answered (at most that many are in flight when one is handed out), but never older than
-        the learning's end."""
-        if self._learned_at is None:
-            return self.learned_noise
-        return self._noise_after[max(self.sent - self._lag, self._learned_at)]
+    def hand_out(self) -> float | None:
+        """Count a batch handed out now (to a solver thread or solved here); the learned noise it is solved with
+        (None: none), the same whatever the solver threads' timing, so that a file's answers are the same in every
+        run: while learning, the noise after every batch before (a round waits for them); then the noise once all
+        but the last ``2 * workers - 1`` batches handed out were answered (at most that many are in flight when one
+        is handed out), but never older than the learning's end. Read from what :meth:`take` kept: no sort of the
+        fits again."""
+        answered = self.received if self._learned_at is None else max(self.sent - self._lag, self._learned_at)
+        self.sent += 1
+        return self._noise_after[answered]
 
     def take(self, flight: collections.deque[_Slot]) -> list[StreamResult]:
         """The results of the oldest batch in flight (waiting for them), which leaves ``flight``; the learned noise
-        after it is kept for :meth:`next_noise`."""
+        after it is kept for :meth:`hand_out`."""
         results = self.receive(flight[0])
         flight.popleft()
         self.received += 1
-        self._noise_after[self.received] = self.learned_noise if self.noise is not None else None
+        self._noise_after[self.received] = self.learned_noise
         if self.received - self._lag - 1 != self._learned_at:  # (no longer needed; the learning's end is kept)
             self._noise_after.pop(self.received - self._lag - 1, None)
         return results
@@ -488,8 +489,7 @@ class _Stream:
         """Estimate the usable readings of ``batch`` together, here; one result per reading, in order."""
         good = [p for p in batch if p.ok]
         start = time.perf_counter()
-        noise = self.next_noise()
-        self.sent += 1
+        noise = self.hand_out()
         answers = self._answers(good, *self._estimate(good, noise)) if good else []
         return self._results(batch, answers, start)
 
@@ -498,8 +498,7 @@ class _Stream:
         results."""
         good = [p for p in batch if p.ok]
         start = time.perf_counter()
-        noise = self.next_noise()
-        self.sent += 1
+        noise = self.hand_out()
         if not good:
             return _Slot(batch, results=self._results(batch, [], start))
         assert self.pool is not None  # step() sends only with a pool
