@@ -137,6 +137,8 @@ def test_the_estimate_command_answers_each_reading_as_it_is_solved_while_compili
 def test_start_announces_the_background_compile_and_loads_when_it_is_done(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(targets, "COMPILE_CHILD", "import time; time.sleep(0.5)")
     monkeypatch.delenv("TORCHROD_COMPILE", raising=False)
+    # (the stand-in compiles below take no time: their record of it must not be the real cache's "last time")
+    monkeypatch.setenv("TORCHROD_CACHE_DIR", str(tmp_path / "root"))
     loaded = []
 
     def estimate_rows():  # (the entry's name: what the cache is looked for by)
@@ -158,16 +160,45 @@ def test_start_announces_the_background_compile_and_loads_when_it_is_done(tmp_pa
     again = targets.Compiled("cpu", estimate_rows, tmp_path, lambda entry: loaded.append(entry))
     again.start()
     assert not again.compiling() and again._ready and len(loaded) == 2
+    # In the foreground: compiled by a child while this process waits (announced once, here), then loaded; should
+    # the child fail, compiled here (announced again).
     monkeypatch.setenv("TORCHROD_COMPILE", "foreground")
-    (tmp_path / "x.estimate_rows-1.py311.nbi").unlink()
+    index = tmp_path / "x.estimate_rows-1.py311.nbi"
+    index.unlink()
+    child = f"import pathlib, sys; assert sys.argv[3] == 'cpu'; pathlib.Path({str(index)!r}).write_text('')"
+    monkeypatch.setattr(targets, "COMPILE_CHILD", child)
+    capsys.readouterr()
     third = targets.Compiled("cpu", estimate_rows, tmp_path, lambda entry: loaded.append(entry))
     third.start()
-    assert not third.compiling() and len(loaded) == 3
+    assert not third.compiling() and len(loaded) == 3 and index.exists()
+    err = capsys.readouterr().err
+    assert err.count("compiling the estimation kernels for the CPU (") == 1
+    assert "background" not in err
+    index.unlink()
+    monkeypatch.setattr(targets, "COMPILE_CHILD", "raise SystemExit(1)")
+    failed = targets.Compiled("cpu", estimate_rows, tmp_path, lambda entry: loaded.append(entry))
+    failed.start()
+    assert not failed.compiling() and len(loaded) == 4
+    assert capsys.readouterr().err.count("compiling the estimation kernels for the CPU (") == 2
     # No writable cache: a child's compile would be lost, so it is done here.
     monkeypatch.delenv("TORCHROD_COMPILE")
     fourth = targets.Compiled("cpu", estimate_rows, None, lambda entry: loaded.append(entry))
     fourth.start()
-    assert not fourth.compiling() and len(loaded) == 4
+    assert not fourth.compiling() and len(loaded) == 5
+
+
+def test_a_process_that_waits_for_a_first_compile_runs_the_kernels_loaded_from_the_cache(tmp_path):
+    """The network's kernels (the quickest to compile) compiled into an empty cache in the foreground: the process
+    that asked for them runs them as loaded from the cache (a hit, no compile of its own), as a later run does."""
+    program = (
+        "from torchrod.kernels import targets; c = targets.cpu_network(); c.ready(); "
+        "print(sum(c.entry.stats.cache_hits.values()), sum(c.entry.stats.cache_misses.values()))"
+    )
+    env = {**os.environ, "TORCHROD_CACHE_DIR": str(tmp_path), "TORCHROD_COMPILE": "foreground"}
+    done = subprocess.run([sys.executable, "-c", program], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["1", "0"]
+    assert "compiling the network kernels for the CPU" in done.stderr and "network kernels compiled in" in done.stderr
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")

@@ -20,7 +20,9 @@ A first compile for the CPU need not hold the first answers back (:meth:`Compile
 process (announced as above), and meanwhile readings are solved one at a time by the same source run as Python
 (``"python"``: far slower, the same arithmetic in the same order), with no deadline, so their answers are the
 compiled kernels'. When the child is done the kernels are loaded from the cache and used from the next reading on.
-``TORCHROD_COMPILE=foreground`` compiles in the process instead (before the first reading, as :meth:`ready`).
+``TORCHROD_COMPILE=foreground`` waits for the compile instead, before the first reading (as :meth:`ready`). Every
+CPU compile with a writable cache runs in a child process, and the process that waits for it loads the kernels from
+the cache, as every later run does: kernels compiled in the process that runs them ran at about half the speed.
 """
 
 from __future__ import annotations
@@ -48,14 +50,15 @@ _lock = threading.Lock()
 
 COMPILE_CHILD = (
     "import sys; sys.path.insert(0, sys.argv[2]); from torchrod.kernels import targets; "
-    "targets.die_with_parent(int(sys.argv[1])); targets.cpu().ready()"
+    "targets.die_with_parent(int(sys.argv[1])); getattr(targets, sys.argv[3])().ready()"
 )
-"""The program of the child process that compiles the CPU kernels in the background (arguments: the parent's pid,
-and the folder holding the parent's ``torchrod`` package, so that the child compiles the same source whatever its
-import path)."""
+"""The program of the child process that compiles CPU kernels (arguments: the parent's pid, the folder holding the
+parent's ``torchrod`` package, so that the child compiles the same source whatever its import path, and the name of
+the function of this module that makes them: ``cpu``, ``cpu_network``, ``cpu_schedule``)."""
 
 _CHILD = "TORCHROD_COMPILING_CHILD"
-"""Set in the environment of the child process that compiles in the background (:meth:`Compiled.start`)."""
+"""Set in the environment of the child process that compiles CPU kernels (:meth:`Compiled.start`,
+:meth:`Compiled.ready`)."""
 
 
 def _modules() -> list[types.ModuleType]:
@@ -175,13 +178,21 @@ class Compiled:
     announcement."""
 
     def __init__(
-        self, target: str, entry: Any, directory: Path | None, warm: Any, what: str = "estimation", quiet: bool = False
+        self,
+        target: str,
+        entry: Any,
+        directory: Path | None,
+        warm: Any,
+        what: str = "estimation",
+        quiet: bool = False,
+        maker: str = "cpu",
     ) -> None:
         self.target = target
         self.entry = entry
         self.directory = directory
         self.what = what
         self.quiet = quiet  # nothing to announce (the simulator's "compilation" is none)
+        self.maker = maker  # the function of this module that makes it (what a compiling child calls)
         self._warm = warm
         self._ready = False
         self._child: subprocess.Popen[bytes] | None = None
@@ -211,12 +222,7 @@ class Compiled:
             if self._ready or self._child is not None:
                 return
             try:
-                self._child = subprocess.Popen(
-                    [sys.executable, "-c", COMPILE_CHILD, str(os.getpid()), str(Path(__file__).parents[2])],
-                    stdin=subprocess.DEVNULL,
-                    stdout=subprocess.DEVNULL,
-                    env={**os.environ, _CHILD: "1"},
-                )
+                self._child = self._compiling_child()
             except OSError:
                 self._child = None
         if self._child is None:
@@ -243,10 +249,40 @@ class Compiled:
         self.ready()
         return False
 
+    def _compiling_child(self) -> subprocess.Popen[bytes]:
+        """A child process that compiles these CPU kernels into the cache (its stderr is this process's)."""
+        return subprocess.Popen(
+            [sys.executable, "-c", COMPILE_CHILD, str(os.getpid()), str(Path(__file__).parents[2]), self.maker],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            env={**os.environ, _CHILD: "1"},
+        )
+
+    def _compile_in_child(self) -> None:
+        """A first CPU compile with a writable cache, done by a child process while this one waits (announced
+        here), so that this process loads the kernels from the cache as every later run does: the same kernels
+        compiled in the process that runs them ran at about half that speed, for the life of the process
+        (docs/core.md, Compilation). Should the child fail, :meth:`ready` compiles here."""
+        if self.target != "cpu" or self.directory is None or os.environ.get(_CHILD) or self._cached():
+            return
+        _say(
+            f"compiling the {self.what} kernels for the CPU ({_expected_seconds(cache_root(), self.target, self.what)}"
+            f"; once per machine and version, kept in {self.directory})"
+        )
+        try:
+            self._compiling_child().wait()
+        except OSError:
+            return
+
     def ready(self) -> None:
-        """Compile (announced) or load the kernels now, once; processes take turns through the cache's lock."""
+        """Compile (announced) or load the kernels now, once; processes take turns through the cache's lock. A
+        first CPU compile with a writable cache runs in a child process (:meth:`_compile_in_child`), and the
+        kernels are then loaded from the cache."""
         if self._ready:
             return
+        with _lock:
+            if not self._ready:
+                self._compile_in_child()  # (outside the cache's lock: the child takes it)
         with _lock:
             if self._ready:
                 return
@@ -466,14 +502,14 @@ def _cpu_namespace() -> dict[str, Any]:
     return namespace(decorate, numba.njit(**inner), decorate, "cpu_kernels", _cpu_view())
 
 
-def _cpu_entry(name: str, warm: Any, what: str) -> Compiled:
+def _cpu_entry(name: str, warm: Any, what: str, maker: str) -> Compiled:
     import numba
 
     directory = _cache_directory("cpu")
     flags: dict[str, Any] = {**CPU_FLAGS, "cache": directory is not None}
     with _numba_cache_dir(directory):
         entry = numba.njit(**flags)(_cpu_namespace()[name].py_func)
-    return Compiled("cpu", entry, directory, warm, what)
+    return Compiled("cpu", entry, directory, warm, what, maker=maker)
 
 
 @functools.cache
@@ -482,7 +518,7 @@ def cpu() -> Compiled:
     readings first..last-1 on one scratch, without the interpreter lock (threads run it side by side)."""
     from .warmup import warm_up
 
-    return _cpu_entry("estimate_rows", lambda e: warm_up("cpu", e), "estimation")
+    return _cpu_entry("estimate_rows", lambda e: warm_up("cpu", e), "estimation", "cpu")
 
 
 @functools.cache
@@ -490,7 +526,7 @@ def cpu_schedule() -> Compiled:
     """The simulator's schedule (:func:`.march.schedule_rows`) compiled by Numba for this CPU."""
     from .warmup import warm_up_schedule
 
-    return _cpu_entry("schedule_rows", warm_up_schedule, "schedule")
+    return _cpu_entry("schedule_rows", warm_up_schedule, "schedule", "cpu_schedule")
 
 
 @functools.cache
@@ -498,7 +534,7 @@ def cpu_network() -> Compiled:
     """The warm-start network's forward pass (:func:`.network.network_rows`) compiled by Numba for this CPU."""
     from .warmup import warm_up_network
 
-    return _cpu_entry("network_rows", warm_up_network, "network")
+    return _cpu_entry("network_rows", warm_up_network, "network", "cpu_network")
 
 
 _CUDA_ENTRY = """

@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"torchrod bench {name}: not available in this version", file=sys.stderr)
         return 2
     parser = suite_parser(name, module)
-    # A first compile in the process (and in the commands a suite starts), before any clock: not in the background
+    # A first compile waited for (here and in the commands a suite starts), before any clock: not in the background
     # while the kernels run as Python (torchrod.kernels.targets), which would be timed instead.
     os.environ.setdefault("TORCHROD_COMPILE", "foreground")
     return int(module.run(parser.parse_args(args.options)) or 0)
