@@ -189,19 +189,31 @@ def added_force(k, h0):
         finite = finite and math.isfinite(r[m])
     for c in range(C):
         rows = response_rows(Jc, c, n, finite)
-        for a in range(2):
-            for b in range(2):
-                v = 0.0
-                for m in range(rows):
-                    v += Jc[c, m, a] * Jc[c, m, b]
-                sw.Acc[c, a, b] = v
-            v = 0.0
-            for m in range(rows):
-                v += r[m] * Jc[c, m, a]
-            sw.gc[c, a] = v
-            d = sw.Acc[c, a, a]
-            if d != d or d > d_max:
-                d_max = d
+        # (every sum taken in one pass over the rows: each still adds its terms in row order, so its value is the
+        # same, but the sums no longer wait on each other)
+        a00 = 0.0
+        a01 = 0.0
+        a11 = 0.0
+        g0 = 0.0
+        g1 = 0.0
+        for m in range(rows):
+            x0 = Jc[c, m, 0]
+            x1 = Jc[c, m, 1]
+            a00 += x0 * x0
+            a01 += x0 * x1
+            a11 += x1 * x1
+            g0 += r[m] * x0
+            g1 += r[m] * x1
+        sw.Acc[c, 0, 0] = a00
+        sw.Acc[c, 0, 1] = a01
+        sw.Acc[c, 1, 0] = a01
+        sw.Acc[c, 1, 1] = a11
+        sw.gc[c, 0] = g0
+        sw.gc[c, 1] = g1
+        if a00 != a00 or a00 > d_max:
+            d_max = a00
+        if a11 != a11 or a11 > d_max:
+            d_max = a11
     scale = d_max if (d_max != d_max or d_max >= SCALE_MIN) else SCALE_MIN
     base_dec = 0.0
     ok = True
@@ -237,12 +249,31 @@ def added_force(k, h0):
         z1 = sw.gc[c, 1]
         if Pb:
             rows = response_rows(Jc, c, n, finite)
-            for a in range(2):
-                for p in range(Pb):
-                    v = 0.0
-                    for m in range(rows):
-                        v += Jc[c, m, a] * J[m, p]
-                    sw.Acb[a, p] = v
+            for p in range(0, Pb, 3):  # (a force's three columns at once; each sum in row order, as above)
+                t00 = 0.0
+                t01 = 0.0
+                t02 = 0.0
+                t10 = 0.0
+                t11 = 0.0
+                t12 = 0.0
+                for m in range(rows):
+                    x0 = Jc[c, m, 0]
+                    x1 = Jc[c, m, 1]
+                    j0 = J[m, p]
+                    j1 = J[m, p + 1]
+                    j2 = J[m, p + 2]
+                    t00 += x0 * j0
+                    t01 += x0 * j1
+                    t02 += x0 * j2
+                    t10 += x1 * j0
+                    t11 += x1 * j1
+                    t12 += x1 * j2
+                sw.Acb[0, p] = t00
+                sw.Acb[0, p + 1] = t01
+                sw.Acb[0, p + 2] = t02
+                sw.Acb[1, p] = t10
+                sw.Acb[1, p + 1] = t11
+                sw.Acb[1, p + 2] = t12
             for a in range(2):
                 for p in range(Pb):
                     v = 0.0
