@@ -86,6 +86,39 @@ def test_readings_are_solved_as_python_while_compiling_and_compiled_after(monkey
     torch.testing.assert_close(cold.forces.f, warm.forces.f, rtol=1e-12, atol=1e-15)
 
 
+def test_batches_solved_as_python_while_compiling_take_turns(monkeypatch):
+    """Two threads estimating while the kernels compile solve their batches as Python one after the other, not side
+    by side: such a solve holds the interpreter lock, so side by side each would take as long as both."""
+    import threading
+
+    u = _readings(4)
+    est = tr.Estimator(ROD, tr.EstimatorOptions(noise=0.05, threads=1))
+    est.plan()
+    order = []
+
+    def solved(n):
+        order.append(threading.current_thread().name)
+        time.sleep(0.02)  # (hands the interpreter to the other thread, which would start its own batch)
+
+    start = threading.Barrier(2)
+    results = {}
+
+    def work(k):
+        start.wait()
+        results[k] = est.estimate(u[2 * k : 2 * k + 2])
+
+    with _Compiling(est.plan().compiled):
+        _counting_python(monkeypatch, after=solved)
+        threads = [threading.Thread(target=work, args=(k,), name=f"t{k}") for k in range(2)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(120)
+    assert sorted(order) == ["t0", "t0", "t1", "t1"]
+    assert order[0] == order[1] and order[2] == order[3]  # one batch, then the other
+    assert all(results[k].batch_size == 2 for k in range(2))
+
+
 def test_no_deadline_cuts_a_reading_solved_while_compiling(monkeypatch):
     u = _readings(2)
     est = tr.Estimator(ROD, tr.EstimatorOptions(noise=0.05, time_budget=1e-9))

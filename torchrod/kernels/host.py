@@ -265,6 +265,11 @@ def kit(setup: Setup, sizes: Sizes, u: np.ndarray, w: np.ndarray, noise2: float 
 
 _local = threading.local()
 
+_AS_PYTHON = threading.Lock()
+"""Held by the thread solving a batch by the kernels run as Python while the CPU kernels compile
+(:meth:`Plan.run`): such a solve holds the interpreter lock throughout, so two threads solving side by side gain
+nothing, and each reading's solve would take several times its own cost (a stream's solve times would say so)."""
+
 
 def targets_python() -> Any:
     """The kernels as written (:func:`.targets.python`)."""
@@ -320,9 +325,10 @@ class Plan:
         if self.compiled.compiling():  # (a first CPU compile in the background: targets.Compiled.start)
             python = targets_python()
             never = np.zeros(1, np.int64)  # no deadline: the answer is the compiled kernels'
-            while first < B and self.compiled.compiling():
-                python.entry(first, first + 1, self.setup, batch, self._work(), never)
-                first += 1
+            with _AS_PYTHON:  # (one batch at a time: the batches are solved in turn, each at full speed)
+                while first < B and self.compiled.compiling():
+                    python.entry(first, first + 1, self.setup, batch, self._work(), never)
+                    first += 1
             if first == B:
                 return
         self.compiled.ready()
