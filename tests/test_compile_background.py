@@ -143,6 +143,30 @@ def test_a_stream_takes_one_reading_at_a_time_while_compiling(monkeypatch):
     assert all(r.error is None for r in results)
 
 
+def test_a_stream_with_solver_threads_solves_one_reading_at_a_time_on_its_own_while_compiling(monkeypatch):
+    """With solver threads, each reading is solved on the stream's own thread once the one before is answered: none
+    waits in a solver thread behind another (its solve time would count that wait), and the solves never overlap."""
+    from torchrod.io import stream as stream_module
+
+    u = _readings(4)
+    est = tr.Estimator(ROD, tr.EstimatorOptions(noise=0.05))
+    est.plan()
+    readings = [{"id": i, "curvature": u[i].tolist()} for i in range(4)]
+    events = []
+    send = stream_module._Stream.send
+
+    def recorded(self, batch, threads=1):
+        events.append("send")
+        return send(self, batch, threads)
+
+    monkeypatch.setattr(stream_module._Stream, "send", recorded)
+    with _Compiling(est.plan().compiled):
+        _counting_python(monkeypatch, after=lambda n: events.append("solved"))
+        results = list(tr.stream(est, readings, tr.StreamOptions(workers=2)))
+    assert [r.id for r in results] == [0, 1, 2, 3] and all(r.error is None for r in results)
+    assert events == ["solved"] * 4  # (none handed to a solver thread)
+
+
 def test_the_estimate_command_answers_each_reading_as_it_is_solved_while_compiling(tmp_path, monkeypatch, capsys):
     from torchrod.cli import main
 

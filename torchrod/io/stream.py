@@ -402,12 +402,15 @@ class _Stream:
 
     def _may_send(self, flight: collections.deque[_Slot]) -> bool:
         """Whether pending readings can go to a solver thread now: one is pending, fewer than two batches per thread
-        are in flight, and the next batch's size and noise do not wait on the fits in flight."""
+        are in flight, the next batch's size and noise do not wait on the fits in flight, and the kernels are not
+        compiling (readings are then solved as Python one at a time, :meth:`batch_limit`, here once the one before
+        is answered: handed to a solver thread, a reading would wait there behind the one in flight, the solves
+        gaining nothing side by side, and its solve time would count the wait)."""
         return (
             self.pool is not None
             and bool(self.pending)
             and len(flight) < 2 * self.workers
-            and not (flight and self.learning)
+            and not (flight and (self.learning or getattr(self.estimator, "compiling", bool)()))
         )
 
     def batch_limit(self) -> int:
