@@ -237,11 +237,24 @@ def test_start_announces_the_background_compile_and_loads_when_it_is_done(tmp_pa
     failed.start()
     assert not failed.compiling() and len(loaded) == 4
     assert capsys.readouterr().err.count("compiling the estimation kernels for the CPU (") == 2
+    # A background child that ended without the kernels: compiled here, not by a second child.
+    monkeypatch.delenv("TORCHROD_COMPILE")
+    broken = targets.Compiled("cpu", estimate_rows, tmp_path, lambda entry: loaded.append(entry))
+    broken.start()
+    monkeypatch.setattr(targets, "COMPILE_CHILD", child)  # (a second child would fill the cache: it must not run)
+    deadline = time.monotonic() + 30
+    while broken.compiling():
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    assert len(loaded) == 5 and not index.exists()
+    err = capsys.readouterr().err
+    assert "in a background process" in err and err.count("compiling the estimation kernels for the CPU (") == 1
+    monkeypatch.setenv("TORCHROD_COMPILE", "foreground")
     # No writable cache: a child's compile would be lost, so it is done here.
     monkeypatch.delenv("TORCHROD_COMPILE")
     fourth = targets.Compiled("cpu", estimate_rows, None, lambda entry: loaded.append(entry))
     fourth.start()
-    assert not fourth.compiling() and len(loaded) == 5
+    assert not fourth.compiling() and len(loaded) == 6
 
 
 def test_a_process_that_waits_for_a_first_compile_runs_the_kernels_loaded_from_the_cache(tmp_path):

@@ -196,6 +196,7 @@ class Compiled:
         self._warm = warm
         self._ready = False
         self._child: subprocess.Popen[bytes] | None = None
+        self._tried_child = False  # a compiling child ran to its end: no second one
 
     def _cached(self) -> bool:
         """Whether the entry's compiled code is in the on-disk cache (looked at without the lock)."""
@@ -246,6 +247,7 @@ class Compiled:
             return True
         with _lock:
             self._child = None
+            self._tried_child = True  # (what it left in the cache is loaded; if nothing, compiled here)
         self.ready()
         return False
 
@@ -262,13 +264,17 @@ class Compiled:
         """A first CPU compile with a writable cache, done by a child process while this one waits (announced
         here), so that this process loads the kernels from the cache as every later run does: the same kernels
         compiled in the process that runs them ran at about half that speed, for the life of the process
-        (docs/core.md, Compilation). Should the child fail, :meth:`ready` compiles here."""
-        if self.target != "cpu" or self.directory is None or os.environ.get(_CHILD) or self._cached():
+        (docs/core.md, Compilation). Should the child fail, or a child have run already (in the background) and
+        left nothing, :meth:`ready` compiles here."""
+        if self.target != "cpu" or self.directory is None or os.environ.get(_CHILD) or self._tried_child:
+            return
+        if self._cached():  # (looked at last: it reads the cache's directory)
             return
         _say(
             f"compiling the {self.what} kernels for the CPU ({_expected_seconds(cache_root(), self.target, self.what)}"
             f"; once per machine and version, kept in {self.directory})"
         )
+        self._tried_child = True
         try:
             self._compiling_child().wait()
         except OSError:
