@@ -295,8 +295,8 @@ class Estimator:
         """The kernels' plan for these options and guess blocks (their counts), made once and kept: its setup, and
         the compiled kernels of the target, loaded now, or compiled (announced the first time; never inside a
         reading's time budget): a first CPU compile runs in the background while readings are solved by the
-        kernels run as Python (:meth:`torchrod.kernels.targets.Compiled.start`), unless ``wait`` (then it is done
-        here, as a benchmark needs)."""
+        kernels run as Python (:meth:`torchrod.kernels.targets.Compiled.start`), unless ``wait`` (then this waits
+        for it, as a benchmark needs)."""
         opts = self.options if options is None else options
         target = self._target(opts, torch.device(device))
         key = (opts, tuple(guess_counts), target)
