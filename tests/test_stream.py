@@ -61,6 +61,19 @@ def estimator() -> tr.Estimator:
 
 
 # ---------------------------------------------------------------------------------------------------- the API
+def test_a_batchs_solve_time_is_its_own_not_its_wait_for_a_solver_thread(rod, estimator):
+    """Two solver threads, two batches each in flight: the second batch on a thread waits for the first, and its
+    solve time is still its own estimate's (it once counted the wait from when the batch was handed out)."""
+    delay = 0.2
+    lines = _one_force_lines(rod, 8)
+    results = list(tr.stream(_Slow(estimator, delay), lines, tr.StreamOptions(workers=2, batch_size=2)))
+    assert [r.id for r in results] == [line["id"] for line in lines] and all(r.error is None for r in results)
+    assert [r.batch for r in results] == [2] * 8
+    times = [r.solve_time for r in results]
+    assert min(times) >= delay and max(times) < 1.75 * delay, times
+    assert max(r.latency for r in results) > 1.9 * delay  # (a batch did wait behind another)
+
+
 def test_order_count_and_bad_readings(rod, estimator):
     good = _one_force_lines(rod, 6)
     G = rod.num_gratings

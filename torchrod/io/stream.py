@@ -227,7 +227,6 @@ class _Slot:
     batch: list[_Pending]
     results: list[StreamResult] | None = None
     future: Any = None
-    start: float = 0.0
 
     def done(self) -> bool:
         return self.results is not None or self.future.done()
@@ -494,33 +493,40 @@ class _Stream:
         start = time.perf_counter()
         noise = self.hand_out()
         answers = self._answers(good, *self._estimate(good, noise)) if good else []
-        return self._results(batch, answers, start)
+        return self._results(batch, answers, time.perf_counter() - start)
 
     def send(self, batch: list[_Pending], threads: int = 1) -> _Slot:
         """Hand ``batch`` to a solver thread, its kernels on ``threads`` CPU threads; :meth:`receive` gives its
         results."""
         good = [p for p in batch if p.ok]
-        start = time.perf_counter()
         noise = self.hand_out()
         if not good:
-            return _Slot(batch, results=self._results(batch, [], start))
+            return _Slot(batch, results=self._results(batch, [], 0.0))
         assert self.pool is not None  # step() sends only with a pool
-        future = self.pool.submit(self._estimate, good, noise, threads)
+        future = self.pool.submit(self._timed_estimate, good, noise, threads)
         future.add_done_callback(lambda _: self.wake.set())
-        return _Slot(batch, future=future, start=start)
+        return _Slot(batch, future=future)
+
+    def _timed_estimate(self, good: Sequence[_Pending], learned: float | None, threads: int) -> tuple[float, Any]:
+        """:meth:`_estimate` in a solver thread, with its own duration [s]: a batch's solve time, not counting its
+        wait for the thread (behind the batch before it) nor for this thread to take its results."""
+        began = time.perf_counter()
+        out = self._estimate(good, learned, threads)
+        return time.perf_counter() - began, out
 
     def receive(self, slot: _Slot) -> list[StreamResult]:
         """The results of a batch :meth:`send` handed out (waiting for them), as :meth:`solve` gives them."""
         if slot.results is not None:
             return slot.results
         good = [p for p in slot.batch if p.ok]
-        slot.results = self._results(slot.batch, self._answers(good, *slot.future.result()), slot.start)
+        took, out = slot.future.result()
+        slot.results = self._results(slot.batch, self._answers(good, *out), took)
         return slot.results
 
-    def _results(self, batch: Sequence[_Pending], answers: list, start: float) -> list[StreamResult]:
-        """The :class:`StreamResult` of each reading of ``batch``: its answer, or its error."""
+    def _results(self, batch: Sequence[_Pending], answers: list, elapsed: float) -> list[StreamResult]:
+        """The :class:`StreamResult` of each reading of ``batch``: its answer, or its error; ``elapsed`` [s] the
+        batch's solve time."""
         good = [p for p in batch if p.ok]
-        elapsed = time.perf_counter() - start
         done = time.perf_counter()
         out, answers_it = [], iter(answers)
         end = len(batch) - 1
