@@ -409,7 +409,7 @@ class _Stream:
             self.pool is not None
             and bool(self.pending)
             and len(flight) < 2 * self.workers
-            and not (flight and (self.learning or getattr(self.estimator, "compiling", bool)()))
+            and not (flight and (self.learning or self.compiling))
         )
 
     def batch_limit(self) -> int:
@@ -419,7 +419,7 @@ class _Stream:
         (slower, less accurate) before the stream has the fits it learns from, nor a thousand readings with a sigma
         learned from 32 fits: the batches grow until the sigma comes from enough fits."""
         size = self.batch_size
-        if getattr(self.estimator, "compiling", bool)():  # the kernels compile: one reading at a time, answered at once
+        if self.compiling:  # one reading at a time, answered at once
             return 1
         if self.noise is None:
             return size
@@ -427,6 +427,11 @@ class _Stream:
         if self.noise.count < learning.after:  # no sigma yet (without sorting the fits to find out)
             return min(size, learning.after)
         return min(size, max(learning.after, learning.growth * self.noise.used))
+
+    @property
+    def compiling(self) -> bool:
+        """Whether the estimator's kernels are still compiling (readings are then solved as Python, far slower)."""
+        return getattr(self.estimator, "compiling", bool)()
 
     @property
     def learning(self) -> bool:

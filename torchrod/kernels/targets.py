@@ -270,15 +270,20 @@ class Compiled:
             return
         if self._cached():  # (looked at last: it reads the cache's directory)
             return
-        _say(
-            f"compiling the {self.what} kernels for the CPU ({_expected_seconds(cache_root(), self.target, self.what)}"
-            f"; once per machine and version, kept in {self.directory})"
-        )
+        self._announce()
         self._tried_child = True
         try:
             self._compiling_child().wait()
         except OSError:
             return
+
+    def _announce(self) -> None:
+        """Say on stderr that these kernels compile now: about how long, and where they are kept."""
+        where = f"kept in {self.directory}" if self.directory is not None else "not kept (no writable cache)"
+        _say(
+            f"compiling the {self.what} kernels for {'the CPU' if self.target == 'cpu' else 'CUDA'} "
+            f"({_expected_seconds(cache_root(), self.target, self.what)}; once per machine and version, {where})"
+        )
 
     def ready(self) -> None:
         """Compile (announced) or load the kernels now, once; processes take turns through the cache's lock. A
@@ -287,24 +292,17 @@ class Compiled:
         if self._ready:
             return
         with _lock:
-            if not self._ready:
-                self._compile_in_child()  # (outside the cache's lock: the child takes it)
-        with _lock:
             if self._ready:
                 return
+            self._compile_in_child()  # (before the cache's lock is taken here: the child takes it)
             root = cache_root()
             lock: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
             if self.directory is not None:
                 lock = _file_lock(self.directory / ".lock")
             with lock:  # (the cache looked at once the lock is held: another process may just have filled it)
                 fresh = not self.quiet and not self._cached()
-                where = f"kept in {self.directory}" if self.directory is not None else "not kept (no writable cache)"
                 if fresh and not os.environ.get(_CHILD):  # (a compiling child's parent announced it)
-                    _say(
-                        f"compiling the {self.what} kernels for {'the CPU' if self.target == 'cpu' else 'CUDA'} "
-                        f"({_expected_seconds(root, self.target, self.what)}; once per machine and version, "
-                        f"{where})"
-                    )
+                    self._announce()
                 began = time.perf_counter()
                 source = getattr(self.entry, "py_func", self.entry)  # (a Numba dispatcher's Python function)
                 at_entry = _optimised_at_entry(source.__qualname__) if self.target == "cpu" else None
