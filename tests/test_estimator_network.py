@@ -370,3 +370,28 @@ def test_from_checkpoint_on_a_missing_path_raises_naming_it(tmp_path):
         Estimator.from_checkpoint(missing, tr.presets.nitinol290())
     with pytest.raises(FileNotFoundError):  # the standard type too
         Estimator.from_checkpoint(str(missing), tr.presets.nitinol290())
+
+
+def test_with_the_network_a_reading_answers_alike_alone_and_in_a_large_batch(rod):
+    """With the shipped warm-start network, a reading's answer is the same bit for bit alone and in a batch of 36
+    (larger than the network's blocks of readings): its guesses, made in float32, do not depend on the batch, so a
+    file's answers do not depend on how it is split (one reading at a time while the kernels compile, then in
+    batches)."""
+    from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
+
+    def drawn(k: int) -> torch.Tensor:
+        sampler = LoadSampler(min_forces=k, max_forces=k, min_separation=0.025, s_range=(0.05, rod.length))
+        return generate(rod, 12, sampler=sampler, sensor=SensorModel(noise=0.1), seed=40 + k).curvature
+
+    u = torch.cat([drawn(k) for k in (1, 2, 3)])
+    mask = torch.ones(u.shape[:2], dtype=torch.bool)
+    mask[::5, 6] = False
+    est = Estimator.from_checkpoint(CHECKPOINT, rod, EstimatorOptions(noise=0.1), warn=lambda _: None)
+    together = est.estimate(u, mask)
+    assert int((together.num_forces >= 2).sum()) >= 12  # (the batch holds several counts)
+    for b in range(u.shape[0]):
+        alone = est.estimate(u[b : b + 1], mask[b : b + 1])
+        for name in ("num_forces", "status", "p_value", "loss", "std", "iterations"):
+            assert torch.equal(getattr(alone, name).nan_to_num(7.0), getattr(together, name)[b : b + 1].nan_to_num(7.0))
+        assert torch.equal(alone.forces.s.nan_to_num(7.0), together.forces.s[b : b + 1].nan_to_num(7.0))
+        assert torch.equal(alone.forces.f.nan_to_num(7.0), together.forces.f[b : b + 1].nan_to_num(7.0))

@@ -11,7 +11,6 @@ import torch
 import torchrod as tr
 from torchrod.data import path as shipped_file
 from torchrod.learn.warm_start import (
-    COMPILED_MAX_BATCH,
     LAYOUT_TOLERANCE,
     NetConfig,
     WarmStart,
@@ -113,14 +112,14 @@ def test_a_reading_in_any_memory_layout_gets_the_same_guesses(rod, gen):
 
 
 def test_the_traced_forward_pass_gives_the_eager_one_exactly(rod, gen):
-    """A batch too large for the compiled pass takes its guesses from a trace of the network; the trace must give the
-    eager pass's outputs bit for bit, at any batch size, with missing gratings, and follow later changes to the
+    """Readings on a GPU take their guesses from a trace of the network (made here for the CPU); the trace must give
+    the eager pass's outputs bit for bit, at any batch size, with missing gratings, and follow later changes to the
     weights (it shares them)."""
     ws = WarmStart(_net(rod), rod)
-    u = _readings(rod, gen, B=COMPILED_MAX_BATCH + 2)
+    u = _readings(rod, gen, B=18)
     mask = torch.rand(u.shape[0], rod.num_gratings, generator=gen) > 0.2
     mask[:, 0] = True
-    ws.guess(u, mask)
+    ws._forward_on(torch.device("cpu"), torch.float64)
     assert isinstance(ws._forward[torch.device("cpu"), torch.float64], torch.jit.ScriptModule)  # traced, not eager
 
     def eager(curvature, present):
@@ -149,10 +148,10 @@ def test_the_traced_forward_pass_gives_the_eager_one_exactly(rod, gen):
 def test_a_network_the_tracer_cannot_reproduce_runs_eagerly(rod, gen):
     ws = WarmStart(_net(rod), rod)
     with mock.patch.object(torch.jit, "trace", side_effect=RuntimeError("no tracer here")):
-        g = ws.guess(_readings(rod, gen, B=COMPILED_MAX_BATCH + 1))
-    eager = ws._forward[torch.device("cpu"), torch.float64]
-    assert not isinstance(eager, torch.jit.ScriptModule) and eager.net is ws.net
-    assert torch.isfinite(g.count_probs).all()
+        forward = ws._forward_on(torch.device("cpu"), torch.float64)
+    assert not isinstance(forward, torch.jit.ScriptModule) and forward.net is ws.net
+    probs, _s, _f = _torch_guess(ws, _readings(rod, gen, B=17), torch.ones(17, rod.num_gratings, dtype=torch.bool))
+    assert torch.isfinite(probs).all()
 
 
 def _torch_guess(ws: WarmStart, u: torch.Tensor, mask: torch.Tensor):
@@ -162,7 +161,7 @@ def _torch_guess(ws: WarmStart, u: torch.Tensor, mask: torch.Tensor):
 
 @pytest.mark.parametrize("shipped", [False, True])
 def test_the_compiled_forward_pass_gives_the_torch_one(rod, gen, shipped):
-    """The network's forward pass for small CPU batches (torchrod.kernels.network, compiled) against the torch module
+    """The network's forward pass on the CPU (torchrod.kernels.network, compiled) against the torch module
     it was trained as, on readings with missing gratings, one of them with a single grating read: the same outputs up
     to float32 rounding."""
     ws = WarmStart.load(shipped_file("nitinol290.pt"), rod) if shipped else WarmStart(_net(rod, seed=5), rod)

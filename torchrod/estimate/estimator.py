@@ -560,9 +560,9 @@ class Estimator:
                 if h in per_count:
                     add(h, pf, -self.rod.location_bias, use)
         if self.warm_start is not None:
-            from ..learn.warm_start import COMPILED_MAX_BATCH, WarmStart
+            from ..learn.warm_start import WarmStart
 
-            if isinstance(self.warm_start, WarmStart) and device.type == "cpu" and B <= COMPILED_MAX_BATCH:
+            if isinstance(self.warm_start, WarmStart) and device.type == "cpu":
                 # The compiled pass's arrays as they are: at a batch of one reading, each torch operation on them
                 # would cost more than the network itself.
                 probs_np, s_np, f_np = self.warm_start.compiled_arrays(curvature, mask)

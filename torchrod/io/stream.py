@@ -774,9 +774,9 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
 
 
 def warm_up(estimator: Any, device: str | torch.device = "cpu") -> None:
-    """Estimate two simulated readings (one and two forces), and make the warm-start network's forward passes for
-    small and large batches, so that first-call costs (the kernels' compilation or loading, per-rod setup, the
-    network's trace, lazy initialisation in torch) do not land on the first real readings' latency."""
+    """Estimate two simulated readings (one and two forces), and make the warm-start network's forward pass on
+    ``device``, so that first-call costs (the kernels' compilation or loading, per-rod setup, the network's compiled
+    pass or its trace on a GPU, lazy initialisation in torch) do not land on the first real readings' latency."""
     from ..model.body_frame import simulate
 
     rod = estimator.rod
@@ -785,7 +785,7 @@ def warm_up(estimator: Any, device: str | torch.device = "cpu") -> None:
     u = simulate(rod, loads).grating_curvature.to(device)
     estimator.estimate(u)
     ready = getattr(getattr(estimator, "warm_start", None), "ready", None)
-    if callable(ready):  # (a large batch's forward pass too: the estimate above ran a small one's)
+    if callable(ready):
         ready(u.device, u.dtype)
 
 

@@ -141,12 +141,49 @@ def layer_pass(params, layers, eps, n, a, b):
         for t in range(n):
             for j in range(n_out):
                 dst[t, j] = 0.0
-        for i in range(n_in):
-            row = params[w + i * n_out : w + (i + 1) * n_out]  # (views: the loops over j are then vectorised)
+        # Eight inputs at a time: each output takes their eight products one after another, in the order of one
+        # input at a time (the same rounding), loaded and stored once for the eight. (Views: the loops over j are
+        # then vectorised.)
+        i = 0
+        while i + 8 <= n_in:
+            r0 = params[w + i * n_out : w + (i + 1) * n_out]
+            r1 = params[w + (i + 1) * n_out : w + (i + 2) * n_out]
+            r2 = params[w + (i + 2) * n_out : w + (i + 3) * n_out]
+            r3 = params[w + (i + 3) * n_out : w + (i + 4) * n_out]
+            r4 = params[w + (i + 4) * n_out : w + (i + 5) * n_out]
+            r5 = params[w + (i + 5) * n_out : w + (i + 6) * n_out]
+            r6 = params[w + (i + 6) * n_out : w + (i + 7) * n_out]
+            r7 = params[w + (i + 7) * n_out : w + (i + 8) * n_out]
+            for t in range(n):
+                x0 = src[t, i]
+                x1 = src[t, i + 1]
+                x2 = src[t, i + 2]
+                x3 = src[t, i + 3]
+                x4 = src[t, i + 4]
+                x5 = src[t, i + 5]
+                x6 = src[t, i + 6]
+                x7 = src[t, i + 7]
+                y = dst[t]
+                for j in range(n_out):
+                    v = y[j]
+                    v += x0 * r0[j]
+                    v += x1 * r1[j]
+                    v += x2 * r2[j]
+                    v += x3 * r3[j]
+                    v += x4 * r4[j]
+                    v += x5 * r5[j]
+                    v += x6 * r6[j]
+                    v += x7 * r7[j]
+                    y[j] = v
+            i += 8
+        while i < n_in:
+            row = params[w + i * n_out : w + (i + 1) * n_out]
             for t in range(n):
                 x = src[t, i]
+                y = dst[t]
                 for j in range(n_out):
-                    dst[t, j] += x * row[j]
+                    y[j] += x * row[j]
+            i += 1
         for t in range(n):
             for j in range(n_out):
                 dst[t, j] += bias[j]

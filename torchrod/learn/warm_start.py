@@ -68,14 +68,6 @@ LAYOUT_TOLERANCE = 1e-6
 
 CHECKPOINT_FORMAT = "torchrod.warm_start/1"
 
-COMPILED_MAX_BATCH = 16
-"""A CPU batch of at most this many readings takes its guesses from the network's compiled forward pass
-(:mod:`torchrod.kernels.network`), a larger one from torch's. Torch's pass costs a few hundred microseconds a call
-whatever the batch (its many small operations, each dispatched), then little per reading; the compiled one costs
-little a call and more per reading (its products are not blocked as a matrix library's are): the two cost about the
-same at a batch of 16 (docs/core.md). Both give the network's outputs up to float32 rounding, as torch's own pass
-does from one batch size to another."""
-
 _VERSION = operator.attrgetter("_version")
 """A tensor's count of its in-place changes (torch's), read without a Python call per parameter."""
 
@@ -668,13 +660,14 @@ class WarmStart:
         return packed[2]
 
     def ready(self, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float64) -> None:
-        """Make the forward passes for readings of ``dtype`` on ``device`` now (first calls then pay nothing): the
-        trace that large batches run, and on the CPU the compiled pass of small batches (compiled or loaded)."""
+        """Make the forward pass for readings of ``dtype`` on ``device`` now (first calls then pay nothing): on the
+        CPU the compiled pass (compiled or loaded), elsewhere torch's trace."""
         device = torch.device(device)
-        self._forward_on(device, dtype)
         if device.type == "cpu":
             G = self.net.config.num_gratings
             self.compiled_arrays(torch.zeros(1, G, 2, dtype=dtype), torch.ones(1, G, dtype=torch.bool))
+        else:
+            self._forward_on(device, dtype)
 
     def guess(self, curvature: torch.Tensor, mask: torch.Tensor | None = None) -> WarmStartGuess:
         """Guesses for every count 1..H, and the count probabilities.
@@ -690,10 +683,10 @@ class WarmStart:
         return self._guess(curvature, mask)
 
     def _guess(self, curvature: torch.Tensor, mask: torch.Tensor) -> WarmStartGuess:
-        """:meth:`guess` of readings already checked (the estimator's, which checks its input once): a small CPU
-        batch by the network's compiled forward pass (:mod:`torchrod.kernels.network`), anything else by torch's
-        (:data:`COMPILED_MAX_BATCH`)."""
-        if curvature.device.type == "cpu" and curvature.shape[0] <= COMPILED_MAX_BATCH:
+        """:meth:`guess` of readings already checked (the estimator's, which checks its input once): on the CPU by
+        the network's compiled forward pass (:mod:`torchrod.kernels.network`), each reading's guesses the same in any
+        batch; on another device (a GPU) by torch's."""
+        if curvature.device.type == "cpu":
             return self._compiled_guess(curvature, mask)
         forward = self._forward_on(curvature.device, curvature.dtype)
         with torch.inference_mode():  # cheaper than no_grad at small batch
