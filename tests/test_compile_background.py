@@ -17,6 +17,7 @@ import pytest
 import torch
 
 import torchrod as tr
+from torchrod.estimate.noise import NoiseLearning
 from torchrod.kernels import host, targets
 
 ROD = tr.presets.nitinol290()
@@ -165,6 +166,29 @@ def test_a_stream_with_solver_threads_solves_one_reading_at_a_time_on_its_own_wh
         results = list(tr.stream(est, readings, tr.StreamOptions(workers=2)))
     assert [r.id for r in results] == [0, 1, 2, 3] and all(r.error is None for r in results)
     assert events == ["solved"] * 4  # (none handed to a solver thread)
+
+
+def test_a_stream_that_learns_its_noise_answers_alike_cold_and_warm(monkeypatch):
+    """A stream that learns its noise forms the same batches, each solved with the same learned noise, whether the
+    kernels compile meanwhile (its readings then solved as Python, one at a time, until the compile ends in the
+    middle of a batch) or not: the same answers bit for bit."""
+    u = _readings(40)
+    est = tr.Estimator(ROD)  # (no noise given: the stream learns it)
+    est.plan()
+    readings = [{"id": i, "curvature": u[i].tolist()} for i in range(40)]
+    options = tr.StreamOptions(batch_size=16, workers=2, learn_noise=NoiseLearning(after=4, growth=2))
+
+    def answers(results):
+        return [{k: v for k, v in r.record.items() if k != "latency_ms"} for r in results]
+
+    warm = list(tr.stream(est, readings, options))
+    assert len({r.batch for r in warm}) >= 3  # (batches of several sizes: the learning's rounds, then full ones)
+    assert sum("noise" in r.record for r in warm) >= 30
+    with _Compiling(est.plan().compiled) as child:
+        solved = _counting_python(monkeypatch, after=lambda n: child.end() if n == 7 else None)
+        cold = list(tr.stream(est, readings, options))
+    assert len(solved) == 7 and [r.batch for r in cold[:6]] == [1] * 6
+    assert answers(cold) == answers(warm)
 
 
 def test_the_estimate_command_answers_each_reading_as_it_is_solved_while_compiling(tmp_path, monkeypatch, capsys):

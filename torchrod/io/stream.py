@@ -222,14 +222,19 @@ class _Pending:
 
 @dataclass
 class _Slot:
-    """A batch taken from the pending readings: its results, or the future of its solve in a solver thread."""
+    """A batch taken from the pending readings: its results, or the future of its solve in a solver thread, or
+    (``here``, while the kernels compile) the noise it was handed out with and how many of its readings were solved
+    so far on the stream's thread, one at a time (:meth:`_Stream.step`)."""
 
     batch: list[_Pending]
     results: list[StreamResult] | None = None
     future: Any = None
+    here: bool = False
+    noise: float | None = None
+    solved: int = 0
 
     def done(self) -> bool:
-        return self.results is not None or self.future.done()
+        return self.results is not None or self.future is None or self.future.done()
 
 
 class _Stream:
@@ -340,10 +345,13 @@ class _Stream:
     def step(self, flight: collections.deque[_Slot]) -> list[StreamResult] | None:
         """The results of the next batch in input order, or None at the end of the input. Batches are taken from
         the pending readings as they come and handed to an idle solver thread (or solved here without a pool, or
-        when one reading comes to an idle stream), while this thread goes on taking readings; at most two batches
-        per thread are in flight. A batch leaves ``pending`` only once it is handed out or solved, and ``flight``
-        only once its results are returned, so an interrupt loses none."""
+        when one reading comes to an idle stream, or a reading at a time while the kernels compile: :meth:`advance`),
+        while this thread goes on taking readings; at most two batches per thread are in flight. A batch leaves
+        ``pending`` only once it is handed out or solved, and ``flight`` only once its results are returned, so an
+        interrupt loses none."""
         while True:
+            if flight and flight[0].here:
+                return self.advance(flight)
             self.wake.clear()  # (before the checks: what happens after them sets it again)
             self.hungry = True  # (before the queue is looked at: a reading put after that sets wake)
             if flight and flight[0].done() and not self._may_send(flight):
@@ -374,7 +382,8 @@ class _Stream:
                 batch = self.pending[:limit]
                 size = -(-len(batch) // parts)
                 for k in range(0, len(batch), size):
-                    flight.append(self.send(batch[k : k + size]))
+                    part = batch[k : k + size]
+                    flight.append(self.defer(part) if self.compiling else self.send(part))
                 del self.pending[: len(batch)]
                 continue
             last = self.direct is not None and self.finished and self.pool is not None
@@ -390,7 +399,9 @@ class _Stream:
             # would cost two thread wake-ups, a large share of a paced reading's latency. Readings that come
             # meanwhile wait in the queue and go out together once it is answered (after it, in any case).
             alone = not flight and len(batch) == 1 and self.q.empty()
-            if self.pool is not None and not alone:
+            if self.compiling:
+                slot = self.defer(batch)
+            elif self.pool is not None and not alone:
                 # The input's last batches spread their readings over every core: a thread that finishes first
                 # takes readings of the batch still running, rather than waiting idle at the end.
                 slot = self.send(batch, self.workers if last else 1)
@@ -402,9 +413,7 @@ class _Stream:
     def _may_send(self, flight: collections.deque[_Slot]) -> bool:
         """Whether pending readings can go to a solver thread now: one is pending, fewer than two batches per thread
         are in flight, the next batch's size and noise do not wait on the fits in flight, and the kernels are not
-        compiling (readings are then solved as Python one at a time, :meth:`batch_limit`, here once the one before
-        is answered: handed to a solver thread, a reading would wait there behind the one in flight, the solves
-        gaining nothing side by side, and its solve time would count the wait)."""
+        compiling (batches are then solved here, :meth:`advance`)."""
         return (
             self.pool is not None
             and bool(self.pending)
@@ -419,8 +428,6 @@ class _Stream:
         (slower, less accurate) before the stream has the fits it learns from, nor a thousand readings with a sigma
         learned from 32 fits: the batches grow until the sigma comes from enough fits."""
         size = self.batch_size
-        if self.compiling:  # one reading at a time, answered at once
-            return 1
         if self.noise is None:
             return size
         learning = self.noise.learning
@@ -451,9 +458,22 @@ class _Stream:
         self.sent += 1
         return self._noise_after[answered]
 
+    def advance(self, flight: collections.deque[_Slot]) -> list[StreamResult]:
+        """The results of the next reading of the oldest batch in flight, one solved here (:meth:`defer`, while the
+        kernels compile): one reading at a time, as Python, each answered as soon as it is solved; once the kernels
+        are ready, the rest of the batch at once. The batch leaves ``flight`` with its last reading (:meth:`take`).
+        The batches and the noise each is solved with are those the stream forms with the kernels ready, and a
+        reading's answer does not depend on the readings solved with it: a cold run answers as a warm one."""
+        slot = flight[0]
+        if not self.compiling or slot.solved + 1 >= len(slot.batch):
+            return self.take(flight)
+        results = self._solve(slot.batch[slot.solved : slot.solved + 1], slot.noise)
+        slot.solved += 1
+        return results
+
     def take(self, flight: collections.deque[_Slot]) -> list[StreamResult]:
-        """The results of the oldest batch in flight (waiting for them), which leaves ``flight``; the learned noise
-        after it is kept for :meth:`hand_out`."""
+        """The results of the oldest batch in flight (waiting for them; of a batch solved here, its readings not yet
+        answered), which leaves ``flight``; the learned noise after it is kept for :meth:`hand_out`."""
         results = self.receive(flight[0])
         flight.popleft()
         self.received += 1
@@ -494,9 +514,11 @@ class _Stream:
 
     def solve(self, batch: Sequence[_Pending]) -> list[StreamResult]:
         """Estimate the usable readings of ``batch`` together, here; one result per reading, in order."""
+        return self._solve(batch, self.hand_out())
+
+    def _solve(self, batch: Sequence[_Pending], noise: float | None) -> list[StreamResult]:
         good = [p for p in batch if p.ok]
         start = time.perf_counter()
-        noise = self.hand_out()
         answers = self._answers(good, *self._estimate(good, noise)) if good else []
         return self._results(batch, answers, time.perf_counter() - start)
 
@@ -512,6 +534,10 @@ class _Stream:
         future.add_done_callback(lambda _: self.wake.set())
         return _Slot(batch, future=future)
 
+    def defer(self, batch: list[_Pending]) -> _Slot:
+        """Hand ``batch`` out to be solved on this thread by :meth:`advance` (while the kernels compile)."""
+        return _Slot(batch, here=True, noise=self.hand_out())
+
     def _timed_estimate(self, good: Sequence[_Pending], learned: float | None, threads: int) -> tuple[float, Any]:
         """:meth:`_estimate` in a solver thread, with its own duration [s]: a batch's solve time, not counting its
         wait for the thread (behind the batch before it) nor for this thread to take its results."""
@@ -522,6 +548,9 @@ class _Stream:
     def receive(self, slot: _Slot) -> list[StreamResult]:
         """The results of a batch :meth:`send` handed out (waiting for them), as :meth:`solve` gives them."""
         if slot.results is not None:
+            return slot.results
+        if slot.here:
+            slot.results = self._solve(slot.batch[slot.solved :], slot.noise)
             return slot.results
         good = [p for p in slot.batch if p.ok]
         took, out = slot.future.result()
