@@ -191,6 +191,26 @@ def test_a_stream_that_learns_its_noise_answers_alike_cold_and_warm(monkeypatch)
     assert answers(cold) == answers(warm)
 
 
+def test_a_tracking_stream_answers_alike_cold_and_warm(monkeypatch):
+    """With tracking, each batch's readings also start from the last solution of the batch before: solved a reading
+    at a time while compiling, a batch's readings still take the starts it was handed out with."""
+    u = _readings(20)
+    est = tr.Estimator(ROD, tr.EstimatorOptions(noise=0.05))
+    est.plan()
+    readings = [{"id": i, "curvature": u[i].tolist()} for i in range(20)]
+    options = tr.StreamOptions(batch_size=6, track=True, learn_noise=None)
+
+    def answers(results):
+        return [{k: v for k, v in r.record.items() if k != "latency_ms"} for r in results]
+
+    warm = list(tr.stream(est, readings, options))
+    with _Compiling(est.plan().compiled) as child:
+        solved = _counting_python(monkeypatch, after=lambda n: child.end() if n == 8 else None)
+        cold = list(tr.stream(est, readings, options))
+    assert len(solved) == 8
+    assert answers(cold) == answers(warm)
+
+
 def test_the_estimate_command_answers_each_reading_as_it_is_solved_while_compiling(tmp_path, monkeypatch, capsys):
     from torchrod.cli import main
 

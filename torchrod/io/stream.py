@@ -232,6 +232,8 @@ class _Slot:
     here: bool = False
     noise: float | None = None
     solved: int = 0
+    starts: dict[int, PointForces] | None = None  # its tracking starts, taken when it was handed out
+    last: PointForces | None = None  # the last solution among its readings solved so far (tracking)
 
     def done(self) -> bool:
         return self.results is not None or self.future is None or self.future.done()
@@ -467,7 +469,7 @@ class _Stream:
         slot = flight[0]
         if not self.compiling or slot.solved + 1 >= len(slot.batch):
             return self.take(flight)
-        results = self._solve(slot.batch[slot.solved : slot.solved + 1], slot.noise)
+        results = self._solve(slot.batch[slot.solved : slot.solved + 1], slot.noise, slot)
         slot.solved += 1
         return results
 
@@ -516,10 +518,17 @@ class _Stream:
         """Estimate the usable readings of ``batch`` together, here; one result per reading, in order."""
         return self._solve(batch, self.hand_out())
 
-    def _solve(self, batch: Sequence[_Pending], noise: float | None) -> list[StreamResult]:
+    def _solve(self, batch: Sequence[_Pending], noise: float | None, slot: _Slot | None = None) -> list[StreamResult]:
+        """``batch`` estimated here with ``noise``; as a part of ``slot`` (one solved here), with its tracking starts,
+        and leaving as the last solution the last one among its readings solved so far, as the whole batch would."""
         good = [p for p in batch if p.ok]
         start = time.perf_counter()
-        answers = self._answers(good, *self._estimate(good, noise)) if good else []
+        starts = self._tracking_starts(len(good)) if slot is None else _first(slot.starts, len(good))
+        answers = self._answers(good, *self._estimate(good, noise, starts=starts)) if good else []
+        if slot is not None and self.options.track:
+            if self.previous is None:
+                self.previous = slot.last
+            slot.last = self.previous
         return self._results(batch, answers, time.perf_counter() - start)
 
     def send(self, batch: list[_Pending], threads: int = 1) -> _Slot:
@@ -536,13 +545,14 @@ class _Stream:
 
     def defer(self, batch: list[_Pending]) -> _Slot:
         """Hand ``batch`` out to be solved on this thread by :meth:`advance` (while the kernels compile)."""
-        return _Slot(batch, here=True, noise=self.hand_out())
+        starts = self._tracking_starts(sum(p.ok for p in batch))
+        return _Slot(batch, here=True, noise=self.hand_out(), starts=starts)
 
     def _timed_estimate(self, good: Sequence[_Pending], learned: float | None, threads: int) -> tuple[float, Any]:
         """:meth:`_estimate` in a solver thread, with its own duration [s]: a batch's solve time, not counting its
         wait for the thread (behind the batch before it) nor for this thread to take its results."""
         began = time.perf_counter()
-        out = self._estimate(good, learned, threads)
+        out = self._estimate(good, learned, threads, self._tracking_starts(len(good)))
         return time.perf_counter() - began, out
 
     def receive(self, slot: _Slot) -> list[StreamResult]:
@@ -550,7 +560,7 @@ class _Stream:
         if slot.results is not None:
             return slot.results
         if slot.here:
-            slot.results = self._solve(slot.batch[slot.solved :], slot.noise)
+            slot.results = self._solve(slot.batch[slot.solved :], slot.noise, slot)
             return slot.results
         good = [p for p in slot.batch if p.ok]
         took, out = slot.future.result()
@@ -586,12 +596,16 @@ class _Stream:
         return out
 
     def _estimate(
-        self, good: Sequence[_Pending], learned: float | None, threads: int | None = None
+        self,
+        good: Sequence[_Pending],
+        learned: float | None,
+        threads: int | None = None,
+        starts: dict[int, PointForces] | None = None,
     ) -> tuple[Any, torch.Tensor, float | None, Any]:
         """The batched call on ``good`` with the ``learned`` noise (None: none), its kernels on ``threads`` CPU
-        threads (None: the stream's own): (its result, the mask, that noise, None), or, should it fail, (None, the
-        mask, the noise, what came instead: the error message of a single reading, else each reading's own call, as
-        this returns it)."""
+        threads (None: the stream's own), the tracking ``starts`` (:meth:`_tracking_starts`) beside its own: (its
+        result, the mask, that noise, None), or, should it fail, (None, the mask, the noise, what came instead: the
+        error message of a single reading, else each reading's own call, as this returns it)."""
         curvature, mask = stack_readings([p.reading for p in good])
         if self.device.type != "cpu":
             curvature, mask = curvature.to(self.device), mask.to(self.device)
@@ -604,13 +618,14 @@ class _Stream:
             if len(self._options) > 64:
                 self._options.clear()
             self._options[learned, threads] = options
-        starts = self._tracking_starts(len(good))
         try:
             result = self.estimator.estimate(curvature, mask, options=options, extra_starts=starts)
         except Exception as exc:  # noqa: BLE001 - a reading that breaks the solver must not stop the stream
             if len(good) == 1:
                 return None, mask, learned, f"estimation failed: {_exception_text(exc)}"
-            return None, mask, learned, [self._estimate(good[k : k + 1], learned, threads) for k in range(len(good))]
+            one = _first(starts, 1)
+            each = [self._estimate(good[k : k + 1], learned, threads, one) for k in range(len(good))]
+            return None, mask, learned, each
         return result, mask, learned, None
 
     def _answers(
@@ -714,6 +729,11 @@ def _exception_text(exc: BaseException) -> str:
     text = str(exc)
     text = text if len(text) <= 300 else text[:300] + "..."
     return text if isinstance(exc, (ValueError, RuntimeError)) else f"{type(exc).__name__}: {text}"
+
+
+def _first(starts: dict[int, PointForces] | None, n: int) -> dict[int, PointForces] | None:
+    """The first ``n`` rows of tracking starts (every row holds the same start; None: none)."""
+    return None if starts is None else {h: PointForces(pf.s[:n], pf.f[:n]) for h, pf in starts.items()}
 
 
 def _last_solution(result: Any) -> PointForces | None:
