@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
         kappa.shape, generator=torch.Generator().manual_seed(args.seed), dtype=kappa.dtype
     )
 
-    estimator = tr.Estimator.from_checkpoint(SHIPPED_CHECKPOINT, rod, tr.EstimatorOptions(noise=args.noise))
+    estimator = tr.load_estimator(SHIPPED_CHECKPOINT, rod, tr.EstimatorOptions(noise=args.noise))
     result = estimator.estimate(noisy)
     for b, record in enumerate(result.to_records()):
         truth = ", ".join(f"{1e3 * s:.1f} mm ({fx:+.3f}, {fy:+.3f}) N" for s, fx, fy in cases[b])

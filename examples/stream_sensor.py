@@ -3,7 +3,7 @@
     python examples/stream_sensor.py [--count N] [--rate HZ] [--noise SIGMA]
 
 A stand-in for an interrogator: a generator that yields the shipped example stream's readings at ``--rate`` readings
-per second, as a driver would. :meth:`torchrod.Estimator.stream` answers them in order; a reading that arrives while
+per second, as a driver would. :func:`torchrod.stream` answers them in order; a reading that arrives while
 a batch is solved joins the next batch. Each answer carries ``latency_ms``, from taking the reading to its answer.
 Replace ``sensor()`` with your driver: any iterable of dicts with ``id``, ``t`` [s] and ``curvature`` (one
 [u_x, u_y] pair [1/m] per grating, None for a grating without a value).
@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     warm_up(estimator)  # first-call costs now, not on the first reading's latency
     print(f"streaming {args.count} readings at {args.rate:g} Hz; {which}")
     latencies = []
-    for answer in estimator.stream(sensor(args.count, args.rate), StreamOptions(batch_size=64)):
+    for answer in tr.stream(estimator, sensor(args.count, args.rate), StreamOptions(batch_size=64)):
         if answer.error is not None:
             print(f"{answer.id}: {answer.error}")
             continue

@@ -10,7 +10,8 @@ import torch
 from torchrod import PointForces, Rod, grating_curvature, presets
 from torchrod import errors as tr_errors
 from torchrod.cli import main
-from torchrod.estimate.calibration import CalibrationData, calibrate, read_readings
+from torchrod.estimate.calibration import CalibrationData, calibrate
+from torchrod.io.known_loads import read_readings
 
 F64 = torch.float64
 ROD = presets.nitinol290()

@@ -292,7 +292,7 @@ def test_out_writes_the_answers_to_a_file(rod, tmp_path, capsys):
 
 
 def test_checkpoint_option(rod, tmp_path, capsys):
-    """--checkpoint PATH uses a warm-start network (as Estimator.from_checkpoint); a missing or unreadable
+    """--checkpoint PATH uses a warm-start network (as load_estimator); a missing or unreadable
     checkpoint is a bad option (status 2), 'none' is no network."""
     from torchrod.learn.warm_start import SHIPPED_CHECKPOINT
 

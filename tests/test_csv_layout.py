@@ -204,7 +204,7 @@ def test_stream_plot_and_calibrate_read_csv(tmp_path, capsys, curvature):
     assert png.exists() and png.stat().st_size > 1000
     capsys.readouterr()
     # calibrate's reader: the known forces in columns s_J, fx_J, fy_J
-    from torchrod.estimate.calibration import read_readings
+    from torchrod.io.known_loads import read_readings
 
     header = ["id"] + [f"ux_{k}" for k in range(1, G + 1)] + [f"uy_{k}" for k in range(1, G + 1)]
     header += ["s_1", "fx_1", "fy_1", "s_2", "fx_2", "fy_2"]

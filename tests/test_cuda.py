@@ -140,7 +140,7 @@ def test_the_network_guesses_on_cuda_as_on_the_cpu(rod, gen):
     from torchrod.learn.warm_start import SHIPPED_CHECKPOINT
 
     u, mask = stratified_readings(rod, gen, 24)
-    est = tr.Estimator.from_checkpoint(SHIPPED_CHECKPOINT, rod, tr.EstimatorOptions(noise=0.1))
+    est = tr.load_estimator(SHIPPED_CHECKPOINT, rod, tr.EstimatorOptions(noise=0.1))
     g, c = est.warm_start.guess(u.cuda(), mask.cuda()), est.warm_start.guess(u, mask)
     for h in c.forces:
         assert g.forces[h].f.is_cuda

@@ -111,8 +111,8 @@ def test_the_torch_glue_of_other_devices_answers_as_the_numpy_glue_of_the_cpu(ro
     """Around the kernels, a CPU batch is laid out and checked on NumPy views, a GPU batch with torch operations on
     the device. Run on the CPU with the views turned off (every array a tensor, as on a GPU), the same readings,
     some gratings missing and a block of starts, give the same answers bit for bit."""
+    from torchrod.estimate import checks
     from torchrod.estimate import estimator as module
-    from torchrod.io import readings as io
 
     _loads, u = readings(rod, CLEAN_CASES[:5], noise=0.1, seed=3)
     mask = torch.ones(u.shape[:2], dtype=torch.bool)
@@ -121,7 +121,7 @@ def test_the_torch_glue_of_other_devices_answers_as_the_numpy_glue_of_the_cpu(ro
     est = Estimator(rod, EstimatorOptions(noise=0.1))
     want = est.estimate(u, mask, extra_starts=starts)
     monkeypatch.setattr(module, "host_view", lambda x: x)
-    monkeypatch.setattr(io, "host_view", lambda x: x)
+    monkeypatch.setattr(checks, "host_view", lambda x: x)
     monkeypatch.setattr(module, "_zeros", lambda device, *shapes: [torch.zeros(s, dtype=d) for s, d in shapes])
     got = est.estimate(u, mask, extra_starts=starts)
     for name in ("num_forces", "status", "p_value", "loss", "std", "losses_by_count", "evaluations"):

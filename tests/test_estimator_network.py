@@ -13,7 +13,14 @@ import torch
 import torchrod as tr
 from torchrod.data import path as shipped_file
 from torchrod.estimate.estimator import Estimator, EstimatorOptions
-from torchrod.learn.warm_start import QUALITY_KEYS, TRUST_TOLERANCE, WarmStart, load_checkpoint, quality_verdict
+from torchrod.learn.warm_start import (
+    QUALITY_KEYS,
+    TRUST_TOLERANCE,
+    WarmStart,
+    load_checkpoint,
+    load_estimator,
+    quality_verdict,
+)
 
 CHECKPOINT = shipped_file("nitinol290.pt")
 
@@ -43,7 +50,7 @@ def test_the_shipped_checkpoint_records_its_quality_and_is_used_beside_the_scan(
     assert bool(weak) == (falls or rises or dearer or worse)
     rod = tr.presets.nitinol290()
     messages = []
-    est = Estimator.from_checkpoint(CHECKPOINT, rod, warn=messages.append)
+    est = load_estimator(CHECKPOINT, rod, warn=messages.append)
     assert isinstance(est.warm_start, WarmStart)
     assert est.options.starts > 0 and est.options.trust_guesses == (not weak)
     assert len(messages) == (1 if weak else 0) and (not weak or "weak" in messages[0])
@@ -64,7 +71,7 @@ def test_a_checkpoint_without_recorded_quality_is_weak(tmp_path):
     path = tmp_path / "old.pt"
     save_checkpoint(path, net, step=meta["step"], epoch=meta["epoch"])
     messages = []
-    est = Estimator.from_checkpoint(path, tr.presets.nitinol290(), warn=messages.append)
+    est = load_estimator(path, tr.presets.nitinol290(), warn=messages.append)
     assert not est.options.trust_guesses and est.warm_start is not None
     assert len(messages) == 1 and "torchrod train --evaluate" in messages[0]
 
@@ -115,7 +122,7 @@ def test_a_network_is_trusted_when_its_guesses_alone_answer_as_well_as_the_searc
     alone = {"count_accuracy": 0.5}  # the network alone: not the test
     path = _with_quality(tmp_path, **{**TRUSTED_QUALITY, **alone, **change})
     messages = []
-    est = Estimator.from_checkpoint(path, tr.presets.nitinol290(), warn=messages.append)
+    est = load_estimator(path, tr.presets.nitinol290(), warn=messages.append)
     assert est.options.trust_guesses == trusted and est.warm_start is not None
     assert len(messages) == (0 if trusted else 1)
     if not trusted:
@@ -133,7 +140,7 @@ def test_a_checkpoint_that_records_only_the_network_alone_is_weak(tmp_path):
     alone = {k: meta["quality"][k] for k in QUALITY_KEYS[:5]}
     save_checkpoint(path, net, step=meta["step"], epoch=meta["epoch"], quality=alone)
     messages = []
-    est = Estimator.from_checkpoint(path, tr.presets.nitinol290(), warn=messages.append)
+    est = load_estimator(path, tr.presets.nitinol290(), warn=messages.append)
     assert not est.options.trust_guesses
     assert len(messages) == 1 and "torchrod train --evaluate" in messages[0] and "trusted_count_accuracy" in messages[0]
 
@@ -159,7 +166,7 @@ def test_a_longer_rod_with_the_same_relative_layout_uses_the_network_too():
     rod = base.with_(length=base.length * scale, gratings=[g * scale for g in base.gratings], bending_stiffness=0.02)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the quality note
-        est = Estimator.from_checkpoint(CHECKPOINT, rod)
+        est = load_estimator(CHECKPOINT, rod)
     assert est.warm_start is not None
     kappa, _ = _readings(rod, [[(0.3, 0.4, 0.1)]])
     r = est.estimate(kappa, options=dataclasses.replace(est.options, noise=0.0))
@@ -170,7 +177,7 @@ def test_a_longer_rod_with_the_same_relative_layout_uses_the_network_too():
 def test_without_a_network_for_the_rod_it_says_so_once_and_what_to_do():
     rod = tr.presets.nitinol290().with_(gratings=[0.02 + 0.025 * k for k in range(11)])
     messages = []
-    est = Estimator.from_checkpoint(CHECKPOINT, rod, warn=messages.append)
+    est = load_estimator(CHECKPOINT, rod, warn=messages.append)
     assert est.warm_start is None and est.options.starts > 0
     assert len(messages) == 1 and "no warm-start network for this rod" in messages[0]
     assert "torchrod train" in messages[0]  # how to get one
@@ -178,7 +185,7 @@ def test_without_a_network_for_the_rod_it_says_so_once_and_what_to_do():
     r = est.estimate(kappa, options=dataclasses.replace(est.options, noise=0.0))
     assert int(r.num_forces[0]) == 1 and abs(float(r.forces.s[0, 0]) - 0.2) < 1e-4
     with pytest.warns(UserWarning, match="no warm-start network"):
-        Estimator.from_checkpoint(CHECKPOINT, rod)
+        load_estimator(CHECKPOINT, rod)
 
 
 def test_an_under_trained_network_changes_the_count_accuracy_by_less_than_a_point(tmp_path):
@@ -205,7 +212,7 @@ def test_an_under_trained_network_changes_the_count_accuracy_by_less_than_a_poin
     result = train(config)
     assert quality_verdict({"quality": result.quality})  # it is weak, and it knows it
     messages = []
-    with_net = Estimator.from_checkpoint(path, rod, EstimatorOptions(noise=0.1), warn=messages.append)
+    with_net = load_estimator(path, rod, EstimatorOptions(noise=0.1), warn=messages.append)
     assert len(messages) == 1 and "weak" in messages[0] and not with_net.options.trust_guesses
     lo = rod.gratings[1]
     sampler = LoadSampler(min_forces=1, max_forces=3, s_range=(lo, rod.length))
@@ -314,7 +321,7 @@ def test_twins_answer_as_the_search_without_them_for_fewer_evaluations():
     sampler = LoadSampler(min_forces=1, max_forces=3, force_range=(0.05, 2.0), min_separation=0.025)
     data = generate(rod, 160, sampler=sampler, sensor=SensorModel(noise=0.1), seed=17)
     opts = EstimatorOptions(noise=0.1)
-    est = Estimator.from_checkpoint(CHECKPOINT, rod, opts, warn=lambda _: None)
+    est = load_estimator(CHECKPOINT, rod, opts, warn=lambda _: None)
     assert est.options.search.twins
     on = est.estimate(data.curvature, data.mask)
     untwinned = dataclasses.replace(est.options, search=dataclasses.replace(opts.search, twins=False))
@@ -329,7 +336,7 @@ def test_twins_answer_as_the_search_without_them_for_fewer_evaluations():
 @pytest.mark.parametrize("command", ["estimate", "stream"])
 def test_the_commands_trust_a_network_as_from_checkpoint_does(tmp_path, monkeypatch, capsys, command):
     """``torchrod estimate`` and ``torchrod stream`` with ``--checkpoint`` trust the network exactly when
-    ``Estimator.from_checkpoint`` does (:func:`torchrod.learn.warm_start.is_trusted`)."""
+    ``load_estimator`` does (:func:`torchrod.learn.warm_start.is_trusted`)."""
     from torchrod.cli import main
     from torchrod.learn.warm_start import is_trusted
 
@@ -357,7 +364,7 @@ def test_the_commands_trust_a_network_as_from_checkpoint_does(tmp_path, monkeypa
         assert seen and set(seen) == {is_trusted(net)}
         assert '"num_forces": 1' in capsys.readouterr().out
         messages = []
-        assert Estimator.from_checkpoint(path, rod, warn=messages.append).options.trust_guesses == is_trusted(net)
+        assert load_estimator(path, rod, warn=messages.append).options.trust_guesses == is_trusted(net)
     assert is_trusted(WarmStart.load(trusted, rod)) and not is_trusted(WarmStart.load(CHECKPOINT, rod))
     assert not is_trusted(None)
 
@@ -367,9 +374,9 @@ def test_from_checkpoint_on_a_missing_path_raises_naming_it(tmp_path):
     asked for."""
     missing = tmp_path / "checkpoints" / "nitinol290.pt"
     with pytest.raises(tr.MissingFileError, match="nitinol290.pt"):
-        Estimator.from_checkpoint(missing, tr.presets.nitinol290())
+        load_estimator(missing, tr.presets.nitinol290())
     with pytest.raises(FileNotFoundError):  # the standard type too
-        Estimator.from_checkpoint(str(missing), tr.presets.nitinol290())
+        load_estimator(str(missing), tr.presets.nitinol290())
 
 
 def test_with_the_network_a_reading_answers_alike_alone_and_in_a_large_batch(rod):
@@ -386,7 +393,7 @@ def test_with_the_network_a_reading_answers_alike_alone_and_in_a_large_batch(rod
     u = torch.cat([drawn(k) for k in (1, 2, 3)])
     mask = torch.ones(u.shape[:2], dtype=torch.bool)
     mask[::5, 6] = False
-    est = Estimator.from_checkpoint(CHECKPOINT, rod, EstimatorOptions(noise=0.1), warn=lambda _: None)
+    est = load_estimator(CHECKPOINT, rod, EstimatorOptions(noise=0.1), warn=lambda _: None)
     together = est.estimate(u, mask)
     assert int((together.num_forces >= 2).sum()) >= 12  # (the batch holds several counts)
     for b in range(u.shape[0]):

@@ -19,7 +19,8 @@ from hypothesis import strategies as st
 
 import torchrod as tr
 from torchrod.cli import main
-from torchrod.io.readings import MAX_CURVATURE, Reading, check_readings, id_problem, iter_readings, to_reading
+from torchrod.estimate.checks import check_readings
+from torchrod.io.readings import MAX_CURVATURE, Reading, id_problem, iter_readings, to_reading
 from torchrod.sensors import Fibre
 
 ROD = tr.presets.nitinol290()

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import torch
 
+from torchrod.estimate.checks import check_readings
 from torchrod.io.readings import (
     MAX_CURVATURE,
     HugeInteger,
     Reading,
     as_number,
     check_id,
-    check_readings,
     csv_number,
     curvature_tensor,
     parse_csv_row,

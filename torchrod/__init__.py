@@ -7,7 +7,8 @@ The public surface (SI units everywhere: m, N, Pa, 1/m):
 - the shape: :func:`rod_shape`, :class:`Shape`, :func:`bending_angle`;
 - estimation: :class:`Estimator`, :class:`EstimatorOptions` (with :class:`LMPolicy` and :class:`SearchOptions`),
   :class:`EstimateResult` and its :class:`Status`; :func:`calibrate` (a rod's stiffness and location bias from
-  readings of known loads); the warm-start network, :class:`WarmStart`;
+  readings of known loads); the warm-start network, :class:`WarmStart`, and
+  :func:`load_estimator` (an estimator with a trained network's guesses);
 - streams: :func:`stream` with :class:`StreamOptions` (readings in order, in latency-bounded batches);
 - errors and warnings: :class:`TorchrodError` (with :class:`ReadingError`, :class:`RodError`,
   :class:`OptionsError`, :class:`MissingFileError`) and :class:`TorchrodWarning` (with :class:`RodWarning`);
@@ -50,6 +51,7 @@ _LAZY: dict[str, tuple[str, str | None]] = {
     "bending_angle": (".model.shape", "bending_angle"),
     "calibrate": (".estimate.calibration", "calibrate"),
     "grating_curvature": (".model.body_frame", "grating_curvature"),
+    "load_estimator": (".learn.warm_start", "load_estimator"),
     "presets": (".presets", None),
     "rod_shape": (".model.shape", "rod_shape"),
     "simulate": (".model.body_frame", "simulate"),
@@ -80,6 +82,7 @@ __all__ = [  # the names of _LAZY and __version__ (a test holds them equal)
     "bending_angle",
     "calibrate",
     "grating_curvature",
+    "load_estimator",
     "presets",
     "rod_shape",
     "simulate",
@@ -107,7 +110,7 @@ if _typing.TYPE_CHECKING:  # what static tools see; at run time __getattr__ impo
     from .estimate.options import EstimatorOptions, LMPolicy, SearchOptions
     from .estimate.status import Status
     from .io.stream import StreamOptions, stream
-    from .learn.warm_start import WarmStart
+    from .learn.warm_start import WarmStart, load_estimator
     from .loads import PointForces
     from .model.body_frame import Simulation, grating_curvature, simulate
     from .model.shape import Shape, bending_angle, rod_shape

@@ -13,15 +13,17 @@ import dataclasses
 import itertools
 import json
 import math
-import numbers
 import os
-import sys
 import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, cast
 
 from .errors import RodError, RodWarning
+from .values import clip as _clip
+from .values import positive as _positive
+from .values import real as _real
+from .values import show as _show
 
 if TYPE_CHECKING:  # torch is imported where a tensor is made: a rod file can be checked without it
     import torch
@@ -66,77 +68,11 @@ COINCIDENT = 1e-6
 act on at least this fraction of the length distal to the first grating, else no reading can see any force."""
 
 _GEOMETRY = ("outer_diameter", "inner_diameter", "youngs_modulus")
-_QUOTE = 100  # characters of an offending value quoted in an error message
 
 
 def tube_bending_stiffness(outer_diameter: float, inner_diameter: float, youngs_modulus: float) -> float:
     """Bending stiffness EI [N m^2] of a round tube: ``E * pi * (d_out^4 - d_in^4) / 64`` (diameters in m, E in Pa)."""
     return youngs_modulus * math.pi * (outer_diameter**4 - inner_diameter**4) / 64.0
-
-
-def _clip(text: str) -> str:
-    """``text`` on one line, at most about ``_QUOTE`` characters."""
-    text = " ".join(text.split())
-    return text if len(text) <= _QUOTE else text[: _QUOTE - 3] + "..."
-
-
-def _show(value: Any) -> str:
-    """An offending value as an error message quotes it: JSON spelling where there is one (null, true, "0.29"),
-    at most about 100 characters, and never the whole of a huge integer."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        try:
-            digits = str(abs(value))
-        except ValueError:  # beyond Python's int-to-text limit
-            return f"an integer of more than {sys.get_int_max_str_digits()} digits"
-        if len(digits) > 30:
-            return f"{'-' if value < 0 else ''}{digits[:12]}... (an integer of {len(digits)} digits)"
-        return str(value)
-    if isinstance(value, (str, list, tuple, dict)):
-        try:
-            return _clip(json.dumps(value if not isinstance(value, tuple) else list(value), default=repr))
-        except (TypeError, ValueError, RecursionError):
-            pass
-    try:
-        return _clip(repr(value))
-    except Exception:  # noqa: BLE001 -- a value whose repr fails is still named by its type
-        return f"a {type(value).__name__}"
-
-
-def _is_number(value: Any) -> bool:
-    """A real number: int, float, numpy's real scalars, a 0-d tensor or array of a numeric dtype. Not a bool,
-    a string, null or a container, which ``float()`` would turn into a number or a confusing error."""
-    if isinstance(value, bool):
-        return False
-    if isinstance(value, numbers.Real):
-        return True
-    dtype = getattr(value, "dtype", None)
-    return getattr(value, "ndim", None) == 0 and dtype is not None and "bool" not in str(dtype)
-
-
-def _real(name: str, value: Any, unit: str = "") -> float:
-    """``value`` as a finite float, or ``ValueError`` naming ``name`` and the value."""
-    if not _is_number(value):
-        raise ValueError(f"{name} must be a number{unit}, got {_show(value)}")
-    try:
-        x = float(value)
-    except OverflowError:
-        raise ValueError(f"{name} is too large{unit}, got {_show(value)}") from None
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number{unit}, got {_show(value)}") from None
-    if not math.isfinite(x):
-        raise ValueError(f"{name} must be finite{unit}, got {_show(value)}")
-    return x
-
-
-def _positive(name: str, value: Any, unit: str = "") -> float:
-    x = _real(name, value, unit)
-    if x <= 0.0:
-        raise ValueError(f"{name} must be positive{unit}, got {_show(value)}")
-    return x
 
 
 def _geometry_stiffness(

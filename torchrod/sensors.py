@@ -56,6 +56,8 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from .errors import RodError
+from .values import real as _real
+from .values import show as _show
 
 __all__ = [
     "CURVATURE_UNITS",
@@ -132,8 +134,6 @@ def unit_scale(key: str, name: Any, what: str | None = None, error: type[ValueEr
     (default: the key) and the known units when ``name`` is not one."""
     table = UNIT_TABLES[key]
     if not isinstance(name, str) or name not in table:
-        from .rod import _show
-
         raise error(f"{what or key} must be one of {', '.join(table)}, got {_show(name)}")
     return table[name]
 
@@ -146,7 +146,6 @@ def _symmetric2_eigen(a: float, b: float, d: float) -> tuple[float, float]:
 
 def _number(name: str, value: Any, unit: str = "") -> float:
     """A finite number from a rod file, or :class:`RodError` naming ``name``."""
-    from .rod import _real
 
     try:
         return _real(name, value, unit)
@@ -155,7 +154,6 @@ def _number(name: str, value: Any, unit: str = "") -> float:
 
 
 def _rows(name: str, value: Any, what: str) -> list[Any]:
-    from .rod import _show
 
     if isinstance(value, (str, bytes, Mapping)) or not isinstance(value, Sequence):
         raise RodError(f"{name} must be an array of {what}, got {_show(value)}")
@@ -268,7 +266,6 @@ class Wavelength:
     def from_dict(cls, data: Any) -> Wavelength:
         """From the rod file's ``"wavelength": {"reference", "calibration", "photoelastic", "peaks"}`` (unknown keys
         refused; ``peaks`` 1-based)."""
-        from .rod import _show
 
         if not isinstance(data, Mapping):
             raise RodError(
@@ -307,7 +304,6 @@ class Wavelength:
 
 def _one_based_peaks(peaks: Any) -> Any:
     """The rod file's 1-based ``[[grating, core] or null, ...]`` as 0-based pairs (checked by :func:`_check_peaks`)."""
-    from .rod import _show
 
     entries = _rows("fibre.wavelength.peaks", peaks, '[grating, core] pairs (1-based) or null, or "by-core"')
     out: list[Any] = []
@@ -326,7 +322,6 @@ def _one_based_peaks(peaks: Any) -> Any:
 def _check_peaks(peaks: Any, G: int, C: int, what: str = "fibre.wavelength.peaks") -> Any:
     """``peaks`` (an order of :data:`PEAK_ORDERS`, or 0-based (grating, core) pairs and None) checked against G
     gratings and C cores: every (grating, core) at most once, and each grating either complete or absent."""
-    from .rod import _show
 
     if isinstance(peaks, str):
         if peaks not in PEAK_ORDERS:
@@ -383,7 +378,6 @@ class Fibre:
     _derived: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False, hash=False)
 
     def __post_init__(self) -> None:
-        from .rod import _show
 
         set_ = object.__setattr__
         for key in UNIT_TABLES:
@@ -414,7 +408,6 @@ class Fibre:
             self._derive_wavelength(wl)
 
     def _checked_cores(self, cores: Sequence[Any]) -> tuple[tuple[float, float], ...]:
-        from .rod import _show
 
         if len(cores) < 3:
             raise RodError(f"fibre.cores needs at least 3 cores (not on one line), got {len(cores)}")
@@ -487,7 +480,6 @@ class Fibre:
     def from_dict(cls, data: Any) -> Fibre:
         """From the rod file's ``"fibre": {"cores", "wavelength", "curvature_unit", "strain_unit",
         "wavelength_unit"}`` (all optional, at least one given; unknown keys refused)."""
-        from .rod import _show
 
         if not isinstance(data, Mapping):
             raise RodError(f'fibre must be an object {{"cores": [[x, y], ...], ...}}, got {_show(data)}')
@@ -590,7 +582,6 @@ class Fibre:
     def curvature_sigma(self, strain_sigma: float) -> float:
         """The curvature sigma [1/m] per component that independent core strain noise ``strain_sigma`` implies
         (the larger principal one where the layout is not isotropic; module docstring)."""
-        from .rod import _real
 
         self._pinv()
         s = _real("strain noise", strain_sigma)
@@ -686,7 +677,6 @@ class Fibre:
     def wavelength_sigmas(self, sigma: float) -> list[float]:
         """Per grating, the curvature sigma [1/m] that independent wavelength noise ``sigma`` [m] per core implies:
         the larger principal sigma of sigma^2 M_g M_g^T."""
-        from .rod import _real
 
         s = _real("wavelength noise", sigma)
         if s < 0.0:

@@ -2,7 +2,7 @@
 
 The paper calibrates in two steps (its "Model Calibration"): first the location bias, then the stiffness. Both are
 fitted here by nonlinear least squares on the curvatures themselves (not on re-estimated forces), with the forward
-model :func:`torchrod.body_frame.grating_curvature` and its gradients by autograd:
+model :func:`torchrod.model.body_frame.grating_curvature` and its gradients by autograd:
 
 1. Location bias b [m]. The gratings sit at the rod's ``gratings`` in the model's coordinate; the known forces are
    located in the true (fibre's) coordinate. With the sign of :class:`~torchrod.rod.Rod` (reported location =
@@ -40,18 +40,14 @@ no rod unless ``--force``):
   :data:`MAX_RELATIVE_STD`, or none); a location bias not determined;
 - a least-squares solve that stopped on its evaluation limit.
 
-Input readings (JSON lines or CSV, :func:`read_readings`): ``{"id": ..., "curvature": [[u_x, u_y] or null, ...],
-"forces": [{"s": ..., "fx": ..., "fy": ...}, ...]}``, one curvature pair per grating [1/m] (null for a grating
-without a reading), the known forces with ``s`` [m] in the true coordinate and components [N] in the body frame.
-The reading follows the rules of every reading (:mod:`torchrod.io.readings`: finite numbers, curvature within
-1e6 1/m, optional ``t`` and ``gratings``, other keys ignored).
+The readings and their known forces come as :class:`CalibrationData` (from a file: ``torchrod calibrate``, or
+:func:`torchrod.io.known_loads.read_readings`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -72,8 +68,6 @@ __all__ = [
     "CalibrationData",
     "CalibrationResult",
     "calibrate",
-    "parse_reading",
-    "read_readings",
     "summary",
 ]
 
@@ -194,86 +188,6 @@ class CalibrationResult:
                 bending_stiffness=self.bending_stiffness,
             )
         return rod.with_(location_bias=self.location_bias, bending_stiffness=self.bending_stiffness)
-
-
-# ---------------------------------------------------------------------------------------------- reading files
-def parse_reading(
-    obj: Any, num_gratings: int, gratings: Sequence[float] | None = None, fibre: Any = None
-) -> tuple[list[list[float] | None], list[tuple[float, float, float]]]:
-    """One calibration record: the curvature pairs (None where missing) and the known forces (s, f_x, f_y).
-
-    The reading itself (``curvature`` or ``strain`` or ``curvature_polar``, ``id``, ``t``, ``gratings``; other keys
-    ignored) follows the rules of every
-    reading (:mod:`torchrod.io.readings`); ``forces`` is required, a list of ``{"s", "fx", "fy"}`` objects (finite,
-    nonzero). Raises ``ValueError`` naming the first bad field.
-    """
-    from ..io.readings import as_number, describe
-    from ..io.readings import parse_reading as parse_one
-
-    reading = parse_one(obj, num_gratings, gratings, fibre=fibre)
-    if "forces" not in obj:
-        raise ValueError('missing \'forces\' (the known forces, [{"s": ..., "fx": ..., "fy": ...}, ...])')
-    forces = obj["forces"]
-    if not isinstance(forces, list):
-        raise ValueError(f"forces must be an array of {{'s', 'fx', 'fy'}} objects, got {describe(forces)}")  # noqa: TRY004
-    known = []
-    for j, force in enumerate(forces):
-        if not isinstance(force, dict) or set(force) != {"s", "fx", "fy"}:
-            raise ValueError(f"forces[{j}] must be an object with keys 's', 'fx', 'fy', got {describe(force)}")
-        s, fx, fy = (as_number(force[k], f"forces[{j}].{k}") for k in ("s", "fx", "fy"))
-        if fx == 0.0 and fy == 0.0:
-            raise ValueError(f"forces[{j}] has zero magnitude: a known force must be nonzero")
-        known.append((s, fx, fy))
-    pairs = [None if math.isnan(ux) else [ux, uy] for ux, uy in reading.curvature.tolist()]
-    return pairs, known
-
-
-def read_readings(
-    path: str | os.PathLike,
-    rod: Rod,
-    *,
-    dtype: torch.dtype = torch.float64,
-    device: torch.device | str | None = None,
-    fmt: str = "auto",
-    quantity: str = "curvature",
-    max_line: int | None = None,
-) -> CalibrationData:
-    """Read a file of readings with known forces (format in the module docstring; ``"-"`` reads standard input):
-    JSON lines, or CSV (:data:`torchrod.io.readings.FORMATS`; the known forces in the columns ``s_J, fx_J, fy_J``,
-    J = 1, 2, ..., all three empty for a force a row does not have), in the units the rod's fibre says.
-
-    Every line is checked; raises ``ValueError`` naming the bad lines (the first five, and how many there are)
-    when any line cannot be used, or when no reading is found. ``max_line``: the longest line read [bytes] (None:
-    the rod's, :func:`torchrod.io.readings.line_limit`).
-    """
-    from ..io.readings import iter_records
-
-    name = "standard input" if os.fspath(path) == "-" else os.fspath(path)
-    rows, forces, ids, bad = [], [], [], []
-
-    def parse(obj: Any) -> Any:
-        return parse_reading(obj, rod.num_gratings, rod.gratings, rod.fibre)
-
-    records = iter_records(path, rod.num_gratings, parse, fmt, quantity=quantity, fibre=rod.fibre, max_line=max_line)
-    for record in records:
-        if not record.ok or record.value is None:
-            bad.append(record.error)
-            continue
-        pairs, known = record.value
-        rows.append(pairs)
-        forces.append(known)
-        ids.append(record.id)
-    if bad:
-        more = f" (and {len(bad) - 5} more)" if len(bad) > 5 else ""
-        raise ValueError(f"{name}: {len(bad)} unusable line(s): " + "; ".join(bad[:5]) + more)
-    if not rows:
-        raise ValueError(f"{name}: no readings")
-    present = torch.tensor([[p is not None for p in r] for r in rows], dtype=torch.bool, device=device)
-    curvature = torch.tensor(
-        [[p if p is not None else [0.0, 0.0] for p in r] for r in rows], dtype=dtype, device=device
-    )
-    loads = PointForces.from_lists(forces, dtype=dtype, device=device)
-    return CalibrationData(curvature, present, loads, tuple(ids))
 
 
 # ---------------------------------------------------------------------------------------------- least squares

@@ -2,7 +2,7 @@
 
 For B readings, :meth:`Estimator.estimate`
 
-1. checks the readings (:func:`torchrod.io.readings.check_readings`): missing gratings are masked, never read as
+1. checks the readings (:func:`torchrod.estimate.checks.check_readings`): missing gratings are masked, never read as
    zero;
 2. asks the warm-start network, when the estimator has one, for a first guess of each count;
 3. runs the kernels (:mod:`torchrod.kernels`) on every reading, on the CPU's cores or one GPU thread per reading:
@@ -21,27 +21,25 @@ from __future__ import annotations
 import dataclasses
 import heapq
 import math
-import os
 import threading
 import time
-import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
 
-from ..errors import MissingFileError, OptionsError
-from ..io.readings import check_readings, host_view
+from ..errors import OptionsError
 from ..kernels import host as _kernels
 from ..kernels.layout import Batch
 from ..loads import PointForces
 from ..rod import Rod
+from .checks import check_readings, host_view
 from .options import EstimatorOptions, LMPolicy, SearchOptions
 from .status import Status
 
-__all__ = ["EstimateResult", "Estimator", "EstimatorOptions", "LMPolicy", "SearchOptions"]
+__all__ = ["EstimateResult", "Estimator", "EstimatorOptions", "GuessSource", "LMPolicy", "SearchOptions"]
 
 ESCAPE_TURNING = math.pi / 2
 """[rad] A reading turning the rod by more than this (the integral of |u| over its gratings, the base's segment at the
@@ -172,7 +170,19 @@ class EstimateResult:
         return out
 
 
-WarmStartLike = Callable[[torch.Tensor, torch.Tensor], Mapping[int, PointForces]]
+@runtime_checkable
+class GuessSource(Protocol):
+    """What the estimator takes as a ``warm_start``: a source of first guesses, such as the trained network
+    (:class:`torchrod.WarmStart`), in MODEL coordinates (no location bias).
+
+    ``guess(curvature (B, G, 2) [1/m], mask (B, G) bool)`` returns an object with ``forces``, a dict {h:
+    :class:`~torchrod.PointForces` (B, h)}, and optionally ``count_probs`` (B, H), the probability of 1..H forces
+    (a count's guess then starts a fit only where it is at least ``guess_probability``). A source may also offer
+    ``compiled_arrays(curvature, mask)``: the same guesses as NumPy arrays (probabilities (B, H), locations (B, H,
+    H) [m], forces (B, H, H, 2) [N], count h in ``[:, h - 1, :h]``), which the estimator uses for CPU readings.
+    """
+
+    def guess(self, curvature: torch.Tensor, mask: torch.Tensor) -> Any: ...
 
 
 class Estimator:
@@ -181,11 +191,10 @@ class Estimator:
     Args:
         rod: the rod (length, EI, gratings, location bias).
         options: :class:`EstimatorOptions`.
-        warm_start: optional source of extra starts, in MODEL coordinates (no location bias): an object with a
-            ``guess(curvature, mask)`` method returning something with a ``forces`` dict {h: PointForces (B, h)}
-            (e.g. :class:`torchrod.learn.warm_start.WarmStart`), or a callable ``(curvature, mask) -> {h:
-            PointForces}``. Its guesses are starts beside the scan's (``starts`` > 0): a network can add starts,
-            never take the search's away.
+        warm_start: optional source of extra starts (:class:`GuessSource`, e.g. :class:`torchrod.WarmStart`), or a
+            callable ``(curvature, mask) -> {h: PointForces}``. Its guesses are starts beside the scan's (``starts``
+            > 0): a network can add starts, never take the search's away, unless the options trust them
+            (``trust_guesses``, as :func:`torchrod.load_estimator` sets for a trusted network).
     """
 
     def __init__(self, rod: Rod, options: EstimatorOptions | None = None, warm_start: Any = None) -> None:
@@ -202,70 +211,6 @@ class Estimator:
         self._plans: dict[Any, Any] = {}
         self._compiled: list[Any] = []  # the plans' compiled kernels, each once (few: one per target)
         self._lock = threading.Lock()
-
-    @classmethod
-    def from_checkpoint(
-        cls,
-        path: str | os.PathLike,
-        rod: Rod,
-        options: EstimatorOptions | None = None,
-        *,
-        warn: Callable[[str], None] | None = None,
-    ) -> Estimator:
-        """An estimator whose starts include a trained warm-start network's guesses.
-
-        The network is used when its grating layout (positions relative to the length) matches ``rod``'s. A
-        checkpoint whose recorded held-back quality says that its guesses alone answer as well as the full search
-        (:data:`torchrod.learn.warm_start.TRUST_TOLERANCE`) is trusted: its guesses start the fits alone, and the
-        scan serves the fits found suspicious (``trust_guesses``).
-        Otherwise the network is said to be weak, once, through ``warn`` (default: a :class:`UserWarning`), and its
-        guesses are starts beside the scan's, so it cannot make results worse. When the layout does not match (or the
-        file is damaged), the estimator runs without a network and says so, and how to train one; a path that does
-        not exist is an error (:class:`~torchrod.MissingFileError`).
-
-        Args:
-            path: a checkpoint written by :mod:`torchrod.learn.training` (loaded with ``weights_only=True``).
-            rod: the rod to estimate on.
-            options: estimator settings (default :class:`EstimatorOptions`).
-        """
-        from ..learn.warm_start import WarmStart, quality_verdict
-
-        if not os.path.exists(path):
-            raise MissingFileError(f"checkpoint {os.fspath(path)!r} does not exist (the shipped network of the "
-                                   "nitinol290 preset: torchrod.learn.warm_start.SHIPPED_CHECKPOINT)")  # fmt: skip
-        say = warn if warn is not None else (lambda m: warnings.warn(m, UserWarning, stacklevel=3))
-        options = options if options is not None else EstimatorOptions()
-        try:
-            ws = WarmStart.load(path, rod)
-        except (ValueError, FileNotFoundError, OSError) as exc:
-            say(
-                f"torchrod: no warm-start network for this rod ({exc}); estimating without one (the scan finds "
-                "the starts, slower but as accurate); train one with `torchrod generate` and `torchrod train` "
-                "(README, 'The warm-start network')"
-            )
-            return cls(rod, options)
-        weak = quality_verdict(getattr(ws, "meta", {}) or {})
-        if weak:
-            say(
-                f"torchrod: the warm-start network {os.fspath(path)!r} is weak ({weak}); its guesses are used only "
-                "beside the scan's starts"
-            )
-        return cls(rod, dataclasses.replace(options, trust_guesses=not weak), warm_start=ws)
-
-    def stream(self, readings: Any, options: Any = None, estimate_options: EstimatorOptions | None = None) -> Any:
-        """Estimate a stream of readings in order, in latency-bounded batches (:func:`torchrod.io.stream.stream`).
-
-        Args:
-            readings: any iterable of :class:`torchrod.io.stream.Reading` (or dicts with ``id``, ``curvature``,
-                optional ``t``).
-            options: :class:`torchrod.io.stream.StreamOptions` (batch size, latency bound, threads).
-            estimate_options: the :class:`EstimatorOptions` of every batch (default: the estimator's).
-        Yields:
-            one :class:`torchrod.io.stream.StreamResult` per reading, in input order.
-        """
-        from ..io.stream import StreamOptions, stream
-
-        return stream(self, readings, options if options is not None else StreamOptions(), estimate_options)
 
     # ------------------------------------------------------------------ input checks
     def _check(self, curvature: Any, mask: Any) -> tuple[torch.Tensor, torch.Tensor]:
@@ -559,26 +504,19 @@ class Estimator:
             for h, pf in extra_starts.items():
                 if h in per_count:
                     add(h, pf, -self.rod.location_bias, use)
-        if self.warm_start is not None:
-            from ..learn.warm_start import WarmStart
-
-            if isinstance(self.warm_start, WarmStart) and device.type == "cpu":
+        source = self.warm_start
+        if source is not None:
+            if device.type == "cpu" and hasattr(source, "compiled_arrays"):
                 # The compiled pass's arrays as they are: at a batch of one reading, each torch operation on them
                 # would cost more than the network itself.
-                probs_np, s_np, f_np = self.warm_start.compiled_arrays(curvature, mask)
+                probs_np, s_np, f_np = source.compiled_arrays(curvature, mask)
                 likely, anyone = gate(probs_np)
                 for h in range(1, probs_np.shape[1] + 1):
                     if h in per_count and (h > len(anyone) or anyone[h - 1]):
                         use_np = likely[:, h - 1] if likely is not None else np.ones(B, np.bool_)
                         per_count[h].append((s_np[:, h - 1, :h], f_np[:, h - 1, :h], use_np))
             else:
-                net: Any
-                if isinstance(self.warm_start, WarmStart):
-                    net = self.warm_start._guess(curvature, mask)  # checked by estimate
-                elif hasattr(self.warm_start, "guess"):
-                    net = self.warm_start.guess(curvature, mask)
-                else:
-                    net = self.warm_start(curvature, mask)
+                net = source.guess(curvature, mask) if hasattr(source, "guess") else source(curvature, mask)
                 probs = getattr(net, "count_probs", None)
                 likely, anyone = gate(None if probs is None else probs.detach().to(device))
                 for h, pf in (net.forces if hasattr(net, "forces") else net).items():

@@ -161,7 +161,7 @@ class EstimatorOptions:
         condition_limit: ``poorly_determined`` above this condition number.
         trust_guesses: a count with guesses (a warm-start network's, ``extra_starts``) is first fitted from them
             alone; the scan's starts serve only a fit found suspicious. Set by
-            :meth:`torchrod.Estimator.from_checkpoint` when the network's recorded quality is trusted.
+            :func:`torchrod.load_estimator` when the network's recorded quality is trusted.
         guess_probability: a network's guess of h forces starts a fit only where the network gives h at least this
             probability (0: every guess is used). Ignored with ``starts=0``.
         relative: readings of a precurved rod are the change of curvature from the unloaded shape, u - u*.

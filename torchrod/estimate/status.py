@@ -35,6 +35,8 @@ from __future__ import annotations
 
 from enum import Enum
 
+from ..kernels.status import NAMES
+
 __all__ = ["MISFIT_LEVEL", "STATUSES", "Status"]
 
 
@@ -57,11 +59,11 @@ class Status(str, Enum):
         return STATUSES.index(self.value)
 
 
-STATUSES = tuple(s.value for s in Status)
-"""The status names, by code: ``STATUSES[code]``."""
+STATUSES = NAMES
+"""The status names, by code: ``STATUSES[code]`` (the kernels' :data:`torchrod.kernels.status.NAMES`)."""
+
+if tuple(s.value for s in Status) != STATUSES:  # (an internal invariant: the members in the kernels' code order)
+    raise AssertionError(f"Status members {[s.value for s in Status]} differ from the kernels' codes {STATUSES}")
 
 MISFIT_LEVEL = 1e-3
 """Default significance of the misfit test: the chance that a correct fit is called a misfit."""
-
-OK, MISFIT, UNCONVERGED, POORLY_DETERMINED, TIMEOUT = range(5)
-"""The codes, as the kernels write them (:func:`torchrod.kernels.counts.verdict` applies the order above)."""

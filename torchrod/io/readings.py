@@ -88,6 +88,7 @@ import numpy as np
 import torch
 
 from ..errors import ReadingError
+from ..estimate.checks import MAX_CURVATURE
 from ..sensors import DEFAULT_UNITS, UNIT_TABLES
 
 __all__ = [
@@ -107,7 +108,6 @@ __all__ = [
     "as_number",
     "check_gratings",
     "check_id",
-    "check_readings",
     "check_time",
     "csv_id",
     "csv_number",
@@ -130,11 +130,6 @@ __all__ = [
     "wavelength_shifts",
     "wavelength_values",
 ]
-
-MAX_CURVATURE = 1e6
-"""[1/m] The largest curvature component accepted from any input: a bend radius of 1 um. A nitinol tube or an
-optical fibre breaks at radii of millimetres (curvature ~ 1e3 1/m), so a larger value is a unit or scaling error
-(microstrain, 1/km, a raw interrogator count), refused at the edge instead of being handed to the estimator."""
 
 QUOTE_CHARS = 100
 """Characters of an offending value quoted in a message, at most (its length is added when it is cut)."""
@@ -1372,80 +1367,3 @@ def line_limit(num_gratings: int, fibre: Any = None) -> int:
     cores = len(getattr(fibre, "cores", None) or ())
     values = num_gratings * (max(2, cores) + 1)
     return max(MIN_LINE_BYTES, LINE_BYTES_PER_VALUE * values)
-
-
-def host_view(x: torch.Tensor) -> Any:
-    """A CPU tensor as a NumPy array sharing its memory (without its gradient), for a few cheap operations that are
-    written for both types: at a batch of one reading, NumPy's operations cost a fraction of torch's dispatch; a
-    tensor elsewhere (a GPU's) or of a type NumPy lacks is returned as it is."""
-    if x.device.type == "cpu" and x.dtype in _NUMPY_TYPES:
-        return x.detach().numpy()
-    return x
-
-
-_NUMPY_TYPES = (torch.float64, torch.float32, torch.bool)
-
-
-def check_readings(curvature: Any, mask: Any, num_gratings: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Validate a batch of readings and return ``(curvature, mask)`` (the estimator's and the network's check).
-
-    Args:
-        curvature: (B, G, 2) floating-point tensor [1/m].
-        mask: (B, G) bool tensor on curvature's device, True where the grating was read; or None: a grating is
-            missing where both its components are NaN.
-        num_gratings: G, the rod's grating count.
-    Returns:
-        ``curvature`` unchanged and the mask.
-    Raises:
-        TypeError: curvature is not a floating-point tensor, or mask is not bool.
-        ValueError: a wrong shape (naming it), a mask on another device, or a present grating whose value is not
-            finite or exceeds :data:`MAX_CURVATURE` (without a mask: also a row with one NaN component, or an
-            infinity), naming the first such entry.
-    """
-    if not isinstance(curvature, torch.Tensor) or not curvature.is_floating_point():
-        raise TypeError(
-            f"curvature must be a floating-point tensor, got {getattr(curvature, 'dtype', type(curvature))!r}"
-        )
-    G = num_gratings
-    if curvature.dim() != 3 or curvature.shape[1:] != (G, 2):
-        raise ValueError(f"curvature must have shape (B, {G}, 2) for this rod, got {tuple(curvature.shape)}")
-    B = curvature.shape[0]
-    if mask is None:
-        values = host_view(curvature)  # (NumPy's operations where it can: cheaper than torch's on a few readings)
-        nan = values != values
-        present = ~nan.all(-1)
-        # One device sync: half-NaN rows, and present values that are infinite or beyond the bound.
-        bad = (nan.any(-1) & present) | (present & ~(abs(values) <= MAX_CURVATURE).all(-1))
-        mask = torch.from_numpy(present) if isinstance(present, np.ndarray) else present
-        if bool(bad.any()):
-            b, g = (int(x) for x in torch.as_tensor(bad).nonzero()[0])
-            pair = [float(x) for x in curvature[b, g]]
-            if any(math.isnan(x) for x in pair):
-                raise ValueError(
-                    f"curvature[{b}, {g}] = {pair} has one NaN component: a missing grating is a row of NaN "
-                    "(or give a mask)"
-                )
-            raise ValueError(_present_problem(b, g, pair))
-        return curvature, mask
-    if not isinstance(mask, torch.Tensor) or mask.shape != (B, G):
-        shape = tuple(mask.shape) if isinstance(mask, torch.Tensor) else type(mask).__name__
-        raise ValueError(f"mask must have shape (B, G) = {(B, G)}, got {shape}")
-    if mask.dtype != torch.bool:
-        raise TypeError(f"mask must be a bool tensor, got {mask.dtype}")
-    if mask.device != curvature.device:
-        raise ValueError(f"mask is on {mask.device} but curvature is on {curvature.device}")
-    values, present = host_view(curvature), host_view(mask)
-    if bool((present & ~(abs(values) <= MAX_CURVATURE).all(-1)).any()):
-        bad = mask & ~(curvature.abs() <= MAX_CURVATURE).all(-1)
-        b, g = (int(x) for x in bad.nonzero()[0])
-        raise ValueError(_present_problem(b, g, [float(x) for x in curvature[b, g]], " but the mask marks it present"))
-    return curvature, mask
-
-
-def _present_problem(b: int, g: int, pair: list[float], masked: str = "") -> str:
-    if not all(math.isfinite(x) for x in pair):
-        return f"curvature[{b}, {g}] is not finite ({quote(pair)}){masked}"
-    return (
-        f"curvature[{b}, {g}] = {quote(pair)} 1/m exceeds the bound of {MAX_CURVATURE:g} 1/m that any reading must "
-        "respect (check the units and scaling)"
-    )

@@ -23,7 +23,7 @@ survival of the reported p-value (:func:`chi2_survival`), once per reading.
 
 import math
 
-from ..estimate.status import MISFIT, OK, POORLY_DETERMINED, TIMEOUT, UNCONVERGED
+from .status import MISFIT, OK, POORLY_DETERMINED, TIMEOUT, UNCONVERGED
 from .views import tables_of
 
 RULE_NOISE = 0

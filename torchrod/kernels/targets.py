@@ -112,9 +112,8 @@ def source_digest(extra: str = "") -> str:
     """A digest of the kernel source and of the compiler, naming the on-disk cache of compiled kernels."""
     h = hashlib.sha256()
     here = Path(__file__).parent
-    for name in (*MODULES, "layout", "targets"):
+    for name in (*MODULES, "status", "layout", "targets"):
         h.update((here / f"{name}.py").read_bytes())
-    h.update((here.parent / "estimate" / "status.py").read_bytes())  # the status codes the kernels write
     import numba
 
     h.update(f"numba {numba.__version__} python {sys.version_info[:2]} {extra}".encode())

@@ -36,7 +36,9 @@ import torch
 from torch import nn
 
 from ..errors import MissingFileError
-from ..io.readings import check_readings
+from ..estimate.checks import check_readings
+from ..estimate.estimator import Estimator
+from ..estimate.options import EstimatorOptions
 from ..kernels import network as network_kernel
 from ..kernels.host import network_rows
 from ..loads import PointForces
@@ -848,7 +850,7 @@ a fit worse than the full search's (a loss higher by more than sigma^2: a wrong 
 show). It must also cost fewer evaluations than the
 estimator without a network: trusting exists to save work, and the search's guards keep even a bad network's
 answers accurate, at the price of more evaluations. A weaker network is said to be weak, once, by
-:meth:`torchrod.Estimator.from_checkpoint`, which then uses its guesses beside the scan's starts, so it cannot make
+:func:`load_estimator`, which then uses its guesses beside the scan's starts, so it cannot make
 results worse. The network alone is not the test: on readings whose forces the noise hides, no estimator can count
 them, and the prior a network learns can count better than any fit without being a good start
 (docs/guides/network.md)."""
@@ -917,3 +919,49 @@ def shipped_network(rod: Rod) -> tuple[WarmStart | None, str]:
         "no shipped warm-start network fits this rod's grating layout; estimating without one (as accurate, "
         "slower: `torchrod train` makes one)"
     )
+
+
+def load_estimator(
+    path: str | os.PathLike,
+    rod: Rod,
+    options: EstimatorOptions | None = None,
+    *,
+    warn: Callable[[str], None] | None = None,
+) -> Estimator:
+    """An estimator whose starts include a trained warm-start network's guesses.
+
+    The network is used when its grating layout (positions relative to the length) matches ``rod``'s. A
+    checkpoint whose recorded held-back quality says that its guesses alone answer as well as the full search
+    (:data:`TRUST_TOLERANCE`) is trusted: its guesses start the fits alone, and the scan serves the fits found
+    suspicious (``trust_guesses``). Otherwise the network is said to be weak, once, through ``warn`` (default: a
+    :class:`UserWarning`), and its guesses are starts beside the scan's, so it cannot make results worse. When the
+    layout does not match (or the file is damaged), the estimator runs without a network and says so, and how to
+    train one; a path that does not exist is an error (:class:`~torchrod.MissingFileError`).
+
+    Args:
+        path: a checkpoint written by ``torchrod train`` (loaded with ``weights_only=True``).
+        rod: the rod to estimate on.
+        options: estimator settings (default :class:`~torchrod.EstimatorOptions`).
+        warn: where the notes on the network go (default: :func:`warnings.warn`).
+    """
+    if not os.path.exists(path):
+        raise MissingFileError(f"checkpoint {os.fspath(path)!r} does not exist (the shipped network of the "
+                               "nitinol290 preset: torchrod.learn.warm_start.SHIPPED_CHECKPOINT)")  # fmt: skip
+    say = warn if warn is not None else (lambda m: warnings.warn(m, UserWarning, stacklevel=3))
+    options = options if options is not None else EstimatorOptions()
+    try:
+        ws = WarmStart.load(path, rod)
+    except (ValueError, FileNotFoundError, OSError) as exc:
+        say(
+            f"torchrod: no warm-start network for this rod ({exc}); estimating without one (the scan finds "
+            "the starts, slower but as accurate); train one with `torchrod generate` and `torchrod train` "
+            "(README, 'The warm-start network')"
+        )
+        return Estimator(rod, options)
+    weak = quality_verdict(ws.meta)
+    if weak:
+        say(
+            f"torchrod: the warm-start network {os.fspath(path)!r} is weak ({weak}); its guesses are used only "
+            "beside the scan's starts"
+        )
+    return Estimator(rod, dataclasses.replace(options, trust_guesses=not weak), warm_start=ws)

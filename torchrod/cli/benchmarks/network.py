@@ -6,7 +6,7 @@ body-frame direction, locations from the second grating to the tip, bending <= 9
 
 * ``network``: the network alone (its most probable count and that count's forces);
 * ``estimator``: the estimator without a network (the scan's starts);
-* ``estimator+network``: :meth:`torchrod.Estimator.from_checkpoint`: the network's guesses beside the scan's
+* ``estimator+network``: :func:`torchrod.load_estimator`: the network's guesses beside the scan's
   starts, or alone where the checkpoint's recorded quality says it can be trusted.
 
 Columns: count accuracy, median force error (|f_est - f_true| / |f_true|, %) and location error (mm) over readings
@@ -25,7 +25,7 @@ from typing import Any
 import torch
 
 from ...estimate.estimator import Estimator, EstimatorOptions
-from ...learn.warm_start import SHIPPED_CHECKPOINT
+from ...learn.warm_start import SHIPPED_CHECKPOINT, load_estimator
 from ...presets import load as load_rod
 from ..commands import rod_help
 from ..commands.evaluate import cell_metrics
@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     count, single = (12, 2) if args.quick else (args.count, args.single)
     warm_start = WarmStart.load(args.checkpoint, rod)
     plain = Estimator(rod, EstimatorOptions(noise=args.noise))
-    with_net = Estimator.from_checkpoint(args.checkpoint, rod, EstimatorOptions(noise=args.noise))
+    with_net = load_estimator(args.checkpoint, rod, EstimatorOptions(noise=args.noise))
     print(
         f"torchrod bench network: {rod.num_gratings} gratings, noise {args.noise} 1/m, {count} held-back readings "
         f"per k (seed {args.seed}), torch threads {torch.get_num_threads()}, checkpoint {args.checkpoint}"

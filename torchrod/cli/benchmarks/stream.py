@@ -3,7 +3,7 @@
 Readings: a synthetic trajectory (:func:`torchrod.synthetic.generate_trajectory`) of ``--count`` readings at
 ``--rate`` Hz: 1 to 3 contacts that appear, move, grow and vanish, Gaussian noise ``--noise`` per component. The
 estimator (default options, count chosen among 0..3, told the noise; the warm-start network of ``--checkpoint``
-when it fits the rod, loaded as :meth:`Estimator.from_checkpoint` does: its guesses are starts beside the scan's
+when it fits the rod, loaded as :func:`torchrod.load_estimator` does: its guesses are starts beside the scan's
 unless its recorded quality says it can be trusted; ``--set`` changes any option) runs
 the same readings several ways, in one run:
 
@@ -425,7 +425,7 @@ def _profile_lines(profile: cProfile.Profile, wall: float, readings: int) -> lis
 
 
 def _options(noise: float | None, settings: list[str], network: Any) -> EstimatorOptions:
-    """EstimatorOptions(noise=noise) (with a trusted network, ``trust_guesses``, as ``Estimator.from_checkpoint``
+    """EstimatorOptions(noise=noise) (with a trusted network, ``trust_guesses``, as ``load_estimator``
     sets it), then the ``FIELD=VALUE`` settings (values as Python literals; ``lm.FIELD`` and ``search.FIELD`` set a
     field of the Levenberg-Marquardt policy or of the search options)."""
     from ...learn.warm_start import is_trusted

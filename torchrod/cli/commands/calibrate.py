@@ -133,7 +133,8 @@ def run(args: argparse.Namespace) -> int:
         return _fibre(args, rod, base)
     if args.gain_tolerance is not None:
         raise ValueError("--gain-tolerance is an option of --fibre")
-    from ...estimate.calibration import calibrate, read_readings, summary
+    from ...estimate.calibration import calibrate, summary
+    from ...io.known_loads import read_readings
 
     data = read_readings(args.readings, rod, fmt=args.format, quantity=args.csv_quantity, max_line=args.max_line_bytes)
     result = calibrate(rod, data, directions=args.directions, initial_bias=args.initial_bias, noise=args.noise)

@@ -48,7 +48,7 @@ it they estimate it from each reading (slower and weaker).
 The starts of a trained warm-start network join the scan's: by default the network shipped for the rod's grating
 layout (``nitinol290`` and every rod with its gratings at the same positions relative to the length; for another
 layout the command says once on stderr that it runs without one), ``--checkpoint PATH`` names another, and
-``--checkpoint none`` turns it off. As in ``Estimator.from_checkpoint``, a network that its checkpoint does not
+``--checkpoint none`` turns it off. As in ``load_estimator``, a network that its checkpoint does not
 show to be trustworthy only adds starts beside the scan's, so it cannot make results worse. ``torchrod stream``
 chooses its network the same way.
 
@@ -233,7 +233,7 @@ def options_from_args(args: argparse.Namespace) -> EstimatorOptions:
 
 
 def trusting(options: EstimatorOptions, network: Any) -> EstimatorOptions:
-    """``options`` with ``trust_guesses`` as ``Estimator.from_checkpoint`` sets it: a trusted network's guesses
+    """``options`` with ``trust_guesses`` as ``load_estimator`` sets it: a trusted network's guesses
     start the fits alone (:func:`torchrod.learn.warm_start.is_trusted`), a weak one's are starts beside the scan's."""
     from ...learn.warm_start import is_trusted
 

@@ -56,7 +56,7 @@ batch wait up to MS for more lines; ``--workers N``, default 0: one per CPU core
 threads while the next lines are read, so that a backlog or a file uses every core and a live source's consecutive
 readings are solved on different cores).
 Each reading starts from the scan of the estimator and the warm-start network's guess (as in
-``Estimator.from_checkpoint``, a network adds starts, never replaces the scan; ``--track`` adds the previous
+``load_estimator``, a network adds starts, never replaces the scan; ``--track`` adds the previous
 reading's solution); the number of forces is chosen among 0..``--max-forces`` (``--noise``: the sensor's sigma
 [1/m]). Without ``--noise`` the stream learns the sigma from its own fits (the median of each fit's loss over its
 chi-square median, torchrod.estimate.noise): the first 32 fits estimate the noise per reading, every later batch
@@ -304,7 +304,7 @@ def _run(args: argparse.Namespace) -> int:
     network = choose_network(args.checkpoint, rod, "stream")
     if args.iterations < 0:
         raise ValueError(f"--iterations must be >= 0, got {args.iterations}")
-    # As Estimator.from_checkpoint: a trusted network's guesses start the fits alone, a weak one's are beside.
+    # As load_estimator: a trusted network's guesses start the fits alone, a weak one's are beside.
     estimator_options = EstimatorOptions(
         max_forces=args.max_forces,
         noise=args.noise,
