@@ -27,6 +27,7 @@ def test_every_example_is_tested():
         "estimate_file.py",
         "stream_sensor.py",
         "own_rod.py",
+        "fit_rod_by_gradient.py",
     }
 
 
@@ -68,3 +69,22 @@ def test_own_rod_writes_a_rod_file_the_cli_reads(tmp_path):
 
     rod = tr.presets.load(str(rod_file))
     assert rod.length == 0.4 and rod.num_gratings == 8 and rod.youngs_modulus == 193e9
+
+
+def test_fit_rod_by_gradient_lands_where_calibrate_does(tmp_path):
+    """Gradient descent through the estimator and the least-squares calibration find the same stiffness and bias,
+    both near the truth."""
+    out = run("fit_rod_by_gradient.py", "--steps", "120", cwd=tmp_path)
+    values = {}
+    for line in out.splitlines():
+        name, _, rest = line.partition(":")
+        if name.strip() in ("truth", "gradient descent", "calibrate"):
+            words = rest.split()
+            values[name.strip()] = (float(words[1]), float(words[5]))
+    (ei, bias), (ei_cal, bias_cal), (ei_true, bias_true) = (
+        values["gradient descent"],
+        values["calibrate"],
+        values["truth"],
+    )
+    assert abs(ei / ei_cal - 1) < 0.01 and abs(bias - bias_cal) < 0.2  # [mm]
+    assert abs(ei / ei_true - 1) < 0.02 and abs(bias - bias_true) < 0.3

@@ -35,6 +35,7 @@ from ..kernels import host as _kernels
 from ..kernels.layout import Batch
 from ..loads import PointForces
 from ..rod import Rod
+from . import implicit
 from .checks import check_readings, host_view
 from .options import EstimatorOptions, LMPolicy, SearchOptions
 from .status import Status
@@ -312,9 +313,16 @@ class Estimator:
         *,
         options: EstimatorOptions | None = None,
         extra_starts: Mapping[int, PointForces] | None = None,
+        bending_stiffness: float | torch.Tensor | None = None,
+        location_bias: float | torch.Tensor | None = None,
         _escape: bool = True,
     ) -> EstimateResult:
         """Estimate the forces behind B readings.
+
+        The forces and locations are differentiable (:mod:`torchrod.estimate.implicit`, through the optimum, with
+        no unrolling): in the readings when ``curvature`` requires grad, in the stiffness and the location bias
+        when they are given as tensors that do. The count, the status and the other fields carry no gradient;
+        ``loss`` has its gradient in the readings too.
 
         Args:
             curvature: (B, G, 2) measured (u_x, u_y) at the rod's gratings [1/m]; values at missing gratings are
@@ -324,6 +332,11 @@ class Estimator:
             extra_starts: {h: PointForces (B, h)} additional starting guesses in REPORTED coordinates (as in
                 :attr:`EstimateResult.forces`, so a previous solution can be passed as is); a row whose forces are
                 not all finite starts from no load instead; counts that are not fitted are ignored.
+            bending_stiffness: EI [N m^2] for these readings instead of the rod's: a number, or a tensor () or (B,)
+                (the rod's torsional stiffness scales with it). Exact by the scaling law of the rod's equations:
+                the estimate at EI0 with every force (and its standard deviation) times EI / EI0.
+            location_bias: the location bias [m] for these readings instead of the rod's: a number, or a tensor
+                () or (B,); reported locations are ``s_model + location_bias``.
         Returns:
             :class:`EstimateResult` in ``curvature``'s dtype and device (computed in float64).
         """
@@ -331,7 +344,74 @@ class Estimator:
         if not isinstance(opts, EstimatorOptions):
             raise TypeError(f"options must be EstimatorOptions, got {type(opts).__name__}")
         curvature, mask = self._check(curvature, mask)
-        device, out_dtype = curvature.device, curvature.dtype
+        B = curvature.shape[0]
+        ei = _per_reading("bending_stiffness", bending_stiffness, B, curvature, positive=True)
+        bias = _per_reading("location_bias", location_bias, B, curvature, positive=False)
+        tracked = torch.is_grad_enabled() and any(
+            isinstance(x, torch.Tensor) and x.requires_grad for x in (curvature, bending_stiffness, location_bias)
+        )
+        if ei is None and bias is None and not tracked:
+            return self._estimate(curvature, mask, opts, extra_starts, _escape, curvature.dtype)
+        if extra_starts and (ei is not None or bias is not None):  # the caller's starts at the rod's own values
+            extra_starts = {
+                h: self._own_values(pf, ei, bias) for h, pf in extra_starts.items() if isinstance(pf, PointForces)
+            }
+        base = self._estimate(curvature.detach(), mask, opts, extra_starts, _escape, torch.float64)
+        return self._differentiable(base, curvature, mask, opts, ei, bias)
+
+    def _own_values(self, pf: PointForces, ei: torch.Tensor | None, bias: torch.Tensor | None) -> PointForces:
+        """Starts given at the stiffness ``ei`` (B,) and bias ``bias`` (B,), moved to the rod's own values."""
+        s, f = pf.s.detach(), pf.f.detach()
+        if bias is not None:
+            s = s - bias.detach().to(s.dtype)[:, None] + self.rod.location_bias
+        if ei is not None:
+            f = f * (self.rod.bending_stiffness / ei.detach().to(f.dtype))[:, None, None]
+        return PointForces(s, f, pf.mask)
+
+    def _differentiable(
+        self,
+        base: EstimateResult,
+        curvature: torch.Tensor,
+        mask: torch.Tensor,
+        opts: EstimatorOptions,
+        ei: torch.Tensor | None,
+        bias: torch.Tensor | None,
+    ) -> EstimateResult:
+        """``base`` (float64, at the rod's stiffness and bias) at the given stiffness and bias, its forces and
+        loss differentiable as :meth:`estimate` says, in ``curvature``'s dtype."""
+        rod = self.rod
+        active = base.forces.active
+        s, f, loss = base.forces.s - rod.location_bias, base.forces.f, base.loss
+        if torch.is_grad_enabled() and curvature.requires_grad:
+            u = torch.where(mask[..., None], curvature.to(torch.float64), 0.0)
+            if opts.relative and rod.precurved:
+                u = u + rod.unloaded_curvature(torch.float64, u.device)
+            s, f = implicit.through_optimum(rod, u, mask, s, f, active, opts.max_step_angle)
+            theta = torch.cat([s.detach()[..., None], f.detach()], dim=-1)
+            again = implicit.fit_loss(rod, theta, active, u, mask, opts.max_step_angle)
+            loss = loss + (again - again.detach())  # the loss's value, its gradient (the envelope theorem)
+        std = base.std
+        if ei is not None:
+            scale = ei / rod.bending_stiffness
+            f = f * scale[:, None, None]
+            std = torch.cat([std[..., :1], std[..., 1:] * scale.detach()[:, None, None]], dim=-1)
+        s = s + (bias[:, None] if bias is not None else rod.location_bias)
+        s = torch.where(active, s, base.forces.s)
+        f = torch.where(active[..., None], f, base.forces.f)
+        result = dataclasses.replace(base, forces=PointForces(s, f, active), loss=loss, std=std)
+        return _in_dtype(result, curvature.dtype)
+
+    def _estimate(
+        self,
+        curvature: torch.Tensor,
+        mask: torch.Tensor,
+        opts: EstimatorOptions,
+        extra_starts: Mapping[int, PointForces] | None,
+        _escape: bool,
+        out_dtype: torch.dtype,
+    ) -> EstimateResult:
+        """:meth:`estimate` of checked readings at the rod's own stiffness and bias, without gradients."""
+        device = curvature.device
         B, G = mask.shape
         W = opts.width
         u, w, noise2 = self._kernel_readings(curvature, mask, opts)
@@ -662,6 +742,39 @@ def _zeros(device: torch.device, *shapes: tuple[tuple[int, ...], torch.dtype]) -
 
 
 _NUMPY = {torch.float64: np.float64, torch.bool: np.bool_}
+
+
+def _per_reading(
+    name: str, value: float | torch.Tensor | None, B: int, like: torch.Tensor, *, positive: bool
+) -> torch.Tensor | None:
+    """A rod value given per call (:meth:`Estimator.estimate`) as a float64 tensor (B,) on ``like``'s device,
+    keeping its gradient; None for None."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float, torch.Tensor)):
+        raise OptionsError(f"{name} must be a number or a tensor, got {type(value).__name__}")
+    t = torch.as_tensor(value, dtype=torch.float64, device=like.device)
+    if t.dim() > 1 or (t.dim() == 1 and t.shape[0] not in (1, B)):
+        raise OptionsError(f"{name} must be a scalar or have shape (B,) = ({B},), got shape {tuple(t.shape)}")
+    bad = ~torch.isfinite(t) | (t <= 0.0) if positive else ~torch.isfinite(t)
+    if bool(bad.any()):
+        worst = float(t.detach().reshape(-1)[bad.reshape(-1)][0])
+        raise OptionsError(f"{name} must be {'positive and ' if positive else ''}finite, got {worst!r}")
+    return t.expand(B) if t.dim() == 0 or t.shape[0] == 1 else t
+
+
+def _in_dtype(result: EstimateResult, dtype: torch.dtype) -> EstimateResult:
+    """``result`` with its float64 fields in ``dtype`` (differentiably)."""
+    if dtype == torch.float64:
+        return result
+    fields: dict[str, Any] = {}
+    for field in dataclasses.fields(result):
+        x = getattr(result, field.name)
+        if isinstance(x, PointForces):
+            fields[field.name] = PointForces(x.s.to(dtype), x.f.to(dtype), x.mask)
+        else:
+            fields[field.name] = x.to(dtype) if x.dtype == torch.float64 else x
+    return EstimateResult(**fields)
 
 
 def _tensors(out: Any) -> dict[str, torch.Tensor]:
