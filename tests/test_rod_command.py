@@ -92,6 +92,15 @@ def test_it_asks_for_what_is_missing_and_refuses_a_file_with_numbers(capsys):
     assert "ROD" in capsys.readouterr().err
 
 
+def test_a_preset_is_written_as_its_rod_file_but_never_over_its_input(tmp_path, capsys):
+    out = tmp_path / "copy.json"
+    assert main(["rod", "nitinol290", "--out", str(out)]) == 0
+    assert Rod.from_json(out) == tr.presets.nitinol290()
+    before = out.read_text()
+    assert main(["rod", str(out), "--out", str(out)]) == 2
+    assert "would erase the input" in capsys.readouterr().err and out.read_text() == before
+
+
 def test_an_option_for_every_number_of_a_rod_file():
     keys = {f.name for f in dataclasses.fields(Rod)}
     assert keys == {*NUMBER_OPTIONS, "gratings", *NOT_OPTIONS}

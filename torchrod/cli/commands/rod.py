@@ -169,8 +169,10 @@ def report_lines(report, where: str) -> list[str]:
         )
     tip += f"; a tip force of {_newtons(report.smallest_tip_force)} gives that grating a curvature equal to the noise"
     lines += wrap.wrap(f"{report.tip_load:g} N at the tip      {tip}")
-    for text in report.limitations or ("none",):
-        lines += wrap.wrap(f"limitation          {text}" if text != "none" else "limitations         none")
+    for text in report.limitations:
+        lines += wrap.wrap(f"limitation          {text}")
+    if not report.limitations:
+        lines.append("limitations         none")
     return lines
 
 
