@@ -226,3 +226,80 @@ def test_csv_id_matches_the_json_reading_of_the_same_id():
     from_json = parse_reading({"id": 3, "curvature": zero}, G)
     (from_csv,) = _read("3,," + ",".join(["0.0"] * (2 * G)) + "\n")
     assert from_csv.id == from_json.id and type(from_csv.id) is type(from_json.id)
+
+
+# ------------------------------------------------------------------------------------------ errors that name the fix
+@pytest.mark.parametrize(
+    ("separator", "named"), [(";", "semicolons (;)"), ("\t", "tabs"), ("|", "vertical bars (|)"), (" ", "spaces")]
+)
+def test_a_header_in_one_cell_names_its_separator_and_asks_for_commas(separator, named):
+    header = separator.join(["id", "t"] + [f"ux_{k}" for k in range(1, G + 1)] + [f"uy_{k}" for k in range(1, G + 1)])
+    row = separator.join(["1", "0.0"] + ["0.5"] * (2 * G))
+    with pytest.raises(ReadingError) as error:
+        _read(f"{header}\n{row}\n")
+    message = str(error.value)
+    assert message.startswith("line 1: the CSV header is one cell")
+    assert f"separated by {named}, not commas" in message and "write the file with commas" in message
+
+
+def test_a_first_row_without_header_in_one_cell_names_its_separator_too():
+    with pytest.raises(ReadingError, match=r"the CSV first row is one cell .*separated by semicolons \(;\)"):
+        _read(";".join(["0.5"] * (2 * G)) + "\n")
+
+
+def test_a_row_of_one_cell_without_a_separator_is_still_an_error_line():
+    (got,) = _read("hello\n")
+    assert not got.ok and "got 1" in got.error
+
+
+def _header_without_id_or_t(extra: list[str]) -> str:
+    return ",".join(extra + [f"ux_{k}" for k in range(1, G + 1)] + [f"uy_{k}" for k in range(1, G + 1)])
+
+
+def test_a_header_without_id_or_t_says_which_columns_it_ignores(curvature):
+    u = curvature[0]
+    text = (
+        _header_without_id_or_t(["sample", "Time"]) + "\n" + ",".join(["3", "0.5", *_cells(u[:, 0]), *_cells(u[:, 1])])
+    )
+    with pytest.warns(tr.ReadingWarning) as caught:
+        (got,) = _read(text + "\n")
+    assert got.ok and got.id is None and got.t is None  # read, but without them
+    (warning,) = caught
+    message = str(warning.message)
+    assert message.startswith("line 1: the CSV header has no id or t column and ignores the columns 'sample', 'Time'")
+    assert "rename 'sample' to id" in message and "rename 'Time' to t" in message
+
+
+def test_no_warning_when_the_header_has_t_or_ignores_nothing(curvature, recwarn):
+    u = curvature[0]
+    values = [*_cells(u[:, 0]), *_cells(u[:, 1])]
+    _read(_header_without_id_or_t(["t", "temperature"]) + "\n" + ",".join(["0.5", "21.0", *values]) + "\n")
+    _read(_header_without_id_or_t([]) + "\n" + ",".join(values) + "\n")
+    assert not [w for w in recwarn if issubclass(w.category, tr.TorchrodWarning)]
+
+
+def test_a_header_that_fails_names_the_columns_it_ignored():
+    with pytest.raises(ReadingError, match=r"lacks the columns .* \(it ignores the columns 'sample', 'time'\)"):
+        _read("sample,time,ux_1,uy_1\n1,2,3,4\n")
+
+
+def test_the_command_prints_the_ignored_columns_as_a_warning(tmp_path, capsys, curvature):
+    u = curvature[0]
+    path = tmp_path / "r.csv"
+    path.write_text(
+        _header_without_id_or_t(["sample", "time"]) + "\n" + ",".join(["3", "0.5", *_cells(u[:, 0]), *_cells(u[:, 1])])
+    )
+    assert main(["estimate", "--rod", "nitinol290", "--noise", "0.1", str(path)]) == 0
+    err = capsys.readouterr().err
+    assert "torchrod estimate: warning: line 1: the CSV header has no id or t column" in err
+    path.write_text("t;ux_1;uy_1\n0;1;2\n")
+    assert main(["estimate", "--rod", "nitinol290", "--noise", "0.1", str(path)]) == 2
+    assert "error: line 1: the CSV header is one cell" in capsys.readouterr().err
+
+
+def test_a_title_line_in_one_cell_stays_an_error_line_of_its_own(curvature):
+    u = curvature[0]
+    row = ",".join(["r1", "0.5", *(x for k in range(G) for x in _cells(u[k]))])
+    title, got = _read(f"Exported by FooSoft 1.2; all channels\n{row}\n")
+    assert not title.ok and title.line == 1
+    assert got.ok and got.id == "r1"

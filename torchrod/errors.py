@@ -14,6 +14,7 @@ __all__ = [
     "MissingFileError",
     "OptionsError",
     "ReadingError",
+    "ReadingWarning",
     "RodError",
     "RodWarning",
     "TorchrodError",
@@ -51,3 +52,8 @@ class TorchrodWarning(UserWarning):
 class RodWarning(TorchrodWarning):
     """A rod that works, but cannot determine everything a user may ask of it: forces where no grating can see
     them, gratings so close that they read the same curvature, a single grating (:attr:`torchrod.Rod.limitations`)."""
+
+
+class ReadingWarning(TorchrodWarning):
+    """Readings that can be used, but not as their file may mean: a CSV header without ``id`` or ``t`` whose other
+    columns are ignored (a ``sample`` or ``time`` column that was meant as one of them)."""

@@ -37,7 +37,10 @@ __all__ = [
     "LENGTH_RANGE",
     "MAX_DIAMETER",
     "YOUNGS_MODULUS_RANGE",
+    "FORCE_RULE",
+    "MIN_TEST_DOF",
     "Rod",
+    "max_testable_forces",
     "tube_bending_stiffness",
 ]
 
@@ -572,3 +575,23 @@ def _no_repeated_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
             raise ValueError(_clip(f"the key {key!r} appears twice in one object"))
         out[key] = value
     return out
+
+
+# ------------------------------------------------------------------------------------------------ what a rod can tell
+MIN_TEST_DOF = 3
+"""The fewest degrees of freedom a fit must leave for its count to be tested against the noise (a chi-square test of
+fewer says little): :func:`max_testable_forces`."""
+
+FORCE_RULE = (
+    "a fit of h forces has 3h unknowns (s, fx, fy each) against the 2G values of a reading (ux, uy at each of G "
+    f"gratings); h forces can be told apart when 2G - 3h >= {MIN_TEST_DOF} degrees of freedom are left to test the "
+    "fit against the noise"
+)
+"""The rule of :func:`max_testable_forces`, in words."""
+
+
+def max_testable_forces(num_gratings: int) -> int:
+    """The most forces that readings of ``num_gratings`` gratings can tell apart (:data:`FORCE_RULE`): the largest h
+    with ``2 G - 3 h >= MIN_TEST_DOF`` (0 when not even one force leaves that many; a reading that misses gratings
+    has fewer)."""
+    return max(0, (2 * num_gratings - MIN_TEST_DOF) // 3)

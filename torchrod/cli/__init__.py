@@ -30,6 +30,8 @@ COMMANDS: dict[str, str] = {
     "simulate": "the curvature the gratings would read under given point forces (to test or to make data)",
     "plot": "figures of readings and their estimates: the bent rod with its forces, the fit, forces over time",
     "calibrate": "fit a rod's location bias and bending stiffness from readings with known forces",
+    "rod": "write a rod file from its numbers, or check one: EI, the grating layout, how many forces it can tell "
+    "apart, the warm-start network, the curvature of a 1 N tip load",
     "generate": "synthetic training sets and synthetic reading streams with their true forces",
     "train": "train the warm-start network that gives the estimator its first guess",
     "evaluate": "how accurate the estimator is on simulated readings, by number of forces and noise level",

@@ -40,7 +40,10 @@ CSV rows (``--format csv``, :class:`CsvLayout`)
     ``id`` and ``t`` (optional), ``ux_K``/``uy_K`` (grating K, 1-based), ``kappa_K``/``phi_K``, ``eps_K_C`` (core C,
     1-based), ``lambda_K_C`` or ``dlambda_K_C`` for every grating of exactly one quantity, in any order; ``s_J``,
     ``fx_J``, ``fy_J`` and ``jig_curvature``, ``jig_angle``, ``jig`` for the calibrations; other columns are ignored.
-    A header that cannot be used raises :class:`~torchrod.errors.ReadingError` listing what was expected. Without a
+    A header that cannot be used raises :class:`~torchrod.errors.ReadingError` listing what was expected (and the
+    columns it ignored); one without ``id`` or ``t`` that ignores columns is read with a
+    :class:`~torchrod.errors.ReadingWarning` naming them. A first line of one cell that holds semicolons, tabs,
+    vertical bars or spaces between names or numbers raises a ``ReadingError`` naming the separator. Without a
     header a row is, by its width, ``id, t`` then the values, ``t`` then the values, or the values alone, per
     grating in order ``ux, uy`` (``quantity="curvature"``), ``kappa, phi`` (``"polar"``) or the C core values
     (``"strain"``, ``"wavelength"``, ``"wavelength-shift"``). All the cells of a missing grating are empty. An id
@@ -80,6 +83,7 @@ import numbers
 import os
 import re
 import sys
+import warnings
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, cast
@@ -87,7 +91,7 @@ from typing import Any, cast
 import numpy as np
 import torch
 
-from ..errors import ReadingError
+from ..errors import ReadingError, ReadingWarning
 from ..estimate.checks import MAX_CURVATURE
 from ..sensors import DEFAULT_UNITS, UNIT_TABLES
 
@@ -921,6 +925,61 @@ def _expected_columns(G: int) -> str:
     )
 
 
+_ID_LIKE = frozenset({"sample", "samples", "index", "idx", "frame", "seq", "sequence", "n", "no", "number", "count"})
+_TIME_LIKE = frozenset({"time", "timestamp", "time_s", "times", "seconds", "sec", "secs", "stamp", "clock"})
+
+
+def _shown_columns(columns: Sequence[str], most: int = 8) -> str:
+    shown = ", ".join(repr(c) for c in columns[:most])
+    return shown + (f" and {len(columns) - most} more" if len(columns) > most else "")
+
+
+def _ignored_note(ignored: Sequence[str]) -> str:
+    """What a header error adds about the columns the header does not read ('' when none)."""
+    return f" (it ignores the columns {_shown_columns(ignored)})" if ignored else ""
+
+
+def _unread_columns(at: str, ignored: Sequence[str]) -> str:
+    """The warning about a header without ``id`` or ``t`` whose ``ignored`` columns are read by no one."""
+    hints = []
+    for column in ignored:
+        name = column.strip().lower()
+        if name in _ID_LIKE:
+            hints.append(f"rename {column!r} to id to echo it as each answer's id")
+        elif name in _TIME_LIKE or name.startswith("time"):
+            hints.append(f"rename {column!r} to t to read it as the time stamp [s]")
+    advice = "; ".join(hints) if hints else "name a column id or t to have it read as the reading's id or time stamp"
+    return f"{at} has no id or t column and ignores the columns {_shown_columns(ignored)}: {advice}"
+
+
+_SEPARATORS = {";": "semicolons (;)", "\t": "tabs", "|": "vertical bars (|)", " ": "spaces"}
+"""What a CSV line in one cell may be separated by instead of commas, and its name in a message."""
+
+
+def _one_cell_problem(cells: Sequence[str], line: int) -> str | None:
+    """Why a first CSV line read as one cell cannot be read: the separator it holds instead of commas. None when it
+    holds none of :data:`_SEPARATORS`, or when its parts are neither column names nor numbers (a title line, which
+    stays an error line of its own)."""
+    if len(cells) != 1:
+        return None
+    text = cells[0].strip()
+    counts = {sep: text.count(sep) for sep in _SEPARATORS}
+    found = [sep for sep in _SEPARATORS if counts[sep] and sep != " "]
+    if not found and not counts[" "]:
+        return None
+    sep = max(found, key=lambda x: counts[x]) if found else " "
+    parts = [part.strip() for part in text.split(sep) if part.strip()]
+    names = [p.lower() for p in parts if p.lower() in ("id", "t") or _COLUMN.fullmatch(p.lower())]
+    numbers = [p for p in parts if _CSV_NUMBER.fullmatch(p) or _CSV_NONFINITE.fullmatch(p)]
+    if len(parts) < 2 or not (names or len(numbers) == len(parts)):
+        return None
+    return (
+        f"line {line}: the CSV {'header' if names else 'first row'} is one cell ({quote(text, 60)}): its columns are "
+        f"separated by {_SEPARATORS[sep]}, not commas; write the file with commas between the columns (a "
+        "spreadsheet's CSV export may use its list separator instead)"
+    )
+
+
 def _per_grating(key: str, fibre: Any, where: str) -> int:
     """Values per grating of quantity ``key``: 2, or the fibre's C (``ValueError`` when the rod has no such fibre)."""
     if key in ("curvature", "curvature_polar"):
@@ -975,10 +1034,14 @@ class CsvLayout:
         values: dict[str, dict[tuple[int, int], int]] = {}
         forces: dict[int, dict[str, int]] = {}
         jig: dict[str, int] = {}
+        ignored: list[str] = []  # the header's other columns, as written
         for col, name in enumerate(names):
             seen[name] = col
             match = _COLUMN.fullmatch(name)
-            if name == "id":
+            if match is None and name not in ("id", "t", *_JIG_COLUMNS):
+                if name:
+                    ignored.append(cells[col].strip())
+            elif name == "id":
                 id_col = col
             elif name == "t":
                 t_col = col
@@ -1024,7 +1087,7 @@ class CsvLayout:
             more = f" and {len(missing) - 6} more" if len(missing) > 6 else ""
             raise ReadingError(
                 f"{at} lacks the columns {', '.join(missing[:6])}{more}: give every grating's columns (leave a "
-                "missing grating's cells empty in its rows)"
+                "missing grating's cells empty in its rows)" + _ignored_note(ignored)
             )
         force_cols: list[tuple[int, int, int]] = []
         for j in sorted(forces):
@@ -1032,6 +1095,8 @@ class CsvLayout:
             if lack:
                 raise ReadingError(f"{at}: force {j} lacks the column(s) {', '.join(f'{f}_{j}' for f in lack)}")
             force_cols.append(cast("tuple[int, int, int]", tuple(forces[j][f] for f in _FORCE_FIELDS)))  # s, fx, fy
+        if id_col is None and t_col is None and ignored:
+            warnings.warn(_unread_columns(at, ignored), ReadingWarning, stacklevel=2)
         data = tuple((col, k - 1, j - 1) for (k, j), col in sorted(cols.items()))
         return cls(key, per, len(cells), id_col, t_col, data, tuple(force_cols), tuple(sorted(jig.items())), line)
 
@@ -1166,6 +1231,9 @@ def _csv_records(
             continue
         if first:
             first = False
+            problem = _one_cell_problem(cells, number)
+            if problem is not None:
+                raise ReadingError(problem)
             if _is_csv_header(cells):
                 layout = CsvLayout.from_header(cells, num_gratings, fibre, number)
                 continue
