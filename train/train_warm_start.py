@@ -1,4 +1,5 @@
-"""Train the warm-start network: a thin wrapper around :func:`torchrod.training.main` (same as ``torchrod train``).
+"""Train the warm-start network: a thin wrapper around :func:`torchrod.cli.commands.train.main` (as
+``torchrod train``).
 
 The shipped weights (torchrod/data/nitinol290.pt: 200k generated cases, 30 epochs, 5.5 min on two CPU cores):
                   python train/train_warm_start.py --checkpoint torchrod/data/nitinol290.pt --no-optimizer-state \
@@ -11,7 +12,7 @@ Run ``python train/train_warm_start.py --help`` for every option.
 
 import sys
 
-from torchrod.learn.training import main
+from torchrod.cli.commands.train import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -117,8 +117,8 @@ class EstimateResult:
         """One JSON-ready dict per reading (the ``torchrod estimate`` output, without ``time_ms``).
 
         ``{"id", "status", "num_forces", "forces": [{"s", "fx", "fy", "magnitude", "std_s", "std_fx", "std_fy"},
-        ...] sorted by s, "p_value", "loss", "converged", "iterations", "poorly_determined"}``; SI units; a
-        non-finite number is null. ``ids`` default to the batch index.
+        ...] sorted by s, "p_value", "loss", "converged", "iterations", "evaluations", "poorly_determined"}``; SI
+        units; a non-finite number is null. ``ids`` default to the batch index.
         """
         B = self.batch_size
         if ids is None:
@@ -140,6 +140,7 @@ class EstimateResult:
         loss = self.loss.tolist()
         conv = self.converged.tolist()
         it = self.iterations.tolist()
+        spent = self.evaluations.tolist()
         poor = self.poorly_determined.tolist()
         out = []
         isfinite, hypot = math.isfinite, math.hypot
@@ -165,6 +166,7 @@ class EstimateResult:
                     "loss": num(loss[b]),
                     "converged": bool(conv[b]),
                     "iterations": int(it[b]),
+                    "evaluations": int(spent[b]),
                     "poorly_determined": bool(poor[b]),
                 }
             )

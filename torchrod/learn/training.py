@@ -31,7 +31,6 @@ torchrod version, step and epoch, the training config and the optimiser state; `
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import gc
 import math
@@ -47,7 +46,6 @@ import torch.nn.functional as F
 
 from ..loads import PointForces
 from ..model.body_frame import grating_curvature
-from ..presets import PRESETS
 from ..presets import load as load_rod
 from ..rod import Rod
 from .warm_start import (
@@ -67,15 +65,11 @@ __all__ = [
     "TrainConfig",
     "TrainResult",
     "TrainingData",
-    "add_arguments",
-    "config_from_args",
     "evaluate_guess",
     "format_metrics",
     "format_quality",
     "held_back_quality",
     "record_quality",
-    "main",
-    "run",
     "train",
 ]
 
@@ -616,7 +610,7 @@ class _Sized:
         return self.n
 
 
-def _distributed_env() -> tuple[int, int, int]:
+def distributed_env() -> tuple[int, int, int]:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local = int(os.environ.get("LOCAL_RANK", str(rank)))
@@ -643,7 +637,7 @@ def train(
     from torch.nn.parallel import DistributedDataParallel
     from torch.utils.data.distributed import DistributedSampler
 
-    world, rank, local_rank = _distributed_env()
+    world, rank, local_rank = distributed_env()
     if config.device == "cuda" or (config.device == "auto" and torch.cuda.is_available()):
         device = torch.device("cuda", local_rank if world > 1 else torch.cuda.current_device())
         torch.cuda.set_device(device)
@@ -887,145 +881,6 @@ def _validate(net: WarmStartNet, rod: Rod, held: Any, writer: Any, step: int, co
         return metrics
     finally:
         net.train()
-
-
-# ---------------------------------------------------------------------------------------------------- command line
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The training options (shared by ``train/train_warm_start.py`` and ``torchrod train``)."""
-    d = TrainConfig()
-    a = parser.add_argument
-    a(
-        "--rod",
-        default=None,
-        help=f"preset name ({', '.join(PRESETS)}) or rod JSON file (default {DEFAULT_ROD} when generating; with "
-        "--data the set's rod, which a --rod given must match)",
-    )
-    a(
-        "--data",
-        default=None,
-        help="a saved synthetic set (torchrod generate); default: generate --generate cases",
-    )
-    a(
-        "--generate",
-        type=int,
-        default=d.generate,
-        help="cases generated at start without --data (%(default)s)",
-    )
-    a("--validation", type=int, default=d.validation, help="held-back cases (%(default)s)")
-    a("--max-forces", type=int, default=d.max_forces, help="largest number of forces (%(default)s)")
-    a("--epochs", type=int, default=d.epochs, help="%(default)s")
-    a("--batch-size", type=int, default=d.batch_size, help="cases per step and process (%(default)s)")
-    a("--lr", type=float, default=d.lr, help="peak learning rate (%(default)s)")
-    a("--weight-decay", type=float, default=d.weight_decay, help="%(default)s")
-    a("--seed", type=int, default=d.seed, help="%(default)s")
-    a(
-        "--count-weight",
-        type=float,
-        default=d.count_weight,
-        help="weight of the count cross-entropy (%(default)s)",
-    )
-    a(
-        "--physics-weight",
-        type=float,
-        default=d.physics_weight,
-        help="weight of the physics loss (%(default)s)",
-    )
-    a(
-        "--physics-batch",
-        type=int,
-        default=d.physics_batch,
-        help="cases per batch in the physics loss (%(default)s)",
-    )
-    a("--noise", type=float, default=d.noise, help="sensor noise sigma [1/m] (%(default)s)")
-    a(
-        "--noise-jitter",
-        type=float,
-        default=d.noise_jitter,
-        help="relative spread of the training noise (%(default)s)",
-    )
-    a(
-        "--missing-prob",
-        type=float,
-        default=d.missing_prob,
-        help="probability of a missing grating (%(default)s)",
-    )
-    a("--hidden", type=int, default=d.hidden, help="hidden width (%(default)s)")
-    a("--depth", type=int, default=d.depth, help="hidden layers (%(default)s)")
-    a("--logdir", default=d.logdir, help="tensorboard folder (%(default)s); 'none' for no logs")
-    a("--checkpoint", default=d.checkpoint, help="checkpoint written after every epoch (%(default)s)")
-    a("--resume", default=None, help="continue from this checkpoint")
-    a(
-        "--no-optimizer-state",
-        dest="optimizer_state",
-        action="store_false",
-        help="leave the optimiser state out of the checkpoint (smaller; --resume then starts a fresh optimiser)",
-    )
-    a("--log-every", type=int, default=d.log_every, help="steps between logged losses (%(default)s)")
-    a("--device", default=d.device, choices=("auto", "cpu", "cuda"), help="%(default)s")
-    a("--threads", type=int, default=None, help="CPU threads per process")
-    a("--quiet", action="store_true", help="no progress lines")
-    a(
-        "--evaluate",
-        metavar="CHECKPOINT",
-        default=None,
-        help="no training: measure CHECKPOINT's held-back quality (--validation readings at --noise) and record it",
-    )
-
-
-def config_from_args(args: argparse.Namespace) -> TrainConfig:
-    logdir = None if args.logdir in (None, "", "none") else args.logdir
-    return TrainConfig(
-        rod=args.rod,
-        data=args.data,
-        generate=args.generate,
-        validation=args.validation,
-        max_forces=args.max_forces,
-        epochs=args.epochs,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        weight_decay=args.weight_decay,
-        seed=args.seed,
-        count_weight=args.count_weight,
-        physics_weight=args.physics_weight,
-        physics_batch=args.physics_batch,
-        noise=args.noise,
-        noise_jitter=args.noise_jitter,
-        missing_prob=args.missing_prob,
-        hidden=args.hidden,
-        depth=args.depth,
-        logdir=logdir,
-        checkpoint=args.checkpoint,
-        resume=args.resume,
-        optimizer_state=args.optimizer_state,
-        log_every=args.log_every,
-        device=args.device,
-        threads=args.threads,
-        progress=not args.quiet,
-    )
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python train/train_warm_start.py [options]`` (also under torchrun); returns the exit status."""
-    parser = argparse.ArgumentParser(prog="train_warm_start", description="train the warm-start network")
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
-
-
-def run(args: argparse.Namespace) -> int:
-    """Train as the parsed options say (see :func:`add_arguments`); rank 0 prints the held-back metrics and the
-    quality recorded in the checkpoint. ``--evaluate CHECKPOINT`` instead measures and records an existing
-    checkpoint's quality (no training)."""
-    if args.evaluate is not None:
-        quality = record_quality(args.evaluate, rod=args.rod, count=args.validation, noise=args.noise, seed=args.seed)
-        print(format_quality(quality))
-        return 0
-    result = train(config_from_args(args))
-    if _distributed_env()[1] == 0 and result.metrics:
-        print(format_metrics(result.metrics))
-        print(format_quality(result.quality))
-    return 0
 
 
 def record_quality(

@@ -32,7 +32,7 @@ says, else SI and nm). ``--protocol fbgs`` reads length-prefixed shape-sensing r
 Each output line answers the input line in the same position::
 
     {"id": "r1", "status": "ok", "num_forces": 2, "forces": [{"s", "fx", "fy", "magnitude", "std_s", "std_fx",
-     "std_fy"}, ...], "p_value", "loss", "converged", "iterations", "poorly_determined", "time_ms"}
+     "std_fy"}, ...], "p_value", "loss", "converged", "iterations", "evaluations", "poorly_determined", "time_ms"}
 
 ``status`` is the verdict on the answer: ``ok``; ``misfit`` (no set of forces of the counts considered explains the
 reading at the noise: check the sensor and the rod file, do not act on the forces); ``unconverged``;

@@ -47,7 +47,7 @@ in magnitude, ids that JSON can echo.
 Output: one JSON line per input line, in input order, each written and flushed as soon as its batch is solved::
 
     {"id", "status", "num_forces", "forces": [{"s", "fx", "fy", "magnitude", "std_s", "std_fx", "std_fy"}, ...],
-     "p_value", "loss", "converged", "iterations", "poorly_determined", "t", "latency_ms"}
+     "p_value", "loss", "converged", "iterations", "evaluations", "poorly_determined", "t", "latency_ms"}
 
 (the fields of ``torchrod estimate``; ``t`` echoed when given; ``latency_ms`` from the moment the line was read to
 its answer). Readings are solved in batches of up to ``--batch-size``: a line that finds the estimator idle is
