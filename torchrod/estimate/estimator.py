@@ -35,7 +35,7 @@ from ..kernels import host as _kernels
 from ..kernels.layout import Batch
 from ..loads import PointForces
 from ..rod import Rod
-from . import implicit
+from . import implicit, refine
 from .checks import check_readings, host_view
 from .options import EstimatorOptions, LMPolicy, SearchOptions
 from .status import Status
@@ -411,13 +411,18 @@ class Estimator:
         extra_starts: Mapping[int, PointForces] | None,
         _escape: bool,
         out_dtype: torch.dtype,
+        network: bool = True,
     ) -> EstimateResult:
-        """:meth:`estimate` of checked readings at the rod's own stiffness and bias, without gradients."""
+        """:meth:`estimate` of checked readings at the rod's own stiffness and bias, without gradients (with
+        ``network`` False, the warm start's guesses are left out: only ``extra_starts``)."""
+        gpu_default = opts.target == "auto" and curvature.device.type == "cuda"
+        if opts.target == "torch" or (gpu_default and (self.warm_start is not None or bool(extra_starts))):
+            return self._estimate_torch(curvature, mask, opts, extra_starts, _escape, out_dtype)
         device = curvature.device
         B, G = mask.shape
         W = opts.width
         u, w, noise2 = self._kernel_readings(curvature, mask, opts)
-        blocks = self._guesses(curvature, mask, opts, extra_starts)
+        blocks = self._guesses(curvature, mask, opts, extra_starts, network)
         counts = [h for h, _, _, _ in blocks]
         if opts.starts == 0:
             needed = set(opts.counts) - {0}
@@ -477,6 +482,74 @@ class Estimator:
             present.repeat_interleave(2, dim=1).to(torch.float64),
             torch.full((B,), opts.noise2, device=curvature.device, dtype=torch.float64),
         )
+
+    def _estimate_torch(
+        self,
+        curvature: torch.Tensor,
+        mask: torch.Tensor,
+        opts: EstimatorOptions,
+        extra_starts: Mapping[int, PointForces] | None,
+        _escape: bool,
+        out_dtype: torch.dtype,
+    ) -> EstimateResult:
+        """``target="torch"`` (:mod:`torchrod.estimate.refine`): each count's starts refined in torch on the readings'
+        device; the kernels then fit from the refined fits alone and judge them; a reading not answered ``ok``
+        is searched again by the full compiled search. Every evaluation is counted."""
+        rod = self.rod
+        device = curvature.device
+        B = mask.shape[0]
+        # Every count's guesses, however improbable the network finds the count: each count is fitted from them.
+        blocks = self._guesses(curvature, mask, dataclasses.replace(opts, guess_probability=0.0), extra_starts)
+        needed = [h for h in opts.counts if h > 0]
+        missing = sorted(set(needed) - {h for h, _, _, _ in blocks})
+        if missing:
+            raise OptionsError(
+                f"target 'torch' refines starts, and none is given for h = {missing[0]}: give the estimator a "
+                "warm start (torchrod.load_estimator) or extra_starts for every count"
+            )
+        u = torch.where(mask[..., None], curvature.to(torch.float64), 0.0)
+        if opts.relative and rod.precurved:
+            u = u + rod.unloaded_curvature(torch.float64, device)
+        sigma2 = opts.noise2 if opts.noise is not None else float(opts.noise_floor) ** 2
+        spent = torch.zeros(B, dtype=torch.long, device=device)
+        starts: dict[int, PointForces] = {}
+        for h in needed:
+            best_s = torch.full((B, h), math.nan, dtype=torch.float64, device=device)
+            best_f = torch.zeros((B, h, 2), dtype=torch.float64, device=device)
+            best_loss = torch.full((B,), math.inf, dtype=torch.float64, device=device)
+            for hh, s, f, use in blocks:
+                if hh != h:
+                    continue
+                s, f, use = (torch.as_tensor(x, device=device) for x in (s, f, use))
+                rows = use & torch.isfinite(s).all(1) & torch.isfinite(f).all(1).all(1)
+                idx = rows.nonzero().squeeze(1)
+                if idx.numel() == 0:
+                    continue
+                fit = refine.refine(
+                    rod, u[idx], mask[idx], s[idx].to(torch.float64), f[idx].to(torch.float64),
+                    sigma2=sigma2, lm=opts.lm, step_angle=opts.max_step_angle,
+                )  # fmt: skip
+                spent[idx] += fit.evaluations
+                better = fit.loss < best_loss[idx]
+                best_s[idx] = torch.where(better[:, None], fit.s, best_s[idx])
+                best_f[idx] = torch.where(better[:, None, None], fit.f, best_f[idx])
+                best_loss[idx] = torch.where(better, fit.loss, best_loss[idx])
+            starts[h] = PointForces(best_s + rod.location_bias, best_f)
+        # The kernels, on the CPU: the refined fits as their only (trusted) starts, then the full search where the
+        # verdict is not clean.
+        host = torch.device("cpu")
+        c, m = curvature.to(host), mask.to(host)
+        kernel_opts = dataclasses.replace(opts, target="auto", starts=0, trust_guesses=True)
+        on_host = {h: pf.to(device=host) for h, pf in starts.items()}
+        result = self._estimate(c, m, kernel_opts, on_host, _escape, out_dtype, network=False)
+        result = dataclasses.replace(result, evaluations=result.evaluations + spent.to(host))
+        again = (result.status != Status.OK.code).nonzero().squeeze(1)
+        if again.numel():
+            sub = None if not extra_starts else {h: pf[again] for h, pf in extra_starts.items()}
+            full = self._estimate(c[again], m[again], dataclasses.replace(opts, target="auto"), sub, _escape, out_dtype)
+            full = dataclasses.replace(full, evaluations=full.evaluations + result.evaluations[again])
+            result = _spliced(result, again, full)
+        return _to_device(result, device)
 
     def _fixed_count_escape(
         self,
@@ -546,6 +619,7 @@ class Estimator:
         mask: torch.Tensor,
         opts: EstimatorOptions,
         extra_starts: Mapping[int, PointForces] | None,
+        network: bool = True,
     ) -> list[tuple[int, Any, Any, Any]]:
         """The starts other than the scan's, per count 1..top, as blocks (h, s (B, h) [m] in model coordinates, f
         (B, h, 2) [N], use (B,) bool; tensors, or NumPy arrays from the network's compiled pass): the caller's
@@ -586,7 +660,7 @@ class Estimator:
             for h, pf in extra_starts.items():
                 if h in per_count:
                     add(h, pf, -self.rod.location_bias, use)
-        source = self.warm_start
+        source = self.warm_start if network else None
         if source is not None:
             if device.type == "cpu" and hasattr(source, "compiled_arrays"):
                 # The compiled pass's arrays as they are: at a batch of one reading, each torch operation on them
@@ -763,6 +837,31 @@ def _per_reading(
         worst = float(t.detach().reshape(-1)[bad.reshape(-1)][0])
         raise OptionsError(f"{name} must be {'positive and ' if positive else ''}finite, got {worst!r}")
     return t.expand(B) if t.dim() == 0 or t.shape[0] == 1 else t
+
+
+def _spliced(result: EstimateResult, idx: torch.Tensor, rows: EstimateResult) -> EstimateResult:
+    """``result`` with its readings ``idx`` replaced by ``rows``'s."""
+    fields: dict[str, Any] = {}
+    for field in dataclasses.fields(result):
+        old, new = getattr(result, field.name), getattr(rows, field.name)
+        if isinstance(old, PointForces):
+            fields[field.name] = PointForces(
+                old.s.index_put((idx,), new.s), old.f.index_put((idx,), new.f), old.active.index_put((idx,), new.active)
+            )
+        else:
+            fields[field.name] = old.index_put((idx,), new.to(old.dtype))
+    return EstimateResult(**fields)
+
+
+def _to_device(result: EstimateResult, device: torch.device) -> EstimateResult:
+    """``result`` on ``device``."""
+    if device.type == "cpu":
+        return result
+    fields: dict[str, Any] = {}
+    for field in dataclasses.fields(result):
+        x = getattr(result, field.name)
+        fields[field.name] = x.to(device=device)
+    return EstimateResult(**fields)
 
 
 def _in_dtype(result: EstimateResult, dtype: torch.dtype) -> EstimateResult:

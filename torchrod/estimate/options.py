@@ -22,9 +22,12 @@ __all__ = ["MISFIT_LEVEL", "RULES", "TARGETS", "EstimatorOptions", "LMPolicy", "
 RULES = ("noise", "threshold")
 """The count rules: the significance tests at the noise (default), or the paper's loss threshold."""
 
-TARGETS = ("auto", "cpu", "cuda", "python")
-"""Where the kernels run: ``auto`` follows the readings' device; ``python`` runs their source uncompiled (slow; the
-same answers, for debugging)."""
+TARGETS = ("auto", "cpu", "cuda", "python", "torch")
+"""Where the kernels run: ``auto`` follows the readings' device (CUDA readings: ``torch`` where the estimator has
+starts to refine, a warm start or ``extra_starts``, so no CUDA compile is waited for; else ``cuda``); ``python``
+runs their source uncompiled (slow; the same answers, for debugging); ``torch`` refines the starts (a warm start's
+guesses, or the caller's) in torch on the readings' device, with no compile step, and hands the refined fits to the
+CPU kernels, which judge them and search the readings they do not answer ``ok`` (:mod:`torchrod.estimate.refine`)."""
 
 CONDITION_LIMIT = 1e8
 """Default limit on the condition number of a fit's unit-diagonal Gauss-Newton matrix (poorly determined above)."""

@@ -7,9 +7,12 @@
    holds at once.
 2. **Tests** (a GPU): ``pytest -m cuda tests/test_cuda.py``, where the tests are (a source checkout): the estimator,
    its network, the stream and the commands on the GPU against their CPU twins.
-3. **Throughput** (a GPU): readings per second at batches of 2^16 to 2^20 (``--sizes``) in float64, one GPU thread
-   per reading, against the CPU kernels on every core on a slice of the same readings: readings of 1 to 3 forces
-   of ``torchrod bench estimate``'s envelope, noise 0.1 1/m (given), tiled from a few thousand simulated ones.
+3. **Throughput** (a GPU): readings per second at batches of 2^14 to 2^20 (``--sizes``) in float64 by both GPU
+   paths: the torch target (the GPU default: the shipped network's guesses refined in torch, judged by the CPU
+   kernels) and then the CUDA kernel target (one GPU thread per reading; its compile timed, ``--skip-kernels``
+   leaves it out), each against the CPU kernels on every core on a slice of the same readings: readings of 1 to 3
+   forces of ``torchrod bench estimate``'s envelope, noise 0.1 1/m (given), tiled from a few thousand simulated
+   ones.
 
 Each part is skipped, with a line saying why, where it cannot run; the run prints as it goes, so a run cut short
 still reports what it did.
@@ -38,8 +41,9 @@ __all__ = ["HELP", "configure", "lowering_seconds", "ptx_report", "run"]
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--arch", default="sm_90", help="the GPU architecture of the PTX (default sm_90)")
     parser.add_argument(
-        "--sizes", default="16,17,18,19,20", metavar="K,...", help="batches of 2^K readings (default 16,...,20)"
+        "--sizes", default="14,16,18,20", metavar="K,...", help="batches of 2^K readings (default 14,16,18,20)"
     )
+    parser.add_argument("--skip-kernels", action="store_true", help="the torch target only: no CUDA kernel compile")
     parser.add_argument("--skip-tests", action="store_true", help="no CUDA tests")
     parser.add_argument("--ptx", action="store_true", help="also compile PTX and count registers (tens of minutes)")
     parser.add_argument("--quick", action="store_true", help="a smoke run: the lowering and a batch of 2^10")
@@ -212,24 +216,49 @@ def _ptx(args: argparse.Namespace) -> None:
 
 
 def _throughput(args: argparse.Namespace) -> None:
+    """Readings per second on the GPU by both paths: the torch target (the shipped network's guesses refined in
+    torch, judged by the CPU kernels; the GPU default) first, then the CUDA kernel target, whose compile is timed;
+    each beside the CPU kernels on the same readings."""
     import torch
 
     from ...estimate.estimator import Estimator, EstimatorOptions
     from ...kernels.host import cpu_threads
+    from ...learn.warm_start import SHIPPED_CHECKPOINT, load_estimator
 
     sizes = [10] if args.quick else [int(k) for k in args.sizes.split(",")]
     rod, data = _readings(4096)
     device = torch.device("cuda")
-    est = Estimator(rod, EstimatorOptions(noise=0.1))
     print(f"# {torch.cuda.get_device_name(device)}; float64; noise 0.1 1/m given; counts 0..3", flush=True)
     gpu_u, gpu_m = data.curvature.to(device), data.mask.to(device)
-    est.estimate(gpu_u[:64], gpu_m[:64])  # compiled (announced) or loaded, before the clock
+    cpu_est = Estimator(rod, EstimatorOptions(noise=0.1, target="cpu"))
     cpu_n = 4096
-    est.estimate(data.curvature[:2], data.mask[:2])
+    cpu_est.estimate(data.curvature[:2], data.mask[:2])
     t0 = time.perf_counter()
-    est.estimate(data.curvature[:cpu_n], data.mask[:cpu_n])
+    want = cpu_est.estimate(data.curvature[:cpu_n], data.mask[:cpu_n])
     cpu = cpu_n / (time.perf_counter() - t0)
     print(f"CPU kernels, {cpu_threads(None)} threads: {cpu:,.0f} readings/s over {cpu_n} readings", flush=True)
+    on_torch = load_estimator(SHIPPED_CHECKPOINT, rod, EstimatorOptions(noise=0.1, target="torch"), warn=print)
+    on_torch.estimate(gpu_u[:64], gpu_m[:64])  # the network's trace and the CPU kernels, before the clock
+    _sizes(on_torch, "torch target", sizes, gpu_u, gpu_m, want, cpu)
+    if args.skip_kernels:
+        print("CUDA kernel target: skipped (--skip-kernels)", flush=True)
+        return
+    est = Estimator(rod, EstimatorOptions(noise=0.1, target="cuda"))
+    t0 = time.perf_counter()
+    est.estimate(gpu_u[:64], gpu_m[:64])  # compiled (announced) or loaded, before the clock
+    print(f"CUDA kernel target: compiled or loaded in {time.perf_counter() - t0:.0f} s", flush=True)
+    _sizes(est, "CUDA kernels", sizes, gpu_u, gpu_m, want, cpu)
+    with contextlib.suppress(Exception):
+        free, total = torch.cuda.mem_get_info(device)
+        print(f"GPU memory in use at the end: {(total - free) / 2**30:.1f} of {total / 2**30:.1f} GiB", flush=True)
+
+
+def _sizes(est: Any, name: str, sizes: list[int], gpu_u: Any, gpu_m: Any, want: Any, cpu: float) -> None:
+    """One line per batch of 2^k readings (the readings tiled): readings per second, against the CPU kernels', and
+    the share of the first readings given the CPU kernels' count."""
+    import torch
+
+    n = want.num_forces.shape[0]
     for k in sizes:
         B = 1 << k
         reps = (B + gpu_u.shape[0] - 1) // gpu_u.shape[0]
@@ -240,12 +269,10 @@ def _throughput(args: argparse.Namespace) -> None:
         res = est.estimate(u, m)
         torch.cuda.synchronize()
         wall = time.perf_counter() - t0
-        ok = float((res.num_forces[: data.loads.count.shape[0]].cpu() == data.loads.count[:B]).float().mean())
+        first = min(B, n)
+        same = float((res.num_forces[:first].cpu() == want.num_forces[:first]).float().mean())
         print(
-            f"GPU, B = 2^{k} = {B}: {B / wall:,.0f} readings/s ({wall:.2f} s; {B / wall / cpu:.1f}x the CPU); "
-            f"count right on {100 * ok:.1f}% of the first readings",
+            f"{name}, B = 2^{k} = {B}: {B / wall:,.0f} readings/s ({wall:.2f} s; {B / wall / cpu:.1f}x the CPU "
+            f"kernels); the CPU kernels' count on {100 * same:.1f}% of the first {first} readings",
             flush=True,
         )
-    with contextlib.suppress(Exception):
-        free, total = torch.cuda.mem_get_info(device)
-        print(f"GPU memory in use at the end: {(total - free) / 2**30:.1f} of {total / 2**30:.1f} GiB", flush=True)

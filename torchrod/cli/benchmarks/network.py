@@ -7,16 +7,21 @@ body-frame direction, locations from the second grating to the tip, bending <= 9
 * ``network``: the network alone (its most probable count and that count's forces);
 * ``estimator``: the estimator without a network (the scan's starts);
 * ``estimator+network``: :func:`torchrod.load_estimator`: the network's guesses beside the scan's
-  starts, or alone where the checkpoint's recorded quality says it can be trusted.
+  starts, or alone where the checkpoint's recorded quality says it can be trusted;
+* ``torch target``: the same estimator with ``target="torch"``: the network's guesses refined in torch, judged
+  by the kernels, the readings not answered ``ok`` searched again (:mod:`torchrod.estimate.refine`).
 
 Columns: count accuracy, median force error (|f_est - f_true| / |f_true|, %) and location error (mm) over readings
-whose count is right, median solver steps of the chosen fit, time per reading batched (``--batch-size``) and
-one reading at a time (``--single`` readings, median). All rows run side by side in one process.
+whose count is right, median solver steps of the chosen fit, mean forward-model evaluations per reading, readings
+per second batched (``--batch-size``), time of one reading alone (``--single`` readings, median), and agreement
+with the estimator alone: the share of readings given its count. All rows run side by side in one process; the
+checkpoint's trust verdict comes first.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import time
 from types import SimpleNamespace
@@ -25,7 +30,7 @@ from typing import Any
 import torch
 
 from ...estimate.estimator import Estimator, EstimatorOptions
-from ...learn.warm_start import SHIPPED_CHECKPOINT, load_estimator
+from ...learn.warm_start import SHIPPED_CHECKPOINT, load_estimator, quality_verdict
 from ...presets import load as load_rod
 from ..commands import rod_help
 from ..commands.evaluate import cell_metrics
@@ -90,33 +95,41 @@ def run(args: argparse.Namespace) -> int:
     count, single = (12, 2) if args.quick else (args.count, args.single)
     warm_start = WarmStart.load(args.checkpoint, rod)
     plain = Estimator(rod, EstimatorOptions(noise=args.noise))
-    with_net = load_estimator(args.checkpoint, rod, EstimatorOptions(noise=args.noise))
+    with_net = load_estimator(args.checkpoint, rod, EstimatorOptions(noise=args.noise), warn=lambda _: None)
+    on_torch = Estimator(rod, dataclasses.replace(with_net.options, target="torch"), warm_start=with_net.warm_start)
+    weak = quality_verdict(warm_start.meta)
     print(
         f"torchrod bench network: {rod.num_gratings} gratings, noise {args.noise} 1/m, {count} held-back readings "
         f"per k (seed {args.seed}), torch threads {torch.get_num_threads()}, checkpoint {args.checkpoint}"
     )
+    print(f"trust verdict: {'trusted' if not weak else f'not trusted ({weak})'}")
     header = (
-        f"{'k':>2} {'method':<18} {'count ok':>9} {'force err':>10} {'loc err':>8} {'iters':>6} "
-        f"{'ms/reading':>11} {'ms at B=1':>10}"
+        f"{'k':>2} {'method':<18} {'count ok':>9} {'force err':>10} {'loc err':>8} {'iters':>6} {'evals':>7} "
+        f"{'readings/s':>11} {'ms at B=1':>10} {'agree':>7}"
     )
     print(header)
     print("-" * len(header))
     for k in (1, 2, 3):
         data = readings(rod, k, count, args.noise, args.seed + k)
-        rows: list[tuple[str, dict[str, Any], float | None, float | None, float | None]] = [
+        rows: list[tuple[str, dict[str, Any], list | None, float | None, float | None]] = [
             ("network", _network_alone(warm_start, data, k), None, None, None)
         ]
-        for name, est in (("estimator", plain), ("estimator+network", with_net)):
+        for name, est in (("estimator", plain), ("estimator+network", with_net), ("torch target", on_torch)):
             results, t_batched, t_one = _timed(est, data, args.batch_size, single)
-            median_iters = torch.cat([r.iterations for r in results]).double().median().item()
-            rows.append((name, cell_metrics(results, data.loads.s, data.loads.f, k), median_iters, t_batched, t_one))
-        for name, m, iters, batched, one in rows:
+            rows.append((name, cell_metrics(results, data.loads.s, data.loads.f, k), results, t_batched, t_one))
+        alone = torch.cat([r.num_forces for r in rows[1][2] or []])
+        for name, m, answers, batched, one in rows:
+            if answers is not None:
+                iters = f"{torch.cat([r.iterations for r in answers]).double().median().item():.0f}"
+                evals = f"{torch.cat([r.evaluations for r in answers]).double().mean().item():.1f}"
+                agree = f"{100 * (torch.cat([r.num_forces for r in answers]) == alone).double().mean().item():.1f}%"
+            else:
+                iters = evals = agree = "-"
             print(
                 f"{k:>2} {name:<18} {100 * m['count_accuracy']:>8.1f}% {m['force_error_median']:>9.2f}% "
-                f"{m['location_error_median']:>6.2f}mm "
-                f"{'-' if iters is None else f'{iters:.0f}':>6} "
-                f"{'-' if batched is None else f'{1e3 * batched:.2f}':>11} "
-                f"{'-' if one is None else f'{1e3 * one:.1f}':>10}",
+                f"{m['location_error_median']:>6.2f}mm {iters:>6} {evals:>7} "
+                f"{'-' if batched is None else f'{1 / batched:.0f}':>11} "
+                f"{'-' if one is None else f'{1e3 * one:.1f}':>10} {agree:>7}",
                 flush=True,
             )
     return 0
