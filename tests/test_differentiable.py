@@ -111,7 +111,7 @@ def test_the_stiffness_obeys_the_scaling_law(rod, estimator):
     (df,) = torch.autograd.grad(result.forces.f[active].sum(), ei)
     assert float(df) == pytest.approx(float(result.forces.f[active].sum().detach() / ei.detach()), rel=1e-12)
     assert not result.forces.s.requires_grad  # d s / d EI = 0: the locations do not depend on EI at all
-    stiffer = tr.Estimator(rod.with_(bending_stiffness=float(ei)), estimator.options)
+    stiffer = tr.Estimator(rod.with_(bending_stiffness=float(ei.detach())), estimator.options)
     other = stiffer.estimate(u)
     assert torch.equal(other.num_forces, result.num_forces) and other.statuses == result.statuses
     assert torch.allclose(other.forces.f[active], result.forces.f[active].detach(), rtol=1e-6, atol=1e-9)

@@ -11,7 +11,8 @@ The public surface (SI units everywhere: m, N, Pa, 1/m):
   :func:`load_estimator` (an estimator with a trained network's guesses);
 - streams: :func:`stream` with :class:`StreamOptions` (readings in order, in latency-bounded batches);
 - errors and warnings: :class:`TorchrodError` (with :class:`ReadingError`, :class:`RodError`,
-  :class:`OptionsError`, :class:`MissingFileError`) and :class:`TorchrodWarning` (with :class:`RodWarning`);
+  :class:`OptionsError`, :class:`MissingFileError`,
+  :class:`TorchrodTypeError`) and :class:`TorchrodWarning` (with :class:`RodWarning`);
 - subpackages for the rest: :mod:`torchrod.model` (forward model, the global-frame reference and the paper's
   baselines), :mod:`torchrod.estimate` (options, status, noise, calibration), :mod:`torchrod.kernels` (the
   estimator's numerical core), :mod:`torchrod.learn` (synthetic data, the warm-start network, training),
@@ -47,6 +48,7 @@ _LAZY: dict[str, tuple[str, str | None]] = {
     "Status": (".estimate.status", "Status"),
     "StreamOptions": (".io.stream", "StreamOptions"),
     "TorchrodError": (".errors", "TorchrodError"),
+    "TorchrodTypeError": (".errors", "TorchrodTypeError"),
     "TorchrodWarning": (".errors", "TorchrodWarning"),
     "WarmStart": (".learn.warm_start", "WarmStart"),
     "bending_angle": (".model.shape", "bending_angle"),
@@ -78,6 +80,7 @@ __all__ = [  # the names of _LAZY and __version__ (a test holds them equal)
     "Status",
     "StreamOptions",
     "TorchrodError",
+    "TorchrodTypeError",
     "TorchrodWarning",
     "WarmStart",
     "__version__",
@@ -106,6 +109,7 @@ if _typing.TYPE_CHECKING:  # what static tools see; at run time __getattr__ impo
         RodError,
         RodWarning,
         TorchrodError,
+        TorchrodTypeError,
         TorchrodWarning,
     )
     from .estimate.calibration import calibrate

@@ -18,6 +18,7 @@ __all__ = [
     "RodError",
     "RodWarning",
     "TorchrodError",
+    "TorchrodTypeError",
     "TorchrodWarning",
 ]
 
@@ -38,6 +39,11 @@ class RodError(TorchrodError, ValueError):
 
 class OptionsError(TorchrodError, ValueError):
     """An option is out of its range or does not fit the other options."""
+
+
+class TorchrodTypeError(TorchrodError, TypeError):
+    """An argument of the wrong kind: a NumPy array where a tensor is needed, a dict where options are, an integer
+    tensor of readings."""
 
 
 class MissingFileError(TorchrodError, FileNotFoundError):

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import torch
 
+from .errors import OptionsError, TorchrodTypeError
+
 __all__ = ["PointForces", "spread_to_nodes"]
 
 
@@ -33,23 +35,23 @@ class PointForces:
     def __post_init__(self) -> None:
         s, f, mask = self.s, self.f, self.mask
         if not isinstance(s, torch.Tensor) or not isinstance(f, torch.Tensor):
-            raise TypeError(f"s and f must be tensors, got {type(s).__name__} and {type(f).__name__}")
+            raise TorchrodTypeError(f"s and f must be tensors, got {type(s).__name__} and {type(f).__name__}")
         if s.dim() != 2:
-            raise ValueError(f"s must have shape (B, h), got {tuple(s.shape)}")
+            raise OptionsError(f"s must have shape (B, h), got {tuple(s.shape)}")
         if f.dim() != 3 or f.shape[:2] != s.shape or f.shape[2] != 2:
-            raise ValueError(f"f must have shape (B, h, 2) = {(*s.shape, 2)}, got {tuple(f.shape)}")
+            raise OptionsError(f"f must have shape (B, h, 2) = {(*s.shape, 2)}, got {tuple(f.shape)}")
         if not s.is_floating_point() or not f.is_floating_point():
-            raise TypeError(f"s and f must be floating point, got {s.dtype} and {f.dtype}")
+            raise TorchrodTypeError(f"s and f must be floating point, got {s.dtype} and {f.dtype}")
         if s.dtype != f.dtype:
-            raise TypeError(f"s and f must share a dtype, got {s.dtype} and {f.dtype}")
+            raise TorchrodTypeError(f"s and f must share a dtype, got {s.dtype} and {f.dtype}")
         if s.device != f.device:
-            raise ValueError(f"s and f must be on one device, got {s.device} and {f.device}")
+            raise OptionsError(f"s and f must be on one device, got {s.device} and {f.device}")
         if mask is not None:
             if not isinstance(mask, torch.Tensor) or mask.shape != s.shape:
                 shape = tuple(mask.shape) if isinstance(mask, torch.Tensor) else type(mask).__name__
-                raise ValueError(f"mask must have shape (B, h) = {tuple(s.shape)}, got {shape}")
+                raise OptionsError(f"mask must have shape (B, h) = {tuple(s.shape)}, got {shape}")
             if mask.device != s.device:
-                raise ValueError(f"mask must be on the device of s ({s.device}), got {mask.device}")
+                raise OptionsError(f"mask must be on the device of s ({s.device}), got {mask.device}")
             object.__setattr__(self, "mask", mask.to(torch.bool))
 
     # ------------------------------------------------------------------ views
@@ -136,11 +138,11 @@ class PointForces:
         for i, row in enumerate(rows):
             for force in row:
                 if len(force) != 3:
-                    raise ValueError(f"case {i}: a force is (s, fx, fy), got {force}")
+                    raise OptionsError(f"case {i}: a force is (s, fx, fy), got {force}")
         h = max((len(r) for r in rows), default=0)
         if max_forces is not None:
             if h > max_forces:
-                raise ValueError(f"a case holds {h} forces, more than max_forces={max_forces}")
+                raise OptionsError(f"a case holds {h} forces, more than max_forces={max_forces}")
             h = max_forces
         h = max(h, 1)
         B = len(rows)
@@ -167,7 +169,7 @@ def spread_to_nodes(loads: PointForces, nodes: torch.Tensor) -> torch.Tensor:
         (B, q, 2) distributed load at the nodes [N/m].
     """
     if nodes.dim() != 1 or nodes.numel() < 2:
-        raise ValueError(f"nodes must have shape (q,) with q >= 2, got {tuple(nodes.shape)}")
+        raise OptionsError(f"nodes must have shape (q,) with q >= 2, got {tuple(nodes.shape)}")
     d = nodes[1] - nodes[0]
     hat = torch.clamp(1.0 - (loads.s.unsqueeze(-1) - nodes).abs() / d, min=0.0)  # (B, h, q)
     return torch.einsum("bhq,bhc->bqc", hat, loads.masked_f()) / d

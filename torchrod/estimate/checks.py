@@ -13,6 +13,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..errors import ReadingError, TorchrodTypeError
+
 __all__ = ["MAX_CURVATURE", "check_readings", "host_view"]
 
 MAX_CURVATURE = 1e6
@@ -44,19 +46,19 @@ def check_readings(curvature: Any, mask: Any, num_gratings: int) -> tuple[torch.
     Returns:
         ``curvature`` unchanged and the mask.
     Raises:
-        TypeError: curvature is not a floating-point tensor, or mask is not bool.
-        ValueError: a wrong shape (naming it), a mask on another device, or a present grating whose value is not
+        TorchrodTypeError: curvature is not a floating-point tensor, or mask is not bool.
+        ReadingError: a wrong shape (naming it), a mask on another device, or a present grating whose value is not
             finite or exceeds :data:`MAX_CURVATURE` (without a mask: also a row with one NaN component, or an
             infinity), naming the first such entry.
     """
     if not isinstance(curvature, torch.Tensor):
         kind = f"{type(curvature).__module__}.{type(curvature).__qualname__}".removeprefix("builtins.")
-        raise TypeError(f"curvature is not a torch tensor (got a {kind}): use torch.as_tensor(curvature)")
+        raise TorchrodTypeError(f"curvature is not a torch tensor (got a {kind}): use torch.as_tensor(curvature)")
     if not curvature.is_floating_point():
-        raise TypeError(f"curvature must be a floating-point tensor, got dtype {curvature.dtype}")
+        raise TorchrodTypeError(f"curvature must be a floating-point tensor, got dtype {curvature.dtype}")
     G = num_gratings
     if curvature.dim() != 3 or curvature.shape[1:] != (G, 2):
-        raise ValueError(f"curvature must have shape (B, {G}, 2) for this rod, got {tuple(curvature.shape)}")
+        raise ReadingError(f"curvature must have shape (B, {G}, 2) for this rod, got {tuple(curvature.shape)}")
     B = curvature.shape[0]
     if mask is None:
         values = host_view(curvature)  # (NumPy's operations where it can: cheaper than torch's on a few readings)
@@ -69,24 +71,26 @@ def check_readings(curvature: Any, mask: Any, num_gratings: int) -> tuple[torch.
             b, g = (int(x) for x in torch.as_tensor(bad).nonzero()[0])
             pair = [float(x) for x in curvature[b, g]]
             if any(math.isnan(x) for x in pair):
-                raise ValueError(
+                raise ReadingError(
                     f"curvature[{b}, {g}] = {pair} has one NaN component: a missing grating is a row of NaN "
                     "(or give a mask)"
                 )
-            raise ValueError(_present_problem(b, g, pair))
+            raise ReadingError(_present_problem(b, g, pair))
         return curvature, mask
     if not isinstance(mask, torch.Tensor) or mask.shape != (B, G):
         shape = tuple(mask.shape) if isinstance(mask, torch.Tensor) else type(mask).__name__
-        raise ValueError(f"mask must have shape (B, G) = {(B, G)}, got {shape}")
+        raise ReadingError(f"mask must have shape (B, G) = {(B, G)}, got {shape}")
     if mask.dtype != torch.bool:
-        raise TypeError(f"mask must be a bool tensor, got {mask.dtype}")
+        raise TorchrodTypeError(f"mask must be a bool tensor, got {mask.dtype}")
     if mask.device != curvature.device:
-        raise ValueError(f"mask is on {mask.device} but curvature is on {curvature.device}")
+        raise ReadingError(f"mask is on {mask.device} but curvature is on {curvature.device}")
     values, present = host_view(curvature), host_view(mask)
     if bool((present & ~(abs(values) <= MAX_CURVATURE).all(-1)).any()):
         bad = mask & ~(curvature.abs() <= MAX_CURVATURE).all(-1)
         b, g = (int(x) for x in bad.nonzero()[0])
-        raise ValueError(_present_problem(b, g, [float(x) for x in curvature[b, g]], " but the mask marks it present"))
+        raise ReadingError(
+            _present_problem(b, g, [float(x) for x in curvature[b, g]], " but the mask marks it present")
+        )
     return curvature, mask
 
 

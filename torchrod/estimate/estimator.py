@@ -30,7 +30,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 import torch
 
-from ..errors import OptionsError
+from ..errors import OptionsError, ReadingError, TorchrodTypeError
 from ..kernels import host as _kernels
 from ..kernels.layout import Batch
 from ..loads import PointForces
@@ -124,7 +124,7 @@ class EstimateResult:
         if ids is None:
             ids = list(range(B))
         elif len(ids) != B:
-            raise ValueError(f"ids must hold {B} entries, got {len(ids)}")
+            raise OptionsError(f"ids must hold {B} entries, got {len(ids)}")
 
         def num(x: float) -> float | None:
             return x if math.isfinite(x) else None
@@ -202,12 +202,14 @@ class Estimator:
 
     def __init__(self, rod: Rod, options: EstimatorOptions | None = None, warm_start: Any = None) -> None:
         if not isinstance(rod, Rod):
-            raise TypeError(f"rod must be a Rod, got {type(rod).__name__}")
+            raise TorchrodTypeError(f"rod must be a Rod, got {type(rod).__name__}")
         options = EstimatorOptions() if options is None else options
         if not isinstance(options, EstimatorOptions):
-            raise TypeError(f"options must be EstimatorOptions, got {type(options).__name__}")
+            raise TorchrodTypeError(f"options must be EstimatorOptions, got {type(options).__name__}")
         if warm_start is not None and not (hasattr(warm_start, "guess") or callable(warm_start)):
-            raise TypeError(f"warm_start must have a guess() method or be callable, got {type(warm_start).__name__}")
+            raise TorchrodTypeError(
+                f"warm_start must have a guess() method or be callable, got {type(warm_start).__name__}"
+            )
         self.rod = rod
         self.options = options
         self.warm_start = warm_start
@@ -219,10 +221,10 @@ class Estimator:
     def _check(self, curvature: Any, mask: Any) -> tuple[torch.Tensor, torch.Tensor]:
         curvature, mask = check_readings(curvature, mask, self.rod.num_gratings)
         if curvature.shape[0] == 0:
-            raise ValueError(f"curvature must hold at least one reading, got shape {tuple(curvature.shape)}")
+            raise ReadingError(f"curvature must hold at least one reading, got shape {tuple(curvature.shape)}")
         if not bool(host_view(mask).any(1).all()):
             rows = (~mask.any(dim=1)).nonzero().squeeze(1).tolist()
-            raise ValueError(f"readings {rows[:10]} have no present grating (mask all False)")
+            raise ReadingError(f"readings {rows[:10]} have no present grating (mask all False)")
         return curvature, mask
 
     @staticmethod
@@ -344,7 +346,7 @@ class Estimator:
         """
         opts = self.options if options is None else options
         if not isinstance(opts, EstimatorOptions):
-            raise TypeError(f"options must be EstimatorOptions, got {type(opts).__name__}")
+            raise TorchrodTypeError(f"options must be EstimatorOptions, got {type(opts).__name__}")
         curvature, mask = self._check(curvature, mask)
         B = curvature.shape[0]
         ei = _per_reading("bending_stiffness", bending_stiffness, B, curvature, positive=True)
@@ -385,9 +387,7 @@ class Estimator:
         active = base.forces.active
         s, f, loss = base.forces.s - rod.location_bias, base.forces.f, base.loss
         if torch.is_grad_enabled() and curvature.requires_grad:
-            u = torch.where(mask[..., None], curvature.to(torch.float64), 0.0)
-            if opts.relative and rod.precurved:
-                u = u + rod.unloaded_curvature(torch.float64, u.device)
+            u = self._filled(curvature, mask, opts)
             s, f = implicit.through_optimum(rod, u, mask, s, f, active, opts.max_step_angle)
             theta = torch.cat([s.detach()[..., None], f.detach()], dim=-1)
             again = implicit.fit_loss(rod, theta, active, u, mask, opts.max_step_angle)
@@ -402,6 +402,14 @@ class Estimator:
         f = torch.where(active[..., None], f, base.forces.f)
         result = dataclasses.replace(base, forces=PointForces(s, f, active), loss=loss, std=std)
         return _in_dtype(result, curvature.dtype)
+
+    def _filled(self, curvature: torch.Tensor, mask: torch.Tensor, opts: EstimatorOptions) -> torch.Tensor:
+        """(B, G, 2) float64 readings [1/m] as the torch model is fitted to them: zero at missing gratings, a
+        precurved rod's unloaded shape added back to ``relative`` readings; differentiable in ``curvature``."""
+        u = torch.where(mask[..., None], curvature.to(torch.float64), 0.0)
+        if opts.relative and self.rod.precurved:
+            u = u + self.rod.unloaded_curvature(torch.float64, u.device)
+        return u
 
     def _estimate(
         self,
@@ -507,9 +515,7 @@ class Estimator:
                 f"target 'torch' refines starts, and none is given for h = {missing[0]}: give the estimator a "
                 "warm start (torchrod.load_estimator) or extra_starts for every count"
             )
-        u = torch.where(mask[..., None], curvature.to(torch.float64), 0.0)
-        if opts.relative and rod.precurved:
-            u = u + rod.unloaded_curvature(torch.float64, device)
+        u = self._filled(curvature, mask, opts)
         sigma2 = opts.noise2 if opts.noise is not None else float(opts.noise_floor) ** 2
         spent = torch.zeros(B, dtype=torch.long, device=device)
         starts: dict[int, PointForces] = {}
@@ -715,9 +721,9 @@ class Estimator:
 
     def _check_guess(self, pf: Any, B: int, h: int) -> PointForces:
         if not isinstance(pf, PointForces):
-            raise TypeError(f"a start for h = {h} must be PointForces, got {type(pf).__name__}")
+            raise TorchrodTypeError(f"a start for h = {h} must be PointForces, got {type(pf).__name__}")
         if pf.s.shape != (B, h):
-            raise ValueError(f"the starts for h = {h} must have shape (B, h) = {(B, h)}, got {tuple(pf.s.shape)}")
+            raise OptionsError(f"the starts for h = {h} must have shape (B, h) = {(B, h)}, got {tuple(pf.s.shape)}")
         return pf
 
 

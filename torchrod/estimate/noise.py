@@ -20,6 +20,7 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+from ..errors import OptionsError
 from ..kernels.host import chi2_quantile
 
 __all__ = ["NoiseLearning", "RunningNoise"]
@@ -46,9 +47,9 @@ class NoiseLearning:
         for name in ("after", "window", "growth"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+                raise OptionsError(f"{name} must be an integer >= 1, got {v!r}")
         if self.window < self.after:
-            raise ValueError(f"window ({self.window}) must be at least after ({self.after})")
+            raise OptionsError(f"window ({self.window}) must be at least after ({self.after})")
 
 
 class RunningNoise:

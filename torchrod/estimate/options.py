@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..errors import OptionsError
+from ..kernels.counts import PAPER_THRESHOLD
 from ..kernels.march import FIT_STEP_ANGLE
 from .status import MISFIT_LEVEL
 
@@ -183,7 +184,7 @@ class EstimatorOptions:
     noise: float | None = None
     max_noise: float = 1.0
     selection: str = "noise"
-    threshold: float = 3.0
+    threshold: float = PAPER_THRESHOLD
     significance: float = 0.05
     misfit_level: float = MISFIT_LEVEL
     noise_floor: float = 1e-3

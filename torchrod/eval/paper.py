@@ -49,6 +49,7 @@ from typing import Any, Literal, cast
 import numpy as np
 import torch
 
+from ..kernels import counts
 from ..loads import PointForces
 from ..model.body_frame import grating_curvature, simulate
 from ..model.global_bvp import BVPSolution, ShootingSolver
@@ -116,8 +117,8 @@ PAPER_TIMES: dict[int, dict[int, float]] = {
 }
 """Estimation time [s] of its method for 1, 2, 3 forces at q = 90 and 250."""
 
-PAPER_THRESHOLD = 3.0
-"""Its count rule: raise h until the curvature loss [1/m^2] drops below this."""
+PAPER_THRESHOLD = counts.PAPER_THRESHOLD
+"""Its count rule: raise h until the curvature loss [1/m^2] drops below this (the estimator's ``threshold``)."""
 
 PAPER_NODES = 250
 """The node count of its accuracy results."""

@@ -60,6 +60,7 @@ from typing import Any, cast
 
 import torch
 
+from ..errors import OptionsError, TorchrodTypeError
 from ..estimate.noise import NoiseLearning, RunningNoise
 from ..estimate.status import STATUSES
 from ..loads import PointForces
@@ -151,16 +152,16 @@ class StreamOptions:
 
     def __post_init__(self) -> None:
         if self.learn_noise is not None and not isinstance(self.learn_noise, NoiseLearning):
-            raise TypeError(f"learn_noise must be NoiseLearning or None, got {type(self.learn_noise).__name__}")
+            raise TorchrodTypeError(f"learn_noise must be NoiseLearning or None, got {type(self.learn_noise).__name__}")
         for name in ("batch_size", "read_ahead", "track_limit", "workers"):
             v = getattr(self, name)
             if v is None and name in ("read_ahead", "workers"):
                 continue
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+                raise OptionsError(f"{name} must be an integer >= 1, got {v!r}")
         lat = self.max_latency
         if isinstance(lat, bool) or not isinstance(lat, (int, float)) or not (0.0 <= lat < math.inf):
-            raise ValueError(f"max_latency must be a finite number of seconds >= 0, got {lat!r}")
+            raise OptionsError(f"max_latency must be a finite number of seconds >= 0, got {lat!r}")
 
 
 # ---------------------------------------------------------------------------------------------------- the stream
@@ -774,10 +775,10 @@ def stream(
     from ..estimate.options import EstimatorOptions
 
     if not isinstance(options, StreamOptions):
-        raise TypeError(f"options must be StreamOptions, got {type(options).__name__}")
+        raise TorchrodTypeError(f"options must be StreamOptions, got {type(options).__name__}")
     estimate = estimator.options if estimate_options is None else estimate_options
     if not isinstance(estimate, EstimatorOptions):
-        raise TypeError(f"estimate_options must be EstimatorOptions, got {type(estimate).__name__}")
+        raise TorchrodTypeError(f"estimate_options must be EstimatorOptions, got {type(estimate).__name__}")
     return _run(_Stream(estimator, readings, options, estimate), options)
 
 

@@ -29,6 +29,10 @@ from .views import tables_of
 RULE_NOISE = 0
 RULE_THRESHOLD = 1
 
+PAPER_THRESHOLD = 3.0
+"""[1/m^2] The paper's count threshold: the first h whose loss drops below it (``RULE_THRESHOLD``'s default, and
+the paper reproduction's rule)."""
+
 MISFIT_FACTOR = 50.0
 """The count tests' misfit guard runs at ``alpha / MISFIT_FACTOR``: it only rejects fits far worse than noise."""
 

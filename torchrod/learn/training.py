@@ -44,6 +44,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from ..errors import OptionsError
 from ..loads import PointForces
 from ..model.body_frame import grating_curvature
 from ..presets import load as load_rod
@@ -162,7 +163,7 @@ class TrainConfig:
         for name in positive:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+                raise OptionsError(f"{name} must be a positive integer, got {v!r}")
         for name in (
             "lr",
             "noise_jitter",
@@ -175,20 +176,20 @@ class TrainConfig:
         ):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+                raise OptionsError(f"{name} must be a finite number >= 0, got {v!r}")
         if self.lr <= 0:
-            raise ValueError(f"lr must be positive, got {self.lr}")
+            raise OptionsError(f"lr must be positive, got {self.lr}")
         if self.noise_jitter >= 1 or self.missing_prob >= 1 or self.warmup >= 1:
-            raise ValueError(
+            raise OptionsError(
                 f"noise_jitter, missing_prob and warmup must be < 1, got {self.noise_jitter}, "
                 f"{self.missing_prob}, {self.warmup}"
             )
         if not isinstance(self.physics_batch, int) or self.physics_batch < 0:
-            raise ValueError(f"physics_batch must be an integer >= 0, got {self.physics_batch!r}")
+            raise OptionsError(f"physics_batch must be an integer >= 0, got {self.physics_batch!r}")
         if self.device not in ("auto", "cpu", "cuda"):
-            raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
+            raise OptionsError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
         if self.threads is not None and (not isinstance(self.threads, int) or self.threads < 1):
-            raise ValueError(f"threads must be a positive integer or None, got {self.threads!r}")
+            raise OptionsError(f"threads must be a positive integer or None, got {self.threads!r}")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

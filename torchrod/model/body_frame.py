@@ -55,7 +55,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from ..errors import TorchrodError
+from ..errors import OptionsError, TorchrodError, TorchrodTypeError
 from ..kernels.march import EXACT_MAX_STEPS, EXACT_STEP_ANGLE
 from ..loads import PointForces, spread_to_nodes
 from ..rod import Rod
@@ -167,7 +167,7 @@ def _as_stiffness(ei: float | torch.Tensor, like: torch.Tensor) -> torch.Tensor:
         return ei.reshape(1, 1)
     if ei.dim() == 1 and ei.shape[0] in (1, like.shape[0]):
         return ei.unsqueeze(1)
-    raise ValueError(
+    raise OptionsError(
         f"bending_stiffness must be a scalar or have shape (B,) = ({like.shape[0]},), got {tuple(ei.shape)}"
     )
 
@@ -178,7 +178,7 @@ _DEFAULT_METHOD = {"exact": "rkn8", "nodes": "rkn4"}
 def _method(name: str | None, scheme: str) -> Tableau:
     name = _DEFAULT_METHOD[scheme] if name is None else name
     if name not in METHODS:
-        raise ValueError(f"method must be one of {sorted(METHODS)}, got {name!r}")
+        raise OptionsError(f"method must be one of {sorted(METHODS)}, got {name!r}")
     return METHODS[name]
 
 
@@ -510,26 +510,26 @@ def integrate_curvature_nodes(
 # ================================================================================================= public API
 def _check_loads(rod: Rod, loads: PointForces) -> None:
     if not isinstance(loads, PointForces):
-        raise TypeError(f"loads must be PointForces, got {type(loads).__name__}")
+        raise TorchrodTypeError(f"loads must be PointForces, got {type(loads).__name__}")
     active = loads.active
     s = loads.s.detach()
     if not bool(torch.isfinite(s[active]).all()) or not bool(torch.isfinite(loads.f.detach()[active]).all()):
-        raise ValueError("load locations and components must be finite")
+        raise OptionsError("load locations and components must be finite")
     bad = active & ((s < 0.0) | (s > rod.length))
     if bool(bad.any()):
         b, i = (int(x) for x in bad.nonzero()[0])
-        raise ValueError(f"force location s[{b}, {i}] = {float(s[b, i])} m lies outside [0, L = {rod.length}] m")
+        raise OptionsError(f"force location s[{b}, {i}] = {float(s[b, i])} m lies outside [0, L = {rod.length}] m")
 
 
 def _check_options(bending_stiffness, steps, max_step_angle, method, scheme) -> None:
     if bending_stiffness is not None:
         ei = torch.as_tensor(bending_stiffness).detach()
         if not bool(torch.isfinite(ei).all()) or bool((ei <= 0).any()):
-            raise ValueError(f"bending_stiffness must be finite and > 0 N m^2, got {ei.tolist()}")
+            raise OptionsError(f"bending_stiffness must be finite and > 0 N m^2, got {ei.tolist()}")
     if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
-        raise ValueError(f"steps must be an integer >= 1, got {steps!r}")
+        raise OptionsError(f"steps must be an integer >= 1, got {steps!r}")
     if not max_step_angle > 0 or max_step_angle == float("inf"):
-        raise ValueError(f"max_step_angle must be finite and > 0, got {max_step_angle!r}")
+        raise OptionsError(f"max_step_angle must be finite and > 0, got {max_step_angle!r}")
     _method(method, scheme)
 
 
@@ -554,7 +554,7 @@ def grating_curvature(
     ei = rod.bending_stiffness if bending_stiffness is None else bending_stiffness
     if rod.precurved:
         if method is not None:
-            raise ValueError("a precurved rod is simulated by torchrod.model.precurved's RK4: no method")
+            raise OptionsError("a precurved rod is simulated by torchrod.model.precurved's RK4: no method")
         return _precurved(rod, loads, query, scheme, nodes, ei)[0][..., :2]
     if scheme == "exact":
         return integrate_curvature(
@@ -705,14 +705,14 @@ def simulate(
     """
     _check_loads(rod, loads)
     if scheme not in ("exact", "nodes"):
-        raise ValueError(f"scheme must be 'exact' or 'nodes', got {scheme!r}")
+        raise OptionsError(f"scheme must be 'exact' or 'nodes', got {scheme!r}")
     if scheme == "nodes" and (not isinstance(nodes, int) or nodes < 2):
-        raise ValueError(f"nodes must be an integer >= 2, got {nodes!r}")
+        raise OptionsError(f"nodes must be an integer >= 2, got {nodes!r}")
     if samples < 0:
-        raise ValueError(f"samples must be >= 0, got {samples}")
+        raise OptionsError(f"samples must be >= 0, got {samples}")
     _check_options(bending_stiffness, steps, max_step_angle, method, scheme)
     if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
-        raise ValueError(f"max_steps must be an integer >= 1, got {max_steps!r}")
+        raise OptionsError(f"max_steps must be an integer >= 1, got {max_steps!r}")
     dtype, device = loads.dtype, loads.device
     grat = rod.grating_positions(dtype, device)
     parts = [grat]
@@ -721,7 +721,7 @@ def simulate(
     if at is not None:
         at = torch.as_tensor(at, dtype=dtype, device=device).reshape(-1)
         if bool(((at < 0) | (at > rod.length) | ~torch.isfinite(at)).any()):
-            raise ValueError(f"sample positions must lie in [0, {rod.length}] m, got {at.tolist()}")
+            raise OptionsError(f"sample positions must lie in [0, {rod.length}] m, got {at.tolist()}")
         parts.append(at)
     query = torch.cat(parts)
     ei = rod.bending_stiffness if bending_stiffness is None else bending_stiffness
@@ -729,7 +729,7 @@ def simulate(
     if rod.precurved:
         # Intrinsic curvature: the general march (:mod:`.precurved`); the straight rod keeps the fast path below.
         if steps is not None or method is not None:
-            raise ValueError(
+            raise OptionsError(
                 "a precurved rod (intrinsic_curvature) is simulated by the RK4 march of torchrod.model.precurved: "
                 f"steps and method must be unset, got steps={steps!r}, method={method!r}"
             )
