@@ -74,7 +74,7 @@ class StreamResult:
 
     Attributes:
         id, t: the reading's.
-        record: JSON-ready dict: the :meth:`torchrod.estimator.EstimateResult.to_records` form plus ``t`` (when
+        record: JSON-ready dict: the :meth:`torchrod.estimate.estimator.EstimateResult.to_records` form plus ``t`` (when
             given) and ``latency_ms``; for an unusable reading ``{"id", "error"}`` (plus ``t``).
         latency: [s] from the moment the reader thread took the reading from the source to the end of its
             batch's solve.
@@ -103,7 +103,7 @@ class StreamResult:
 
     @property
     def estimate(self) -> Any:
-        """The reading's :class:`torchrod.estimator.EstimateResult` (a batch of one), None for an error."""
+        """The reading's :class:`torchrod.estimate.estimator.EstimateResult` (a batch of one), None for an error."""
         return None if self._result is None else self._result[self._index]
 
 
