@@ -14,6 +14,9 @@ What is read:
 ``CHANGELOG.md`` is not read: it records what each release changed, renames and removals included, so it names on
 purpose what no longer exists (an old name beside its new one is how a user finds where a thing went).
 
+A docstring's or comment's reference to a section of the docs, ``docs/page.md, "Heading"``, must name a heading of
+that page, so that moving a section cannot leave it pointing nowhere.
+
 A name resolves when the longest prefix of it that is a module imports and the rest is found by ``getattr`` from
 there; a class's dataclass fields, annotated attributes and the attributes its methods set on ``self`` count too
 (they exist on instances only), and so does a property or method (``getattr`` on the class finds them).
@@ -278,6 +281,44 @@ def test_every_name_in_the_docs_and_docstrings_resolves() -> None:
     assert not broken, "names that do not resolve:\n" + "\n".join(
         f"  {name}: {why} (at {', '.join(sorted(set(places))[:4])})" for name, (why, places) in sorted(broken.items())
     )
+
+
+SECTION = re.compile(r"(docs/[\w/.-]+\.md),\s+\"([^\"]+)\"")
+"""A reference to a section of a page of the docs: ``docs/physics.md, "Precurved rods"``."""
+
+
+def _headings(page: Path) -> set[str]:
+    return {line.lstrip("#").strip() for line in page.read_text(encoding="utf-8").splitlines() if line.startswith("#")}
+
+
+def section_problems(text: str) -> list[str]:
+    """What in ``text`` refers to a page of the docs or a heading of it that does not exist."""
+    problems = []
+    for match in SECTION.finditer(" ".join(text.split())):  # a reference may be wrapped over lines
+        page, heading = ROOT / match.group(1), match.group(2)
+        if not page.is_file():
+            problems.append(f"no page {match.group(1)}")
+        elif heading not in _headings(page):
+            problems.append(f"{match.group(1)} has no heading {heading!r}")
+    return problems
+
+
+def test_every_section_the_docstrings_refer_to_exists() -> None:
+    broken = [
+        f"  {path.relative_to(ROOT)}:{number}: {problem}"
+        for path in sorted(PACKAGE.rglob("*.py"))
+        for number, text, _ in _docstrings_and_comments(path)
+        for problem in section_problems(text)
+    ]
+    assert not broken, "section references that lead nowhere:\n" + "\n".join(broken)
+
+
+def test_a_section_reference_that_leads_nowhere_is_found() -> None:
+    assert section_problems('(docs/physics.md, "Precurved rods")') == []
+    assert section_problems('(docs/physics.md,\n    "Precurved rods")') == []
+    missing = section_problems('(docs/physics.md, "No such heading")')
+    assert missing == ["docs/physics.md has no heading 'No such heading'"]
+    assert section_problems('(docs/nowhere.md, "Anything")') == ["no page docs/nowhere.md"]
 
 
 def test_every_short_role_in_the_docstrings_resolves_where_it_is_written() -> None:
