@@ -34,6 +34,7 @@ WITHOUT_KERNELS = frozenset(
         "test_body_frame",
         "test_calibration",
         "test_cli_simulate",
+        "test_doc_names",
         "test_errors",
         "test_global_bvp",
         "test_jig",

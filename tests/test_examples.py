@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import json
 import os
 import subprocess
@@ -38,12 +39,21 @@ def test_simulate_and_estimate(tmp_path):
 
 
 def test_estimate_file_writes_one_answer_per_reading(tmp_path):
+    """On the shipped example stream (simulated from the model, at the noise the example assumes) the answers are
+    ok: the model fits (no misfit), the search converged in time, and most are determined; the summary it prints is
+    the answers' own."""
     answers = tmp_path / "answers.jsonl"
     out = run("estimate_file.py", "--count", "6", "--out", str(answers), cwd=tmp_path)
-    assert "6 readings" in out and "the shipped warm-start network" in out and "statuses:" in out
+    assert "6 readings" in out and "the shipped warm-start network" in out
     records = [json.loads(line) for line in answers.read_text().splitlines()]
     assert [r["id"] for r in records] == [f"f{k:06d}" for k in range(6)]
-    assert all(r["status"] in ("ok", "misfit", "unconverged", "poorly_determined", "timeout") for r in records)
+    statuses = collections.Counter(r["status"] for r in records)
+    assert set(statuses) <= {"ok", "poorly_determined"}, statuses
+    assert statuses["ok"] >= 5, statuses
+    assert all(r["num_forces"] == len(r["forces"]) >= 1 for r in records)  # each reading was taken under load
+    counts = dict(sorted(collections.Counter(r["num_forces"] for r in records).items()))
+    assert f"statuses: {dict(statuses)}" in out and f"forces per reading: {counts}" in out
+    assert f"wrote 6 answers to {answers}" in out
 
 
 def test_estimate_file_reports_a_bad_line_and_goes_on(tmp_path):

@@ -380,10 +380,33 @@ def test_each_implausible_value_is_an_error_naming_it(change, message):
 
 
 def test_the_bounds_themselves_are_plausible():
-    for length in (1e-3, 20.0):
-        Rod(length=length, bending_stiffness=1.0, gratings=(0.0, 0.5 * length))
-    Rod.from_geometry(length=0.29, outer_diameter=0.1, inner_diameter=0.0, youngs_modulus=1e6, gratings=GRATINGS)
-    Rod.from_geometry(length=0.29, outer_diameter=1e-3, inner_diameter=0.0, youngs_modulus=1.2e12, gratings=GRATINGS)
+    """Each plausibility bound is inclusive and lies where the constants say: a rod exactly at a bound is built and
+    holds the values given; one a hair beyond it is refused, naming the value."""
+    from torchrod.rod import LENGTH_RANGE, MAX_DIAMETER, YOUNGS_MODULUS_RANGE
+
+    assert LENGTH_RANGE == (1e-3, 20.0) and YOUNGS_MODULUS_RANGE == (1e6, 1.2e12) and MAX_DIAMETER == 0.1
+    hair = 1e-9
+    for length in LENGTH_RANGE:
+        rod = Rod(length=length, bending_stiffness=1.0, gratings=(0.0, 0.5 * length))
+        assert (rod.length, rod.gratings) == (length, (0.0, 0.5 * length))
+    for length in (1e-3 * (1 - hair), 20.0 * (1 + hair)):
+        with pytest.raises(tr.errors.RodError, match=r"length = .* m lies outside the plausible 1 mm to 20 m"):
+            Rod(length=length, bending_stiffness=1.0, gratings=(0.0, 0.5 * length))
+    for outer, youngs in ((0.1, 1e6), (1e-3, 1.2e12)):
+        rod = Rod.from_geometry(
+            length=0.29, outer_diameter=outer, inner_diameter=0.0, youngs_modulus=youngs, gratings=GRATINGS
+        )
+        assert (rod.outer_diameter, rod.youngs_modulus) == (outer, youngs)
+        assert rod.bending_stiffness == pytest.approx(youngs * math.pi * outer**4 / 64, rel=1e-12)  # a solid rod
+    for outer, youngs, message in (
+        (0.1 * (1 + hair), 1e6, "outer_diameter = 0.1 m is larger than 0.1 m"),
+        (1e-3, 1e6 * (1 - hair), "youngs_modulus = 1e+06 Pa lies outside the plausible"),
+        (1e-3, 1.2e12 * (1 + hair), "youngs_modulus = 1.2e+12 Pa lies outside the plausible"),
+    ):
+        with pytest.raises(tr.errors.RodError, match=re.escape(message)):
+            Rod.from_geometry(
+                length=0.29, outer_diameter=outer, inner_diameter=0.0, youngs_modulus=youngs, gratings=GRATINGS
+            )
 
 
 # ---------------------------------------------------------------------------------------------------- limitations

@@ -94,7 +94,7 @@ __all__ = [  # the names of _LAZY and __version__ (a test holds them equal)
     "stream",
 ]
 
-# Subpackages and modules that ``torchrod.X`` reaches without an import of its own (as when they were eager).
+# Subpackages and modules that ``torchrod.<name>`` reaches without an import of its own (as when they were eager).
 _SUBMODULES = frozenset(
     {"cli", "errors", "estimate", "eval", "io", "kernels", "learn", "loads", "model", "rod", "sensors"}
 )

@@ -362,7 +362,7 @@ def calibrate(
 
     Args:
         rod: the rod being calibrated: its gratings, length and nominal EI (its location_bias is not used).
-        data: R readings with known forces (:func:`read_readings`), s in the true coordinate.
+        data: R readings with known forces (:func:`torchrod.io.known_loads.read_readings`), s in the true coordinate.
         directions: ``"known"``: step 2 uses the known (f_x, f_y); ``"free"``: only their magnitudes.
         initial_bias: starting value of b [m].
         noise: the sensor's sigma per curvature component [1/m], if known: the residuals are judged against it

@@ -36,7 +36,7 @@ class NoiseLearning:
         growth: while the estimate comes from fewer fits than a stream's batch holds, a batch holds at most
             ``growth`` times the fits it comes from (at least ``after``): a sigma from few fits answers few
             readings, and a backlog's batches grow to full size in a few steps (32, 128, 640, ... with the
-            defaults; docs/results.md, "Unknown noise: how fast the batches grow").
+            defaults).
     """
 
     after: int = 32

@@ -1,6 +1,6 @@
 """The paper's experiments (Xiao & Chen, "Efficient Force Estimation for Continuum Robot"), as reusable functions.
 
-Three pieces, used by ``torchrod bench paper`` and by the figures of :mod:`torchrod.plots`:
+Three pieces, used by ``torchrod bench paper`` and by the figures of :mod:`torchrod.eval.plots`:
 
 Baseline estimators (:func:`fit_forces`, :func:`paper_estimate`)
     The paper compares three ways of computing the curvature inside one outer optimiser (MATLAB's fmincon): the
@@ -10,11 +10,11 @@ Baseline estimators (:func:`fit_forces`, :func:`paper_estimate`)
     curvature residuals, with a forward-difference Jacobian over each force's (s, f_x, f_y) (:class:`FitOptions`:
     same steps, same tolerances, same start for every inner model). The inner models (:class:`CurvatureModel`):
 
-    * :class:`BVPModel`: :class:`torchrod.global_bvp.ShootingSolver` (classical RK4 on the q nodes, the paper's node
-      spreading of the forces) with ``jacobian="fd"`` (Levenberg-Marquardt, its 6 perturbed shots integrated as one
+    * :class:`BVPModel`: :class:`torchrod.model.global_bvp.ShootingSolver` (classical RK4 on the q nodes, the paper's
+      node spreading of the forces) with ``jacobian="fd"`` (Levenberg-Marquardt, its 6 perturbed shots integrated as one
       vectorised batch) or ``"dp"`` (derivative propagation). Every inner solve is warm-started from the solution at
       the outer iterate last evaluated (the perturbed solves of the outer Jacobian from the one at their base point).
-    * :class:`NodeModel`: the body-frame IVP with the node scheme (:func:`torchrod.body_frame.grating_curvature`,
+    * :class:`NodeModel`: the body-frame IVP with the node scheme (:func:`torchrod.model.body_frame.grating_curvature`,
       ``scheme="nodes"``); the outer Jacobian's perturbed force sets are one batched call.
 
     All three discretise the same problem (RK4-class integration of the same node-spread load), so their estimates
@@ -181,7 +181,7 @@ class BVPModel(CurvatureModel):
         rod, nodes: the rod and q.
         jacobian: ``"fd"`` (Levenberg-Marquardt with a finite-difference Jacobian: the paper's "BVP + LM") or
             ``"dp"`` (derivative propagation: "BVP + DP").
-        tol: the shooting tolerance on the scaled tip residual (:class:`torchrod.global_bvp.ShootingSolver`).
+        tol: the shooting tolerance on the scaled tip residual (:class:`torchrod.model.global_bvp.ShootingSolver`).
     Attributes ``solves``, ``iterations`` and ``failures`` count the inner solves, their Levenberg-Marquardt
     iterations and the solves that did not converge.
     """
@@ -476,7 +476,7 @@ def paper_readings(
 ) -> Readings:
     """``count`` readings with ``forces`` forces each, shaped like the paper's experiments (module docstring).
 
-    Loads come from :func:`torchrod.synthetic.generate` (``LoadSampler`` with ``force_range``, ``s_range``
+    Loads come from :func:`torchrod.learn.synthetic.generate` (``LoadSampler`` with ``force_range``, ``s_range``
     (default: the second grating to 10 mm short of the tip), ``min_separation`` and ``max_bending``;
     ``SensorModel(noise=noise, location_bias=rod.location_bias)``): from a pool of 12 x ``count`` cases, case j is
     the first whose mean location lies in the j-th of ``count`` equal parts of the location range (the nearest
@@ -623,7 +623,7 @@ def loss_maps(
         samples: uniform centreline samples on [0, L] for the shape loss (P = samples).
     Returns:
         :class:`LossMaps`; the truth and the S x F grid are evaluated in one batched :func:`torchrod.simulate`
-        call (curvature at the gratings and along the rod), the shapes by :func:`torchrod.shape.rod_shape`.
+        call (curvature at the gratings and along the rod), the shapes by :func:`torchrod.model.shape.rod_shape`.
     """
     S, F = size
     if S < 2 or F < 2:
@@ -773,8 +773,8 @@ def speed_table(
     progress=None,
 ) -> SpeedTable:
     """Single-force estimation time of the paper's three methods (shared outer optimiser, :func:`paper_estimate`
-    with one force) at each q, and of ``estimator`` (a :class:`torchrod.estimator.Estimator`, which should fit one
-    force: ``num_forces=1``), on the same ``readings``, one reading per call; and torchrod's time per reading when
+    with one force) at each q, and of ``estimator`` (a :class:`torchrod.estimate.estimator.Estimator`, which should fit
+    one force: ``num_forces=1``), on the same ``readings``, one reading per call; and torchrod's time per reading when
     ``batch`` (default: ``readings``) is estimated in one call.
 
     Every method gets an untimed warm-up on reading 0 except the BVP ones (no caches to fill, and slow).

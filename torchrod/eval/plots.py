@@ -59,7 +59,7 @@ def save(fig: Figure, path: str | os.PathLike, dpi: int = 90) -> str:
 # ================================================================================================ the paper's figures
 def speed_figure(table, paper: Mapping[int, Mapping[str, float]] | None = None) -> Figure:
     """Table II as a figure: median single-force estimation time [s] against q, log scale, one line per method
-    (:class:`torchrod.paper.SpeedTable`), the paper's times as hollow markers on dashed lines."""
+    (:class:`torchrod.eval.paper.SpeedTable`), the paper's times as hollow markers on dashed lines."""
     fig = figure(8.6, 4.2)
     ax = fig.add_subplot(1, 1, 1)
     q = list(table.nodes)
@@ -98,7 +98,7 @@ def versus_q_figure(
     paper_location: Mapping[int, float] | None = None,
     paper_times: Mapping[int, Mapping[int, float]] | None = None,
 ) -> Figure:
-    """Accuracy and time against q (:class:`torchrod.paper.AccuracyStudy`): force RMSE [N], location RMSE [mm]
+    """Accuracy and time against q (:class:`torchrod.eval.paper.AccuracyStudy`): force RMSE [N], location RMSE [mm]
     and median time per estimate [s] of the paper's method (count given) for each force count, torchrod's default
     (count automatic) as a horizontal line, the paper's numbers as hollow markers."""
     fig = figure(11.0, 3.6)
@@ -154,7 +154,7 @@ def versus_q_figure(
 
 
 def loss_maps_figure(maps) -> Figure:
-    """The paper's loss maps (:class:`torchrod.paper.LossMaps`): shape loss and curvature loss (log colour scale)
+    """The paper's loss maps (:class:`torchrod.eval.paper.LossMaps`): shape loss and curvature loss (log colour scale)
     over location [mm] and magnitude [N], the truth (white cross) and each map's minimum (red circle)."""
     fig = figure(9.0, 3.8)
     extent = (1e3 * maps.s[0], 1e3 * maps.s[-1], maps.magnitude[0], maps.magnitude[-1])

@@ -1,9 +1,9 @@
 """FBG readings: what one reading is, and the one set of rules every entry point checks it by.
 
-``torchrod estimate``, ``torchrod stream``, ``torchrod calibrate``, ``torchrod plot``, the Python stream API
-(:func:`torchrod.io.stream.stream`: dicts, lists, tensors) and the estimator itself (:func:`check_readings`, on
-tensors) all check readings here, so a reading means the same thing, and fails with the same message, wherever it
-enters.
+``torchrod estimate``, ``torchrod stream``, ``torchrod calibrate``, ``torchrod plot`` and the Python stream API
+(:func:`torchrod.io.stream.stream`: dicts, lists, tensors) all check readings here, and the estimator checks the
+tensors handed to it by the same bounds (:func:`torchrod.estimate.checks.check_readings`), so a reading means the
+same thing, and fails with the same message, wherever it enters.
 
 A reading
     ``curvature``: one entry per grating of the rod, in the rod file's order: a pair ``[ux, uy]`` [1/m], or
@@ -26,7 +26,7 @@ Units
     ``strain_unit``, ``wavelength_unit``; the commands' options set them), SI (and nm) without one, and converted
     to SI here; the bounds hold in SI (:data:`MAX_CURVATURE`, :data:`torchrod.sensors.MAX_STRAIN`, a peak within
     :data:`torchrod.sensors.WAVELENGTH_RANGE_NM`, a shift within :data:`torchrod.sensors.MAX_WAVELENGTH_SHIFT`).
-    Tensors handed to the estimator (:func:`check_readings`) are always curvature in 1/m.
+    Tensors handed to the estimator (:func:`torchrod.estimate.checks.check_readings`) are always curvature in 1/m.
 
 Numbers
     A number is a JSON number (Python: ``int``, ``float`` or another real number; never a boolean or a string). It

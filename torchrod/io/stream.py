@@ -7,7 +7,7 @@ iterable of readings and yields one result per reading, in input order, as soon 
   never waits (a list or tuple of readings, or a source whose ``never_waits`` is true: a
   :class:`~torchrod.io.readings.ReadingSource` of a regular file, a ROS bag) is read instead by the stream's own
   thread, a batch at a time while the solver threads work: two threads running Python at once cost the
-  interpreter more than the reading does (docs/results.md, "What bounds a backlog on two cores");
+  interpreter more than the reading does (docs/core.md, "Two cores through a backlog");
 - readings are gathered into batches, closed when ``batch_size`` readings (times ``workers``) are pending or when
   the oldest pending reading has waited ``max_latency`` seconds (by default 0: a reading that finds the estimator
   idle is solved at once); readings that queued up while a batch was being solved all join the next one (up to a
@@ -75,7 +75,7 @@ class StreamResult:
 
     Attributes:
         id, t: the reading's.
-        record: JSON-ready dict: the :meth:`torchrod.estimator.EstimateResult.to_records` form plus ``t`` (when
+        record: JSON-ready dict: the :meth:`torchrod.estimate.estimator.EstimateResult.to_records` form plus ``t`` (when
             given) and ``latency_ms``; for an unusable reading ``{"id", "error"}`` (plus ``t``).
         latency: [s] from the moment the reader thread took the reading from the source to the end of its
             batch's solve.
@@ -104,7 +104,7 @@ class StreamResult:
 
     @property
     def estimate(self) -> Any:
-        """The reading's :class:`torchrod.estimator.EstimateResult` (a batch of one), None for an error."""
+        """The reading's :class:`torchrod.estimate.estimator.EstimateResult` (a batch of one), None for an error."""
         return None if self._result is None else self._result[self._index]
 
 
@@ -124,9 +124,8 @@ class StreamOptions:
             that never waits (module docstring) is read a batch at a time, with nothing queued.
         track: start the readings of a batch from the last solved reading's forces too, when the batch holds
             at most ``track_limit`` readings (loads change slowly between frames). Off by default: the search
-            finds what these starts find, and they cost time (docs/results.md, "Tracking starts in a stream"). A
-            larger batch (a backlog) spans too many frames for one previous solution to be near most of its
-            readings.
+            finds what these starts find, and they cost time. A larger batch (a backlog) spans too many frames for
+            one previous solution to be near most of its readings.
         device: torch device the readings are estimated on.
         learn_noise: with no noise given (neither the estimator's ``noise`` nor an override), learn the sensor's
             sigma from the stream's own fits (:mod:`torchrod.estimate.noise`) and, once learned, solve every

@@ -16,8 +16,9 @@ rules (``Options.rule``):
     estimated from the largest fit, ``sigma^2 = loss_H / (n - 3 H)``, and the drops are tested with the F law (no
     misfit guard: the misfit is what estimates sigma). sigma^2 includes the floor^2 in both cases.
 
-The quantiles come from tables the caller makes once (:class:`torchrod.kernels.layout.Tables`, indexed by the
-count difference and by the degrees of freedom). The one special function computed here is the chi-square
+The quantiles come from tables the caller makes once (:func:`torchrod.kernels.host.count_tables`, held in the
+``tables`` group of :data:`torchrod.kernels.layout.SPEC`, indexed by the count difference and by the degrees of
+freedom). The one special function computed here is the chi-square
 survival of the reported p-value (:func:`chi2_survival`), once per reading.
 """
 

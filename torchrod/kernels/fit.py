@@ -10,7 +10,8 @@ side, the slope jump i (f_x + i f_y) / EI on the distal side). Each force carrie
 the reading's present gratings and stays in it while a step moves it; a force on a bound has its own interval's
 one-sided derivative (:func:`sided`). Crossing a grating is a decision of :func:`analyse`.
 
-One Levenberg-Marquardt iteration of a row (a fit held in the rows of :class:`torchrod.kernels.layout.Rows`):
+One Levenberg-Marquardt iteration of a row (a fit held in the ``rows`` group of :data:`torchrod.kernels.layout.SPEC`,
+seen through :func:`torchrod.kernels.views.rows_of`):
 
 1. :func:`analyse`: a force on (or within :data:`SNAP` of) a bound whose loss falls by leaving the interval is
    held there, unless the loss also falls beyond the grating: then it crosses into the neighbouring interval.

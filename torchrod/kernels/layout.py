@@ -103,7 +103,7 @@ SPEC: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
         "query": (("G",), "k"), "tab_c": (("S",), "k"), "tab_a": (("S", "S"), "k"), "tab_bp": (("S",), "k"),
         "tab_bv": (("S",), "k"), "segments": (("NSEG", 4), "k"), "extra": (("NX",), "k"),
     },
-    "tables": {  # the count tests' quantiles (:class:`torchrod.kernels.host.count_tables`)
+    "tables": {  # the count tests' quantiles (:func:`torchrod.kernels.host.count_tables`)
         "drop_chi2": (("KT",), "k"), "drop_f": (("KT", "D"), "k"), "misfit": (("D",), "k"), "guard": (("D",), "k"),
         "suspect": (("D",), "k"), "kink": (("D",), "k"), "verdict": (("D",), "k"),
     },

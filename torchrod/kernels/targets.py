@@ -13,16 +13,16 @@ Compilation is done once per machine and kept on disk, under a directory named a
 source and the compiler's version (so a changed kernel or Numba never loads stale code): ``$TORCHROD_CACHE_DIR``,
 else ``$XDG_CACHE_HOME/torchrod`` or ``~/.cache/torchrod``. It is announced once on stderr (what compiles, about how
 long, where it is kept), and processes that start together take turns through a file lock, so one compiles and
-the others load. A caller compiles before it starts any clock (:func:`ready`): the time never counts against a
+the others load. A caller compiles before it starts any clock (:meth:`Compiled.ready`): the time never counts against a
 reading's budget, and a cold run answers as a warm one does.
 
 A first compile for the CPU need not hold the first answers back (:meth:`Compiled.start`): it runs in a child
 process (announced as above), and meanwhile readings are solved one at a time by the same source run as Python
 (``"python"``: far slower, the same arithmetic in the same order), with no deadline, so their answers are the
 compiled kernels'. When the child is done the kernels are loaded from the cache and used from the next reading on.
-``TORCHROD_COMPILE=foreground`` waits for the compile instead, before the first reading (as :meth:`ready`). Every
-CPU compile with a writable cache runs in a child process, and the process that waits for it loads the kernels from
-the cache, as every later run does: kernels compiled in the process that runs them ran at about half the speed.
+``TORCHROD_COMPILE=foreground`` waits for the compile instead, before the first reading (as :meth:`Compiled.ready`).
+Every CPU compile with a writable cache runs in a child process, and the process that waits for it loads the kernels
+from the cache, as every later run does: kernels compiled in the process that runs them ran at about half the speed.
 """
 
 from __future__ import annotations
@@ -69,8 +69,8 @@ def namespace(decorate: Any, accessor: Any, inlined: Any, name: str = "", view: 
     """One namespace holding every kernel function rebuilt and decorated (the accessors of :mod:`.views` with
     ``accessor``, the small functions each module lists in its ``INLINE`` with ``inlined``, the rest with ``decorate``),
     and the kernel modules' other globals (constants, named tuples, ``math``). With a ``name``, the namespace is a
-    module's of that name (``torchrod.kernels.NAME``, registered in ``sys.modules``, so that Numba's on-disk cache finds
-    the functions' globals again in a new process). ``view``: the target's own :func:`.views.view`. Two kernel
+    module's of that name (``torchrod.kernels.<name>``, registered in ``sys.modules``, so that Numba's on-disk cache
+    finds the functions' globals again in a new process). ``view``: the target's own :func:`.views.view`. Two kernel
     functions of one name, or two different globals of one name, are a mistake of the source: ValueError."""
     modules = _modules()
     functions: dict[str, types.FunctionType] = {}

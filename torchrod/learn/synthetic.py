@@ -9,7 +9,7 @@ Load cases (:class:`LoadSampler`, :func:`sample_loads`)
 
     Bending limit: a case is rejected when its total turning angle ``int_0^L |u(s)| ds`` exceeds ``max_bending``.
     The total turning bounds the angle between the base and tip tangents from above, and equals it for planar
-    loads. It is computed from the forward model (the body-frame IVP of :mod:`torchrod.body_frame`) sampled at
+    loads. It is computed from the forward model (the body-frame IVP of :mod:`torchrod.model.body_frame`) sampled at
     129 uniform positions and integrated by the trapezoid rule; |u| has kinks at the forces, so the quadrature error
     is of order (L/128)^2 |f|/EI / 8, about 2e-4 rad at the paper's rod and 2 N (a test checks it against a fine
     grid). A rejected case is redrawn with the same k (only the rejected rows are redrawn, vectorised), so the

@@ -1,24 +1,24 @@
-"""Training the warm-start network (:mod:`torchrod.warm_start`) on simulated readings.
+"""Training the warm-start network (:mod:`torchrod.learn.warm_start`) on simulated readings.
 
 One entry point, :func:`train`, driven by a frozen :class:`TrainConfig`; ``python train/train_warm_start.py`` and
 ``torchrod train`` build the config from the command line (:func:`add_arguments`, :func:`config_from_args`) and call
 it. Under ``torchrun --nproc_per_node=N`` it trains with DistributedDataParallel (gloo on CPU, nccl on CUDA), each
 process taking its share of every epoch through a DistributedSampler; only rank 0 logs and saves.
 
-Data. The load cases and their clean readings come from a :class:`torchrod.synthetic.SyntheticSet` (``data``: a
+Data. The load cases and their clean readings come from a :class:`torchrod.learn.synthetic.SyntheticSet` (``data``: a
 saved set) or are generated at start (``generate`` cases, seeded). Every training step draws fresh sensor noise and
 fresh missing gratings for its batch (a per-step seed, so a resumed run draws what the uninterrupted run would
 have): the noise level of each case is ``noise * U(1 - noise_jitter, 1 + noise_jitter)`` [1/m]. A held-back set
 (``validation`` cases, another seed, noise exactly ``noise``) measures the network after every epoch.
 
-Loss, all dimensionless (s / L, f L^2 / EI, u L; :mod:`torchrod.warm_start`):
+Loss, all dimensionless (s / L, f L^2 / EI, u L; :mod:`torchrod.learn.warm_start`):
 
 * cross-entropy of the count logits, weighted by ``count_weight``;
 * for the head of the true count h, a Huber loss on the h locations (in units of ``LOCATION_UNIT``) and on the h
   force components (in units of ``FORCE_UNIT`` x the network's force scale). Both the truth and the head are
   sorted by location, so they pair up in order;
 * the physics loss, weighted by ``physics_weight``: the differentiable rod model
-  (:func:`torchrod.body_frame.grating_curvature` on the unit rod) applied to the true count's predicted forces,
+  (:func:`torchrod.model.body_frame.grating_curvature` on the unit rod) applied to the true count's predicted forces,
   against the noisy input reading, mean squared over the read gratings, in units of the curvature scale. It runs
   on the first ``physics_batch`` cases of each batch (measured on two CPU cores, batch 512: a step takes about
   11 ms without it and 14 to 15 ms with 64 to 256 cases in it).
@@ -91,7 +91,7 @@ class TrainConfig:
         rod: preset name or rod JSON file. Generating (no ``data``): the rod to simulate, None meaning
             ``DEFAULT_ROD``. With ``data`` the set's own rod is used; a ``rod`` given as well must agree with it
             (length, stiffness, gratings: :meth:`Rod.differences`), else ``ValueError`` naming both.
-        data: a saved :class:`~torchrod.synthetic.SyntheticSet`, or None to generate ``generate`` cases.
+        data: a saved :class:`~torchrod.learn.synthetic.SyntheticSet`, or None to generate ``generate`` cases.
         generate: number of training cases generated at start when ``data`` is None.
         validation: number of held-back cases, generated with another seed.
         max_forces: largest number of forces (H) in the data and the network.
@@ -200,7 +200,7 @@ class TrainConfig:
 
 @dataclass(frozen=True)
 class TrainingData:
-    """Load cases and their clean readings, dimensionless (see :mod:`torchrod.warm_start`).
+    """Load cases and their clean readings, dimensionless (see :mod:`torchrod.learn.warm_start`).
 
     Attributes:
         rod: the rod the cases were simulated on (its length and stiffness made them dimensionless).
@@ -248,7 +248,7 @@ class TrainingData:
 
     @classmethod
     def from_set(cls, data: Any) -> TrainingData:
-        """From a :class:`torchrod.synthetic.SyntheticSet` (its clean readings and mask)."""
+        """From a :class:`torchrod.learn.synthetic.SyntheticSet` (its clean readings and mask)."""
         return cls.from_loads(data.rod, data.loads, data.clean, data.mask)
 
     def __len__(self) -> int:

@@ -1,8 +1,8 @@
 """The warm-start network: a first guess of the contact forces from one FBG reading, for the refinement to start from.
 
 The network works in dimensionless form. With s~ = s / L, u~ = u L and f~ = f L^2 / EI the body-frame equations
-(:mod:`torchrod.body_frame`) read U~'' = -|U~|^2 U~ / 2 with jumps f~ / 1 at the forces: the length and the stiffness
-leave the problem. So one network serves every rod whose gratings sit at the same relative positions s_k / L,
+(:mod:`torchrod.model.body_frame`) read U~'' = -|U~|^2 U~ / 2 with jumps f~ / 1 at the forces: the length and the
+stiffness leave the problem. So one network serves every rod whose gratings sit at the same relative positions s_k / L,
 whatever its length and stiffness; the checkpoint records that layout and :meth:`WarmStart.load` refuses a rod
 whose layout differs (by more than ``LAYOUT_TOLERANCE``).
 

@@ -1,6 +1,6 @@
 """The global-frame Cosserat rod as a boundary-value problem, solved by shooting from the base.
 
-This module is the independent check of :mod:`torchrod.body_frame` and the home of the paper's two baselines. It
+This module is the independent check of :mod:`torchrod.model.body_frame` and the home of the paper's two baselines. It
 works in numpy/scipy, one load case at a time, with rotation matrices in the global frame (no body-frame reduction).
 
 Equations (the paper's eqs. 1-4, standard Cosserat sign, docs/physics.md) for an inextensible, unshearable rod

@@ -62,7 +62,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def readings(rod, k: int | None, count: int, noise: float, seed: int):
-    """A :class:`torchrod.synthetic.SyntheticSet` of ``count`` readings with k forces (None: 1 to 3)."""
+    """A :class:`torchrod.learn.synthetic.SyntheticSet` of ``count`` readings with k forces (None: 1 to 3)."""
     from ...learn.synthetic import LoadSampler, SensorModel, generate
 
     lo = rod.gratings[1] if rod.num_gratings > 1 else 0.02 * rod.length

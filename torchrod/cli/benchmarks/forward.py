@@ -74,7 +74,7 @@ def large_deflection_cases(
     """``count`` load cases (module docstring), padded to ``max_forces`` (padding: s = 0, f = 0, mask False).
 
     The turn is the largest angle between the base tangent and the tangent anywhere on the rod, from
-    :func:`torchrod.shape.shape` on 65 samples (a filter: its error of a fraction of a degree does not matter).
+    :func:`torchrod.model.shape.shape` on 65 samples (a filter: its error of a fraction of a degree does not matter).
     """
     from ...model.shape import shape
 

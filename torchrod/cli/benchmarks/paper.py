@@ -3,7 +3,7 @@
 1. Table II: single-force estimation time at q = 50, 100, 150, 200 for the paper's three methods, BVP + Levenberg-
    Marquardt, BVP + derivative propagation and its body-frame method with the node scheme, all inside ONE shared
    outer optimiser (scipy ``least_squares``, forward-difference Jacobian over (s, f_x, f_y), the same start and
-   tolerances: :mod:`torchrod.paper`), and torchrod's default estimator (exact point loads, warm-start network when
+   tolerances: :mod:`torchrod.eval.paper`), and torchrod's default estimator (exact point loads, warm-start network when
    its checkpoint is there, Levenberg-Marquardt; the count fixed to 1 so the comparison is like for like). The same
    ``--table-readings`` readings for every method (few: the BVP baselines take seconds each); the median wall time
    per estimate, one reading per call (torchrod also batched: all readings in one call, per reading), the ratios

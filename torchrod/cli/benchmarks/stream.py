@@ -1,6 +1,6 @@
 """``torchrod bench stream``: amortised estimation on a stream of readings against one reading at a time.
 
-Readings: a synthetic trajectory (:func:`torchrod.synthetic.generate_trajectory`) of ``--count`` readings at
+Readings: a synthetic trajectory (:func:`torchrod.learn.synthetic.generate_trajectory`) of ``--count`` readings at
 ``--rate`` Hz: 1 to 3 contacts that appear, move, grow and vanish, Gaussian noise ``--noise`` per component. The
 estimator (default options, count chosen among 0..3, told the noise; the warm-start network of ``--checkpoint``
 when it fits the rod, loaded as :func:`torchrod.load_estimator` does: its guesses are starts beside the scan's
@@ -10,7 +10,7 @@ the same readings several ways, in one run:
 * ``static, batched``: :meth:`Estimator.estimate` on consecutive batches of ``--batch-size`` (no tracking);
 * ``static, one at a time``: :meth:`Estimator.estimate` on ``--single`` consecutive readings from the middle of
   the trajectory, one call each (latency: the call's wall time);
-* ``stream, backlog, 1 thread``: :func:`torchrod.stream.stream` over all readings available at once on one solver
+* ``stream, backlog, 1 thread``: :func:`torchrod.io.stream.stream` over all readings available at once on one solver
   thread (throughput; latency is then mostly the wait in the read-ahead queue);
 * ``stream, backlog, P threads``: the same backlog on ``--workers`` P solver threads (``StreamOptions(workers=P)``,
   each batch whole in one thread): how throughput scales from one core to P;

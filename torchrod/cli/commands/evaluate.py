@@ -3,7 +3,7 @@
 Usage: ``torchrod evaluate [--rod ROD] [--count-per-cell N] [--noise 0,0.1,0.3] [--seed S]``.
 
 For every number of forces k = 1..``--max-forces`` and every noise level sigma, N load cases are drawn
-(:mod:`torchrod.synthetic`): k forces at least ``--min-separation`` apart (25 mm), magnitudes uniform in
+(:mod:`torchrod.learn.synthetic`): k forces at least ``--min-separation`` apart (25 mm), magnitudes uniform in
 ``--force-range`` (0.05 to 2 N) in any body-frame direction, locations uniform over [``--s-min``, L], cases whose
 rod turns by more than ``--max-bending-deg`` (90 degrees) redrawn; their readings carry Gaussian noise sigma per
 component (and the rod's location bias). The estimator (``torchrod.Estimator``, default options, up to
