@@ -1,7 +1,8 @@
 """Training the warm-start network (:mod:`torchrod.learn.warm_start`) on simulated readings.
 
 One entry point, :func:`train`, driven by a frozen :class:`TrainConfig`; ``python train/train_warm_start.py`` and
-``torchrod train`` build the config from the command line (:func:`add_arguments`, :func:`config_from_args`) and call
+``torchrod train`` build the config from the command line (:func:`torchrod.cli.commands.train.add_arguments`,
+:func:`torchrod.cli.commands.train.config_from_args`) and call
 it. Under ``torchrun --nproc_per_node=N`` it trains with DistributedDataParallel (gloo on CPU, nccl on CUDA), each
 process taking its share of every epoch through a DistributedSampler; only rank 0 logs and saves.
 
