@@ -642,3 +642,16 @@ def test_a_reading_that_overflows_is_data_not_an_exception():
     with np.errstate(all="ignore"):
         rows = _fit(k, 5, 1, [0.2], np.array([[0.3, 0.3]]))
     assert not rows.converged[5] and not math.isfinite(rows.loss[5])
+
+
+def test_the_generated_accessors_are_the_ones_the_layout_gives():
+    """torchrod/kernels/views.py is generated from layout.SPEC (``python -m torchrod.kernels.layout``): a part added
+    to the description without regenerating the file fails here."""
+    from pathlib import Path
+
+    from torchrod.kernels import layout, views
+
+    assert Path(views.__file__).read_text(encoding="utf-8") == layout.render_views()
+    for group, parts in layout.SPEC.items():
+        assert getattr(views, f"{group.capitalize()}View")._fields == tuple(parts)
+        assert callable(getattr(views, f"{group}_of"))

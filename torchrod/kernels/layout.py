@@ -296,3 +296,58 @@ for _dtype in (ROD, OPTIONS, INFO, LAYOUT):  # a field must not hide an attribut
     if _clash:
         raise ValueError(f"record fields {_clash} hide attributes of numpy.record")
 del _dtype
+
+
+# ------------------------------------------------------------------------------------------------ generated accessors
+ARENA = {"f": "k.f", "i": "k.i", "c": "k.c", "b": "k.b", "k": "k.const"}
+"""The Kit's arena of each kind, as the accessors name it."""
+
+_VIEWS_HEAD = '''"""Named views of a reading's arenas: one accessor per group of :data:`.layout.SPEC` (``rows_of(k)``,
+``lm_of(k)``, ...), returning a named tuple of views into the arenas of the :class:`.layout.Kit` ``k``.
+
+GENERATED from :data:`.layout.SPEC` by ``python -m torchrod.kernels.layout``: do not edit by hand (a test holds
+this file equal to what the description gives). Each accessor is a few :func:`view` calls, inlined where it is
+called on a compiled target, so the description stays the only place the arenas' parts are listed, and grep, the
+type checker and a reader all see the code.
+"""
+
+from collections import namedtuple
+
+
+def view(arena, start, shape):
+    """The part of the 1-D ``arena`` from ``start`` as a C-contiguous array of ``shape`` (a tuple). Compiled targets
+    replace this with an intrinsic of their own (:mod:`.targets`) that builds the view directly: no size checks
+    (the layout is known good), so little code to compile at each of its many uses."""
+    size = 1
+    for d in shape:
+        size *= d
+    return arena[start : start + size].reshape(shape)
+'''
+
+
+def render_views() -> str:
+    """The source of :mod:`.views`: for each group of :data:`SPEC`, its named tuple and its accessor."""
+    out = [_VIEWS_HEAD, "\n"]
+    for group, parts in SPEC.items():
+        kind = group.capitalize() + "View"
+        fields = "".join(f'        "{name}",\n' for name in parts)
+        out.append(f'\n{kind} = namedtuple(\n    "{kind}",\n    [\n{fields}    ],\n)\n')
+    for group, parts in SPEC.items():
+        items = []
+        for name, (shape, kind) in parts.items():
+            dims_ = [f"L.{x}" if isinstance(x, str) else str(x) for x in shape]
+            tup = f"({dims_[0]},)" if len(dims_) == 1 else f"({', '.join(dims_)})"
+            items.append(f"        view({ARENA[kind]}, L.{group}_{name}, {tup}),\n")
+        out.append(
+            f"\n\ndef {group}_of(k):\n"
+            f'    """The {group} part of the arenas, as named views."""\n'
+            "    L = k.lay\n"
+            f"    return {group.capitalize()}View(\n{''.join(items)}    )\n"
+        )
+    return "".join(out)
+
+
+if __name__ == "__main__":  # python -m torchrod.kernels.layout: write the generated accessors
+    from pathlib import Path
+
+    (Path(__file__).parent / "views.py").write_text(render_views(), encoding="utf-8")
