@@ -655,3 +655,22 @@ def test_the_generated_accessors_are_the_ones_the_layout_gives():
     for group, parts in layout.SPEC.items():
         assert getattr(views, f"{group.capitalize()}View")._fields == tuple(parts)
         assert callable(getattr(views, f"{group}_of"))
+
+
+def test_the_numba_patches_step_aside_outside_the_releases_they_were_checked_on(monkeypatch):
+    """Outside patches.TESTED neither patch touches Numba: the dispatcher comes back as it is, and the compile's
+    optimisation is Numba's own."""
+    import numba
+    from numba.core import codegen
+
+    from torchrod.kernels import patches
+
+    assert patches.supported() == (
+        patches.TESTED[0] <= tuple(int(x) for x in numba.__version__.split(".")[:2]) <= patches.TESTED[1]
+    )
+    monkeypatch.setattr(patches, "supported", lambda: False)
+    sentinel = object()
+    assert patches.general(sentinel, lambda t: t) is sentinel
+    before = codegen.CPUCodeLibrary._optimize_final_module
+    with patches.optimised_at_entry("anything"):
+        assert codegen.CPUCodeLibrary._optimize_final_module is before

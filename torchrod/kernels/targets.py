@@ -5,7 +5,7 @@ The kernel modules (:data:`MODULES`) are plain numeric Python: scalars, loops, a
 target every function of theirs is rebuilt in one namespace of the target's own (the same code objects, their
 global names bound to the target's compiled functions) and decorated for it: ``numba.njit`` for the CPU,
 ``numba.cuda.jit(device=True)`` for CUDA, each function compiled once, for the types of its arguments (not again
-for each constant a caller passes: :func:`_general`). What differs between targets is this thin layer alone: how a
+for each constant a caller passes: :func:`.patches.general`). What differs between targets is this thin layer alone: how a
 reading's scratch is found (one per CPU thread, reused reading after reading; one per GPU thread, sliced from batch
 arrays) and how readings are walked.
 
@@ -40,6 +40,8 @@ import time
 import types
 from pathlib import Path
 from typing import Any
+
+from . import patches
 
 MODULES = ("views", "linalg", "march", "precurved", "fit", "scan", "counts", "covariance", "search", "network")
 """The kernel source, in the order its functions are rebuilt (callees before callers)."""
@@ -112,7 +114,7 @@ def source_digest(extra: str = "") -> str:
     """A digest of the kernel source and of the compiler, naming the on-disk cache of compiled kernels."""
     h = hashlib.sha256()
     here = Path(__file__).parent
-    for name in (*MODULES, "status", "layout", "targets"):
+    for name in (*MODULES, "status", "layout", "targets", "patches"):
         h.update((here / f"{name}.py").read_bytes())
     import numba
 
@@ -304,7 +306,7 @@ class Compiled:
                     self._announce()
                 began = time.perf_counter()
                 source = getattr(self.entry, "py_func", self.entry)  # (a Numba dispatcher's Python function)
-                at_entry = _optimised_at_entry(source.__qualname__) if self.target == "cpu" else None
+                at_entry = patches.optimised_at_entry(source.__qualname__) if self.target == "cpu" else None
                 with at_entry or contextlib.nullcontext():
                     self._warm(self.entry)
                 took = time.perf_counter() - began
@@ -361,44 +363,6 @@ def _numba_cache_dir(path: Path | None):
         yield
     finally:
         config.CACHE_DIR = old
-
-
-@contextlib.contextmanager
-def _optimised_at_entry(entry: str):
-    """Numba's CPU compiles made inside this context optimise their whole module only for the entry ``entry`` (a
-    function's qualified name), once, not for every kernel function it calls.
-
-    Numba compiles each function called by another into a library of its own, links into it the libraries of the
-    functions it calls, and optimises the result (inlining across the functions, the loop passes) before the caller
-    links it in again and optimises its own module anew: the code of a kernel deep in the search is optimised once
-    per function above it, most of a first compile's time in LLVM. Here each function's own code is still optimised
-    when it is made (Numba's function passes), and the whole search once, in the entry's module, which inlines and
-    optimises across every function as before: the machine code runs at least as fast, and its arithmetic is the same
-    (no fast-math: LLVM keeps every IEEE operation), so the answers are the same, bit for bit. The functions compiled
-    here are the kernels' callees, called only from compiled code, which links them into a caller's module.
-
-    Holds Numba's compiler lock, so that no other thread's compile runs with the change. Without the Numba internal
-    it relies on (another version), compiles as Numba does."""
-    try:
-        from numba.core import codegen
-        from numba.core.compiler_lock import global_compiler_lock
-
-        library: Any = codegen.CPUCodeLibrary  # (a method replaced for the while: typed loosely)
-        optimise = library._optimize_final_module
-    except (ImportError, AttributeError):  # pragma: no cover - another Numba: its own way
-        yield
-        return
-
-    def at_entry_only(lib: Any) -> None:
-        if lib.name == entry:
-            optimise(lib)
-
-    with global_compiler_lock:
-        library._optimize_final_module = at_entry_only
-        try:
-            yield
-        finally:
-            library._optimize_final_module = optimise
 
 
 def view_intrinsic(intrinsic: Any, types: Any, cgutils: Any, arrayobj: Any, imputils: Any) -> Any:
@@ -473,22 +437,6 @@ cost an atomic increment and decrement, about half of a reading's time, and thre
 contended for its count."""
 
 
-def _general(dispatcher: Any, unliteral: Any) -> Any:
-    """``dispatcher`` (a compiled kernel function) made to be compiled for the types of its arguments, not for the
-    constants a caller passes (``unliteral``: the target's map from a constant's type to its plain type), and
-    returned. Numba would otherwise compile a function, and everything it calls, once more for each constant (a flag
-    given as ``True`` in one place and ``False`` in another, a count given as ``0``): a large share of the first
-    compile, for no faster code. The compiled arithmetic is the same, and so are the answers, bit for bit. (Set on
-    the one dispatcher, which the compiler asks for the signature of a call: its class and all else stay Numba's.)"""
-    by_constants = dispatcher.get_call_template
-
-    def get_call_template(args: Any, kws: Any) -> Any:
-        return by_constants([unliteral(a) for a in args], {k: unliteral(v) for k, v in kws.items()})
-
-    dispatcher.get_call_template = get_call_template
-    return dispatcher
-
-
 @functools.cache
 def _cpu_namespace() -> dict[str, Any]:
     import numba
@@ -497,11 +445,11 @@ def _cpu_namespace() -> dict[str, Any]:
     inner: dict[str, Any] = {**CPU_FLAGS, "no_cpython_wrapper": True, "no_cfunc_wrapper": True}
 
     def decorate(fn: Any) -> Any:
-        return _general(numba.njit(**inner)(fn), nb_types.unliteral)
+        return patches.general(numba.njit(**inner)(fn), nb_types.unliteral)
 
     # The functions a module lists in its INLINE are compiled as the others are: LLVM inlines what it sees fit when it
-    # optimises the entry's module (_optimised_at_entry). Numba's own inliner would type such a function again at each
-    # call site: a longer compile, for code no faster (the same answers either way).
+    # optimises the entry's module (patches.optimised_at_entry). Numba's own inliner would type such a function again
+    # at each call site: a longer compile, for code no faster (the same answers either way).
     return namespace(decorate, numba.njit(**inner), decorate, "cpu_kernels", _cpu_view())
 
 
@@ -567,7 +515,7 @@ def cuda_namespace() -> dict[str, Any]:
         unliteral = importlib.import_module("numba.cuda.types").unliteral  # (numba-cuda's own type system)
 
         def general(options: dict[str, Any]) -> Any:
-            return lambda fn: _general(jit(**options)(fn), unliteral)
+            return lambda fn: patches.general(jit(**options)(fn), unliteral)
 
         decorate = general({"device": True})
         inline = general({"device": True, "forceinline": True})
