@@ -13,14 +13,8 @@ import torch
 import torchrod as tr
 from torchrod.data import path as shipped_file
 from torchrod.estimate.estimator import Estimator, EstimatorOptions
-from torchrod.learn.warm_start import (
-    QUALITY_KEYS,
-    TRUST_TOLERANCE,
-    WarmStart,
-    load_checkpoint,
-    load_estimator,
-    quality_verdict,
-)
+from torchrod.learn.checkpoint import load_checkpoint
+from torchrod.learn.warm_start import QUALITY_KEYS, TRUST_TOLERANCE, WarmStart, load_estimator, quality_verdict
 
 CHECKPOINT = shipped_file("nitinol290.pt")
 
@@ -65,7 +59,7 @@ def test_the_shipped_checkpoint_records_its_quality_and_is_used_beside_the_scan(
 
 def test_a_checkpoint_without_recorded_quality_is_weak(tmp_path):
     """An older checkpoint without a recorded quality is called weak, and says how to record one."""
-    from torchrod.learn.warm_start import save_checkpoint
+    from torchrod.learn.checkpoint import save_checkpoint
 
     net, meta = load_checkpoint(CHECKPOINT)
     path = tmp_path / "old.pt"
@@ -91,7 +85,7 @@ TRUSTED_QUALITY = {  # a recorded quality that trusts the network: as accurate t
 
 
 def _with_quality(tmp_path, **quality):
-    from torchrod.learn.warm_start import save_checkpoint
+    from torchrod.learn.checkpoint import save_checkpoint
 
     net, meta = load_checkpoint(CHECKPOINT)
     path = tmp_path / "net.pt"
@@ -134,7 +128,7 @@ def test_a_checkpoint_that_records_only_the_network_alone_is_weak(tmp_path):
     """A checkpoint recorded before the estimator's comparison was part of the quality is weak, and says how to
     record it."""
     net, meta = load_checkpoint(CHECKPOINT)
-    from torchrod.learn.warm_start import save_checkpoint
+    from torchrod.learn.checkpoint import save_checkpoint
 
     path = tmp_path / "older.pt"
     alone = {k: meta["quality"][k] for k in QUALITY_KEYS[:5]}

@@ -323,7 +323,8 @@ def test_evaluate_rows_on_the_preset_start_from_its_shape():
 def test_a_network_layout_carries_the_precurvature(rod):
     """The dimensionless rod a network is trained on reproduces the preset's readings (u L for s / L and f L^2 / EI:
     the scaling holds with precurvature and torsion too); a network for one precurvature refuses another rod."""
-    from torchrod.learn.warm_start import NetConfig, WarmStart, WarmStartNet, unit_rod
+    from torchrod.learn.network import NetConfig, WarmStartNet, unit_rod
+    from torchrod.learn.warm_start import WarmStart
 
     config = NetConfig.for_rod(rod)
     assert config.intrinsic_curvature == ((0.6, 1.0, 3.0, 0.0),)

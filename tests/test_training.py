@@ -12,6 +12,8 @@ import torch
 
 import torchrod as tr
 from torchrod.cli import main as cli_main
+from torchrod.learn.checkpoint import load_checkpoint
+from torchrod.learn.network import NetConfig, NetOutput
 from torchrod.learn.synthetic import LoadSampler, SensorModel, SyntheticSet, generate
 from torchrod.learn.training import (
     TrainConfig,
@@ -20,7 +22,7 @@ from torchrod.learn.training import (
     evaluate_guess,
     train,
 )
-from torchrod.learn.warm_start import NetConfig, NetOutput, WarmStart, WarmStartGuess, load_checkpoint
+from torchrod.learn.warm_start import WarmStart, WarmStartGuess
 
 TINY = {
     "batch_size": 64,

@@ -10,15 +10,9 @@ import torch
 
 import torchrod as tr
 from torchrod.data import path as shipped_file
-from torchrod.learn.warm_start import (
-    LAYOUT_TOLERANCE,
-    NetConfig,
-    WarmStart,
-    WarmStartNet,
-    _canonical_frame,
-    load_checkpoint,
-    save_checkpoint,
-)
+from torchrod.learn.checkpoint import load_checkpoint, save_checkpoint
+from torchrod.learn.network import NetConfig, WarmStartNet, _canonical_frame
+from torchrod.learn.warm_start import LAYOUT_TOLERANCE, WarmStart
 
 
 def _net(rod: tr.Rod, seed: int = 0, **kwargs) -> WarmStartNet:

@@ -13,16 +13,25 @@ import numbers
 import sys
 from typing import Any
 
-__all__ = ["QUOTE_CHARS", "clip", "is_number", "positive", "real", "show"]
+__all__ = ["QUOTE_CHARS", "brief", "clip", "is_number", "positive", "real", "show"]
 
 QUOTE_CHARS = 100
 """Characters of an offending value quoted in an error message."""
 
 
-def clip(text: str) -> str:
-    """``text`` on one line, at most about ``QUOTE_CHARS`` characters."""
+def clip(text: str, limit: int = QUOTE_CHARS) -> str:
+    """``text`` on one line, at most about ``limit`` characters."""
     text = " ".join(text.split())
-    return text if len(text) <= QUOTE_CHARS else text[: QUOTE_CHARS - 3] + "..."
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def brief(value: Any) -> str:
+    """``repr(value)`` on one line, at most about :data:`QUOTE_CHARS` characters (a value whose repr fails is named
+    by its type)."""
+    try:
+        return clip(repr(value))
+    except Exception:  # noqa: BLE001 -- a value whose repr fails is still named by its type
+        return f"a {type(value).__name__}"
 
 
 def show(value: Any) -> str:

@@ -1,4 +1,4 @@
-"""The warm-start network's forward pass for inference (:class:`torchrod.learn.warm_start.WarmStartNet`): a batch
+"""The warm-start network's forward pass for inference (:class:`torchrod.learn.network.WarmStartNet`): a batch
 of readings in, for each possible count h = 1..H the count's probability and h forces out, in SI units.
 
 The network is trained and differentiated in torch; this is the same function, written once as kernel source for

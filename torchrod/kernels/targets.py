@@ -5,9 +5,9 @@ The kernel modules (:data:`MODULES`) are plain numeric Python: scalars, loops, a
 target every function of theirs is rebuilt in one namespace of the target's own (the same code objects, their
 global names bound to the target's compiled functions) and decorated for it: ``numba.njit`` for the CPU,
 ``numba.cuda.jit(device=True)`` for CUDA, each function compiled once, for the types of its arguments (not again
-for each constant a caller passes: :func:`.patches.general`). What differs between targets is this thin layer alone: how a
-reading's scratch is found (one per CPU thread, reused reading after reading; one per GPU thread, sliced from batch
-arrays) and how readings are walked.
+for each constant a caller passes: :func:`.patches.general`). What differs between targets is this thin layer
+alone: how a reading's scratch is found (one per CPU thread, reused reading after reading; one per GPU thread, sliced
+from batch arrays) and how readings are walked.
 
 Compilation is done once per machine and kept on disk, under a directory named after a digest of the kernel
 source and the compiler's version (so a changed kernel or Numba never loads stale code): ``$TORCHROD_CACHE_DIR``,

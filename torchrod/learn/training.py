@@ -50,15 +50,9 @@ from ..loads import PointForces
 from ..model.body_frame import grating_curvature
 from ..presets import load as load_rod
 from ..rod import Rod
-from .warm_start import (
-    NetConfig,
-    WarmStart,
-    WarmStartGuess,
-    WarmStartNet,
-    load_checkpoint,
-    save_checkpoint,
-    unit_rod,
-)
+from .checkpoint import load_checkpoint, save_checkpoint
+from .network import NetConfig, WarmStartNet, unit_rod
+from .warm_start import WarmStart, WarmStartGuess
 
 __all__ = [
     "DEFAULT_ROD",
