@@ -133,18 +133,105 @@ def test_plot_command_stream_against_time_with_truth(tmp_path, capsys, monkeypat
     assert main(args + [str(out)]) == 0
     written = [Path(p) for p in capsys.readouterr().out.split()]
     assert [p.name for p in written] == ["stream.png"] and _is_png(written[0])
-    # Only the truth of the 12 readings plotted (the truth file covers 500), in time order.
-    assert seen["truth_t"] == sorted(seen["t"]) and len(seen["truth"]) == 12
-    # The stream figure holds one point per estimated force, at the readings' times.
+    # Only the truth of the 12 readings plotted (the truth file covers 500), at their times; their statuses.
+    assert seen["truth_t"] == seen["t"] and len(seen["truth"]) == 12
+    assert seen["statuses"] == [json.loads(x)["status"] for x in estimates.read_text().splitlines()]
+    # The stream figure holds one point per estimated force, at the readings' times, in its location panel.
     est = [json.loads(x) for x in estimates.read_text().splitlines()]
     t = [json.loads(x)["t"] for x in lines]
     fig = plots.stream_figure(t, [[(f["s"], f["fx"], f["fy"]) for f in e["forces"]] for e in est])
-    line = fig.axes[0].get_lines()[0]
-    assert len(line.get_xdata()) == sum(len(e["forces"]) for e in est)
-    assert set(line.get_xdata()) <= set(t)
+    times, locations = _estimate_points(fig)
+    assert len(times) == sum(len(e["forces"]) for e in est)
+    assert set(times) <= set(t)
+    assert sorted(locations) == pytest.approx(sorted(1e3 * f["s"] for e in est for f in e["forces"]))
+    # A reading whose estimate is an error line is drawn as one without an estimate (status None).
+    broken = est[:3] + [{"id": est[3]["id"], "error": "no fit"}] + est[4:]
+    _write(estimates, broken)
+    assert main(args + [str(out)]) == 0 and _is_png(out / "stream.png")
+    assert seen["statuses"][3] is None and seen["statuses"][:3] == [e["status"] for e in est[:3]]
+    assert len(seen["t"]) == 12
+    _write(estimates, est)
+    capsys.readouterr()
     # A reading of the stream by id (its truth drawn too).
     assert main(args + [str(tmp_path / "f3.png"), "--id", "f000003"]) == 0
     assert _is_png(tmp_path / "f3.png")
+
+
+def _estimate_points(fig):
+    """(times [s], locations [mm]) of the estimated forces the location panel of a stream figure draws."""
+    ax = next(a for a in fig.axes if a.get_ylabel().startswith("location"))
+    xy = [c.get_offsets() for c in ax.collections if len(c.get_offsets())]
+    xy += [np.c_[ln.get_xdata(), ln.get_ydata()] for ln in ax.get_lines() if (ln.get_label() or "").startswith("stray")]
+    points = np.concatenate(xy) if xy else np.zeros((0, 2))
+    return points[:, 0].tolist(), points[:, 1].tolist()
+
+
+def test_track_forces_links_forces_by_nearest_location():
+    locations = [
+        [0.05, 0.15],  # two contacts
+        [0.152, 0.055],  # listed the other way round: each stays on its track
+        [0.06],  # the one at 150 mm missed for a reading...
+        [0.062, 0.149],  # ...and continued
+        [0.064, 0.20, 0.151],  # one more appears
+        [0.065, 0.148],  # the new one vanishes
+        [],
+        [],
+        [],  # a gap longer than TRACK_MAX_GAP (2): tracks end
+        [0.066],
+        [0.066 + 1.5 * plots.TRACK_GATE],  # a jump beyond the gate: another contact
+    ]
+    tracks = plots.track_forces(locations)
+    assert [x.tolist() for x in tracks] == [[0, 1], [1, 0], [0], [0, 1], [0, 2, 1], [0, 1], [], [], [], [3], [4]]
+    # Two forces near one track: the nearer continues it, the other starts a track.
+    assert [x.tolist() for x in plots.track_forces([[0.1], [0.115, 0.105]])] == [[0], [1, 0]]
+
+
+def test_missed_contacts_counts_a_known_miss_and_no_false_one():
+    tol = plots.MISS_TOLERANCE
+    estimated = [
+        [0.100, 0.200],  # both found, within the tolerance
+        [0.100 + 0.9 * tol],  # found (just inside), the other missed
+        [],  # nothing estimated: both missed
+        [0.150],  # one force between two contacts 20 mm apart finds only one of them (the nearer)
+    ]
+    true = [[0.101, 0.195], [0.100, 0.200], [0.1, 0.2], [0.141, 0.160]]
+    flags = plots.missed_contacts(estimated, true)
+    assert [f.tolist() for f in flags] == [[False, False], [False, True], [True, True], [False, True]]
+    assert sum(int(f.sum()) for f in flags) == 4
+    with pytest.raises(ValueError, match="same readings"):
+        plots.missed_contacts(estimated, true[:2])
+
+
+def test_status_marks_for_readings_not_ok():
+    t = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
+    statuses = ["ok", "poorly_determined", "poorly_determined", "ok", "misfit", None]
+    spans = plots.status_spans(t, statuses)
+    # One span per run of a status, each reading from halfway to its neighbours; no estimate has its own mark.
+    assert list(spans) == ["misfit", "poorly_determined", plots.NO_ESTIMATE]
+    assert spans["poorly_determined"] == [pytest.approx((0.05, 0.2))]
+    assert spans["misfit"] == [pytest.approx((0.35, 0.1))]
+    assert spans[plots.NO_ESTIMATE] == [pytest.approx((0.45, 0.1))]
+    assert plots.status_spans(t, ["ok"] * 6) == {}
+    # The figure draws them, one colour per status, and names them in a legend; the readings' forces, missed true
+    # contacts (one here: the 200 mm contact at t = 0.1 s) and the count in the title.
+    est = [[(0.1, 0.3, 0.0)], [(0.1, 0.3, 0.1)], [(0.1, 0.2, 0.0), (0.2, 0.1, 0.0)], [(0.1, 0.3, 0.0)], [], None]
+    truth = [[(0.1, 0.3, 0.0)], [(0.1, 0.3, 0.1), (0.2, 0.05, 0.0)], [(0.1, 0.2, 0.0), (0.2, 0.1, 0.0)]]
+    fig = plots.stream_figure(t, est, statuses=statuses, truth_t=t[:3], truth=truth, title="x")
+    strip = next(a for a in fig.axes if a.get_ylabel() == "status")
+    legend = strip.get_legend()
+    assert [x.get_text() for x in legend.get_texts()] == ["misfit (1)", "poorly_determined (2)", "no estimate (1)"]
+    colours = {tuple(c.get_facecolor()[0]) for c in strip.collections}
+    assert len(strip.collections) == 3 and len(colours) == 3
+    assert [x.get_text() for x in fig.texts] == ["x; 1 of 5 true contacts missed"]
+    ax = next(a for a in fig.axes if a.get_ylabel().startswith("location"))
+    missed = next(ln for ln in ax.get_lines() if ln.get_label().startswith("missed"))
+    assert missed.get_xdata().tolist() == [0.1] and missed.get_ydata().tolist() == pytest.approx([200.0])
+    assert len(_estimate_points(fig)[0]) == 5
+    # Every reading ok: no marks, and a word that says so.
+    fig = plots.stream_figure(t[:2], est[:2])
+    strip = next(a for a in fig.axes if a.get_ylabel() == "status")
+    assert not strip.collections and strip.get_legend() is None
+    assert "every reading ok" in [x.get_text() for x in strip.texts]
 
 
 def test_plot_needs_the_rod_unless_the_inputs_name_it(tmp_path, capsys):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -351,48 +352,349 @@ def reading_figure(
     return fig
 
 
+# ========================================================================================================= a stream
+TRACK_GATE = 0.02
+"""Farthest a contact is taken to move between consecutive readings of a track [m]: one grating interval of the
+shipped rods (20 mm). A contact sliding that far in one reading (20 ms at 50 Hz: 1 m/s) is faster than a
+continuum robot's contacts move, while the location of a weak force scatters by up to about one interval."""
+
+TRACK_MAX_GAP = 2
+"""Readings a track may skip (a force missed, a reading without an estimate) and still go on."""
+
+TRACK_MIN_LENGTH = 5
+"""Forces in fewer readings than this (0.1 s at 50 Hz) make a stray track: drawn as small dark dots, not given a
+colour of their own, so that the colours stay with the contacts that last."""
+
+MISS_TOLERANCE = 0.02
+"""Farthest an estimated force may lie from a true contact and still be that contact found [m]: one grating
+interval of the shipped rods (20 mm). Within it the gratings locate a force only to a fraction of the interval
+(the example stream's ``std_s`` is about 7 mm, so 20 mm is about three standard deviations); an estimate farther
+off sits by other gratings and is another contact."""
+
+_Rows = Sequence[float] | np.ndarray  # (n,) numbers of one reading
+
+NO_ESTIMATE = "no estimate"
+"""The status :func:`status_spans` gives a reading that has no estimate (an error line, or none at all)."""
+
+_TRACK_COLOURS = (
+    "tab:blue",
+    "tab:orange",
+    "tab:green",
+    "tab:purple",
+    "tab:brown",
+    "tab:olive",
+    "tab:cyan",
+)  # (red and grey are the truth's)
+_STATUS_COLOURS = {
+    "misfit": "black",
+    "unconverged": "tab:brown",
+    "poorly_determined": "gold",
+    "timeout": "darkorange",
+    NO_ESTIMATE: "0.55",
+}
+_MISSED = "crimson"
+
+
+def track_forces(
+    locations: Sequence[_Rows], gate: float = TRACK_GATE, max_gap: int = TRACK_MAX_GAP
+) -> list[np.ndarray]:
+    """Link the forces of consecutive readings into contact tracks by nearest location (greedy).
+
+    Readings are taken in the order given (time order). At each reading the pairs (track still alive, force) are
+    taken closest first, each track and each force at most once, and only pairs within ``gate`` of the track's last
+    location; a force left over starts a new track. A track that has not been continued for more than ``max_gap``
+    readings ends (a later force there starts a new one).
+
+    Args:
+        locations: per reading, (h,) locations s [m] of its forces (h may be 0).
+        gate: farthest a track's location may move from one of its forces to the next [m].
+        max_gap: readings a track may skip and still be continued.
+
+    Returns:
+        per reading, (h,) int track numbers of its forces, in the order given; tracks are numbered 0, 1, ... in the
+        order they start.
+    """
+    last: list[tuple[float, int]] = []  # per track: (last location [m], reading index)
+    out = []
+    for k, row in enumerate(locations):
+        s = np.asarray(row, dtype=np.float64).reshape(-1)
+        ids = np.full(s.shape, -1, dtype=np.int64)
+        alive = [j for j, (_, seen) in enumerate(last) if k - seen <= max_gap + 1]
+        pairs = sorted(
+            (abs(s[i] - last[j][0]), j, i) for j in alive for i in range(len(s)) if abs(s[i] - last[j][0]) <= gate
+        )
+        taken: set[int] = set()
+        for _, j, i in pairs:
+            if ids[i] < 0 and j not in taken:
+                ids[i] = j
+                taken.add(j)
+        for i in range(len(s)):
+            if ids[i] < 0:
+                ids[i] = len(last)
+                last.append((float(s[i]), k))
+            else:
+                last[ids[i]] = (float(s[i]), k)
+        out.append(ids)
+    return out
+
+
+def missed_contacts(
+    estimated: Sequence[_Rows], true: Sequence[_Rows], tolerance: float = MISS_TOLERANCE
+) -> list[np.ndarray]:
+    """Which true contacts each reading's estimate missed: those left without an estimated force within
+    ``tolerance`` of their location once every estimated force has been given to at most one true contact (the
+    closest pairs first), so one force found between two contacts finds only one of them.
+
+    Args:
+        estimated: per reading, (h,) estimated locations s [m].
+        true: per reading (the same readings), (k,) true locations s [m].
+        tolerance: farthest an estimated force may lie from a true contact it finds [m].
+
+    Returns:
+        per reading, (k,) bool: True where that true contact was missed.
+    """
+    if len(estimated) != len(true):
+        raise ValueError(f"estimated and true must hold the same readings, got {len(estimated)} and {len(true)}")
+    out = []
+    for est_row, true_row in zip(estimated, true, strict=True):
+        e = np.asarray(est_row, dtype=np.float64).reshape(-1)
+        s = np.asarray(true_row, dtype=np.float64).reshape(-1)
+        missed = np.ones(s.shape, dtype=bool)
+        used: set[int] = set()
+        pairs = sorted((abs(s[i] - e[j]), i, j) for i in range(len(s)) for j in range(len(e)))
+        for d, i, j in pairs:
+            if d <= tolerance and missed[i] and j not in used:
+                missed[i] = False
+                used.add(j)
+        out.append(missed)
+    return out
+
+
+def status_spans(t: _Rows, statuses: Sequence[str | None]) -> dict[str, list[tuple[float, float]]]:
+    """The stretches of time to mark for readings whose status is not ``ok``.
+
+    Each reading covers the time from halfway to the previous reading to halfway to the next (the ends as far out
+    as the nearest neighbour's half interval); neighbouring readings of the same status are merged into one span.
+
+    Args:
+        t: (T,) times [s], increasing.
+        statuses: (T,) each reading's status (``"ok"``, ``"misfit"``, ...; None for a reading without an estimate,
+            marked as :data:`NO_ESTIMATE`).
+
+    Returns:
+        per status present other than ``ok`` (in the order of :class:`torchrod.estimate.status.Status`, then
+        others by name), the spans (start [s], width [s]) it covers.
+    """
+    tt = np.asarray(t, dtype=np.float64).reshape(-1)
+    if len(tt) != len(statuses):
+        raise ValueError(f"t and statuses must have the same length, got {len(tt)} and {len(statuses)}")
+    if len(tt) == 0:
+        return {}
+    mid = 0.5 * (tt[1:] + tt[:-1])
+    half = 0.5 * (tt[1] - tt[0]) if len(tt) > 1 else 0.5
+    lo = np.concatenate(([tt[0] - half], mid))
+    hi = np.concatenate((mid, [tt[-1] + (0.5 * (tt[-1] - tt[-2]) if len(tt) > 1 else 0.5)]))
+    spans: dict[str, list[list[float]]] = {}
+    previous = None
+    for k, status in enumerate(statuses):
+        name = NO_ESTIMATE if status is None else str(status)
+        if name == "ok":
+            previous = None
+            continue
+        runs = spans.setdefault(name, [])
+        if previous == name:
+            runs[-1][1] = hi[k]
+        else:
+            runs.append([lo[k], hi[k]])
+        previous = name
+    known = [*_STATUS_COLOURS]
+    order = sorted(spans, key=lambda n: (known.index(n) if n in known else len(known), n))
+    return {n: [(float(a), float(b - a)) for a, b in spans[n]] for n in order}
+
+
+def _track_points(times: np.ndarray, rows: Sequence[np.ndarray], tracks: Sequence[np.ndarray], j: int) -> np.ndarray:
+    """(n, 4) rows (t [s], s [m], f_x [N], f_y [N]) of the forces of track ``j``, in time order."""
+    pts = [(times[k], *r[i]) for k, (r, x) in enumerate(zip(rows, tracks, strict=True)) for i in np.flatnonzero(x == j)]
+    return np.array(pts, dtype=np.float64).reshape(-1, 4)
+
+
+def _same_times(t: np.ndarray, other: np.ndarray) -> list[tuple[int, int]]:
+    """Pairs (k, i) of an entry of ``t`` and one of ``other`` at the same time (within 1 µs) [s]."""
+    at = {round(float(x) * 1e6): k for k, x in enumerate(t) if math.isfinite(x)}
+    return [(at[key], i) for i, x in enumerate(other) if math.isfinite(x) and (key := round(float(x) * 1e6)) in at]
+
+
+def _nice(x: float) -> float:
+    """The 1, 2 or 5 times a power of ten at or below ``x`` (> 0)."""
+    p = 10.0 ** math.floor(math.log10(x))
+    return max(m * p for m in (1.0, 2.0, 5.0) if m * p <= x * (1 + 1e-9))
+
+
 def stream_figure(
     t: Sequence[float],
     estimates: Sequence,
     *,
+    statuses: Sequence[str | None] | None = None,
     truth_t: Sequence[float] | None = None,
     truth: Sequence | None = None,
     title: str | None = None,
+    tolerance: float = MISS_TOLERANCE,
 ) -> Figure:
-    """Forces of a stream against time: magnitude [N] and reported location [mm] of every estimated force
-    (markers), the true forces as grey dots when given.
+    """Forces of a stream against time, each tied to its location.
+
+    The main panel shows each estimated force at its reported location s [mm] against time, a dot whose area
+    grows with its magnitude, the forces linked into contact tracks (:func:`track_forces`), one colour per track.
+    The panel below shows the magnitudes [N] in the same colours. A strip on top marks the readings whose status
+    is not ``ok`` (:func:`status_spans`), one colour per status. With the truth, the true contacts are drawn as
+    grey lines in both panels, and those missed (:func:`missed_contacts`: no estimated force within ``tolerance``)
+    as crosses, their count in the title.
 
     Args:
-        t: (T,) times [s]; estimates: per time, (h, 3) rows (s [m], f_x [N], f_y [N]).
-        truth_t, truth: the ground truth's times and rows, same form.
+        t: (T,) times [s] of the readings.
+        estimates: per reading, (h, 3) rows (s [m], f_x [N], f_y [N]); None for a reading without an estimate.
+        statuses: (T,) each reading's status (None: no estimate); default ``ok`` for every estimate.
+        truth_t, truth: the true forces' times [s] and rows, same form (no None); ``truth_t`` defaults to ``t``.
+            A true contact is judged found or missed where a reading with an estimate has its time (within 1 µs).
+        title: figure title (the count of missed contacts is added).
+        tolerance: farthest an estimated force may lie from a true contact it finds [m].
     """
-    fig = figure(9.0, 5.0)
-    axm = fig.add_subplot(2, 1, 1)
-    axs = fig.add_subplot(2, 1, 2, sharex=axm)
+    if len(estimates) != len(t):
+        raise ValueError(f"t and estimates must have the same length, got {len(t)} and {len(estimates)}")
+    if statuses is None:
+        statuses = ["ok" if e is not None else None for e in estimates]
+    if len(statuses) != len(t):
+        raise ValueError(f"t and statuses must have the same length, got {len(t)} and {len(statuses)}")
+    order = np.argsort(np.asarray(t, dtype=np.float64), kind="stable")
+    times = np.asarray(t, dtype=np.float64)[order]
+    rows = [_rows(estimates[k]) if estimates[k] is not None else np.zeros((0, 3)) for k in order]
+    status = [None if estimates[k] is None else statuses[k] for k in order]
+    tracks = track_forces([r[:, 0] for r in rows])
 
-    def points(times, rows_list):
-        tt, mm, ss = [], [], []
-        for ti, rows in zip(times, rows_list, strict=False):
-            for si, fx, fy in _rows(rows):
-                tt.append(ti)
-                mm.append(math.hypot(fx, fy))
-                ss.append(1e3 * si)
-        return tt, mm, ss
+    fig = figure(11.0, 7.0)
+    grid = fig.add_gridspec(3, 1, height_ratios=(0.28, 3.0, 1.5), hspace=0.08)
+    axq = fig.add_subplot(grid[0, 0])
+    axs = fig.add_subplot(grid[1, 0], sharex=axq)
+    axm = fig.add_subplot(grid[2, 0], sharex=axq)
 
-    if truth is not None and truth_t is not None:
-        tt, mm, ss = points(truth_t, truth)
-        axm.plot(tt, mm, ".", color="0.55", ms=3, label="truth")
-        axs.plot(tt, ss, ".", color="0.55", ms=3, label="truth")
-    tt, mm, ss = points(t, estimates)
-    axm.plot(tt, mm, ".", color="tab:red", ms=2.5, label="estimate")
-    axs.plot(tt, ss, ".", color="tab:red", ms=2.5, label="estimate")
-    axm.set_ylabel("force magnitude [N]")
-    axs.set_ylabel("location [mm]")
-    axs.set_xlabel("t [s]")
-    for ax in (axm, axs):
+    # The truth: grey lines along its contacts, crosses where missed.
+    missed_count = judged = 0
+    if truth is not None:
+        tt = np.asarray(t if truth_t is None else truth_t, dtype=np.float64)
+        if len(tt) != len(truth):
+            raise ValueError(f"truth_t and truth must have the same length, got {len(tt)} and {len(truth)}")
+        torder = np.argsort(tt, kind="stable")
+        tt = tt[torder]
+        trows = [_rows(truth[k]) for k in torder]
+        ttracks = track_forces([r[:, 0] for r in trows])
+        for j in range(max((int(x.max()) + 1 for x in ttracks if len(x)), default=0)):
+            p = _track_points(tt, trows, ttracks, j)
+            kw: dict[str, Any] = {"color": "0.55", "lw": 4.0, "alpha": 0.45, "solid_capstyle": "round", "zorder": 1}
+            axs.plot(p[:, 0], 1e3 * p[:, 1], label="true contact" if j == 0 else None, **kw)
+            axm.plot(p[:, 0], np.hypot(p[:, 2], p[:, 3]), **kw)
+        # Judged where a reading with an estimate has the truth's time.
+        answered = np.where([x is not None for x in status], times, np.nan)
+        pairs = _same_times(answered, tt)
+        flags = missed_contacts([rows[k][:, 0] for k, _ in pairs], [trows[i][:, 0] for _, i in pairs], tolerance)
+        miss = np.array(
+            [(tt[i], *trows[i][m]) for (_, i), f in zip(pairs, flags, strict=True) for m in np.flatnonzero(f)]
+        )
+        judged = sum(len(f) for f in flags)
+        missed_count = len(miss)
+        if missed_count:
+            kw = {"color": _MISSED, "marker": "x", "ls": "none", "ms": 4, "mew": 1.0, "zorder": 4}
+            label = (
+                f"missed true contact: {missed_count} of {judged}\n(no estimated force within {1e3 * tolerance:g} mm)"
+            )
+            axs.plot(miss[:, 0], 1e3 * miss[:, 1], label=label, **kw)
+            axm.plot(miss[:, 0], np.hypot(miss[:, 2], miss[:, 3]), **kw)
+
+    # The estimates: one colour per track, dot area by magnitude.
+    mags = np.concatenate([np.hypot(r[:, 1], r[:, 2]) for r in rows]) if rows else np.zeros(0)
+    ref = float(np.percentile(mags, 95)) if len(mags) else 1.0
+    ref = ref if ref > 0 else 1.0
+
+    def area(m):
+        return 3.0 + 60.0 * np.clip(np.asarray(m) / ref, 0.0, 1.5)
+
+    n_tracks = max((int(x.max()) + 1 for x in tracks if len(x)), default=0)
+    lengths = np.bincount(np.concatenate(tracks), minlength=n_tracks) if n_tracks else np.zeros(0, dtype=int)
+    colours: dict[int, str] = {}
+    for long in np.flatnonzero(lengths >= TRACK_MIN_LENGTH):
+        colours[int(long)] = _TRACK_COLOURS[len(colours) % len(_TRACK_COLOURS)]
+    stray = []
+    for j in range(n_tracks):
+        p = _track_points(times, rows, tracks, j)
+        m = np.hypot(p[:, 2], p[:, 3])
+        if j not in colours:
+            stray.append(p)
+            continue
+        colour = colours[j]
+        axs.plot(p[:, 0], 1e3 * p[:, 1], color=colour, lw=0.7, alpha=0.8, zorder=2)
+        axs.scatter(p[:, 0], 1e3 * p[:, 1], s=area(m), color=colour, edgecolors="none", alpha=0.85, zorder=3)
+        axm.plot(p[:, 0], m, color=colour, lw=1.0, marker=".", ms=2.5, zorder=3)
+    if stray:
+        p = np.concatenate(stray)
+        kw = {"color": "0.2", "marker": ".", "ls": "none", "ms": 2.5, "zorder": 3}
+        axs.plot(p[:, 0], 1e3 * p[:, 1], label=f"stray force (track of < {TRACK_MIN_LENGTH} readings)", **kw)
+        axm.plot(p[:, 0], np.hypot(p[:, 2], p[:, 3]), **kw)
+    if colours:
+        # The legend: what a dot is, and the areas of some magnitudes.
+        first = next(iter(colours.values()))
+        label = f"estimated force: {len(colours)} tracks,\none colour each, area by magnitude:"
+        axs.plot([], [], color=first, marker="o", ls="-", lw=0.7, ms=4, label=label)
+        for value in sorted({_nice(ref / 4), _nice(ref)}):
+            axs.scatter([], [], s=area(value), color="0.3", edgecolors="none", label=f"{value:g} N")
+    # Status strip.
+    spans = status_spans(times, status)
+    for name, runs in spans.items():
+        count = sum(1 for x in status if (NO_ESTIMATE if x is None else x) == name)
+        axq.broken_barh(runs, (0.0, 1.0), color=_STATUS_COLOURS.get(name, "0.5"), label=f"{name} ({count})")
+    axq.set_ylim(0.0, 1.0)
+    axq.set_yticks([])
+    axq.set_ylabel("status", rotation=0, ha="right", va="center", fontsize=8)
+    axq.tick_params(labelbottom=False)
+    if spans:
+        axq.legend(
+            fontsize=7,
+            loc="upper left",
+            bbox_to_anchor=(1.005, 1.15),
+            title="not ok (readings)",
+            title_fontsize=7,
+            frameon=False,
+        )
+    else:
+        axq.text(0.5, 0.5, "every reading ok", transform=axq.transAxes, ha="center", va="center", fontsize=7)
+
+    axs.set_ylabel("location s [mm]")
+    axs.tick_params(labelbottom=False)
+    axm.set_ylabel("magnitude [N]")
+    axm.set_xlabel("t [s]")
+    axm.set_ylim(bottom=0.0)
+    # The legend: the estimates first, then the truth.
+    handles, labels = axs.get_legend_handles_labels()
+    first_words = ("estimated", "", "stray", "true", "missed")  # ("": the magnitudes, "... N")
+    rank = [
+        1 if label.endswith(" N") else next((n for n, w in enumerate(first_words) if w and label.startswith(w)), 5)
+        for label in labels
+    ]
+    ranked = sorted(range(len(labels)), key=lambda n: rank[n])
+    axs.legend(
+        [handles[n] for n in ranked],
+        [labels[n] for n in ranked],
+        fontsize=7,
+        loc="upper left",
+        bbox_to_anchor=(1.005, 1.0),
+        frameon=False,
+    )
+    for ax in (axs, axm):
         ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=7, loc="upper right", markerscale=3)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
+    if len(times):
+        pad = 0.01 * (times[-1] - times[0]) if len(times) > 1 else 0.5
+        axq.set_xlim(times[0] - pad, times[-1] + pad)
+    full = title or ""
+    if truth is not None:
+        full += ("; " if full else "") + f"{missed_count} of {judged} true contacts missed"
+    if full:
+        fig.suptitle(full, fontsize=10)
+    fig.subplots_adjust(left=0.08, right=0.72, top=0.93, bottom=0.08)
     return fig

@@ -13,8 +13,12 @@ the shipped ``example_stream_truth.jsonl``: torchrod.data), matched by id.
 
 Figures:
 
-* for a stream (readings with ``"t"``): the estimated forces' magnitudes and locations against time, with the
-  ground truth of those readings when given; written as ``stream.png``;
+* for a stream (readings with ``"t"``): each estimated force at its location against time, a dot whose area
+  grows with its magnitude, the forces of consecutive readings linked into contact tracks (one colour each), and
+  below, the magnitudes against time in the same colours; a strip on top marks the readings whose status is not
+  ``ok`` (or that have no estimate), one colour per status. With TRUTH, the true contacts are drawn as grey lines,
+  and those missed (no estimated force within 20 mm) as red crosses, counted in the title. Written as
+  ``stream.png``;
 * per reading: the rod's 3-D shape from the estimated forces with the forces drawn as arrows at their locations
   (and the true ones, dashed, when TRUTH is given), the measured and the fitted curvature at each grating, and the
   residuals; written as ``reading-ID.png``.
@@ -108,9 +112,11 @@ def _readings(args: argparse.Namespace, rod: Rod) -> list[Any]:
 
 
 def _forces_and_time(obj: dict[str, Any]):
+    """(forces, t [s] or None, status or None) of an estimate or truth line; an error line raises."""
     if "error" in obj and "forces" not in obj:
         raise ValueError(str(obj["error"]))
-    return parse_forces(obj), _time(obj)
+    status = obj.get("status")
+    return parse_forces(obj), _time(obj), None if status is None else str(status)
 
 
 def _rod_named_in(*paths: str) -> Rod:
@@ -207,22 +213,31 @@ def run(args: argparse.Namespace) -> int:
 
     for kind, k in jobs:
         if kind == "stream":
-            t = [r.value[1] for r, e in zip(readings, matched, strict=False) if e is not None]
-            est = [e.value[0] for e in matched if e is not None]
-            if not est:
+            timed = [k for k, r in enumerate(readings) if r.value[1] is not None]
+            t = [readings[k].value[1] for k in timed]
+            est = [matched[k].value[0] if matched[k] is not None else None for k in timed]
+            if all(e is None for e in est):
                 raise ValueError(f"{args.estimates}: no estimate matches the readings")
+            # (an estimate line without a status is taken as ok; a reading without an estimate has none)
+            statuses = [(matched[k].value[2] or "ok") if matched[k] is not None else None for k in timed]
             tt = tv = None
             if truth is not None:
-                # The truth of the readings plotted (all of it when no id matches).
-                mine = {repr(r.id) for r in readings}
-                rows = [v for key, v in truth.items() if key in mine] or list(truth.values())
-                pairs = sorted(
-                    ((v.value[1] if v.value[1] is not None else math.nan, v.value[0]) for v in rows),
-                    key=lambda p: p[0],
-                )
+                # The truth of the readings plotted at their times, else (no id matches) all of it at its own.
+                keys = [(k, repr(readings[k].id)) for k in timed]
+                pairs = [(readings[k].value[1], truth[key].value[0]) for k, key in keys if key in truth]
+                if not pairs:
+                    pairs = sorted(
+                        ((v.value[1] if v.value[1] is not None else math.nan, v.value[0]) for v in truth.values()),
+                        key=lambda p: p[0],
+                    )
                 tt, tv = [p[0] for p in pairs], [p[1] for p in pairs]
             fig = plots.stream_figure(
-                t, est, truth_t=tt, truth=tv, title=f"{os.path.basename(args.readings)}: {len(est)} readings"
+                t,
+                est,
+                statuses=statuses,
+                truth_t=tt,
+                truth=tv,
+                title=f"{os.path.basename(args.readings)}: {len(est)} readings",
             )
             path = target("stream.png")
         else:
