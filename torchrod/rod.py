@@ -137,7 +137,8 @@ class Rod:
         bending_stiffness: EI [N m^2] (isotropic: K_11 = K_22 = EI).
         gratings: grating positions [m], strictly increasing inside [0, L].
         location_bias: the paper's s_bias [m]; reported locations are ``s_model + location_bias``.
-        outer_diameter, inner_diameter: tube diameters [m], if the stiffness came from geometry.
+        outer_diameter: the tube's outer diameter [m], if the stiffness came from geometry.
+        inner_diameter: the tube's inner diameter [m] (0 for a solid rod), if the stiffness came from geometry.
         youngs_modulus: E [Pa], if the stiffness came from geometry.
         poisson_ratio: nu, optional: the torsional stiffness is GJ = EI / (1 + nu) (nu = ``DEFAULT_POISSON_RATIO``
             when neither it nor ``torsional_stiffness`` is given). Torsion enters only a precurved rod: a straight

@@ -363,8 +363,10 @@ class Fibre:
         cores: C >= 3 pairs (x_c, y_c) [m], x along d1 and y along d2, not all on one line; empty when not given
             (readings of core strains, and wavelengths without a calibration, need them).
         wavelength: the peak-wavelength conversion (:class:`Wavelength`, or its JSON form), or None.
-        curvature_unit, strain_unit, wavelength_unit: the units readings come in (:data:`UNIT_TABLES`; default
-            :data:`DEFAULT_UNITS`). A command's options of the same names override them.
+        curvature_unit: the unit curvature readings come in (:data:`UNIT_TABLES`; default :data:`DEFAULT_UNITS`).
+            A command's option of the same name overrides it, as for the two below.
+        strain_unit: the unit core-strain readings come in (the same tables and defaults).
+        wavelength_unit: the unit peak-wavelength readings come in (the same tables and defaults).
 
     Raises :class:`~torchrod.errors.RodError` (a ``ValueError``) naming the bad field (a bool, a string or null is
     not a number).

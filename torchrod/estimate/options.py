@@ -52,9 +52,9 @@ class LMPolicy:
 
     Attributes:
         damping: lambda at the start of a fit.
-        increase, decrease: lambda is multiplied by ``increase`` after a rejected step, divided by ``decrease``
-            after an accepted one, and kept in [``min_damping``, ``max_damping``]; at ``max_damping`` the fit
-            stops (stalled).
+        increase: lambda is multiplied by this after a rejected step, and kept in [``min_damping``,
+            ``max_damping``]; at ``max_damping`` the fit stops (stalled).
+        decrease: lambda is divided by this after an accepted step.
         max_force_step: the largest change of a force component per step [EI / L^2].
         tolerance: converged when the Gauss-Newton decrement is at most ``tolerance`` x sigma^2.
         iterations: at most this many steps per fit.
@@ -108,10 +108,12 @@ class SearchOptions:
         explore: steps a start of the wider search takes before it is dropped, unless its loss has fallen below
             the fit it tries to beat (then it is fitted to the end).
         suspect: a fit with known noise is searched further when its loss exceeds this quantile of the chi-square
-            law of a correct fit's loss; kink_suspect: the same for a fit with a force on a grating.
-        hopeless, explained: a count below the chosen one is searched further only when its loss is within
-            ``hopeless`` times the loss it needs to pass the count tests, or below ``explained`` times the loss of the
-            count under it (it explains nearly all of that one's misfit).
+            law of a correct fit's loss.
+        kink_suspect: the same as ``suspect``, for a fit with a force on a grating.
+        hopeless: a count below the chosen one is searched further only when its loss is within this many times
+            the loss it needs to pass the count tests, or when ``explained`` lets it.
+        explained: a count below the chosen one is also searched further when its loss is below this many times
+            the loss of the count under it (it explains nearly all of that one's misfit).
         twins: stop a row that another row of the same reading has joined in the same intervals with a lower loss,
             and a start of the wider search that reaches the intervals of the fit it is to beat without a lower
             loss (False: only the one-force case, which always holds).

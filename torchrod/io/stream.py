@@ -74,7 +74,8 @@ class StreamResult:
     """The result for one reading.
 
     Attributes:
-        id, t: the reading's.
+        id: the reading's id.
+        t: the reading's timestamp [s] (None when it has none).
         record: JSON-ready dict: the :meth:`torchrod.estimate.estimator.EstimateResult.to_records` form plus ``t`` (when
             given) and ``latency_ms``; for an unusable reading ``{"id", "error"}`` (plus ``t``).
         latency: [s] from the moment the reader thread took the reading from the source to the end of its
@@ -486,11 +487,12 @@ class _Stream:
 
     def drain(self) -> None:
         """The flush after an interrupt: take everything the reader already took (the queue, and the reading in
-        its hands) and no more. A source with ``halt()`` and ``waiting`` (:class:`~torchrod.io.readings.
-        ReadingSource`) is asked to end after the lines it already read, and the reader runs until it ends or
-        waits on its input; any other source is left at once: the reader stops after the reading in its hands and
-        is left alone once it waits on the source (it then holds nothing). A source read on this thread is read
-        here to the end of the lines it already read (a ReadingSource), or left at once."""
+        its hands) and no more. A source with ``halt()`` and ``waiting``
+        (:class:`~torchrod.io.readings.ReadingSource`) is asked to end after the lines it already read, and the
+        reader runs until it ends or waits on its input; any other source is left at once: the reader stops after
+        the reading in its hands and is left alone once it waits on the source (it then holds nothing). A source
+        read on this thread is read here to the end of the lines it already read (a ReadingSource), or left at
+        once."""
         halt: Any = getattr(self.source, "halt", None)
         cooperative = callable(halt) and hasattr(self.source, "waiting")
         if self.direct is not None:

@@ -27,8 +27,8 @@ __all__ = [
 
 
 def rod_help(default: str | None = None, what: str = "") -> str:
-    """The help of a ``--rod`` option: a rod file, or one of the presets, every one named (:data:`torchrod.presets.
-    PRESETS`); ``what`` says more about the rod, ``default`` its default."""
+    """The help of a ``--rod`` option: a rod file, or one of the presets, every one named
+    (:data:`torchrod.presets.PRESETS`); ``what`` says more about the rod, ``default`` its default."""
     from ...presets import PRESETS
 
     text = f"rod JSON file or preset name{what} (presets: {', '.join(PRESETS)})"
