@@ -12,6 +12,8 @@ from torchrod import errors
         (errors.RodError, ValueError),
         (errors.OptionsError, ValueError),
         (errors.MissingFileError, FileNotFoundError),
+        (errors.CheckpointError, ValueError),
+        (errors.TorchrodTypeError, TypeError),
     ],
 )
 def test_each_error_is_a_torchrod_error_and_its_builtin(kind, builtin):
@@ -53,6 +55,11 @@ def test_the_library_raises_its_own_errors_where_the_caller_is_wrong():
         (lambda: list(tr.stream(est, [], options={"batch_size": 1})), TypeError, "StreamOptions"),
         (lambda: tr.presets.load("no-such-rod"), ValueError, "no-such-rod"),
         (lambda: tr.simulate(rod, tr.PointForces(torch.tensor([[0.5]]), torch.ones(1, 1, 2))), ValueError, "0.5"),
+        (lambda: tr.Rod(length=-1.0, bending_stiffness=1.0, gratings=[0.1]), ValueError, "length"),
+        (lambda: tr.WarmStart.load(__file__, rod), ValueError, "not a readable checkpoint"),
+        (lambda: tr.rod_shape(rod, "loads"), TypeError, "tensors"),
+        (lambda: tr.bending_angle("shape"), TypeError, "Shape"),
+        (lambda: tr.calibrate(rod, "data"), TypeError, "CalibrationData"),
     ]
     for call, builtin, match in calls:
         with pytest.raises(errors.TorchrodError, match=match) as caught:

@@ -12,7 +12,7 @@ The public surface (SI units everywhere: m, N, Pa, 1/m):
 - streams: :func:`stream` with :class:`StreamOptions` (readings in order, in latency-bounded batches);
 - errors and warnings: :class:`TorchrodError` (with :class:`ReadingError`, :class:`RodError`,
   :class:`OptionsError`, :class:`MissingFileError`,
-  :class:`TorchrodTypeError`) and :class:`TorchrodWarning` (with :class:`RodWarning`);
+  :class:`CheckpointError`, :class:`TorchrodTypeError`) and :class:`TorchrodWarning` (with :class:`RodWarning`);
 - subpackages for the rest: :mod:`torchrod.model` (forward model, the global-frame reference and the paper's
   baselines), :mod:`torchrod.estimate` (options, status, noise, calibration), :mod:`torchrod.kernels` (the
   estimator's numerical core), :mod:`torchrod.learn` (synthetic data, the warm-start network, training),
@@ -30,6 +30,7 @@ __version__ = "0.1.0"
 
 # public name -> (module relative to this package, attribute; None: the module itself)
 _LAZY: dict[str, tuple[str, str | None]] = {
+    "CheckpointError": (".errors", "CheckpointError"),
     "EstimateResult": (".estimate.estimator", "EstimateResult"),
     "Estimator": (".estimate.estimator", "Estimator"),
     "EstimatorOptions": (".estimate.options", "EstimatorOptions"),
@@ -62,6 +63,7 @@ _LAZY: dict[str, tuple[str, str | None]] = {
 }
 
 __all__ = [  # the names of _LAZY and __version__ (a test holds them equal)
+    "CheckpointError",
     "EstimateResult",
     "Estimator",
     "EstimatorOptions",
@@ -102,6 +104,7 @@ _SUBMODULES = frozenset(
 if _typing.TYPE_CHECKING:  # what static tools see; at run time __getattr__ imports on first use
     from . import presets
     from .errors import (
+        CheckpointError,
         MissingFileError,
         OptionsError,
         ReadingError,

@@ -11,6 +11,7 @@ A reading the estimator cannot fit is not an exception: it is answered with a st
 from __future__ import annotations
 
 __all__ = [
+    "CheckpointError",
     "MissingFileError",
     "OptionsError",
     "ReadingError",
@@ -35,6 +36,11 @@ class ReadingError(TorchrodError, ValueError):
 class RodError(TorchrodError, ValueError):
     """A rod description cannot be used: a missing or implausible value (units other than SI, say), gratings
     outside the rod, a fibre that cannot give curvature."""
+
+
+class CheckpointError(TorchrodError, ValueError):
+    """A warm-start checkpoint cannot be used: damaged, not a checkpoint, an invalid network config, or a network
+    trained for another grating layout."""
 
 
 class OptionsError(TorchrodError, ValueError):

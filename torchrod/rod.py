@@ -85,13 +85,13 @@ def _geometry_stiffness(
     d_out = _positive("outer_diameter", outer_diameter, " [m]")
     d_in = _real("inner_diameter", inner_diameter, " [m]")
     if d_in < 0.0:
-        raise ValueError(f"inner_diameter must be >= 0 [m] (0 for a solid rod), got {_show(inner_diameter)}")
+        raise RodError(f"inner_diameter must be >= 0 [m] (0 for a solid rod), got {_show(inner_diameter)}")
     if d_in >= d_out:
-        raise ValueError(f"inner_diameter ({_show(inner_diameter)} m) must be smaller than outer_diameter ({d_out} m)")
+        raise RodError(f"inner_diameter ({_show(inner_diameter)} m) must be smaller than outer_diameter ({d_out} m)")
     e = _positive("youngs_modulus", youngs_modulus, " [Pa]")
     ei = tube_bending_stiffness(d_out, d_in, e)
     if not (math.isfinite(ei) and ei > 0.0):
-        raise ValueError(
+        raise RodError(
             f"outer_diameter {d_out} m, inner_diameter {d_in} m and youngs_modulus {e} Pa give a bending "
             f"stiffness of {ei} N m^2, not a positive finite number"
         )
@@ -179,7 +179,7 @@ class Rod:
         given = [k for k, v in geometry.items() if v is not None]
         if given and len(given) < 3:
             missing = [k for k in _GEOMETRY if k not in given]
-            raise ValueError(
+            raise RodError(
                 f"outer_diameter, inner_diameter and youngs_modulus go together: {given} given, {missing} missing"
             )
         checked = _geometry_stiffness(*geometry.values()) if given else None
@@ -193,14 +193,14 @@ class Rod:
         set_(self, "gratings", _check_gratings(self.gratings, length))
         bias = _real("location_bias", self.location_bias, " [m]")
         if abs(bias) >= length:
-            raise ValueError(
+            raise RodError(
                 f"location_bias must be smaller in size than the length ({length} m), got {_show(self.location_bias)}"
             )
         set_(self, "location_bias", bias)
         if checked is not None:
             d_out, d_in, e, ei_geometry = checked
             if not math.isclose(ei, ei_geometry, rel_tol=AGREEMENT, abs_tol=0.0):
-                raise ValueError(
+                raise RodError(
                     f"bending_stiffness {_show(self.bending_stiffness)} N m^2 contradicts the geometry "
                     f"(outer_diameter {d_out} m, inner_diameter {d_in} m, youngs_modulus {e} Pa give "
                     f"{ei_geometry:.9g} N m^2): give one or the other, or values that agree to {AGREEMENT:g}"
@@ -213,7 +213,7 @@ class Rod:
         if self.poisson_ratio is not None:
             nu = _real("poisson_ratio", self.poisson_ratio)
             if not (-1.0 < nu < 0.5):
-                raise ValueError(f"poisson_ratio must lie in (-1, 0.5), got {_show(self.poisson_ratio)}")
+                raise RodError(f"poisson_ratio must lie in (-1, 0.5), got {_show(self.poisson_ratio)}")
             set_(self, "poisson_ratio", nu)
         if self.fibre is not None:
             from .sensors import Fibre
@@ -223,7 +223,7 @@ class Rod:
             self.fibre.check_gratings(len(self.gratings))
         if self.torsional_stiffness is not None:
             if self.poisson_ratio is not None:
-                raise ValueError(
+                raise RodError(
                     f"give poisson_ratio ({_show(self.poisson_ratio)}) or torsional_stiffness "
                     f"({_show(self.torsional_stiffness)} N m^2), not both"
                 )
@@ -272,21 +272,21 @@ class Rod:
         ``[{"from", "to", "u": [ux, uy]}, ...]``). Unknown keys are refused (a misspelt key would otherwise be
         ignored)."""
         if not isinstance(data, Mapping):
-            raise ValueError(f"a rod description must be a JSON object, got {type(data).__name__}")  # noqa: TRY004 (a bad file)
+            raise RodError(f"a rod description must be a JSON object, got {type(data).__name__}")  # noqa: TRY004 (a bad file)
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(_show(k) if not isinstance(k, str) else k for k in data if k not in known)
         if unknown:
-            raise ValueError(_clip(f"unknown rod keys {unknown}; known keys are {sorted(known)}"))
+            raise RodError(_clip(f"unknown rod keys {unknown}; known keys are {sorted(known)}"))
         for key in ("length", "gratings"):
             if key not in data:
-                raise ValueError(f"rod description is missing {key!r}")
+                raise RodError(f"rod description is missing {key!r}")
         geometry = [k for k in _GEOMETRY if k in data]
         if geometry and len(geometry) < 3:
-            raise ValueError(
+            raise RodError(
                 f"rod description gives {geometry}: outer_diameter, inner_diameter and youngs_modulus go together"
             )
         if "bending_stiffness" not in data and not geometry:
-            raise ValueError(
+            raise RodError(
                 "rod description needs bending_stiffness, or outer_diameter, inner_diameter and youngs_modulus"
             )
         if "bending_stiffness" not in data:
@@ -381,7 +381,7 @@ class Rod:
         tip), which is what a grating there reads on the unloaded rod, or with ``side="proximal"`` the value just
         before it."""
         if side not in ("distal", "proximal"):
-            raise ValueError(f"side must be 'distal' or 'proximal', got {side!r}")
+            raise RodError(f"side must be 'distal' or 'proximal', got {side!r}")
         out = []
         for x in s:
             value = (0.0, 0.0)
@@ -504,10 +504,10 @@ def _check_gratings(gratings: Any, length: float) -> tuple[float, ...]:
         or not isinstance(gratings, Iterable)
         or getattr(gratings, "ndim", 1) != 1
     ):
-        raise ValueError(f"gratings must be a list of positions [m], got {_show(gratings)}")
+        raise RodError(f"gratings must be a list of positions [m], got {_show(gratings)}")
     g = tuple(_real(f"gratings[{k}]", x, " [m]") for k, x in enumerate(gratings))
     if not g:
-        raise ValueError("gratings must hold at least one position, got none")
+        raise RodError("gratings must hold at least one position, got none")
     for k, x in enumerate(g):
         if not 0.0 <= x <= length:
             fix = _as_si(x, "m", (("millimetres", 1e-3), ("centimetres", 1e-2)), (0.0, length))
@@ -523,7 +523,7 @@ def _check_gratings(gratings: Any, length: float) -> tuple[float, ...]:
         )
     for k, (a, b) in enumerate(itertools.pairwise(g), start=1):
         if b <= a:
-            raise ValueError(f"gratings must be strictly increasing: gratings[{k}] = {b} m follows {a} m")
+            raise RodError(f"gratings must be strictly increasing: gratings[{k}] = {b} m follows {a} m")
     return g
 
 
@@ -533,7 +533,7 @@ def _check_intrinsic(segments: Any, length: float) -> tuple[tuple[float, float, 
     if segments is None:
         return ()
     if isinstance(segments, (str, bytes, Mapping)) or not isinstance(segments, Iterable):
-        raise ValueError(f"intrinsic_curvature must be a list of segments, got {_show(segments)}")
+        raise RodError(f"intrinsic_curvature must be a list of segments, got {_show(segments)}")
     out = []
     for k, seg in enumerate(segments):
         where = f"intrinsic_curvature[{k}]"
@@ -541,30 +541,30 @@ def _check_intrinsic(segments: Any, length: float) -> tuple[tuple[float, float, 
             extra = sorted(str(key) for key in seg if key not in ("from", "to", "u"))
             missing = [key for key in ("from", "to", "u") if key not in seg]
             if extra or missing:
-                raise ValueError(
+                raise RodError(
                     f'{where} must be {{"from": s0, "to": s1, "u": [ux, uy]}}'
                     + (f": unknown {extra}" if extra else "")
                     + (f": missing {missing}" if missing else "")
                 )
             u = seg["u"]
             if isinstance(u, (str, bytes, Mapping)) or not isinstance(u, Sequence) or len(u) != 2:
-                raise ValueError(f"{where}.u must be [ux, uy] [1/m], got {_show(u)}")
+                raise RodError(f"{where}.u must be [ux, uy] [1/m], got {_show(u)}")
             a, b, ux, uy = seg["from"], seg["to"], u[0], u[1]
         elif isinstance(seg, Sequence) and not isinstance(seg, (str, bytes)) and len(seg) == 4:
             a, b, ux, uy = seg
         else:
-            raise ValueError(f'{where} must be {{"from": s0, "to": s1, "u": [ux, uy]}}, got {_show(seg)}')
+            raise RodError(f'{where} must be {{"from": s0, "to": s1, "u": [ux, uy]}}, got {_show(seg)}')
         a = _real(f"{where}.from", a, " [m]")
         b = _real(f"{where}.to", b, " [m]")
         ux = _real(f"{where}.u[0]", ux, " [1/m]")
         uy = _real(f"{where}.u[1]", uy, " [1/m]")
         if not 0.0 <= a < b <= length:
-            raise ValueError(f"{where} must satisfy 0 <= from < to <= length ({length} m), got from {a}, to {b}")
+            raise RodError(f"{where} must satisfy 0 <= from < to <= length ({length} m), got from {a}, to {b}")
         out.append((a, b, ux, uy))
     out.sort()
     for (a0, b0, *_), (a1, b1, *_) in itertools.pairwise(out):
         if a1 < b0:
-            raise ValueError(f"intrinsic_curvature segments [{a0}, {b0}] and [{a1}, {b1}] m overlap")
+            raise RodError(f"intrinsic_curvature segments [{a0}, {b0}] and [{a1}, {b1}] m overlap")
     return tuple(out)
 
 
@@ -573,7 +573,7 @@ def _no_repeated_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key, value in pairs:
         if key in out:
-            raise ValueError(_clip(f"the key {key!r} appears twice in one object"))
+            raise RodError(_clip(f"the key {key!r} appears twice in one object"))
         out[key] = value
     return out
 

@@ -588,7 +588,7 @@ class Fibre:
         self._pinv()
         s = _real("strain noise", strain_sigma)
         if s < 0.0:
-            raise ValueError(f"strain noise must be >= 0, got {strain_sigma!r}")
+            raise RodError(f"strain noise must be >= 0, got {strain_sigma!r}")
         a, b, d = self._derived["cov"]
         return s * math.sqrt(_symmetric2_eigen(a, b, d)[1])
 
@@ -682,7 +682,7 @@ class Fibre:
 
         s = _real("wavelength noise", sigma)
         if s < 0.0:
-            raise ValueError(f"wavelength noise must be >= 0, got {sigma!r}")
+            raise RodError(f"wavelength noise must be >= 0, got {sigma!r}")
         out = []
         for m in self._maps():
             a = sum(x * x for x in m[0])

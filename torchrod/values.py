@@ -13,6 +13,8 @@ import numbers
 import sys
 from typing import Any
 
+from .errors import RodError
+
 __all__ = ["QUOTE_CHARS", "brief", "clip", "is_number", "positive", "real", "show"]
 
 QUOTE_CHARS = 100
@@ -74,20 +76,20 @@ def is_number(value: Any) -> bool:
 def real(name: str, value: Any, unit: str = "") -> float:
     """``value`` as a finite float, or ``ValueError`` naming ``name`` and the value."""
     if not is_number(value):
-        raise ValueError(f"{name} must be a number{unit}, got {show(value)}")
+        raise RodError(f"{name} must be a number{unit}, got {show(value)}")
     try:
         x = float(value)
     except OverflowError:
-        raise ValueError(f"{name} is too large{unit}, got {show(value)}") from None
+        raise RodError(f"{name} is too large{unit}, got {show(value)}") from None
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number{unit}, got {show(value)}") from None
+        raise RodError(f"{name} must be a number{unit}, got {show(value)}") from None
     if not math.isfinite(x):
-        raise ValueError(f"{name} must be finite{unit}, got {show(value)}")
+        raise RodError(f"{name} must be finite{unit}, got {show(value)}")
     return x
 
 
 def positive(name: str, value: Any, unit: str = "") -> float:
     x = real(name, value, unit)
     if x <= 0.0:
-        raise ValueError(f"{name} must be positive{unit}, got {show(value)}")
+        raise RodError(f"{name} must be positive{unit}, got {show(value)}")
     return x

@@ -55,7 +55,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from ..errors import OptionsError, ReadingError
+from ..errors import OptionsError, ReadingError, TorchrodTypeError
 from ..loads import PointForces
 from ..model.body_frame import grating_curvature
 from ..rod import YOUNGS_MODULUS_RANGE, Rod
@@ -109,16 +109,16 @@ class CalibrationData:
         c, p, f = self.curvature, self.present, self.forces
         if not isinstance(c, torch.Tensor) or c.dim() != 3 or c.shape[2] != 2:
             shape = tuple(c.shape) if isinstance(c, torch.Tensor) else type(c).__name__
-            raise ValueError(f"curvature must have shape (R, G, 2), got {shape}")
+            raise OptionsError(f"curvature must have shape (R, G, 2), got {shape}")
         if not isinstance(p, torch.Tensor) or p.shape != c.shape[:2]:
             shape = tuple(p.shape) if isinstance(p, torch.Tensor) else type(p).__name__
-            raise ValueError(f"present must have shape (R, G) = {tuple(c.shape[:2])}, got {shape}")
+            raise OptionsError(f"present must have shape (R, G) = {tuple(c.shape[:2])}, got {shape}")
         if not isinstance(f, PointForces) or f.batch_size != c.shape[0]:
-            raise ValueError(f"forces must be PointForces for the {c.shape[0]} readings")
+            raise OptionsError(f"forces must be PointForces for the {c.shape[0]} readings")
         object.__setattr__(self, "present", p.to(torch.bool))
         ids = tuple(self.ids) if self.ids else (None,) * c.shape[0]
         if len(ids) != c.shape[0]:
-            raise ValueError(f"ids must hold one id per reading ({c.shape[0]}), got {len(ids)}")
+            raise OptionsError(f"ids must hold one id per reading ({c.shape[0]}), got {len(ids)}")
         object.__setattr__(self, "ids", ids)
 
     @property
@@ -306,7 +306,7 @@ class _Problem:
 
         p, n = self.num_unknowns, self.num_obs
         if n <= p:
-            raise ValueError(f"{n} observed curvature components cannot determine {p} unknowns: add readings")
+            raise OptionsError(f"{n} observed curvature components cannot determine {p} unknowns: add readings")
         free = np.ones(p, dtype=bool) if free is None else np.asarray(free, dtype=bool)
         base = np.array(theta0, dtype=np.float64)
 
@@ -374,28 +374,28 @@ def calibrate(
     if noise is not None and not (isinstance(noise, (int, float)) and 0.0 < noise < math.inf):
         raise OptionsError(f"noise must be a positive sigma [1/m] or None, got {noise!r}")
     if not isinstance(rod, Rod):
-        raise TypeError(f"rod must be a Rod, got {type(rod).__name__}")
+        raise TorchrodTypeError(f"rod must be a Rod, got {type(rod).__name__}")
     if not isinstance(data, CalibrationData):
-        raise TypeError(f"data must be CalibrationData, got {type(data).__name__}")
+        raise TorchrodTypeError(f"data must be CalibrationData, got {type(data).__name__}")
     if directions not in ("known", "free"):
-        raise ValueError(f"directions must be 'known' or 'free', got {directions!r}")
+        raise OptionsError(f"directions must be 'known' or 'free', got {directions!r}")
     R, G, _ = data.curvature.shape
     if G != rod.num_gratings:
-        raise ValueError(f"readings hold {G} gratings, the rod has {rod.num_gratings}")
+        raise OptionsError(f"readings hold {G} gratings, the rod has {rod.num_gratings}")
     loads = data.forces
     if loads.dtype != data.curvature.dtype or loads.device != data.curvature.device:
-        raise ValueError("forces and curvature must share dtype and device")
+        raise OptionsError("forces and curvature must share dtype and device")
     active = loads.active
     if not bool(active.any()):
-        raise ValueError("no known force in the readings: the bias and the stiffness cannot be fitted")
+        raise OptionsError("no known force in the readings: the bias and the stiffness cannot be fitted")
     s_true = loads.s
     s_real = s_true[active]
     if bool(((s_real < 0) | (s_real > rod.length)).any()):
-        raise ValueError(f"known force locations must lie in [0, L = {rod.length}] m, got {s_real.tolist()}")
+        raise OptionsError(f"known force locations must lie in [0, L = {rod.length}] m, got {s_real.tolist()}")
     # s_true - b must stay in [0, L] for every real force
     lo_b, hi_b = float(s_real.max()) - rod.length, float(s_real.min())
     if not lo_b <= initial_bias <= hi_b:
-        raise ValueError(f"initial_bias {initial_bias} m would move a force off the rod; allowed [{lo_b}, {hi_b}] m")
+        raise OptionsError(f"initial_bias {initial_bias} m would move a force off the rod; allowed [{lo_b}, {hi_b}] m")
     ei0 = rod.bending_stiffness
     h = loads.max_forces
     mask = loads.mask

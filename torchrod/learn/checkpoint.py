@@ -15,7 +15,7 @@ from typing import Any, cast
 
 import torch
 
-from ..errors import MissingFileError
+from ..errors import CheckpointError, MissingFileError
 from ..values import brief, clip
 from .network import NetConfig, WarmStartNet
 
@@ -89,23 +89,23 @@ def load_checkpoint(
     name = os.fspath(path)
     payload = _read_checkpoint(name, map_location)
     if not isinstance(payload, dict):
-        raise ValueError(  # noqa: TRY004 (a bad file)
+        raise CheckpointError(  # noqa: TRY004 (a bad file)
             f"{name}: not a warm-start checkpoint (it holds a {type(payload).__name__}, expected a dict with "
             f"format {CHECKPOINT_FORMAT!r})"
         )
     found = payload.get("format")
     if found != CHECKPOINT_FORMAT:
         shown = "no format tag" if "format" not in payload else f"format {brief(found)}"
-        raise ValueError(f"{name}: not a warm-start checkpoint ({shown}, expected {CHECKPOINT_FORMAT!r})")
+        raise CheckpointError(f"{name}: not a warm-start checkpoint ({shown}, expected {CHECKPOINT_FORMAT!r})")
     config = _checkpoint_config(name, payload)
     for key in ("step", "epoch"):
         value = payload.get(key)
         if isinstance(value, bool) or not isinstance(value, int) or value < 0:
             got = "nothing" if key not in payload else brief(value)
-            raise ValueError(f"{name}: damaged checkpoint: {key!r} must be an integer >= 0, got {got}")
+            raise CheckpointError(f"{name}: damaged checkpoint: {key!r} must be an integer >= 0, got {got}")
     for key in ("train_config", "optimizer", "metrics"):
         if key in payload and not isinstance(payload[key], Mapping):
-            raise ValueError(
+            raise CheckpointError(
                 f"{name}: damaged checkpoint: {key!r} must be a mapping, got {type(payload[key]).__name__}"
             )
     net = WarmStartNet(config)
@@ -120,7 +120,7 @@ def _read_checkpoint(name: str, map_location: str | torch.device | None) -> Any:
     import pickle
 
     if os.path.isdir(name):
-        raise ValueError(f"{name}: is a directory, not a checkpoint")
+        raise CheckpointError(f"{name}: is a directory, not a checkpoint")
     if not os.path.lexists(name):
         raise MissingFileError(
             f"no such checkpoint: {name} (give the path of a file `torchrod train` wrote; the shipped network is "
@@ -130,9 +130,9 @@ def _read_checkpoint(name: str, map_location: str | torch.device | None) -> Any:
         with open(name, "rb") as fh:
             empty = fh.read(1) == b""
     except OSError as exc:
-        raise ValueError(f"{name}: cannot read the checkpoint ({exc.strerror or type(exc).__name__})") from None
+        raise CheckpointError(f"{name}: cannot read the checkpoint ({exc.strerror or type(exc).__name__})") from None
     if empty:
-        raise ValueError(f"{name}: the checkpoint file is empty")
+        raise CheckpointError(f"{name}: the checkpoint file is empty")
     try:
         return torch.load(name, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
@@ -144,35 +144,37 @@ def _read_checkpoint(name: str, map_location: str | torch.device | None) -> Any:
         if detail.startswith("Unsupported global"):
             words = detail.split()
             what = clip(words[3], 60) if len(words) > 3 and words[2] == "GLOBAL" else "an unknown global"
-            raise ValueError(
+            raise CheckpointError(
                 f"{name}: refused: besides tensors and plain containers it holds a Python object ({what}), and "
                 "building it could run code (torch's weights_only check)"
             ) from None
         why = detail or f"{type(exc).__name__}: {exc}"
     except Exception as exc:  # noqa: BLE001 -- RuntimeError (zip reader), EOFError, KeyError, ...: a damaged file
         why = f"{type(exc).__name__}: {exc}"
-    raise ValueError(f"{name}: not a readable checkpoint (truncated, damaged or not a torch file: {clip(why, 80)})")
+    raise CheckpointError(
+        f"{name}: not a readable checkpoint (truncated, damaged or not a torch file: {clip(why, 80)})"
+    )
 
 
 def _checkpoint_config(name: str, payload: Mapping[str, Any]) -> NetConfig:
     """The checkpoint's :class:`NetConfig`, checked, and not larger than the weights the file holds (so a damaged
     config cannot make us build a huge network)."""
     if "config" not in payload:
-        raise ValueError(f"{name}: damaged checkpoint: no 'config' (the network's layout and size)")
+        raise CheckpointError(f"{name}: damaged checkpoint: no 'config' (the network's layout and size)")
     raw = payload["config"]
     if not isinstance(raw, Mapping):
-        raise ValueError(f"{name}: damaged checkpoint: 'config' must be a mapping, got {type(raw).__name__}")  # noqa: TRY004
+        raise CheckpointError(f"{name}: damaged checkpoint: 'config' must be a mapping, got {type(raw).__name__}")  # noqa: TRY004
     try:
         config = NetConfig.from_dict(raw)
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
-        raise ValueError(f"{name}: invalid network config: {clip(str(exc), 160)}") from None
+        raise CheckpointError(f"{name}: invalid network config: {clip(str(exc), 160)}") from None
     state = payload.get("state_dict")
     held = sum(v.numel() for v in state.values() if isinstance(v, torch.Tensor)) if isinstance(state, Mapping) else 0
     # Every hidden layer is at least hidden x hidden (the first at least hidden x 3G), the output at least
     # hidden x max_forces: a lower bound on the weights the config describes.
     least = config.hidden * (3 * config.num_gratings + config.max_forces + (config.depth - 1) * config.hidden)
     if least > held:
-        raise ValueError(
+        raise CheckpointError(
             f"{name}: its weights do not fit its config: the config describes at least {least} weights "
             f"(hidden {config.hidden}, depth {config.depth}, {config.num_gratings} gratings), the file holds {held}"
         )
@@ -185,7 +187,7 @@ def _checkpoint_weights(name: str, payload: Mapping[str, Any], net: WarmStartNet
     state = payload.get("state_dict")
     if not isinstance(state, Mapping):
         got = "nothing" if "state_dict" not in payload else type(state).__name__
-        raise ValueError(f"{name}: damaged checkpoint: 'state_dict' must be a mapping of weights, got {got}")  # noqa: TRY004
+        raise CheckpointError(f"{name}: damaged checkpoint: 'state_dict' must be a mapping of weights, got {got}")  # noqa: TRY004
     expected = net.state_dict()
     missing = [k for k in expected if k not in state]
     unexpected = [str(k) for k in state if k not in expected]
@@ -193,21 +195,21 @@ def _checkpoint_weights(name: str, payload: Mapping[str, Any], net: WarmStartNet
         parts = ([f"lacks {brief(missing)}"] if missing else []) + (
             [f"has unexpected {brief(unexpected)}"] if unexpected else []
         )
-        raise ValueError(f"{name}: its weights do not fit the network its config describes: {'; '.join(parts)}")
+        raise CheckpointError(f"{name}: its weights do not fit the network its config describes: {'; '.join(parts)}")
     out: dict[str, torch.Tensor] = {}
     for key, want in expected.items():
         value = state[key]
         if not isinstance(value, torch.Tensor) or not value.is_floating_point():
             kind = f"a {value.dtype} tensor" if isinstance(value, torch.Tensor) else f"a {type(value).__name__}"
-            raise ValueError(f"{name}: weight {key!r} must be a floating-point tensor, got {kind}")
+            raise CheckpointError(f"{name}: weight {key!r} must be a floating-point tensor, got {kind}")
         if value.shape != want.shape:
-            raise ValueError(
+            raise CheckpointError(
                 f"{name}: its weights do not fit the network its config describes: {key!r} has shape "
                 f"{tuple(value.shape)}, the config asks for {tuple(want.shape)}"
             )
         bad = int((~torch.isfinite(value)).sum())
         if bad:
-            raise ValueError(
+            raise CheckpointError(
                 f"{name}: weight {key!r} holds {bad} non-finite value(s) (NaN or inf): a diverged or damaged "
                 "training run"
             )

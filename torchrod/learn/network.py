@@ -31,6 +31,7 @@ from typing import Any, NamedTuple, cast
 import torch
 from torch import nn
 
+from ..errors import CheckpointError
 from ..kernels import network as network_kernel
 from ..loads import PointForces
 from ..rod import Rod
@@ -70,22 +71,22 @@ class NetConfig:
     def __post_init__(self) -> None:
         raw = self.relative_gratings
         if isinstance(raw, (str, bytes, Mapping)) or not isinstance(raw, Iterable):
-            raise ValueError(f"relative_gratings must be a list of numbers, got {brief(raw)}")  # noqa: TRY004
+            raise CheckpointError(f"relative_gratings must be a list of numbers, got {brief(raw)}")  # noqa: TRY004
         raw = tuple(raw)
         if any(isinstance(x, bool) or not isinstance(x, numbers.Real) for x in raw):
-            raise ValueError(f"relative_gratings must be a list of numbers, got {brief(list(raw))}")
+            raise CheckpointError(f"relative_gratings must be a list of numbers, got {brief(list(raw))}")
         g = tuple(float(x) for x in raw)
         if not g or any(not (0.0 <= x <= 1.0) for x in g) or any(b <= a for a, b in itertools.pairwise(g)):
-            raise ValueError(f"relative_gratings must increase inside [0, 1], got {brief(list(g))}")
+            raise CheckpointError(f"relative_gratings must increase inside [0, 1], got {brief(list(g))}")
         object.__setattr__(self, "relative_gratings", g)
         for name in ("max_forces", "hidden", "depth"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name} must be a positive integer, got {brief(v)}")
+                raise CheckpointError(f"{name} must be a positive integer, got {brief(v)}")
         for name in ("curvature_scale", "force_scale"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or v <= 0.0:
-                raise ValueError(f"{name} must be positive and finite, got {brief(v)}")
+                raise CheckpointError(f"{name} must be positive and finite, got {brief(v)}")
             object.__setattr__(self, name, float(v))
         # Checked by the rod they describe (the unit rod: lengths in units of L).
         unit = unit_rod(self)
@@ -107,13 +108,13 @@ class NetConfig:
     def from_dict(cls, data: Mapping[str, Any]) -> NetConfig:
         """From :meth:`to_dict`'s form; ``ValueError`` naming an unknown or missing key or a bad value."""
         if not isinstance(data, Mapping):
-            raise ValueError(f"a network config must be a mapping, got {type(data).__name__}")  # noqa: TRY004
+            raise CheckpointError(f"a network config must be a mapping, got {type(data).__name__}")  # noqa: TRY004
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(str(k) for k in data if k not in known)
         if unknown:
-            raise ValueError(f"unknown network config keys {unknown}; known keys are {sorted(known)}")
+            raise CheckpointError(f"unknown network config keys {unknown}; known keys are {sorted(known)}")
         if "relative_gratings" not in data:
-            raise ValueError("the network config lacks 'relative_gratings' (the grating layout)")
+            raise CheckpointError("the network config lacks 'relative_gratings' (the grating layout)")
         return cls(**data)
 
     @classmethod

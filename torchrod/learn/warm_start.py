@@ -35,7 +35,7 @@ from typing import Any, cast
 import torch
 from torch import nn
 
-from ..errors import MissingFileError
+from ..errors import CheckpointError, MissingFileError, TorchrodTypeError
 from ..estimate.checks import check_readings
 from ..estimate.estimator import Estimator
 from ..estimate.options import EstimatorOptions
@@ -100,14 +100,14 @@ class WarmStart:
 
     def __init__(self, net: WarmStartNet, rod: Rod, meta: Mapping[str, Any] | None = None) -> None:
         if not isinstance(net, WarmStartNet):
-            raise TypeError(f"net must be a WarmStartNet, got {type(net).__name__}")
+            raise TorchrodTypeError(f"net must be a WarmStartNet, got {type(net).__name__}")
         if not isinstance(rod, Rod):
-            raise TypeError(f"rod must be a Rod, got {type(rod).__name__}")
+            raise TorchrodTypeError(f"rod must be a Rod, got {type(rod).__name__}")
         self.net = net.eval()
         self.rod = rod
         self.meta = dict(meta or {})
         if not self.matches(rod):
-            raise ValueError(self._mismatch(rod))
+            raise CheckpointError(self._mismatch(rod))
         self._on: dict[torch.device, WarmStartNet] = {next(net.parameters()).device: self.net}
         self._forward: dict[tuple[torch.device, torch.dtype], Callable[[torch.Tensor, torch.Tensor], Any]] = {}
         self._forward_lock = threading.Lock()
@@ -124,7 +124,7 @@ class WarmStart:
         try:
             return cls(net, rod, meta)
         except ValueError as exc:
-            raise ValueError(f"{os.fspath(path)}: {exc}") from None
+            raise CheckpointError(f"{os.fspath(path)}: {exc}") from None
 
     @property
     def config(self) -> NetConfig:

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..errors import OptionsError, TorchrodTypeError
 from ..loads import PointForces
 from ..rod import Rod
 from .body_frame import simulate
@@ -93,24 +94,26 @@ def rod_shape(s: torch.Tensor, curvature: torch.Tensor) -> Shape:
         ``curvature``; differentiable in ``curvature`` and ``s``.
     """
     if not isinstance(s, torch.Tensor) or not isinstance(curvature, torch.Tensor):
-        raise TypeError(f"s and curvature must be tensors, got {type(s).__name__} and {type(curvature).__name__}")
+        raise TorchrodTypeError(
+            f"s and curvature must be tensors, got {type(s).__name__} and {type(curvature).__name__}"
+        )
     if s.dim() != 1 or s.numel() < 1:
-        raise ValueError(f"s must have shape (S,) with S >= 1, got {tuple(s.shape)}")
+        raise OptionsError(f"s must have shape (S,) with S >= 1, got {tuple(s.shape)}")
     S = s.shape[0]
     if curvature.dim() != 3 or curvature.shape[1] != S or curvature.shape[2] not in (2, 3):
-        raise ValueError(
+        raise OptionsError(
             f"curvature must have shape (B, S, 2) = (B, {S}, 2) (or (B, S, 3)), got {tuple(curvature.shape)}"
         )
     if not curvature.is_floating_point():
-        raise TypeError(f"curvature must be floating point, got {curvature.dtype}")
+        raise TorchrodTypeError(f"curvature must be floating point, got {curvature.dtype}")
     if s.device != curvature.device:
-        raise ValueError(f"s and curvature must be on one device, got {s.device} and {curvature.device}")
+        raise OptionsError(f"s and curvature must be on one device, got {s.device} and {curvature.device}")
     s = s.to(curvature.dtype)
     sd = s.detach()
     if float(sd[0]) != 0.0:
-        raise ValueError(f"s must start at the clamped base s = 0, got s[0] = {float(sd[0])}")
+        raise OptionsError(f"s must start at the clamped base s = 0, got s[0] = {float(sd[0])}")
     if S > 1 and bool((sd[1:] < sd[:-1]).any()):
-        raise ValueError("s must be non-decreasing")
+        raise OptionsError("s must be non-decreasing")
     B = curvature.shape[0]
     u = curvature
     if u.shape[2] == 2:
@@ -145,7 +148,7 @@ def shape(rod: Rod, loads: PointForces, samples: int = 200, **simulate_options) 
         :class:`Shape` with S = ``samples`` (more if ``at=`` adds positions).
     """
     if not isinstance(samples, int) or samples < 2:
-        raise ValueError(f"samples must be an integer >= 2, got {samples!r}")
+        raise OptionsError(f"samples must be an integer >= 2, got {samples!r}")
     if not rod.precurved:
         sim = simulate(rod, loads, samples=samples, **simulate_options)
         return rod_shape(sim.s, sim.curvature)
@@ -173,6 +176,8 @@ def shape(rod: Rod, loads: PointForces, samples: int = 200, **simulate_options) 
 
 def bending_angle(shape: Shape) -> torch.Tensor:
     """(B,) angle between the base and tip tangents [rad], in [0, pi] (atan2 of |t0 x t1| and t0 . t1)."""
+    if not isinstance(shape, Shape):
+        raise TorchrodTypeError(f"shape must be a Shape (torchrod.rod_shape), got {type(shape).__name__}")
     t0 = shape.frames[:, 0, :, 2]
     t1 = shape.frames[:, -1, :, 2]
     sin = torch.linalg.vector_norm(torch.linalg.cross(t0, t1, dim=-1), dim=-1)
