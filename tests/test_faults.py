@@ -376,3 +376,37 @@ def test_a_count_the_rod_cannot_determine_is_warned(tmp_path, capsys):
     ) in err
     assert main(["estimate", "--rod", str(rod), "--noise", "0.1", "--max-forces", "1", str(readings)]) == 0
     assert not any("warning" in line for line in capsys.readouterr().err.splitlines())
+
+
+NETWORK_GUESS = """
+import torch, torchrod as tr
+from torchrod.learn.warm_start import shipped_network
+ws, _ = shipped_network(tr.presets.nitinol290())
+u = torch.zeros(1, 14, 2, dtype=torch.float64)
+u[0, :5, 0] = 3.0
+print(ws.compiled_arrays(u, torch.ones(1, 14, dtype=torch.bool))[0].tolist())
+"""
+
+
+@pytest.mark.parametrize("part", ["nbi", "nbc"])
+def test_a_damaged_kernel_cache_entry_is_compiled_again(tmp_path, part):
+    """A cache file cut short (the index or the compiled code) is a missing entry: the run says so, compiles the
+    kernels again and answers as before; the run after it loads them quietly."""
+    env = {**ENV, "TORCHROD_CACHE_DIR": str(tmp_path)}
+
+    def run() -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-c", NETWORK_GUESS], capture_output=True, text=True, env=env,
+                              timeout=300, cwd=ROOT)  # fmt: skip
+
+    first = run()
+    assert first.returncode == 0, first.stderr[-2000:]
+    files = list(tmp_path.rglob(f"*network_rows*.{part}"))
+    assert files
+    for path in files:
+        path.write_bytes(path.read_bytes()[:20])
+    second = run()
+    assert second.returncode == 0, second.stderr[-2000:]
+    assert "damaged copy of the network kernels" in second.stderr and "compiling them again" in second.stderr
+    assert second.stdout == first.stdout
+    third = run()
+    assert third.returncode == 0 and third.stdout == first.stdout and "damaged" not in third.stderr

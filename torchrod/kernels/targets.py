@@ -198,6 +198,7 @@ class Compiled:
         self._ready = False
         self._child: subprocess.Popen[bytes] | None = None
         self._tried_child = False  # a compiling child ran to its end: no second one
+        self._repaired = False  # a damaged cache entry was removed and compiled again (once)
 
     def _cached(self) -> bool:
         """Whether the entry's compiled code is in the on-disk cache (looked at without the lock)."""
@@ -300,6 +301,7 @@ class Compiled:
             lock: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
             if self.directory is not None:
                 lock = _file_lock(self.directory / ".lock")
+            damaged = False
             with lock:  # (the cache looked at once the lock is held: another process may just have filled it)
                 fresh = not self.quiet and not self._cached()
                 if fresh and not os.environ.get(_CHILD):  # (a compiling child's parent announced it)
@@ -307,14 +309,39 @@ class Compiled:
                 began = time.perf_counter()
                 source = getattr(self.entry, "py_func", self.entry)  # (a Numba dispatcher's Python function)
                 at_entry = patches.optimised_at_entry(source.__qualname__) if self.target == "cpu" else None
-                with at_entry or contextlib.nullcontext():
-                    self._warm(self.entry)
+                try:
+                    with at_entry or contextlib.nullcontext():
+                        self._warm(self.entry)
+                except Exception as exc:
+                    # Loading what the cache holds failed: a damaged entry (cut short, overwritten). It is a missing
+                    # one: removed, said, and compiled again below, once the cache's lock is free for a child.
+                    if fresh or self._repaired or self.directory is None:
+                        raise
+                    damaged = True
+                    self._drop_entry()
+                    _say(
+                        f"the kernel cache {self.directory} held a damaged copy of the {self.what} kernels "
+                        f"({type(exc).__name__}): removed; compiling them again"
+                    )
                 took = time.perf_counter() - began
                 if fresh:
                     _say(f"{self.what} kernels compiled in {took:.0f} s")
                     with contextlib.suppress(OSError):
                         (root / f"compile-seconds-{self.target}-{self.what}").write_text(f"{took:.1f}")
-            self._ready = True
+            if damaged:
+                self._repaired = True
+                self._tried_child = False
+            else:
+                self._ready = True
+        if damaged:
+            self.ready()
+
+    def _drop_entry(self) -> None:
+        """Remove this entry's files from the on-disk cache (its index and compiled code), whatever they hold."""
+        pattern = f"*{self.entry.__name__}*.nb[ic]" if self.target != "cuda" else "*.nb[ic]"
+        for path in self.directory.rglob(pattern) if self.directory is not None else ():
+            with contextlib.suppress(OSError):
+                path.unlink()
 
 
 def die_with_parent(parent: int) -> None:
