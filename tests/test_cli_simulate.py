@@ -359,6 +359,7 @@ def test_noise_is_gaussian_reproducible_and_independent_of_the_batch_size(capsys
     [
         (["--noise", "-0.1"], "--noise must be a finite sigma >= 0"),
         (["--noise", "nan"], "--noise must be a finite sigma >= 0"),
+        (["--noise", "1e200"], "--noise must be at most 1e+06 1/m, the largest curvature a reading may carry"),
         (["--seed", "3"], "--seed sets the noise of --noise"),
         (["--out", "/no/such/folder/out.jsonl"], "cannot write there"),
     ],

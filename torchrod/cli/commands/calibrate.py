@@ -134,6 +134,14 @@ def run(args: argparse.Namespace) -> int:
     check_input(args.readings, "READINGS")
     if args.noise is not None and not 0.0 < args.noise < float("inf"):
         raise ValueError(f"--noise must be a positive sigma [1/m], got {args.noise}")
+    from ...errors import OptionsError
+    from ...io.readings import MAX_CURVATURE
+
+    if args.noise is not None and args.noise > MAX_CURVATURE:
+        raise OptionsError(
+            f"--noise must be at most {MAX_CURVATURE:g} 1/m, the largest curvature a reading may carry, got "
+            f"{args.noise:g}"
+        )
     if args.fibre:
         return _fibre(args, rod, base)
     if args.gain_tolerance is not None:

@@ -215,6 +215,14 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--nodes must be >= 2, got {args.nodes}")
     if not (math.isfinite(args.noise) and args.noise >= 0.0):
         raise ValueError(f"--noise must be a finite sigma >= 0 [1/m], got {args.noise}")
+    from ...errors import OptionsError
+    from ...io.readings import MAX_CURVATURE
+
+    if args.noise > MAX_CURVATURE:
+        raise OptionsError(
+            f"--noise must be at most {MAX_CURVATURE:g} 1/m, the largest curvature a reading may carry (no reader "
+            f"takes the readings it would write), got {args.noise:g}"
+        )
     if args.seed is not None and args.noise == 0.0:
         raise ValueError("--seed sets the noise of --noise SIGMA; give both")
     check_input(args.forces, "FORCES")
