@@ -90,6 +90,41 @@ def test_estimate_bad_option(capsys, tmp_path):
     assert "neither a rod file nor a preset" in capsys.readouterr().err
 
 
+_R = 3.5e-5
+_THREE = [[_R, 0.0], [-_R / 2, _R * math.sqrt(3) / 2], [-_R / 2, -_R * math.sqrt(3) / 2]]
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (
+            ["--noise", "1e200"],
+            "--noise must be at most 1e+06 1/m, the largest curvature a reading may carry, got 1e+200",
+        ),
+        (["--wavelength-noise", "1e300"], "--wavelength-noise must be at most 100000 pm, the largest shift a reading"),
+        (["--strain-noise", "1e300"], "--strain-noise must be at most 0.1, the largest strain a reading may carry"),
+    ],
+)
+def test_a_noise_sigma_no_reading_can_carry_is_a_usage_error(rod, tmp_path, capsys, argv, message):
+    """--noise 1e200 and --wavelength-noise 1e300 ended in an OverflowError traceback; they are usage errors, as a
+    NaN or negative sigma is."""
+    fibre = {"cores": _THREE, "wavelength": {"reference": [[1530.0 + 2.5 * g + 0.1 * c for c in range(3)] for g in
+                                                            range(rod.num_gratings)]}}  # fmt: skip
+    rod_file, path = tmp_path / "rod.json", tmp_path / "r.jsonl"
+    rod.with_(fibre=fibre).to_json(rod_file)
+    path.write_text(json.dumps(_reading_lines(rod)[0]) + "\n")
+    assert main(["estimate", "--rod", str(rod_file), *argv, str(path)]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and f"torchrod estimate: error: {message}" in captured.err
+    assert "Traceback" not in captured.err
+
+
+def test_estimator_options_refuse_a_sigma_whose_square_overflows():
+    for name in ("noise", "max_noise", "noise_floor"):
+        with pytest.raises(tr.errors.OptionsError, match=f"{name} must be .*at most 1e\\+06 \\[1/m\\].*got 1e\\+200"):
+            tr.EstimatorOptions(**{name: 1e200})
+
+
 @pytest.mark.parametrize(
     "command",
     [["estimate", "-"], ["stream"], ["bench", "stream", "--quick"], ["bench", "estimate"], ["simulate"], ["generate"]],

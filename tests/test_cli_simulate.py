@@ -6,6 +6,7 @@ import json
 import math
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -359,6 +360,7 @@ def test_noise_is_gaussian_reproducible_and_independent_of_the_batch_size(capsys
     [
         (["--noise", "-0.1"], "--noise must be a finite sigma >= 0"),
         (["--noise", "nan"], "--noise must be a finite sigma >= 0"),
+        (["--noise", "1e200"], "--noise must be at most 1e+06 1/m, the largest curvature a reading may carry"),
         (["--seed", "3"], "--seed sets the noise of --noise"),
         (["--out", "/no/such/folder/out.jsonl"], "cannot write there"),
     ],
@@ -375,3 +377,29 @@ def test_out_writes_the_answers_to_a_file(capsys, tmp_path):
     assert capsys.readouterr().out == ""
     reference = run_cli(capsys, "--rod", "nitinol290", str(EXAMPLE))[1]
     assert [json.loads(x) for x in target.read_text().splitlines()] == reference
+
+
+def test_forces_beyond_the_rod_give_no_raw_numpy_warnings(capsys, tmp_path, monkeypatch):
+    """At 1e6 N the numbers overflow on the way and NumPy printed its RuntimeWarnings with their source lines; they
+    are silenced where the simulation runs, and each case's outcome is said in torchrod's words."""
+    from torchrod.cli.commands import simulate as command
+
+    real = command.simulate
+
+    def overflowing(*args, **kw):
+        np.float64(1e300) * np.float64(1e300)  # what a march far beyond its range meets: overflow, inf - inf
+        np.subtract(np.inf, np.inf)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(command, "simulate", overflowing)
+    path = write_lines(tmp_path / "f.jsonl", [case_line(1, [(0.1, 1e6, 0.0)]), case_line(2, [(0.2, 0.5, 0.0)])])
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        status, lines, err = run_cli(capsys, "--rod", "nitinol290", "--scheme", "nodes", str(path))
+    assert status == 1 and err == "", err
+    assert [str(w.message) for w in shown] == []
+    assert lines[0] == {
+        "id": 1,
+        "error": "line 1: the simulation gave non-finite values: the forces (largest 1e+06 N) are too large",
+    }
+    assert "curvature" in lines[1]

@@ -107,6 +107,27 @@ def test_header_errors_list_what_was_expected(header, message):
         _read(header + "\n1,2\n")
 
 
+@pytest.mark.parametrize(
+    ("column", "first", "second"),
+    [("ux_1", "ux_1", "ux1"), ("ux_1", "ux_01", "ux_1"), ("uy_2", "UY_2", "uy02"), ("s_1", "s_1", "s1")],
+)
+def test_header_naming_one_value_under_two_spellings_is_refused(curvature, column, first, second):
+    """Two columns for one grating's component were read with the last one winning; they are refused as one name
+    given twice is, naming both."""
+    names = [f"ux_{k}" for k in range(1, G + 1)] + [f"uy_{k}" for k in range(1, G + 1)] + ["s_1", "fx_1", "fy_1"]
+    names[names.index(column)] = first
+    row = _cells(torch.cat([curvature[0, :, 0], curvature[0, :, 1]])) + ["0.1", "0.0", "0.0", "0.0"]
+    with pytest.raises(ReadingError, match=f"names '{first}' and '{second}', two columns for the same value"):
+        _read(",".join([*names, second]) + "\n" + ",".join(row) + "\n")
+
+
+def test_header_naming_one_core_value_under_two_spellings_is_refused():
+    fibre = tr.sensors.Fibre(cores=THREE, wavelength={"calibration": [[[10.0, -5.0, -5.0], [0.0, 8.0, -8.0]]] * G})
+    names = [f"lambda_{k}_{c}" for k in range(1, G + 1) for c in range(1, 4)] + ["lambda1_1"]
+    with pytest.raises(ReadingError, match="names 'lambda_1_1' and 'lambda1_1', two columns for the same value"):
+        _read(",".join(names) + "\n", fibre=fibre)
+
+
 def test_other_quantities_by_header():
     fibre = tr.sensors.Fibre(cores=THREE, wavelength={"calibration": [[[10.0, -5.0, -5.0], [0.0, 8.0, -8.0]]] * G})
     u = [1.0, -2.0]

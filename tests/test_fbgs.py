@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import socket
 import threading
 from pathlib import Path
@@ -135,6 +136,41 @@ def test_record_fields(curvature):
         parse_record(b"\xff\t1", G)
 
 
+def _payload(fields: list[str]) -> bytes:
+    payload = "\t".join(fields).encode("ascii")
+    return len(payload).to_bytes(4, "big") + payload
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"Curvature [1/cm]": (2, "NaN")}, r"grating 2's curvature \(field \d+\) is \"NaN\", not a finite number"),
+        ({"Curvature [1/cm]": (1, "-inf")}, r"grating 1's curvature \(field \d+\) is \"-inf\", not a finite number"),
+        ({"Angle [rad]": (14, "nan")}, r"grating 14's bend angle \(field \d+\) is \"nan\", not a finite number"),
+        ({1: "99:99:99"}, r"field 2 \(time\) \"99:99:99\" is not a time of day"),
+        ({1: "24:00:00.000"}, r"field 2 \(time\) \"24:00:00.000\" is not a time of day"),
+    ],
+)
+def test_a_record_that_cannot_be_used_is_named_by_its_sample_number(curvature, change, message):
+    """NaN curvature was reported as "0 gratings", a time of 99:99:99 was read as 27 h, and every error answer had
+    "id": null although the sample number had been read."""
+    fields = _fields(7, curvature[0])
+    for where, value in change.items():
+        if isinstance(where, str):
+            k, value = value
+            fields[fields.index(where) + k] = value
+        else:
+            fields[where] = value
+    (got,) = read_records(_reader(_payload(fields)), G)
+    assert got.id == 7 and got.t is None and re.match("record 1: " + message, got.error), got.error
+    with pytest.raises(tr.errors.ReadingError, match=message):
+        parse_record(_payload(fields)[4:], G)
+    (fewer,) = read_records(_reader(_record(8, curvature[0][:-1])), G)
+    assert fewer.id == 8 and fewer.error == "record 1: 13 gratings, the rod has 14: is this the rod's sensor?"
+    (unread,) = read_records(_reader(_payload([*fields[:2], "x", *fields[3:]])), G)
+    assert unread.id is None and "field 3 (sample number) must be an integer" in unread.error
+
+
 def _reader(*chunks: bytes):
     """A ``read(n)`` that gives ``chunks`` one by one, then the end."""
     rest = list(chunks)
@@ -173,7 +209,7 @@ def test_truncated_and_wrong_records_lose_nothing_read(tmp_path, curvature, refe
     answers = _answers(out)
     assert len(answers) == 4
     _same(answers[0], reference[0])
-    assert answers[1] == {"id": None, "error": "record 2: 13 gratings, the rod has 14: is this the rod's sensor?"}
+    assert answers[1] == {"id": 1, "error": "record 2: 13 gratings, the rod has 14: is this the rod's sensor?"}
     assert answers[2]["id"] == 2 and answers[2]["num_forces"] == 2
     assert answers[3]["error"].startswith("record 4: truncated: ")
     # the same bytes recorded to a file read the same (estimate reads them too)
@@ -188,7 +224,7 @@ def test_truncated_and_wrong_records_lose_nothing_read(tmp_path, curvature, refe
     assert main(["estimate", "nitinol290", str(recording), "--protocol", "fbgs", "--noise", "0.05", "--quiet",
                  "--out", str(tmp_path / "e.jsonl")]) == 1  # fmt: skip
     estimated = _answers(tmp_path / "e.jsonl")
-    assert [a.get("id") for a in estimated] == [0, None, 2, None]
+    assert [a.get("id") for a in estimated] == [0, 1, 2, None]  # the cut record's sample number was not read
 
 
 def test_json_lines_over_tcp_and_an_unreachable_server(tmp_path, capsys, curvature, reference):

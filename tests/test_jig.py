@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import pytest
 import torch
@@ -79,7 +80,7 @@ def test_recovers_known_matrices_within_the_statistics():
     assert set(result.leave_one_out) == {0.0, *KAPPAS}
     assert all(v is not None and v < 5 * float(predicted.max()) for v in result.leave_one_out.values())
     assert bool((result.leave_one_out_grating < 3 * predicted).all())
-    assert result.warnings == ()
+    assert result.warnings == () and result.problems == ()
 
 
 def test_a_grating_planted_2x_off_is_flagged():
@@ -164,3 +165,94 @@ def test_jig_readings_from_csv_and_their_errors(tmp_path):
     message = str(info.value)
     assert "line 1: missing 'jig'" in message and "line 2: jig is missing 'angle'" in message
     assert "line 3: a jig reading gives exactly one of wavelength, wavelength_shift" in message
+
+
+def _write_jig_file(path, shifts: torch.Tensor, jigs) -> None:
+    with path.open("w") as fh:
+        for r, (k, a) in enumerate(jigs):
+            fh.write(json.dumps({"id": r, "wavelength_shift": shifts[r].tolist(), "jig": {"curvature": k, "angle": a}}))
+            fh.write("\n")
+
+
+@pytest.mark.parametrize(
+    ("spoil", "message"),
+    [
+        ("random", "residual up to .* 1/m, .* % of the jig curvatures' RMS .* 1/m \\(bound 10 %\\)"),
+        ("angles off by pi", "the fit turns a bend by up to 180 degrees from the physics route's direction"),
+        ("one jig's angles off by pi", "leave-one-jig-out error up to"),
+        ("curvatures 100x", "gain up to 10[0-9.]* times the physics route's \\(bound a factor 3\\)"),
+        ("mirrored", "the fit mirrors a bend against the physics route's"),
+    ],
+)
+def test_calibrate_fibre_refuses_a_fit_the_jigs_do_not_support(tmp_path, capsys, spoil, message):
+    """Random shifts, jig angles off by pi, jig curvatures 100x off were written with exit 0 (at most warnings);
+    they are refused as the known-force calibration is: exit 1, no rod written, --force writes it anyway."""
+    A = true_matrices()
+    noisy, _, jigs = jig_readings(A, seed=5, repeats=1)
+    if spoil == "random":
+        noisy = torch.randn(noisy.shape, generator=torch.Generator().manual_seed(6), dtype=F64)
+    elif spoil == "angles off by pi":
+        jigs = [(k, a + math.pi) for k, a in jigs]
+    elif spoil == "one jig's angles off by pi":
+        jigs = [(k, a + math.pi if k == 10.0 else a) for k, a in jigs]
+    elif spoil == "curvatures 100x":
+        jigs = [(100 * k, a) for k, a in jigs]
+    else:
+        jigs = [(k, -a) for k, a in jigs]
+    rod_file, readings, out = tmp_path / "rod.json", tmp_path / "jig.jsonl", tmp_path / "calibrated.json"
+    BASE.with_(fibre={"cores": THREE, "wavelength": {"reference": REFERENCE}}).to_json(rod_file)
+    _write_jig_file(readings, noisy, jigs)
+    argv = ["calibrate", "--fibre", "--rod", str(rod_file), str(readings), "--out", str(out)]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert re.search("torchrod calibrate --fibre: refused: grating.*" + message, err), err
+    assert "torchrod calibrate --fibre: no rod written (--force writes it anyway)" in err
+    assert not out.exists()
+    assert main([*argv, "--force"]) == 0
+    assert "torchrod calibrate --fibre: warning (forced): grating" in capsys.readouterr().err
+    assert tr.Rod.from_json(out).fibre.route == "calibration"
+
+
+def test_good_jig_readings_are_not_refused(tmp_path, capsys):
+    noisy, _, jigs = jig_readings(true_matrices(), seed=5, repeats=1)
+    rod_file, readings, out = tmp_path / "rod.json", tmp_path / "jig.jsonl", tmp_path / "calibrated.json"
+    BASE.with_(fibre={"cores": THREE, "wavelength": {"reference": REFERENCE}}).to_json(rod_file)
+    _write_jig_file(readings, noisy, jigs)
+    assert main(["calibrate", "--fibre", "--rod", str(rod_file), str(readings), "--out", str(out)]) == 0
+    assert "refused" not in capsys.readouterr().err and out.exists()
+
+
+@pytest.mark.parametrize("case", ["one direction", "angles 0 and pi", "two readings"])
+def test_readings_bending_one_way_are_refused_not_divided_by_zero(tmp_path, capsys, case):
+    """Noisy readings of bends along one line spanned a plane of shifts but not of curvatures: a zero gain, then
+    ZeroDivisionError. They are refused with the one-direction message."""
+    A = true_matrices()
+    if case == "two readings":
+        jigs = [(0.0, 0.0), (10.0, 0.5)]
+    else:
+        angles = (0.0,) if case == "one direction" else (0.0, math.pi)
+        jigs = [(0.0, 0.0)] * 2 + [(k, a) for k in KAPPAS for a in angles]
+    u = torch.tensor([[k * math.cos(a), k * math.sin(a)] for k, a in jigs], dtype=F64)
+    g = torch.Generator().manual_seed(7)
+    shifts = torch.einsum("gcj,rj->rgc", torch.linalg.pinv(A), u)
+    shifts = shifts + SIGMA_NM * torch.randn(shifts.shape, generator=g, dtype=F64)
+    with pytest.raises(ReadingError, match="grating 1: the readings span one bend direction only"):
+        calibrate_fibre(BASE.with_(fibre={"cores": THREE}), JigData(shifts * 1e-9, u, tuple(k for k, _ in jigs)))
+    rod_file, readings = tmp_path / "rod.json", tmp_path / "jig.jsonl"
+    BASE.with_(fibre={"cores": THREE, "wavelength": {"reference": REFERENCE}}).to_json(rod_file)
+    _write_jig_file(readings, shifts, jigs)
+    out = tmp_path / "calibrated.json"
+    assert main(["calibrate", "--fibre", "--rod", str(rod_file), str(readings), "--out", str(out)]) == 2
+    assert "the readings span one bend direction only" in capsys.readouterr().err and not out.exists()
+
+
+def test_a_fit_no_jig_can_check_is_refused():
+    """Two readings at two bend directions determine the matrices exactly, and nothing is left to check them by."""
+    A = true_matrices()
+    u = torch.tensor([[10.0, 0.0], [0.0, 10.0]], dtype=F64)
+    shifts = torch.einsum("gcj,rj->rgc", torch.linalg.pinv(A), u)
+    result = calibrate_fibre(BASE.with_(fibre={"cores": THREE}), JigData(shifts * 1e-9, u, ("J1", "J2")))
+    assert result.problems == (
+        "no jig of 2 can be left out and predicted from the others (every one is needed to determine the matrices), "
+        "so nothing checks the fit: add readings on more jigs, at two bend directions or more",
+    )

@@ -97,6 +97,22 @@ def test_a_line_that_cannot_be_placed_is_one_error_and_the_others_go_on():
     assert torch.allclose(got[3].curvature[keep], u[1][keep], atol=1e-8)
 
 
+def test_the_last_peak_can_be_marked_undetected():
+    """An empty last value was taken for a trailing comma, so the line had N - 1 peaks and was lost; it marks the
+    last peak undetected (its grating missing), and one comma after all N values still ends a line."""
+    u = 4.0 * torch.randn(G, 2, dtype=F64, generator=torch.Generator().manual_seed(3))
+    peaks = _peaks(u)
+    last = [*peaks[:-1], None]  # by-core: core 3 of grating 14
+    text = "\n".join([_line("1.0", last), _line("2.0", peaks) + ",", _line("3.0", last) + ","])
+    got = list(iter_readings(io.StringIO(text + "\n"), G, fmt="peaks", fibre=ROD.fibre))
+    assert [r.ok for r in got] == [True, True, True], [r.error for r in got]
+    assert torch.isnan(got[0].curvature[G - 1]).all() and torch.isnan(got[2].curvature[G - 1]).all()
+    assert torch.allclose(got[0].curvature[: G - 1], u[: G - 1], atol=1e-8)
+    assert torch.allclose(got[1].curvature, u, atol=1e-8)
+    two_over = list(iter_readings(io.StringIO(_line("4.0", peaks) + ",,\n"), G, fmt="peaks", fibre=ROD.fibre))
+    assert two_over[0].error.startswith("line 1: 44 peaks, the layout (14 gratings x 3 cores, by-core) has 42")
+
+
 def test_peaks_option():
     assert parse_peaks_option("by-grating") == "by-grating"
     assert parse_peaks_option("1:1, 1:2 ,-,1:3") == ((0, 0), (0, 1), None, (0, 2))

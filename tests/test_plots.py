@@ -259,3 +259,22 @@ def test_plot_needs_the_rod_unless_the_inputs_name_it(tmp_path, capsys):
     _write(estimates, [{"id": "a", "rod": "nitinol290", "forces": []}])
     assert main(["plot", str(readings), str(estimates), "--out", str(out)]) == 2
     assert "name 2 different rods; pass --rod" in capsys.readouterr().err
+
+
+def test_out_of_memory_names_options_plot_has(tmp_path, capsys, monkeypatch):
+    """--dpi 20000 runs out of memory; the message suggested --count and --batch-size, which plot does not have."""
+    rod = tr.presets.nitinol290()
+    u = tr.grating_curvature(rod, tr.PointForces.from_lists([[(0.15, 0.4, 0.1)]]))
+    readings = _write(tmp_path / "r.jsonl", [{"id": 1, "curvature": u[0].tolist()}])
+    answer = {"id": 1, "num_forces": 1, "forces": [{"s": 0.15, "fx": 0.4, "fy": 0.1}]}
+    estimates = _write(tmp_path / "e.jsonl", [answer])
+
+    def out_of_memory(fig, path, dpi):
+        assert dpi == 20000
+        raise MemoryError  # what a 20000 dpi figure gives (allocating it here would take tens of GB)
+
+    monkeypatch.setattr(plots, "save", out_of_memory)
+    argv = ["plot", str(readings), str(estimates), "--rod", "nitinol290", "--dpi", "20000", "--out", str(tmp_path)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err == "torchrod plot: error: out of memory; ask for less at a time (a smaller --dpi)\n", err

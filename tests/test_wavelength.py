@@ -90,6 +90,36 @@ def test_rod_file_fibre_errors_name_the_field(fibre, message):
         tr.Rod.from_dict({**ROD.to_dict(), "fibre": fibre})
 
 
+def _one_bad(grating: int, matrix: list[list[float]]) -> list[list[list[float]]]:
+    mats = calibration(3)
+    mats[grating] = matrix
+    return mats
+
+
+@pytest.mark.parametrize(
+    ("matrix", "message"),
+    [
+        ([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], "reads no curvature from any shift"),
+        ([[7.0, 7.0, 7.0], [-3.0, -3.0, -3.0]], "reads no curvature from any shift"),  # constant over the cores
+        ([[1e-300, -2e-300, 1e-300], [3e-300, 0.0, -3e-300]], r"has gains \S+e-300 to \S+e-300 1/m per nm, outside"),
+        ([[10.0, -5.0, -5.0], [20.0, -10.0, -10.0]], "is of rank one once the shift common"),  # proportional rows
+        ([[10.0, -5.0, -5.0], [1e-9, 0.0, -1e-9]], "is of rank one once the shift common"),
+        ([[1e7, -5e6, -5e6], [0.0, 8e6, -8e6]], r"has gains 1.13e\+07 to 1.22e\+07 1/m per nm, outside"),  # 1/m per pm
+    ],
+)
+def test_calibration_that_cannot_read_a_bend_is_refused_naming_the_grating(matrix, message):
+    """A calibration of zeros, constant across the cores or of 1e-300 read every reading as no force; one of rank
+    one reads every force along one line: all are refused at load, naming the grating."""
+    with pytest.raises(RodError, match=r"fibre.wavelength.calibration\[5\] \(grating 6\) " + message):
+        tr.Rod.from_dict({**ROD.to_dict(), "fibre": {"wavelength": {"calibration": _one_bad(5, matrix)}}})
+
+
+def test_calibration_of_two_cores_is_refused():
+    mats = [[[10.0, -10.0], [3.0, -3.0]]] * G
+    with pytest.raises(RodError, match=r"calibration\[0\] \(grating 1\) is of rank one"):
+        tr.Rod.from_dict({**ROD.to_dict(), "fibre": {"wavelength": {"calibration": mats}}})
+
+
 # ---------------------------------------------------------------------------------------------------- routes
 def test_calibration_route_is_the_matrix_on_the_centred_shifts(calibrated_rod):
     fibre = calibrated_rod.fibre

@@ -43,7 +43,10 @@ from .errors import ReadingError
 from .rod import Rod
 
 __all__ = [
+    "FIT_TOLERANCE",
     "GAIN_TOLERANCE",
+    "MAX_ROTATION",
+    "PHYSICS_FACTOR",
     "JigCalibration",
     "JigData",
     "calibrate_fibre",
@@ -55,6 +58,22 @@ __all__ = [
 GAIN_TOLERANCE = 0.25
 """A grating whose gain differs from the median of the gratings', or from the physics route's, by more than this
 fraction is warned about."""
+
+FIT_TOLERANCE = 0.1
+"""A grating whose fit leaves a residual, or whose leave-one-jig-out prediction an error, above this fraction of the
+jig curvatures' RMS (per component) refuses the calibration: the shifts do not follow the jigs (random data,
+readings of another fibre, jigs tagged with wrong angles). Good jig readings leave well under 1 % (2 pm of noise
+per core is about 0.04 1/m against curvatures of 5 to 20 1/m)."""
+
+PHYSICS_FACTOR = 3.0
+"""Where the rod file gives the cores and a reference: a grating whose gain differs from the physics route's by more
+than this factor either way refuses the calibration (a unit error: jig curvatures in 1/cm read as 1/m are 100x
+off); a smaller difference up to it is only warned about (:data:`GAIN_TOLERANCE`)."""
+
+MAX_ROTATION = math.pi / 4
+"""[rad] Where the rod file gives the cores and a reference: a grating whose fitted matrix turns a bend by more than
+this from the physics route's direction, or mirrors it, refuses the calibration (jig angles off by pi, measured
+from d2 instead of d1, or turning the other way; cores in another order)."""
 
 _RANK = 1e-6  # second singular value / first below which the readings span one bend direction only
 
@@ -96,6 +115,9 @@ class JigCalibration:
         tolerance: the fraction the warnings use.
         warnings: one sentence per grating whose gain is off.
         reference: (G, C) [m] from the straight jig, to be written with the calibration; None to keep the rod's.
+        problems: why the calibration cannot be stood behind (:data:`FIT_TOLERANCE`, :data:`PHYSICS_FACTOR`,
+            :data:`MAX_ROTATION`; no jig that can be left out); ``torchrod calibrate --fibre`` then writes no rod
+            without ``--force``. Empty when it can.
     """
 
     matrices: torch.Tensor
@@ -108,6 +130,7 @@ class JigCalibration:
     tolerance: float
     warnings: tuple[str, ...]
     reference: torch.Tensor | None = None
+    problems: tuple[str, ...] = ()
 
     def apply(self, rod: Rod) -> Rod:
         """``rod`` with ``fibre.wavelength.calibration`` set to the fitted matrices (1/m per nm), its reference from
@@ -239,7 +262,8 @@ def _fit_one(d: torch.Tensor, u: torch.Tensor, what: str) -> torch.Tensor:
     if centred.shape[0] < 2:
         raise ReadingError(f"{what}: {centred.shape[0]} reading(s); a 2 x C matrix needs two bend directions at least")
     w, s, vh = torch.linalg.svd(centred, full_matrices=False)
-    if s.numel() < 2 or not s[1] > _RANK * s[0]:
+    bends = torch.linalg.svdvals(u)  # the jig curvatures must span a plane too, or a row of A is left zero
+    if s.numel() < 2 or not s[1] > _RANK * s[0] or not bends[1] > _RANK * bends[0]:
         raise ReadingError(
             f"{what}: the readings span one bend direction only; add readings at another angle (90 degrees apart is "
             "best) at a nonzero curvature"
@@ -303,7 +327,7 @@ def calibrate_fibre(rod: Rod, data: JigData, tolerance: float = GAIN_TOLERANCE) 
         n += 2 * read.sum(0)
     lojo_grating = (sq / n).sqrt()
     gains = _gain(matrices) * nm
-    physics = None
+    physics = phys_maps = None
     reference = data.reference
     old = rod.fibre.wavelength if rod.fibre is not None else None
     if reference is None and old is not None and old.reference is not None:
@@ -312,7 +336,8 @@ def calibrate_fibre(rod: Rod, data: JigData, tolerance: float = GAIN_TOLERANCE) 
     if rod.fibre is not None and rod.fibre.cores and reference is not None:
         pe = old.photoelastic if old is not None else PHOTOELASTIC
         phys = Fibre(cores=rod.fibre.cores, wavelength={"reference": (reference / nm).tolist(), "photoelastic": pe})
-        physics = _gain(torch.tensor(phys.shift_maps(), dtype=torch.float64)) * nm
+        phys_maps = torch.tensor(phys.shift_maps(), dtype=torch.float64)
+        physics = _gain(phys_maps) * nm
     median = statistics.median(gains.tolist())
     warnings = []
     for g in range(G):
@@ -331,6 +356,7 @@ def calibrate_fibre(rod: Rod, data: JigData, tolerance: float = GAIN_TOLERANCE) 
                     f"route's {float(physics[g]):.4g} (tolerance {100 * tolerance:g} %): check the cores' positions "
                     "and order, the photoelastic coefficient and the jig curvatures' unit"
                 )
+    problems = _problems(matrices, residual, lojo, lojo_grating, data.curvature, gains, physics, phys_maps)
     return JigCalibration(
         matrices=matrices,
         residual=residual,
@@ -342,7 +368,87 @@ def calibrate_fibre(rod: Rod, data: JigData, tolerance: float = GAIN_TOLERANCE) 
         tolerance=tolerance,
         warnings=tuple(warnings),
         reference=data.reference,
+        problems=problems,
     )
+
+
+def _gratings(which: list[int]) -> str:
+    shown = ", ".join(str(g + 1) for g in which[:8]) + (f" and {len(which) - 8} more" if len(which) > 8 else "")
+    return f"grating{'s' if len(which) > 1 else ''} {shown}"
+
+
+def _problems(
+    matrices: torch.Tensor,
+    residual: torch.Tensor,
+    lojo: dict[Any, float | None],
+    lojo_grating: torch.Tensor,
+    curvature: torch.Tensor,
+    gains: torch.Tensor,
+    physics: torch.Tensor | None,
+    phys_maps: torch.Tensor | None,
+) -> tuple[str, ...]:
+    """Why the fitted matrices cannot be stood behind (:attr:`JigCalibration.problems`)."""
+    problems = []
+    scale = float(curvature.pow(2).mean().sqrt())  # the jig curvatures' RMS per component [1/m]
+    for name, values, what in (
+        (
+            "residual",
+            residual,
+            "the shifts do not follow the jig curvatures (random or shuffled readings, another fibre's, jigs tagged "
+            "with wrong angles)",
+        ),
+        (
+            "leave-one-jig-out error",
+            lojo_grating,
+            "a jig left out is not predicted by the others (a jig with a wrong curvature or angle tag, readings "
+            "that do not follow the jigs)",
+        ),
+    ):
+        off = [g for g in range(len(values)) if float(values[g]) > FIT_TOLERANCE * scale]
+        if off:
+            worst = max(float(values[g]) for g in off)
+            problems.append(
+                f"{_gratings(off)}: {name} up to {worst:.4g} 1/m, {100 * worst / scale:.0f} % of the jig curvatures' "
+                f"RMS {scale:.4g} 1/m (bound {100 * FIT_TOLERANCE:g} %): {what}"
+            )
+    if lojo and all(v is None for v in lojo.values()):
+        problems.append(
+            f"no jig of {len(lojo)} can be left out and predicted from the others (every one is needed to determine "
+            "the matrices), so nothing checks the fit: add readings on more jigs, at two bend directions or more"
+        )
+    if physics is not None and phys_maps is not None:
+        ratio = gains / physics
+        off = [g for g in range(len(ratio)) if not 1 / PHYSICS_FACTOR <= float(ratio[g]) <= PHYSICS_FACTOR]
+        if off:
+            worst = max((float(ratio[g]) for g in off), key=lambda r: abs(math.log(r)) if r > 0 else math.inf)
+            problems.append(
+                f"{_gratings(off)}: gain up to {worst:.4g} times the physics route's (bound a factor "
+                f"{PHYSICS_FACTOR:g}): check the jig curvatures' unit (--curvature-unit), the readings' wavelength "
+                "unit and the cores' positions"
+            )
+        turned, mirrored = [], []
+        worst_angle = 0.0
+        for g in range(matrices.shape[0]):
+            t = matrices[g] @ torch.linalg.pinv(phys_maps[g])  # (2, 2): the identity for a matrix that agrees
+            if float(torch.linalg.det(t)) <= 0.0:
+                mirrored.append(g)
+                continue
+            angle = math.atan2(float(t[1, 0] - t[0, 1]), float(t[0, 0] + t[1, 1]))
+            if abs(angle) > MAX_ROTATION:
+                turned.append(g)
+                worst_angle = max(worst_angle, abs(angle))
+        if turned:
+            problems.append(
+                f"{_gratings(turned)}: the fit turns a bend by up to {math.degrees(worst_angle):.0f} degrees from the "
+                f"physics route's direction (bound {math.degrees(MAX_ROTATION):g}): check the jig angles (radians, "
+                "from d1 towards d2) and the cores' positions"
+            )
+        if mirrored:
+            problems.append(
+                f"{_gratings(mirrored)}: the fit mirrors a bend against the physics route's (one component's sign, "
+                "or the cores' order, differs): check the jig angles' sense (from d1 towards d2) and the cores' order"
+            )
+    return tuple(problems)
 
 
 def report(result: JigCalibration, data: JigData) -> Sequence[str]:

@@ -60,6 +60,7 @@ from .values import real as _real
 from .values import show as _show
 
 __all__ = [
+    "CALIBRATION_GAIN",
     "CURVATURE_UNITS",
     "DEFAULT_UNITS",
     "MAX_CORE_RADIUS",
@@ -128,6 +129,19 @@ micrometres apart) read almost no strain from any bend, and their least squares 
 
 _COLLINEAR = 1e-8  # smallest / largest eigenvalue of the cores' scatter below which they count as on one line
 
+CALIBRATION_GAIN = (1e-4, 1e5)
+"""[1/m per nm] The range a calibration matrix's gains must lie in: both singular values of each grating's centred
+matrix A_g (I - 1 1^T / C), the curvature one nm of differential shift reads. A bend u shifts a core at radius r by
+lambda (1 - p_e) r u, so C cores spread evenly round radius r read gains of sqrt(2 / C) / (lambda (1 - p_e) r)
+(three cores 35 um off the axis at 1530 nm: about 16). The largest any fibre can read, at r =
+:data:`MIN_CORE_SPREAD` (1 um), lambda = 200 nm, 1 - p_e = 0.5 (silica: 0.78) and C = 3, is about 8e3; the
+smallest, at r = :data:`MAX_CORE_RADIUS` (5 cm), lambda = 5000 nm, p_e = 0 and C = 32, about 1e-3. The bounds lie
+an order of magnitude beyond each. A smaller gain turns every reading within :data:`MAX_WAVELENGTH_SHIFT` into
+almost no curvature (all zeros, or a calibration written in 1/m per m, reads every reading as "no force"); a
+larger one is a unit error the other way. A matrix whose smaller gain is below :data:`_COLLINEAR` ** 0.5 of its
+larger (rank one once centred: equal columns, proportional rows, two cores) reads every bend on one line, and is
+refused too."""
+
 
 def unit_scale(key: str, name: Any, what: str | None = None, error: type[ValueError] = RodError) -> float:
     """The factor from unit ``name`` to SI for unit key ``key`` (:data:`UNIT_TABLES`); ``error`` naming ``what``
@@ -161,6 +175,33 @@ def _rows(name: str, value: Any, what: str) -> list[Any]:
 
 
 # ---------------------------------------------------------------------------------------------------- wavelength
+def _check_gains(where: str, rows: tuple[tuple[float, ...], ...]) -> None:
+    """:class:`RodError` naming ``where`` when the centred 2 x C matrix ``rows`` has rank below 2 or a gain outside
+    :data:`CALIBRATION_GAIN` (its docstring)."""
+    centred = [[a - sum(r) / len(r) for a in r] for r in rows]
+    scale = max((abs(a) for r in centred for a in r), default=0.0)
+    lo, hi = CALIBRATION_GAIN
+    if scale == 0.0:
+        raise RodError(
+            f"{where} reads no curvature from any shift: it is zero once the shift common to the cores is taken "
+            "out (all zeros, or equal columns); fit it on a jig (torchrod calibrate --fibre)"
+        )
+    x, y = ([a / scale for a in r] for r in centred)  # scaled, so that 1e-300 does not underflow when squared
+    xx, xy, yy = (sum(a * b for a, b in zip(u, v, strict=True)) for u, v in ((x, x), (x, y), (y, y)))
+    small, large = (scale * math.sqrt(max(e, 0.0)) for e in _symmetric2_eigen(xx, xy, yy))
+    if small <= large * math.sqrt(_COLLINEAR):
+        raise RodError(
+            f"{where} is of rank one once the shift common to the cores is taken out (gains {large:.3g} and "
+            f"{small:.3g} 1/m per nm): it reads every bend along one line; a calibration needs at least 3 cores "
+            "and two independent rows"
+        )
+    if small < lo or large > hi:
+        raise RodError(
+            f"{where} has gains {small:.3g} to {large:.3g} 1/m per nm, outside the {lo:g} to {hi:g} any fibre "
+            "reads (three cores 35 um off the axis read about 16): the rod file gives calibrations in 1/m per nm"
+        )
+
+
 @dataclass(frozen=True)
 class Wavelength:
     """How a fibre's peak wavelengths become curvature: the rod file's ``fibre.wavelength`` section.
@@ -226,6 +267,7 @@ class Wavelength:
                 )
                 if len(rows2[0]) != len(rows2[1]):
                     raise RodError(f"{where}: its two rows have {len(rows2[0])} and {len(rows2[1])} columns")
+                _check_gains(f"{where} (grating {g + 1})", rows2)
                 mats.append(rows2)
                 widths.add(len(rows2[0]))
             if not mats:
@@ -237,11 +279,10 @@ class Wavelength:
                 "(reference rows and calibration columns)"
             )
         (C,) = widths
-        least = 2 if self.calibration is not None else 3
-        if C < least:
+        if C < 3:
             raise RodError(
-                f"fibre.wavelength gives {C} value(s) per grating: a calibration needs at least 2 cores, the physics "
-                "route at least 3"
+                f"fibre.wavelength gives {C} value(s) per grating: it needs at least 3 cores (with 2, once their "
+                "common shift is taken out, every bend reads along one line)"
             )
         if self.reference is not None and self.calibration is not None and len(self.reference) != len(self.calibration):
             raise RodError(

@@ -148,10 +148,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"torchrod {name}: error: {exc}", file=sys.stderr)
         return 2
     except MemoryError:
-        print(
-            f"torchrod {name}: error: out of memory; ask for less at a time (a smaller --count or --batch-size)",
-            file=sys.stderr,
-        )
+        # Name only the options this command has that size its work (plot has neither --count nor --batch-size).
+        flags = {option for action in sub._actions for option in action.option_strings}
+        sizes = [f for f in ("--count", "--count-per-cell", "--batch-size", "--samples", "--dpi") if f in flags]
+        smaller = f" (a smaller {' or '.join(sizes)})" if sizes else ""
+        print(f"torchrod {name}: error: out of memory; ask for less at a time{smaller}", file=sys.stderr)
         return 2
     finally:
         restore()

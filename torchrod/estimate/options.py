@@ -212,17 +212,22 @@ class EstimatorOptions:
             _integer(self, "num_forces", 0)
         if self.threads is not None:
             _integer(self, "threads", 1)
+        # A sigma beyond the largest curvature any reading may carry makes every reading noise (and its square
+        # overflows a double soon after): a unit or typing error.
+        from ..io.readings import MAX_CURVATURE
+
+        most = f"at most {MAX_CURVATURE:g} [1/m], the largest curvature a reading may carry"
         if self.noise is not None:
-            _number(self, "noise", lambda v: v >= 0.0, "None or a finite sigma >= 0 [1/m]")
+            _number(self, "noise", lambda v: 0.0 <= v <= MAX_CURVATURE, f"None or a sigma >= 0 and {most}")
         if self.time_budget is not None:
             _number(self, "time_budget", lambda v: v >= 0.0, "None or a finite time >= 0 [s]")
-        _number(self, "max_noise", lambda v: v > 0.0, "a positive sigma [1/m]")
+        _number(self, "max_noise", lambda v: 0.0 < v <= MAX_CURVATURE, f"a positive sigma {most}")
         if self.selection not in RULES:
             raise OptionsError(f"selection must be one of {RULES}, got {self.selection!r}")
         _number(self, "threshold", lambda v: v > 0.0, "positive [1/m^2]")
         _number(self, "significance", lambda v: 0.0 < v < 1.0, "in (0, 1)")
         _number(self, "misfit_level", lambda v: 0.0 < v < 1.0, "in (0, 1)")
-        _number(self, "noise_floor", lambda v: v >= 0.0, ">= 0 [1/m]")
+        _number(self, "noise_floor", lambda v: 0.0 <= v <= MAX_CURVATURE, f">= 0 and {most}")
         for name in ("noise", "max_noise"):
             sigma = getattr(self, name)
             if sigma is not None and not float(sigma) ** 2 + float(self.noise_floor) ** 2 > 0.0:

@@ -29,7 +29,9 @@ Each record becomes the reading ``{"id": sample, "t": time, "curvature_polar": [
 1/m), checked by the one reading parser (:mod:`torchrod.io.readings`). A record that cannot be used (another grating
 count, a field that is not a number, no curvature block) is an error answer in its place and the stream goes on; a
 record cut short by the end of the stream (the connection closed mid-record) is one error answer, after every
-complete record before it.
+complete record before it. An error answer's ``id`` is the record's sample number when it could be read. A time
+that is not a time of day (``25:00:00``, ``99:99:99``) and a curvature or bend angle that is not finite (``NaN``)
+make the record an error, naming the field.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ import threading
 from collections.abc import Callable, Iterator
 from typing import Any
 
+from ..errors import ReadingError
 from ..sensors import CURVATURE_UNITS
 from .readings import Reading, _checked, curvature_tensor, polar_curvature, quote
 from .tcp import TcpReader, is_tcp
@@ -54,12 +57,16 @@ DEFAULT_UNIT = "1/cm"
 """The curvature unit of a record whose label names none."""
 
 _NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_NONFINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)  # a value of a block, refused as not finite
 _TIME = re.compile(r"([0-9]{1,2})[:-]([0-9]{2})[:-]([0-9]{2}(?:\.[0-9]*)?)")
 _UNIT = re.compile(r"\[\s*(1/[a-z]+)\s*\]", re.IGNORECASE)
 
 
-class RecordError(ValueError):
-    """A record that cannot be used; the stream goes on after it."""
+class RecordError(ReadingError):
+    """A record that cannot be used; the stream goes on after it. ``sample``: its sample number when it was read
+    (the error answer's ``id``), else None."""
+
+    sample: Any = None
 
 
 def _int_field(fields: list[str], k: int, what: str) -> int:
@@ -71,11 +78,17 @@ def _int_field(fields: list[str], k: int, what: str) -> int:
     return int(text)
 
 
-def _block(fields: list[str], start: int) -> tuple[list[float], int]:
-    """The numbers from field ``start`` up to the next field that is not one: (values, index of that field)."""
+def _block(fields: list[str], start: int, what: str) -> tuple[list[float], int]:
+    """The numbers from field ``start`` up to the next field that is not one: (values, index of that field).
+    ``NaN`` and infinities count as values of the block (so the count stays right) and are refused naming the
+    grating (``what``: the block's name)."""
     values = []
     k = start
-    while k < len(fields) and _NUMBER.fullmatch(fields[k].strip()):
+    while k < len(fields) and (_NUMBER.fullmatch(fields[k].strip()) or _NONFINITE.fullmatch(fields[k].strip())):
+        if _NONFINITE.fullmatch(fields[k].strip()):
+            raise RecordError(
+                f"grating {k - start + 1}'s {what} (field {k + 1}) is {quote(fields[k].strip())}, not a finite number"
+            )
         values.append(float(fields[k]))
         k += 1
     return values, k
@@ -97,6 +110,15 @@ def parse_record(
     if len(fields) < 4:
         raise RecordError(f"{len(fields)} tab-separated fields, expected date, time, sample number, channels, ...")
     sample = _int_field(fields, 2, "sample number")
+    try:
+        return sample, *_record_values(fields, num_gratings, unit)
+    except RecordError as exc:
+        exc.sample = sample
+        raise
+
+
+def _record_values(fields: list[str], num_gratings: int, unit: str | None) -> tuple[float | None, list[list[float]]]:
+    """(t, pairs) of :func:`parse_record` from the fields after the sample number."""
     channels = _int_field(fields, 3, "channel count")
     if channels < 0:
         raise RecordError(f"field 4 (channel count) is {channels}")
@@ -125,10 +147,10 @@ def parse_record(
     if named is not None and unit is not None and named != unit:
         raise RecordError(f"the label {quote(label)} says {named}, but the curvature unit was given as {unit}")
     scale = CURVATURE_UNITS[named or unit or DEFAULT_UNIT]
-    kappa, end = _block(fields, label_at + 1)
+    kappa, end = _block(fields, label_at + 1, "curvature")
     if end >= len(fields):
         raise RecordError("the record ends after the curvature values, before the bend angles")
-    phi, _ = _block(fields, end + 1)
+    phi, _ = _block(fields, end + 1, "bend angle")
     if len(kappa) != len(phi):
         raise RecordError(f"{len(kappa)} curvature values but {len(phi)} bend angles")
     if len(kappa) != num_gratings:
@@ -136,8 +158,11 @@ def parse_record(
     t = None
     time = _TIME.fullmatch(fields[1].strip())
     if time is not None:
-        t = 3600.0 * int(time[1]) + 60.0 * int(time[2]) + float(time[3])
-    return sample, t, [[x * scale, p] for x, p in zip(kappa, phi, strict=True)]
+        h, mi, s = int(time[1]), int(time[2]), float(time[3])
+        if h > 23 or mi > 59 or s >= 61.0:  # (61: a leap second)
+            raise RecordError(f"field 2 (time) {quote(fields[1].strip())} is not a time of day (HH:MM:SS.fff)")
+        t = 3600.0 * h + 60.0 * mi + s
+    return t, [[x * scale, p] for x, p in zip(kappa, phi, strict=True)]
 
 
 def _reading(sample: Any, t: float | None, pairs: list[list[float]], G: int) -> Reading:
@@ -177,6 +202,7 @@ def read_records(read: Callable[[int], bytes | None], num_gratings: int, unit: s
             return
         payload = bytes(buf[4 : 4 + size])
         del buf[: 4 + size]
+        sample = None
         try:
             sample, t, pairs = parse_record(payload, num_gratings, unit)
             if t is not None:
@@ -186,7 +212,8 @@ def read_records(read: Callable[[int], bytes | None], num_gratings: int, unit: s
                 t += 86400.0 * days
             yield _reading(sample, t, pairs, num_gratings)
         except ValueError as exc:
-            yield Reading(error=f"record {number}: {exc}")
+            # the sample number names the record's error answer when it was read (the record's id)
+            yield Reading(getattr(exc, "sample", None) if sample is None else sample, error=f"record {number}: {exc}")
 
 
 def _fill(read: Callable[[int], bytes | None], buf: bytearray, size: int) -> bool | None:

@@ -19,7 +19,8 @@ interrogator channel per core), ``by-grating`` (grating 1's C cores, then gratin
 N entries ``[grating, core]`` (1-based) or null for a peak that belongs to no grating (a temperature reference,
 say). N must match the layout: a line with another count is an error line (a peak that was not detected shifts
 all those after it, so its neighbours cannot be placed either), and the next lines go on. An empty value (two
-commas in a row) is a peak that was not detected: its grating is missing from that reading.
+commas in a row, or nothing after the last comma of N values) is a peak that was not detected: its grating is
+missing from that reading. One comma after all N values ends the line (some loggers write it) and is read past.
 
 Each line becomes the reading ``{"t": ..., "wavelength": [[l_1, ..., l_C] or null, ...]}``, checked by the one
 reading parser (:mod:`torchrod.io.readings`): the rod's reference is subtracted and the conversion of
@@ -148,9 +149,12 @@ class PeakLog:
             raise ValueError(f"not a peak log line (TIME: l1, l2, ...): {quote(text.strip())}")
         head, tail = parts
         t = self._time(head)
-        tail = tail.strip().rstrip(",")
+        tail = tail.strip()
         cells = tail.split(",") if "," in tail else tail.split()
         N = len(self.layout)
+        if len(cells) == N + 1 and not cells[-1].strip():
+            # one comma after the N values ends the line; an empty last of N values is an undetected last peak
+            cells.pop()
         if len(cells) != N:
             raise ValueError(
                 f"{len(cells)} peaks, the layout ({self.described}) has {N}: a peak that was not detected shifts the "

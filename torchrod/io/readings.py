@@ -1022,7 +1022,8 @@ class CsvLayout:
     @classmethod
     def from_header(cls, cells: Sequence[str], num_gratings: int, fibre: Any = None, line: int = 1) -> CsvLayout:
         """The layout a header row names (module docstring); :class:`~torchrod.errors.ReadingError` naming the
-        line when it names no reading column, two quantities, a column twice, or not every grating's columns."""
+        line when it names no reading column, two quantities, a value twice (one name twice, or two spellings of
+        one value: ``ux_1`` and ``ux01``), or not every grating's columns."""
         G = num_gratings
         at = f"line {line}: the CSV header"
         names = [c.strip().lower() for c in cells]
@@ -1035,6 +1036,16 @@ class CsvLayout:
         forces: dict[int, dict[str, int]] = {}
         jig: dict[str, int] = {}
         ignored: list[str] = []  # the header's other columns, as written
+        slots: dict[tuple[Any, ...], int] = {}  # what each column gives, so two spellings of one are caught
+
+        def claim(slot: tuple[Any, ...], col: int) -> None:
+            if slot in slots:
+                first = cells[slots[slot]].strip()
+                raise ReadingError(
+                    f"{at} names {first!r} and {cells[col].strip()!r}, two columns for the same value: keep one"
+                )
+            slots[slot] = col
+
         for col, name in enumerate(names):
             seen[name] = col
             match = _COLUMN.fullmatch(name)
@@ -1052,13 +1063,16 @@ class CsvLayout:
                 if stem in _PER_CORE:
                     if c is None:
                         raise ReadingError(f"{at}: column {name!r} needs a core number too ({stem}_K_C, 1-based)")
+                    claim((_PER_CORE[stem], k, int(c)), col)
                     values.setdefault(_PER_CORE[stem], {})[(k, int(c))] = col
                 elif c is not None:
                     raise ReadingError(f"{at}: column {name!r} has a core number, which {stem}_K does not take")
                 elif stem in _FORCE_FIELDS:
+                    claim(("force", k, stem), col)
                     forces.setdefault(k, {})[stem] = col
                 else:
                     key, j = _PAIRS[stem]
+                    claim((key, k, j + 1), col)
                     values.setdefault(key, {})[(k, j + 1)] = col
         if not values:
             shown = ", ".join(repr(c.strip()) for c in cells[:12]) + (" ..." if len(cells) > 12 else "")

@@ -75,8 +75,16 @@ def check_estimation_options(args: argparse.Namespace) -> None:
 
     if args.batch_size < 1:
         raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
+    from ...errors import OptionsError
+    from ...io.readings import MAX_CURVATURE
+
     if args.noise is not None and not args.noise >= 0.0:
         raise ValueError(f"--noise must be >= 0, got {args.noise}")
+    if args.noise is not None and not args.noise <= MAX_CURVATURE:
+        raise OptionsError(
+            f"--noise must be at most {MAX_CURVATURE:g} 1/m, the largest curvature a reading may carry, got "
+            f"{args.noise:g}"
+        )
     budget = getattr(args, "time_budget_ms", None)
     if budget is not None and not 0.0 <= budget < float("inf"):
         raise ValueError(f"--time-budget-ms must be >= 0, got {budget}")
@@ -240,7 +248,9 @@ def sensor_noise(args: argparse.Namespace, rod) -> None:
     ``ValueError`` when it cannot be used."""
     import sys
 
-    from ...sensors import WAVELENGTH_UNITS
+    from ...errors import OptionsError
+    from ...io.readings import MAX_CURVATURE
+    from ...sensors import MAX_STRAIN, MAX_WAVELENGTH_SHIFT, WAVELENGTH_UNITS
 
     strain = getattr(args, "strain_noise", None)
     wavelength = getattr(args, "wavelength_noise", None)
@@ -259,13 +269,24 @@ def sensor_noise(args: argparse.Namespace, rod) -> None:
             raise ValueError('--strain-noise needs the rod file\'s multicore fibre ("fibre": {"cores": [[x, y], ...]})')
         if not strain >= 0.0 or strain == float("inf"):
             raise ValueError(f"--strain-noise must be >= 0 and finite, got {strain}")
+        if strain > MAX_STRAIN:
+            raise OptionsError(
+                f"--strain-noise must be at most {MAX_STRAIN:g}, the largest strain a reading may carry (it is "
+                f"dimensionless: 1e-6 is one microstrain), got {strain:g}"
+            )
         args.noise = rod.fibre.curvature_sigma(strain)
     if wavelength is not None:
         if rod.fibre is None or rod.fibre.wavelength is None:
             raise ValueError('--wavelength-noise needs the rod file\'s "fibre": {"wavelength": {...}} section')
         if not wavelength >= 0.0 or wavelength == float("inf"):
             raise ValueError(f"--wavelength-noise must be >= 0 and finite [pm], got {wavelength}")
-        sigmas = rod.fibre.wavelength_sigmas(wavelength * WAVELENGTH_UNITS["pm"])
+        pm = WAVELENGTH_UNITS["pm"]
+        if wavelength * pm > MAX_WAVELENGTH_SHIFT:
+            raise OptionsError(
+                f"--wavelength-noise must be at most {MAX_WAVELENGTH_SHIFT / pm:g} pm, the largest shift a reading "
+                f"may carry, got {wavelength:g}"
+            )
+        sigmas = rod.fibre.wavelength_sigmas(wavelength * pm)
         args.noise = max(sigmas)
         low = min(sigmas)
         if low < 0.9 * args.noise:
@@ -274,6 +295,12 @@ def sensor_noise(args: argparse.Namespace, rod) -> None:
                 f"{args.noise:.3g} 1/m over the gratings; the fit is weighed with the largest",
                 file=sys.stderr,
             )
+    if (strain is not None or wavelength is not None) and not args.noise <= MAX_CURVATURE:
+        option, value = ("--strain-noise", strain) if strain is not None else ("--wavelength-noise", wavelength)
+        raise OptionsError(
+            f"{option} {value:g} implies a curvature sigma of {args.noise:.3g} 1/m, beyond the largest curvature a "
+            f"reading may carry ({MAX_CURVATURE:g} 1/m): check its unit"
+        )
 
 
 def reading_source(args: argparse.Namespace, rod, path: str):

@@ -43,7 +43,12 @@ least squares. Standard error shows, per grating, the residual [1/m], the leave-
 [1/m] and the gain [1/m per nm] against the gratings' median and the physics route (with the rod file's cores),
 and a warning for each gain off by more than ``--gain-tolerance`` (default 0.25). The rod file with
 ``fibre.wavelength.calibration`` (and, when it had no reference, the straight jig's mean as the reference) goes to
-``--out``. See torchrod.jig for the method.
+``--out``. See torchrod.jig for the method. The calibration is refused as above (exit status 1, no rod written,
+``--force`` writes it anyway) when a grating's residual or leave-one-jig-out error exceeds 10 % of the jig
+curvatures' RMS, when no jig can be left out, or, with the rod file's cores and a reference, when a grating's gain
+is more than 3 times off the physics route's or its matrix turns a bend by more than 45 degrees from it or mirrors
+it (jig angles off by pi, curvatures in another unit). Readings that bend in one direction only are refused (exit
+status 2).
 
 ``--out`` never overwrites the rod file or the readings it was made from.
 """
@@ -129,6 +134,14 @@ def run(args: argparse.Namespace) -> int:
     check_input(args.readings, "READINGS")
     if args.noise is not None and not 0.0 < args.noise < float("inf"):
         raise ValueError(f"--noise must be a positive sigma [1/m], got {args.noise}")
+    from ...errors import OptionsError
+    from ...io.readings import MAX_CURVATURE
+
+    if args.noise is not None and args.noise > MAX_CURVATURE:
+        raise OptionsError(
+            f"--noise must be at most {MAX_CURVATURE:g} 1/m, the largest curvature a reading may carry, got "
+            f"{args.noise:g}"
+        )
     if args.fibre:
         return _fibre(args, rod, base)
     if args.gain_tolerance is not None:
@@ -165,5 +178,12 @@ def _fibre(args: argparse.Namespace, rod, base) -> int:
     result = calibrate_fibre(rod, data, tolerance)
     for line in report(result, data):
         print(f"torchrod calibrate --fibre: {line}", file=sys.stderr)
+    if result.problems and not args.force:
+        for text in result.problems:
+            print(f"torchrod calibrate --fibre: refused: {text}", file=sys.stderr)
+        print("torchrod calibrate --fibre: no rod written (--force writes it anyway)", file=sys.stderr)
+        return 1
+    for text in result.problems:
+        print(f"torchrod calibrate --fibre: warning (forced): {text}", file=sys.stderr)
     _write(result.apply(base), args.out)
     return 0

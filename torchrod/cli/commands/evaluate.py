@@ -457,6 +457,14 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--max-forces must be >= 1, got {args.max_forces}")
     if len(args.force_range) != 2 or not 0 < args.force_range[0] <= args.force_range[1]:
         raise ValueError(f"--force-range must be two magnitudes low,high [N], got {args.force_range}")
+    from ...errors import OptionsError
+    from ...io.readings import MAX_CURVATURE
+
+    if max(args.noise) > MAX_CURVATURE:
+        raise OptionsError(
+            f"--noise sigmas must be at most {MAX_CURVATURE:g} 1/m, the largest curvature a reading may carry, got "
+            f"{max(args.noise):g}"
+        )
     if args.batch_size < 1:
         raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
     if args.threads < 1:

@@ -136,6 +136,13 @@ def run(args: argparse.Namespace) -> int:
     rod = load_rod(args.rod)
     if args.count < 0:
         raise ValueError(f"--count must be >= 0, got {args.count}")
+    from ...io.readings import MAX_CURVATURE
+
+    if args.noise > MAX_CURVATURE:  # (NaN and negative sigmas are refused by the sensor model)
+        raise OptionsError(
+            f"--noise must be at most {MAX_CURVATURE:g} 1/m, the largest curvature a reading may carry, got "
+            f"{args.noise:g}"
+        )
     check_output(args.out, {"--rod": args.rod})
     if args.trajectory:
         truth = args.truth if args.truth is not None else truth_path(args.out)

@@ -161,7 +161,15 @@ def simulate_cases(
     magnus = with_tip_angle and not rod.precurved
     gauss = _gauss_points(L, TIP_INTERVALS if magnus else 0, dtype, loads.device)
     profile_s = torch.linspace(0.0, L, samples, dtype=dtype, device=loads.device)
-    with torch.no_grad():
+    import warnings
+
+    import numpy as np
+
+    # Loads far beyond the rod's range overflow on the way (NumPy would print a RuntimeWarning with its source line
+    # for each): the outcome is judged below, case by case (not finite, or beyond the error bound), and said in
+    # torchrod's words (_beyond).
+    with torch.no_grad(), np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
         sim = simulate(rod, loads, at=torch.cat((profile_s, gauss)), scheme=scheme, nodes=nodes, max_steps=MAX_STEPS)
         u_profile = sim.curvature[:, torch.searchsorted(sim.s, profile_s)]
         checks = [sim.grating_curvature.flatten(1), u_profile.flatten(1)]
@@ -215,6 +223,14 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--nodes must be >= 2, got {args.nodes}")
     if not (math.isfinite(args.noise) and args.noise >= 0.0):
         raise ValueError(f"--noise must be a finite sigma >= 0 [1/m], got {args.noise}")
+    from ...errors import OptionsError
+    from ...io.readings import MAX_CURVATURE
+
+    if args.noise > MAX_CURVATURE:
+        raise OptionsError(
+            f"--noise must be at most {MAX_CURVATURE:g} 1/m, the largest curvature a reading may carry (no reader "
+            f"takes the readings it would write), got {args.noise:g}"
+        )
     if args.seed is not None and args.noise == 0.0:
         raise ValueError("--seed sets the noise of --noise SIGMA; give both")
     check_input(args.forces, "FORCES")
