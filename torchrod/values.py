@@ -15,10 +15,15 @@ from typing import Any
 
 from .errors import RodError
 
-__all__ = ["QUOTE_CHARS", "brief", "clip", "is_number", "positive", "real", "show"]
+__all__ = ["MAX_CURVATURE", "QUOTE_CHARS", "brief", "clip", "is_number", "positive", "real", "show"]
 
 QUOTE_CHARS = 100
 """Characters of an offending value quoted in an error message."""
+
+MAX_CURVATURE = 1e6
+"""[1/m] The largest curvature component accepted from any input: a bend radius of 1 um. A nitinol tube or an
+optical fibre breaks at radii of millimetres (curvature ~ 1e3 1/m), so a larger value is a unit or scaling error
+(microstrain, 1/km, a raw interrogator count), refused at the edge instead of being handed to the estimator."""
 
 
 def clip(text: str, limit: int = QUOTE_CHARS) -> str:

@@ -14,13 +14,9 @@ import numpy as np
 import torch
 
 from ..errors import ReadingError, TorchrodTypeError
+from ..values import MAX_CURVATURE
 
 __all__ = ["MAX_CURVATURE", "check_readings", "host_view"]
-
-MAX_CURVATURE = 1e6
-"""[1/m] The largest curvature component accepted from any input: a bend radius of 1 um. A nitinol tube or an
-optical fibre breaks at radii of millimetres (curvature ~ 1e3 1/m), so a larger value is a unit or scaling error
-(microstrain, 1/km, a raw interrogator count), refused at the edge instead of being handed to the estimator."""
 
 
 def host_view(x: torch.Tensor) -> Any:

@@ -16,6 +16,7 @@ from typing import Any
 from ..errors import OptionsError
 from ..kernels.counts import PAPER_THRESHOLD
 from ..kernels.march import FIT_STEP_ANGLE
+from ..values import MAX_CURVATURE
 from .status import MISFIT_LEVEL
 
 __all__ = ["MISFIT_LEVEL", "RULES", "TARGETS", "EstimatorOptions", "LMPolicy", "SearchOptions"]
@@ -214,7 +215,6 @@ class EstimatorOptions:
             _integer(self, "threads", 1)
         # A sigma beyond the largest curvature any reading may carry makes every reading noise (and its square
         # overflows a double soon after): a unit or typing error.
-        from ..io.readings import MAX_CURVATURE
 
         most = f"at most {MAX_CURVATURE:g} [1/m], the largest curvature a reading may carry"
         if self.noise is not None:
