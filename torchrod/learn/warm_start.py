@@ -1,22 +1,11 @@
 """The warm-start network bound to a rod for inference (:class:`WarmStart`), and whether an estimator may trust it.
 
-The network itself is :mod:`.network`, its file format :mod:`.checkpoint`.
-
-The network works in dimensionless form. With s~ = s / L, u~ = u L and f~ = f L^2 / EI the body-frame equations
-(:mod:`torchrod.model.body_frame`) read U~'' = -|U~|^2 U~ / 2 with jumps f~ / 1 at the forces: the length and the
-stiffness leave the problem. So one network serves every rod whose gratings sit at the same relative positions s_k / L,
-whatever its length and stiffness; the checkpoint records that layout and :meth:`WarmStart.load` refuses a rod
-whose layout differs (by more than ``LAYOUT_TOLERANCE``).
-
-Input: the reading u~ (B, G, 2) and the grating mask (B, G) (False = missing grating; its values are ignored).
-Output, for each possible count h = 1..H: the h forces, sorted by location by construction (the locations are the
-cumulative sums of a softmax over h + 1 gaps, each at least ``MIN_GAP``, so 0 < s~_1 < ... < s~_h < 1), and logits for
-the count.
-
-The problem is symmetric under a rotation of the cross-section plane (an isotropic rod: rotating every force by an
-angle rotates every curvature by it) and under a reflection (u_y -> -u_y is f_x -> -f_x). The network uses both:
-it turns each reading to a canonical frame (its largest curvature along +x, the sum of u_y non-negative), predicts
-there, and turns the forces back. That leaves the MLP one fundamental domain to learn.
+The network itself (dimensionless, so one network serves every rod whose gratings sit at the same relative
+positions, whatever its length and stiffness) is :mod:`.network`, its file format :mod:`.checkpoint`.
+:class:`WarmStart` turns a rod's SI readings into the network's input and its guesses back into SI forces, and
+refuses a rod whose layout differs from the network's by more than ``LAYOUT_TOLERANCE``; :func:`quality_verdict`
+says whether an estimator may start its fits from the guesses alone (``trust_guesses``), and
+:func:`load_estimator` makes an estimator that does so where it may.
 """
 
 from __future__ import annotations
