@@ -18,7 +18,7 @@ import torch
 
 import torchrod as tr
 from torchrod.estimate.noise import NoiseLearning
-from torchrod.kernels import host, targets
+from torchrod.kernels import host, patches, targets
 
 ROD = tr.presets.nitinol290()
 
@@ -364,7 +364,7 @@ def test_a_kernel_function_is_compiled_once_whatever_constants_its_callers_pass(
     def scaled(x, double):
         return 2.0 * x if double else x
 
-    general = targets._general(numba.njit(scaled), nb_types.unliteral)
+    general = patches.general(numba.njit(scaled), nb_types.unliteral)
     plain = numba.njit(scaled)
 
     @numba.njit
@@ -381,7 +381,7 @@ def test_a_kernel_function_is_compiled_once_whatever_constants_its_callers_pass(
 
 
 def test_a_compile_optimises_the_whole_module_at_the_entry_alone():
-    """Inside ``_optimised_at_entry``, Numba optimises the linked module of the entry only (a callee's library is
+    """Inside ``patches.optimised_at_entry``, Numba optimises the linked module of the entry only (a callee's library is
     linked into its caller and optimised there), with the same results; afterwards Numba is as it was."""
     import numba
     from numba.core import codegen
@@ -407,7 +407,7 @@ def test_a_compile_optimises_the_whole_module_at_the_entry_alone():
             return t
 
         entry = numba.njit(whole_entry)
-        with targets._optimised_at_entry(whole_entry.__qualname__):
+        with patches.optimised_at_entry(whole_entry.__qualname__):
             got = entry(0.25, 7)
         assert codegen.CPUCodeLibrary._optimize_final_module is spy  # restored
     finally:
