@@ -37,6 +37,7 @@ import gc
 import math
 import os
 import sys
+import textwrap
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -467,7 +468,7 @@ def format_quality(quality: Mapping[str, float]) -> str:
     """A checkpoint's recorded held-back quality as one block: the estimator's accuracy without the network, with
     its guesses beside the scan and with its guesses alone, and the network's own, side by side; then whether the
     estimator trusts the network and, when it does not, what to do."""
-    from .warm_start import quality_verdict
+    from .warm_start import UNTRUSTED_ADVICE, quality_verdict
 
     def cell(key: str, scale: float, unit: str, digits: int) -> str:
         value = quality.get(key)
@@ -510,14 +511,8 @@ def format_quality(quality: Mapping[str, float]) -> str:
         lines.append("  trusted: yes: the estimator starts its fits from the network's guesses alone")
         return "\n".join(line.rstrip() for line in lines)
     lines.append(f"  trusted: no ({weak})")
-    lines.append(
-        "  What to do: nothing is required. An untrusted network's guesses are only starts beside the scan's, so the\n"
-        "  estimator answers as accurately as without it (compare the first two rows), at the cost of the evaluations\n"
-        "  shown. To leave it out, pass `--checkpoint none` to torchrod estimate and stream (or make the Estimator\n"
-        "  without it). For a network that is trusted and saves work, train on more cases and for longer\n"
-        "  (--generate, --epochs) at your sensor's noise (--noise), then measure it again with\n"
-        "  `torchrod train --evaluate CHECKPOINT --rod ROD`."
-    )
+    advice = f"What to do: {UNTRUSTED_ADVICE}."
+    lines.append(textwrap.fill(advice, width=118, initial_indent="  ", subsequent_indent="  "))
     return "\n".join(line.rstrip() for line in lines)
 
 

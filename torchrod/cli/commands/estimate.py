@@ -260,7 +260,7 @@ def load_network(checkpoint: str | None, rod: Rod) -> Any:
     layout)."""
     if checkpoint is None or checkpoint.lower() == "none":
         return None
-    from ...learn.warm_start import WarmStart, quality_verdict
+    from ...learn.warm_start import UNTRUSTED_ADVICE, WarmStart, quality_verdict
 
     if not os.path.exists(checkpoint):
         raise MissingFileError(f"--checkpoint {checkpoint}: no such file (give a checkpoint file, or 'none')")
@@ -275,8 +275,7 @@ def load_network(checkpoint: str | None, rod: Rod) -> Any:
     weak = quality_verdict(network.meta)
     if weak:
         print(
-            f"torchrod: the warm-start network {checkpoint} is weak ({weak}); its guesses are used beside the "
-            "scan's starts",
+            f"torchrod: the warm-start network {checkpoint} is not trusted ({weak}): {UNTRUSTED_ADVICE}",
             file=sys.stderr,
         )
     return network
