@@ -159,22 +159,22 @@ def _jig(obj: Any, scale: float) -> tuple[float, float, Any]:
     from .io.readings import as_number, check_id, describe
 
     if "jig" not in obj:
-        raise ValueError('missing \'jig\' (the jig it was read on: {"curvature": kappa, "angle": theta})')
+        raise ReadingError('missing \'jig\' (the jig it was read on: {"curvature": kappa, "angle": theta})')
     jig = obj["jig"]
     if not isinstance(jig, dict):
-        raise ValueError(f'jig must be an object {{"curvature": kappa, "angle": theta}}, got {describe(jig)}')  # noqa: TRY004
+        raise ReadingError(f'jig must be an object {{"curvature": kappa, "angle": theta}}, got {describe(jig)}')  # noqa: TRY004
     unknown = sorted(str(k) for k in jig if k not in ("curvature", "angle", "name"))
     if unknown:
-        raise ValueError(f"jig has unknown key(s) {unknown}; the known keys are curvature, angle, name")
+        raise ReadingError(f"jig has unknown key(s) {unknown}; the known keys are curvature, angle, name")
     if "curvature" not in jig:
-        raise ValueError("jig is missing 'curvature' (the jig's constant curvature, >= 0)")
+        raise ReadingError("jig is missing 'curvature' (the jig's constant curvature, >= 0)")
     kappa = as_number(jig["curvature"], "jig.curvature")
     if kappa < 0.0:
-        raise ValueError(
+        raise ReadingError(
             f"jig.curvature is a magnitude and must be >= 0, got {kappa!r} (the angle gives the direction)"
         )
     if "angle" not in jig and kappa != 0.0:
-        raise ValueError("jig is missing 'angle' (the bend direction [rad] from d1 towards d2)")
+        raise ReadingError("jig is missing 'angle' (the bend direction [rad] from d1 towards d2)")
     theta = as_number(jig.get("angle", 0.0), "jig.angle", bound=1e6, unit="rad")
     name = check_id(jig.get("name"))
     return kappa * scale, theta, name
@@ -203,7 +203,7 @@ def read_jig_readings(
         keys = [k for k in ("wavelength", "wavelength_shift") if k in obj]
         others = [k for k in ("curvature", "strain", "curvature_polar") if k in obj]
         if others or len(keys) != 1:
-            raise ValueError("a jig reading gives exactly one of wavelength, wavelength_shift")
+            raise ReadingError("a jig reading gives exactly one of wavelength, wavelength_shift")
         key = keys[0]
         absolute = key == "wavelength"
         jig = _jig(obj, scale)

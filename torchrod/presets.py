@@ -73,7 +73,7 @@ def get(name: str) -> Rod:
     try:
         return PRESETS[name]()
     except KeyError:
-        raise ValueError(f"unknown rod preset {name!r}; known presets: {sorted(PRESETS)}") from None
+        raise RodError(f"unknown rod preset {name!r}; known presets: {sorted(PRESETS)}") from None
 
 
 def load(spec: str | os.PathLike) -> Rod:
@@ -85,7 +85,7 @@ def load(spec: str | os.PathLike) -> Rod:
     :class:`~torchrod.errors.MissingFileError`, and any other a :class:`~torchrod.errors.RodError` naming the presets.
     """
     if not isinstance(spec, (str, os.PathLike)):
-        raise ValueError(f"a rod must be given as a rod file or a preset name, got {type(spec).__name__}")  # noqa: TRY004
+        raise RodError(f"a rod must be given as a rod file or a preset name, got {type(spec).__name__}")  # noqa: TRY004
     name = os.fspath(spec)
     if os.path.lexists(name):
         return Rod.from_json(name)

@@ -16,6 +16,8 @@ import warnings
 from collections.abc import Callable, Sequence
 from types import ModuleType
 
+from ..errors import TorchrodError
+
 __all__ = ["COMMANDS", "DESCRIPTION", "command_parser", "help_pages", "main"]
 
 DESCRIPTION = (
@@ -142,9 +144,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         quiet_closed_pipe(sys.stdout)
         return 141
-    except (ValueError, OSError) as exc:
-        # A bad input, option, rod file or checkpoint (OSError: a directory, a missing or unreadable file, a full
-        # disk, a closed standard stream): one line, no traceback.
+    except (TorchrodError, ValueError, OSError) as exc:
+        # A bad input, option, rod file or checkpoint (the library's own errors, TorchrodTypeError too; OSError: a
+        # directory, a missing or unreadable file, a full disk, a closed standard stream): one line, no traceback.
         print(f"torchrod {name}: error: {exc}", file=sys.stderr)
         return 2
     except MemoryError:

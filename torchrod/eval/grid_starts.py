@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..errors import OptionsError
 from ..rod import Rod
 
 __all__ = ["GridStarts", "Starts"]
@@ -82,9 +83,9 @@ class GridStarts:
         self.step = float(step) if step is not None else spacing / 2.0
         self.separation = float(separation) if separation is not None else spacing
         if not (self.step > 0.0 and math.isfinite(self.step)):
-            raise ValueError(f"grid step must be positive, got {step!r}")
+            raise OptionsError(f"grid step must be positive, got {step!r}")
         if not (self.separation >= 0.0 and math.isfinite(self.separation)):
-            raise ValueError(f"separation must be >= 0, got {separation!r}")
+            raise OptionsError(f"separation must be >= 0, got {separation!r}")
         self.rod = rod
         self.dtype, self.device = dtype, torch.device(device) if device is not None else torch.device("cpu")
         lo = min(g[0] + self.step / 2.0, rod.length)

@@ -49,6 +49,7 @@ from typing import Any, Literal, cast
 import numpy as np
 import torch
 
+from ..errors import OptionsError, TorchrodTypeError
 from ..kernels import counts
 from ..loads import PointForces
 from ..model.body_frame import grating_curvature, simulate
@@ -138,9 +139,9 @@ class CurvatureModel:
 
     def __init__(self, rod: Rod, nodes: int) -> None:
         if not isinstance(rod, Rod):
-            raise TypeError(f"rod must be a Rod, got {type(rod).__name__}")
+            raise TorchrodTypeError(f"rod must be a Rod, got {type(rod).__name__}")
         if not isinstance(nodes, int) or isinstance(nodes, bool) or nodes < 2:
-            raise ValueError(f"nodes must be an integer >= 2, got {nodes!r}")
+            raise OptionsError(f"nodes must be an integer >= 2, got {nodes!r}")
         self.rod = rod
         self.nodes = nodes
         self.evaluations = 0
@@ -236,9 +237,9 @@ class FitOptions:
         for name in ("ftol", "xtol", "gtol", "diff_step"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a positive number, got {v!r}")
+                raise OptionsError(f"{name} must be a positive number, got {v!r}")
         if not isinstance(self.max_nfev, int) or self.max_nfev < 1:
-            raise ValueError(f"max_nfev must be an integer >= 1, got {self.max_nfev!r}")
+            raise OptionsError(f"max_nfev must be an integer >= 1, got {self.max_nfev!r}")
 
 
 @dataclass(frozen=True)
@@ -270,15 +271,15 @@ class Fit:
 def _reading(curvature, mask, G: int) -> tuple[np.ndarray, np.ndarray]:
     u = np.asarray(curvature.detach().cpu().numpy() if isinstance(curvature, torch.Tensor) else curvature, float)
     if u.shape != (G, 2):
-        raise ValueError(f"a reading must have shape (G, 2) = ({G}, 2), got {u.shape}")
+        raise OptionsError(f"a reading must have shape (G, 2) = ({G}, 2), got {u.shape}")
     if mask is None:
         m = np.isfinite(u).all(-1)
     else:
         m = np.asarray(mask.cpu().numpy() if isinstance(mask, torch.Tensor) else mask, dtype=bool)
         if m.shape != (G,):
-            raise ValueError(f"mask must have shape (G,) = ({G},), got {m.shape}")
+            raise OptionsError(f"mask must have shape (G,) = ({G},), got {m.shape}")
     if not m.any():
-        raise ValueError("the reading has no present grating")
+        raise OptionsError("the reading has no present grating")
     return np.where(m[:, None], u, 0.0), m
 
 
@@ -307,7 +308,7 @@ def fit_forces(
     u, m = _reading(curvature, mask, rod.num_gratings)
     start = np.asarray(start, dtype=np.float64)
     if start.ndim != 2 or start.shape[1] != 3 or start.shape[0] < 1:
-        raise ValueError(f"start must have shape (h, 3) with h >= 1, got {start.shape}")
+        raise OptionsError(f"start must have shape (h, 3) with h >= 1, got {start.shape}")
     h = start.shape[0]
     L = rod.length
     F = rod.bending_stiffness / L**2
@@ -485,7 +486,7 @@ def paper_readings(
     from ..learn.synthetic import LoadSampler, SensorModel, generate
 
     if count < 1:
-        raise ValueError(f"count must be >= 1, got {count}")
+        raise OptionsError(f"count must be >= 1, got {count}")
     lo, hi = s_range if s_range is not None else (rod.gratings[min(1, rod.num_gratings - 1)], rod.length - 0.01)
     sampler = LoadSampler(
         min_forces=forces,
@@ -558,7 +559,7 @@ def accuracy(truth: Sequence[np.ndarray], estimates: Sequence[np.ndarray]) -> Ac
     """:class:`Accuracy` of ``estimates`` (per reading (m, 3) rows, reported coordinates) against ``truth`` (per
     reading (k, 3)); forces paired by :func:`match_forces` (unpaired ones enter only the count accuracy)."""
     if len(truth) != len(estimates):
-        raise ValueError(f"{len(truth)} truths but {len(estimates)} estimates")
+        raise OptionsError(f"{len(truth)} truths but {len(estimates)} estimates")
     df, ds = [], []
     right = 0
     for t, e in zip(truth, estimates, strict=False):
@@ -627,7 +628,7 @@ def loss_maps(
     """
     S, F = size
     if S < 2 or F < 2:
-        raise ValueError(f"size must be at least (2, 2), got {size}")
+        raise OptionsError(f"size must be at least (2, 2), got {size}")
     s0, fx0, fy0 = (float(v) for v in true)
     norm = math.hypot(fx0, fy0)
     direction = np.array([fx0, fy0]) / norm if norm > 0 else np.array([1.0, 0.0])
@@ -696,7 +697,7 @@ def make_model(name: str, rod: Rod, nodes: int) -> CurvatureModel:
         return NodeModel(rod, nodes)
     if name in ("bvp_lm", "bvp_dp"):
         return BVPModel(rod, nodes, "fd" if name == "bvp_lm" else "dp")
-    raise ValueError(f"unknown baseline {name!r}; known: {BASELINES}")
+    raise OptionsError(f"unknown baseline {name!r}; known: {BASELINES}")
 
 
 @dataclass(frozen=True)
@@ -754,7 +755,7 @@ class SpeedTable:
     def exact_losses(self, method: str, q: int | None = None) -> np.ndarray:
         """(N,) each estimate's curvature loss [1/m^2] under the exact point-load model (:func:`exact_loss`)."""
         if self.rod is None or self.readings is None:
-            raise ValueError("this table does not hold its rod and readings")
+            raise OptionsError("this table does not hold its rod and readings")
         rd = self.readings
         return np.array(
             [exact_loss(self.rod, rd.curvature[i], x, rd.mask[i]) for i, x in enumerate(self.estimates(method, q))]

@@ -17,6 +17,7 @@ import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from ..errors import OptionsError
 from ..loads import PointForces
 from ..rod import Rod
 
@@ -278,7 +279,7 @@ def reading_figure(
     """
     u = np.array([[np.nan, np.nan] if c is None else c for c in curvature], dtype=np.float64).reshape(-1, 2)
     if u.shape != (rod.num_gratings, 2):
-        raise ValueError(f"curvature must have shape (G, 2) = ({rod.num_gratings}, 2), got {u.shape}")
+        raise OptionsError(f"curvature must have shape (G, 2) = ({rod.num_gratings}, 2), got {u.shape}")
     rows = _rows(forces)
     s, prof, P, R, fitted = _profile(rod, rows, samples)
     g = 1e3 * np.asarray(rod.gratings)
@@ -454,7 +455,7 @@ def missed_contacts(
         per reading, (k,) bool: True where that true contact was missed.
     """
     if len(estimated) != len(true):
-        raise ValueError(f"estimated and true must hold the same readings, got {len(estimated)} and {len(true)}")
+        raise OptionsError(f"estimated and true must hold the same readings, got {len(estimated)} and {len(true)}")
     out = []
     for est_row, true_row in zip(estimated, true, strict=True):
         e = np.asarray(est_row, dtype=np.float64).reshape(-1)
@@ -487,7 +488,7 @@ def status_spans(t: _Rows, statuses: Sequence[str | None]) -> dict[str, list[tup
     """
     tt = np.asarray(t, dtype=np.float64).reshape(-1)
     if len(tt) != len(statuses):
-        raise ValueError(f"t and statuses must have the same length, got {len(tt)} and {len(statuses)}")
+        raise OptionsError(f"t and statuses must have the same length, got {len(tt)} and {len(statuses)}")
     if len(tt) == 0:
         return {}
     mid = 0.5 * (tt[1:] + tt[:-1])
@@ -559,11 +560,11 @@ def stream_figure(
         tolerance: farthest an estimated force may lie from a true contact it finds [m].
     """
     if len(estimates) != len(t):
-        raise ValueError(f"t and estimates must have the same length, got {len(t)} and {len(estimates)}")
+        raise OptionsError(f"t and estimates must have the same length, got {len(t)} and {len(estimates)}")
     if statuses is None:
         statuses = ["ok" if e is not None else None for e in estimates]
     if len(statuses) != len(t):
-        raise ValueError(f"t and statuses must have the same length, got {len(t)} and {len(statuses)}")
+        raise OptionsError(f"t and statuses must have the same length, got {len(t)} and {len(statuses)}")
     order = np.argsort(np.asarray(t, dtype=np.float64), kind="stable")
     times = np.asarray(t, dtype=np.float64)[order]
     rows = [_rows(estimates[k]) if estimates[k] is not None else np.zeros((0, 3)) for k in order]
@@ -581,7 +582,7 @@ def stream_figure(
     if truth is not None:
         tt = np.asarray(t if truth_t is None else truth_t, dtype=np.float64)
         if len(tt) != len(truth):
-            raise ValueError(f"truth_t and truth must have the same length, got {len(tt)} and {len(truth)}")
+            raise OptionsError(f"truth_t and truth must have the same length, got {len(tt)} and {len(truth)}")
         torder = np.argsort(tt, kind="stable")
         tt = tt[torder]
         trows = [_rows(truth[k]) for k in torder]

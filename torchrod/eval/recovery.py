@@ -46,6 +46,7 @@ from typing import Any
 
 import torch
 
+from ..errors import OptionsError
 from ..loads import PointForces
 from ..rod import Rod
 
@@ -102,7 +103,7 @@ def recovery_cases(
     from ..learn.synthetic import turning_and_peak
 
     if not 0.0 < max_strain < 1.0:
-        raise ValueError(f"max_strain must lie in (0, 1), got {max_strain!r}")
+        raise OptionsError(f"max_strain must lie in (0, 1), got {max_strain!r}")
     g = torch.Generator().manual_seed(seed)
     q = list(rod.gratings)
     G, L = len(q), rod.length

@@ -10,7 +10,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 
-from ..errors import RodWarning
+from ..errors import OptionsError, RodWarning
 from ..learn.warm_start import quality_verdict, shipped_network
 from ..loads import PointForces
 from ..model.body_frame import simulate
@@ -31,7 +31,7 @@ def grating_layout(rod: Rod, width: int = 60) -> str:
     """A text figure of ``rod`` with its gratings marked, two lines: the rod from its clamp (``||``) to its tip, a
     grating an ``o`` (a digit where 2 to 9 gratings share a column, ``#`` for more), then a scale in mm."""
     if width < 10:
-        raise ValueError(f"width must be at least 10 columns, got {width}")
+        raise OptionsError(f"width must be at least 10 columns, got {width}")
     counts = [0] * width
     for x in rod.gratings:
         counts[min(width - 1, round(x / rod.length * (width - 1)))] += 1

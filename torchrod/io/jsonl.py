@@ -52,7 +52,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import IO, Any, Generic, TypeVar
 
-from ..errors import MissingFileError, OptionsError
+from ..errors import MissingFileError, OptionsError, ReadingError
 from .readings import HugeInteger, as_number, check_id, describe, id_problem, int_digit_limit, quote
 from .tcp import TcpReader, is_tcp
 
@@ -146,7 +146,7 @@ def line_bytes(max_line: int | None) -> int:
     if max_line is None:
         return MAX_LINE_BYTES
     if not isinstance(max_line, int) or isinstance(max_line, bool) or max_line < 1:
-        raise ValueError(f"the line limit must be an integer >= 1 [bytes], got {max_line!r}")
+        raise OptionsError(f"the line limit must be an integer >= 1 [bytes], got {max_line!r}")
     return max_line
 
 
@@ -309,11 +309,11 @@ def decode(text: str) -> Any:
             return json.loads(text, parse_int=_parse_int)
         return _DECODER.decode(text)
     except json.JSONDecodeError as exc:
-        raise ValueError(f"not valid JSON ({exc.msg} at column {exc.colno})") from None
+        raise ReadingError(f"not valid JSON ({exc.msg} at column {exc.colno})") from None
     except RecursionError:
-        raise ValueError("not usable JSON: nested too deeply") from None
+        raise ReadingError("not usable JSON: nested too deeply") from None
     except ValueError as exc:  # pragma: no cover - the decoder's other refusals
-        raise ValueError(f"not valid JSON ({_clip(str(exc))})") from None
+        raise ReadingError(f"not valid JSON ({_clip(str(exc))})") from None
 
 
 def _key(key: Any) -> str:
@@ -414,7 +414,7 @@ def check_input(path: str, what: str) -> None:
 def batched(items: Iterable[T], size: int) -> Iterator[list[T]]:
     """Consecutive lists of at most ``size`` items, in order (the last may be shorter); lazy."""
     if not isinstance(size, int) or size < 1:
-        raise ValueError(f"batch size must be an integer >= 1, got {size!r}")
+        raise OptionsError(f"batch size must be an integer >= 1, got {size!r}")
     chunk: list[T] = []
     for item in items:
         chunk.append(item)
@@ -574,7 +574,7 @@ def open_output(path: str | None, inputs: Inputs = ()) -> Iterator[IO[str] | Non
     try:
         fh = open(path, "w", encoding="utf-8")  # noqa: SIM115 - closed below
     except OSError as exc:
-        raise ValueError(f"--out {path}: cannot write there ({exc.strerror or exc})") from None
+        raise OptionsError(f"--out {path}: cannot write there ({exc.strerror or exc})") from None
     try:
         yield fh
     finally:
@@ -625,7 +625,7 @@ def get_number(obj: Mapping[str, Any], key: str, where: str = "") -> float:
     """``obj[key]`` as a finite float. ``where`` prefixes the field name in errors, e.g. ``"forces[2]"``."""
     name = f"{where}.{key}" if where else key
     if key not in obj:
-        raise ValueError(f"missing {name!r}")
+        raise ReadingError(f"missing {name!r}")
     return as_number(obj[key], name)
 
 
@@ -633,10 +633,10 @@ def get_list(obj: Mapping[str, Any], key: str, where: str = "") -> list[Any]:
     """``obj[key]``, which must be a JSON array."""
     name = f"{where}.{key}" if where else key
     if key not in obj:
-        raise ValueError(f"missing {name!r}")
+        raise ReadingError(f"missing {name!r}")
     value = obj[key]
     if not isinstance(value, list):
-        raise ValueError(f"{name} must be an array, got {describe(value)}")  # noqa: TRY004 (bad data, one kind of error)
+        raise ReadingError(f"{name} must be an array, got {describe(value)}")  # noqa: TRY004 (bad data, one kind of error)
     return value
 
 
@@ -648,15 +648,15 @@ def check_keys(
     Returns ``obj``; raises ``ValueError`` naming ``where`` and the missing or unknown keys.
     """
     if not isinstance(obj, dict):
-        raise ValueError(f"{where} must be an object, got {describe(obj)}")  # noqa: TRY004 (bad data, one kind of error)
+        raise ReadingError(f"{where} must be an object, got {describe(obj)}")  # noqa: TRY004 (bad data, one kind of error)
     missing = [k for k in required if k not in obj]
     if missing:
-        raise ValueError(f"{where} is missing {', '.join(repr(k) for k in missing)}")
+        raise ReadingError(f"{where} is missing {', '.join(repr(k) for k in missing)}")
     allowed = set(required) | set(optional)
     unknown = sorted(k for k in obj if k not in allowed)
     if unknown:
         shown = ", ".join(_key(k) for k in unknown[:10])
-        raise ValueError(
+        raise ReadingError(
             f"{where} has unknown key(s) {shown}{' ...' if len(unknown) > 10 else ''}; "
             f"expected {', '.join(repr(k) for k in (*required, *optional))}"
         )

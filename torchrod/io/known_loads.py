@@ -16,6 +16,7 @@ from typing import Any
 
 import torch
 
+from ..errors import ReadingError
 from ..estimate.calibration import CalibrationData
 from ..loads import PointForces
 from ..rod import Rod
@@ -37,17 +38,17 @@ def parse_reading(
     """
     reading = parse_one(obj, num_gratings, gratings, fibre=fibre)
     if "forces" not in obj:
-        raise ValueError('missing \'forces\' (the known forces, [{"s": ..., "fx": ..., "fy": ...}, ...])')
+        raise ReadingError('missing \'forces\' (the known forces, [{"s": ..., "fx": ..., "fy": ...}, ...])')
     forces = obj["forces"]
     if not isinstance(forces, list):
-        raise ValueError(f"forces must be an array of {{'s', 'fx', 'fy'}} objects, got {describe(forces)}")  # noqa: TRY004
+        raise ReadingError(f"forces must be an array of {{'s', 'fx', 'fy'}} objects, got {describe(forces)}")  # noqa: TRY004
     known = []
     for j, force in enumerate(forces):
         if not isinstance(force, dict) or set(force) != {"s", "fx", "fy"}:
-            raise ValueError(f"forces[{j}] must be an object with keys 's', 'fx', 'fy', got {describe(force)}")
+            raise ReadingError(f"forces[{j}] must be an object with keys 's', 'fx', 'fy', got {describe(force)}")
         s, fx, fy = (as_number(force[k], f"forces[{j}].{k}") for k in ("s", "fx", "fy"))
         if fx == 0.0 and fy == 0.0:
-            raise ValueError(f"forces[{j}] has zero magnitude: a known force must be nonzero")
+            raise ReadingError(f"forces[{j}] has zero magnitude: a known force must be nonzero")
         known.append((s, fx, fy))
     pairs = [None if math.isnan(ux) else [ux, uy] for ux, uy in reading.curvature.tolist()]
     return pairs, known
@@ -88,9 +89,9 @@ def read_readings(
         ids.append(record.id)
     if bad:
         more = f" (and {len(bad) - 5} more)" if len(bad) > 5 else ""
-        raise ValueError(f"{name}: {len(bad)} unusable line(s): " + "; ".join(bad[:5]) + more)
+        raise ReadingError(f"{name}: {len(bad)} unusable line(s): " + "; ".join(bad[:5]) + more)
     if not rows:
-        raise ValueError(f"{name}: no readings")
+        raise ReadingError(f"{name}: no readings")
     present = torch.tensor([[p is not None for p in r] for r in rows], dtype=torch.bool, device=device)
     curvature = torch.tensor(
         [[p if p is not None else [0.0, 0.0] for p in r] for r in rows], dtype=dtype, device=device

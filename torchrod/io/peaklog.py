@@ -72,17 +72,17 @@ def peak_time(text: str) -> tuple[float, datetime.date | None, bool]:
     if match is not None:
         h, mi, s = int(match["h"]), int(match["mi"]), float(match["s"])
         if h > 23 or mi > 59 or s >= 61.0:
-            raise ValueError(f"time stamp {quote(text)} is not a time of day (HH-MM-SS.ffffff)")
+            raise ReadingError(f"time stamp {quote(text)} is not a time of day (HH-MM-SS.ffffff)")
         date = None
         if match["y"] is not None:
             try:
                 date = datetime.date(int(match["y"]), int(match["mo"]), int(match["d"]))
             except ValueError:
-                raise ValueError(f"time stamp {quote(text)} holds no valid date (YYYY-MM-DD)") from None
+                raise ReadingError(f"time stamp {quote(text)} holds no valid date (YYYY-MM-DD)") from None
         return 3600.0 * h + 60.0 * mi + s, date, True
     if _SECONDS.fullmatch(text):
         return cast(float, csv_number(text, "the time stamp")), None, False  # a number: not an empty cell
-    raise ValueError(
+    raise ReadingError(
         f"time stamp {quote(text)} is not HH-MM-SS.ffffff, HH:MM:SS.ffffff (optionally after YYYY-MM-DD) or a number "
         "of seconds"
     )
@@ -146,7 +146,7 @@ class PeakLog:
         """One line as ``{"t", "wavelength"}``; ``ValueError`` naming what is wrong."""
         parts = _split(text.strip())
         if parts is None:
-            raise ValueError(f"not a peak log line (TIME: l1, l2, ...): {quote(text.strip())}")
+            raise ReadingError(f"not a peak log line (TIME: l1, l2, ...): {quote(text.strip())}")
         head, tail = parts
         t = self._time(head)
         tail = tail.strip()
@@ -156,7 +156,7 @@ class PeakLog:
             # one comma after the N values ends the line; an empty last of N values is an undetected last peak
             cells.pop()
         if len(cells) != N:
-            raise ValueError(
+            raise ReadingError(
                 f"{len(cells)} peaks, the layout ({self.described}) has {N}: a peak that was not detected shifts the "
                 "others, so the line is left out (mark an undetected peak by an empty value to keep the others)"
             )

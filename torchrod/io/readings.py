@@ -91,7 +91,7 @@ from typing import Any, cast
 import numpy as np
 import torch
 
-from ..errors import ReadingError, ReadingWarning
+from ..errors import OptionsError, ReadingError, ReadingWarning
 from ..estimate.checks import MAX_CURVATURE
 from ..sensors import DEFAULT_UNITS, UNIT_TABLES
 
@@ -359,20 +359,20 @@ def as_number(value: Any, what: str, *, bound: float | None = None, unit: str = 
     if type(value) is float and math.isfinite(value) and (bound is None or abs(value) <= bound):
         return value  # the usual case, checked fast
     if isinstance(value, HugeInteger):
-        raise ValueError(  # noqa: TRY004 (bad data, one kind of error)
+        raise ReadingError(  # noqa: TRY004 (bad data, one kind of error)
             f"{what} must be a finite number, got an integer of {value.digits} digits ({value!r})"
         )
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ValueError(f"{what} must be a number, got {describe(value)}")  # noqa: TRY004 (bad data, one kind of error)
+        raise ReadingError(f"{what} must be a number, got {describe(value)}")  # noqa: TRY004 (bad data, one kind of error)
     try:
         x = float(value)
     except OverflowError:
-        raise ValueError(f"{what} must be a finite number, got {quote(value)}, which overflows a float") from None
+        raise ReadingError(f"{what} must be a finite number, got {quote(value)}, which overflows a float") from None
     if not math.isfinite(x):
-        raise ValueError(f"{what} must be finite, got {quote(x)}")
+        raise ReadingError(f"{what} must be finite, got {quote(x)}")
     if bound is not None and not abs(x) <= bound:
         unit = f" {unit}" if unit else ""
-        raise ValueError(
+        raise ReadingError(
             f"{what} = {x!r}{unit} is beyond the bound of {bound:g}{unit} that any input must respect; "
             "check the units and scaling of the input"
         )
@@ -392,15 +392,15 @@ def csv_number(text: str, what: str, *, bound: float | None = None, unit: str = 
     if not cell:
         return None
     if _CSV_NONFINITE.fullmatch(cell):
-        raise ValueError(f"{what} must be finite, got {quote(cell)} (leave a missing value's cell empty)")
+        raise ReadingError(f"{what} must be finite, got {quote(cell)} (leave a missing value's cell empty)")
     if not _CSV_NUMBER.fullmatch(cell):
-        raise ValueError(
+        raise ReadingError(
             f"{what} must be a number, got {quote(cell)}: a CSV number is decimal digits with an optional sign, "
             "point and exponent (no underscores, hexadecimal or separators)"
         )
     x = float(cell)
     if math.isinf(x):
-        raise ValueError(f"{what} must be a finite number, got {quote(cell)}, which overflows a float")
+        raise ReadingError(f"{what} must be a finite number, got {quote(cell)}, which overflows a float")
     return as_number(x, what, bound=bound, unit=unit)
 
 
@@ -458,7 +458,7 @@ def check_id(value: Any) -> Any:
     """``value`` if JSON can echo it as an id, else ``ValueError`` saying why (module docstring)."""
     problem = id_problem(value)
     if problem is not None:
-        raise ValueError(problem + _ID_HINT)
+        raise ReadingError(problem + _ID_HINT)
     return value
 
 
@@ -469,18 +469,18 @@ def check_time(value: Any, what: str = "t") -> float | None:
     try:
         return as_number(value, what)
     except ValueError as exc:
-        raise ValueError(f"{exc} ({what} is a timestamp in seconds, or null)") from None
+        raise ReadingError(f"{exc} ({what} is a timestamp in seconds, or null)") from None
 
 
 def check_gratings(value: Any, gratings: Sequence[float], what: str = "gratings") -> None:
     """The grating positions [m] a reading declares must be the rod's (within :data:`GRATING_TOLERANCE`)."""
     if not isinstance(value, (list, tuple)):
-        raise ValueError(f"{what} must be an array of the grating positions [m], got {describe(value)}")  # noqa: TRY004
+        raise ReadingError(f"{what} must be an array of the grating positions [m], got {describe(value)}")  # noqa: TRY004
     positions = [as_number(x, f"{what}[{k}]") for k, x in enumerate(value)]
     if len(positions) != len(gratings) or any(
         abs(a - b) > GRATING_TOLERANCE for a, b in zip(positions, gratings, strict=False)
     ):
-        raise ValueError(
+        raise ReadingError(
             f"{what} {quote(positions)} do not match the rod's {quote(list(gratings))}: "
             "these readings are for another rod (give the matching --rod)"
         )
@@ -516,12 +516,12 @@ def curvature_tensor(
     ):
         return _tensor_rows(value, G, what, scale, unit)
     if not isinstance(value, (list, tuple)):
-        raise ValueError(  # noqa: TRY004 (bad data, one kind of error)
+        raise ReadingError(  # noqa: TRY004 (bad data, one kind of error)
             f"{what} must be an array of {G} [ux, uy] pairs [{unit}] (null for a missing grating), got "
             f"{describe(value)}"
         )
     if len(value) != G:
-        raise ValueError(
+        raise ReadingError(
             f"{what} holds {len(value)} gratings, the rod has {G}: give one [ux, uy] pair or null per grating, "
             "in the rod file's order"
         )
@@ -541,16 +541,16 @@ def curvature_tensor(
                 continue
         where = f"{what}[{k}]"
         if not isinstance(row, (list, tuple)) or len(row) != 2:
-            raise ValueError(f"{where} must be a pair [ux, uy] of numbers [{unit}] or null, got {describe(row)}")
+            raise ReadingError(f"{where} must be a pair [ux, uy] of numbers [{unit}] or null, got {describe(row)}")
         for j, x in enumerate(row):
             try:
                 flat.append(as_number(x, f"{where}[{j}]", bound=limit, unit=unit))
             except ValueError as exc:
                 if isinstance(x, float) and math.isnan(x):
-                    raise ValueError(f"{exc} {_missing_hint(where)}") from None
+                    raise ReadingError(f"{exc} {_missing_hint(where)}") from None
                 raise
     if missing == G:  # (a value given is a number: as_number refuses NaN)
-        raise ValueError(f"all gratings are missing: {what} needs at least one [ux, uy] pair")
+        raise ReadingError(f"all gratings are missing: {what} needs at least one [ux, uy] pair")
     # Through NumPy: a quarter of the cost of torch.tensor on a list, for a line's few values.
     out = torch.from_numpy(np.array(flat).reshape(G, 2))
     return out if scale == 1.0 else out * scale
@@ -561,11 +561,11 @@ def _tensor_rows(value: Any, G: int, what: str, scale: float = 1.0, unit: str = 
         try:
             value = torch.as_tensor(value)
         except (TypeError, ValueError, RuntimeError) as exc:
-            raise ValueError(f"{what} must be a real (G, 2) array, got {quote(value)} ({exc})") from None
+            raise ReadingError(f"{what} must be a real (G, 2) array, got {quote(value)} ({exc})") from None
     if value.dtype == torch.bool or value.is_complex():
-        raise ValueError(f"{what} must be a real tensor, got {value.dtype}")
+        raise ReadingError(f"{what} must be a real tensor, got {value.dtype}")
     if tuple(value.shape) != (G, 2):
-        raise ValueError(f"{what} must have shape ({G}, 2) for this rod, got {tuple(value.shape)}")
+        raise ReadingError(f"{what} must have shape ({G}, 2) for this rod, got {tuple(value.shape)}")
     t = value.detach().to("cpu", torch.float64)
     limit = MAX_CURVATURE / scale
     present = 0
@@ -575,12 +575,12 @@ def _tensor_rows(value: Any, G: int, what: str, scale: float = 1.0, unit: str = 
         elif math.isnan(a) and math.isnan(b):
             continue
         elif math.isnan(a) or math.isnan(b):
-            raise ValueError(f"{what}[{k}] has one NaN component: a missing grating is a row of NaN")
+            raise ReadingError(f"{what}[{k}] has one NaN component: a missing grating is a row of NaN")
         else:
             for j, x in enumerate((a, b)):
                 as_number(x, f"{what}[{k}][{j}]", bound=limit, unit=unit)
     if not present:
-        raise ValueError(f"all gratings are missing: {what} needs at least one finite row")
+        raise ReadingError(f"all gratings are missing: {what} needs at least one finite row")
     return t if scale == 1.0 else t * scale
 
 
@@ -596,15 +596,17 @@ QUANTITIES = {
 
 def _entries(value: Any, G: int, what: str, shape: str) -> list[Any]:
     if not isinstance(value, (list, tuple)):
-        raise ValueError(f"{what} must be an array of {G} {shape} (null for a missing grating), got {describe(value)}")  # noqa: TRY004
+        raise ReadingError(
+            f"{what} must be an array of {G} {shape} (null for a missing grating), got {describe(value)}"
+        )  # noqa: TRY004
     if len(value) != G:
-        raise ValueError(f"{what} holds {len(value)} gratings, the rod has {G}: give one {shape} or null per grating")
+        raise ReadingError(f"{what} holds {len(value)} gratings, the rod has {G}: give one {shape} or null per grating")
     return list(value)
 
 
 def _converted(pair: tuple[float, float], where: str, source: str) -> list[float]:
     if not (abs(pair[0]) <= MAX_CURVATURE and abs(pair[1]) <= MAX_CURVATURE):
-        raise ValueError(
+        raise ReadingError(
             f"{where} gives a curvature of {quote(list(pair))} 1/m, beyond the bound of {MAX_CURVATURE:g} 1/m; "
             f"check the units of the {source}"
         )
@@ -618,7 +620,7 @@ def strain_curvature(value: Any, num_gratings: int, fibre: Any, what: str = "str
     from ..sensors import MAX_STRAIN
 
     if fibre is None or not fibre.cores:
-        raise ValueError(
+        raise ReadingError(
             f'{what} needs the rod\'s multicore fibre: add "fibre": {{"cores": [[x, y], ...]}} (core positions [m]) '
             "to the rod file"
         )
@@ -632,7 +634,7 @@ def strain_curvature(value: Any, num_gratings: int, fibre: Any, what: str = "str
             continue
         where = f"{what}[{k}]"
         if not isinstance(entry, (list, tuple)) or len(entry) != C:
-            raise ValueError(
+            raise ReadingError(
                 f"{where} must be a list of {C} core strains (the fibre has {C} cores), got {describe(entry)}"
             )
         eps = []
@@ -641,7 +643,7 @@ def strain_curvature(value: Any, num_gratings: int, fibre: Any, what: str = "str
                 eps.append(as_number(x, f"{where}[{c}]", bound=MAX_STRAIN / scale) * scale)
             except ValueError as exc:
                 if isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(float(x)):
-                    raise ValueError(f"{exc} ({hint})") from None
+                    raise ReadingError(f"{exc} ({hint})") from None
                 raise
         rows.append(_converted(fibre.strain_to_curvature(eps), where, "strains"))
     return rows
@@ -660,10 +662,10 @@ def polar_curvature(value: Any, num_gratings: int, what: str = "curvature_polar"
             continue
         where = f"{what}[{k}]"
         if not isinstance(entry, (list, tuple)) or len(entry) != 2:
-            raise ValueError(f"{where} must be a pair [kappa, phi] ([{unit}], [rad]) or null, got {describe(entry)}")
+            raise ReadingError(f"{where} must be a pair [kappa, phi] ([{unit}], [rad]) or null, got {describe(entry)}")
         kappa = as_number(entry[0], f"{where}[0]", bound=MAX_CURVATURE / scale, unit=unit)
         if kappa < 0.0:
-            raise ValueError(f"{where}[0] is a curvature magnitude and must be >= 0 [{unit}], got {quote(entry[0])}")
+            raise ReadingError(f"{where}[0] is a curvature magnitude and must be >= 0 [{unit}], got {quote(entry[0])}")
         phi = as_number(entry[1], f"{where}[1]", bound=1e6, unit="rad")
         rows.append(_converted(polar_to_curvature(kappa * scale, phi), where, "curvature"))
     return rows
@@ -690,7 +692,7 @@ def wavelength_values(
             continue
         where = f"{what}[{k}]"
         if not isinstance(entry, (list, tuple)) or len(entry) != C:
-            raise ValueError(
+            raise ReadingError(
                 f"{where} must be a list of {C} values [{unit}] (one per core, in the calibration's column order), "
                 f"got {describe(entry)}"
             )
@@ -698,12 +700,12 @@ def wavelength_values(
         for c, x in enumerate(entry):
             v = as_number(x, f"{where}[{c}]") * scale
             if shift and not abs(v) <= MAX_WAVELENGTH_SHIFT:
-                raise ValueError(
+                raise ReadingError(
                     f"{where}[{c}] = {quote(x)} {unit} is a shift beyond {MAX_WAVELENGTH_SHIFT / scale:g} {unit}, "
                     "which no fibre survives: check the wavelength unit (--wavelength-unit nm or pm)"
                 )
             if not shift and not low <= v <= high:
-                raise ValueError(
+                raise ReadingError(
                     f"{where}[{c}] = {quote(x)} {unit} is not a peak wavelength (FBGs reflect between "
                     f"{low / scale:g} and {high / scale:g} {unit}): check the wavelength unit (--wavelength-unit nm "
                     "or pm), or give shifts as wavelength_shift"
@@ -724,14 +726,14 @@ def wavelength_shifts(
     from ..sensors import MAX_WAVELENGTH_SHIFT
 
     if fibre is None or fibre.wavelength is None:
-        raise ValueError(
+        raise ReadingError(
             f'{what} needs the rod file\'s "fibre": {{"wavelength": {{...}}}} section (a reference with the cores, or '
             "a calibration): docs/sensors.md"
         )
     absolute = what == "wavelength" if absolute is None else absolute
     reference = fibre.reference_m() if absolute else None
     if absolute and reference is None:
-        raise ValueError(
+        raise ReadingError(
             f"{what} gives peak wavelengths, and the rod file's fibre.wavelength has no reference to subtract: add "
             "fibre.wavelength.reference [nm], or give the shifts as wavelength_shift"
         )
@@ -745,7 +747,7 @@ def wavelength_shifts(
         for c, v in enumerate(row):
             d = v - reference[k][c]
             if not abs(d) <= MAX_WAVELENGTH_SHIFT:
-                raise ValueError(
+                raise ReadingError(
                     f"{what}[{k}][{c}] lies {d / scale:g} {unit} from its reference {reference[k][c] / scale:g} "
                     f"{unit}, a shift beyond {MAX_WAVELENGTH_SHIFT / scale:g} {unit} that no fibre survives: check the "
                     "reference, the peak layout and the wavelength unit"
@@ -769,9 +771,11 @@ def reading_curvature(obj: Mapping[str, Any], num_gratings: int, fibre: Any = No
     units the fibre says (SI without one)."""
     given = [key for key in QUANTITIES.values() if key in obj]
     if len(given) > 1:
-        raise ValueError(f"a reading gives {' and '.join(given)}: give exactly one of {', '.join(QUANTITIES.values())}")
+        raise ReadingError(
+            f"a reading gives {' and '.join(given)}: give exactly one of {', '.join(QUANTITIES.values())}"
+        )
     if not given:
-        raise ValueError(
+        raise ReadingError(
             f"missing 'curvature' (an array of {num_gratings} [ux, uy] pairs [1/m], one per grating; or one of "
             f"{', '.join(list(QUANTITIES.values())[1:])})"
         )
@@ -786,7 +790,7 @@ def reading_curvature(obj: Mapping[str, Any], num_gratings: int, fibre: Any = No
         scale, unit = _units(fibre, "curvature_unit")
         return curvature_tensor(obj[key], num_gratings, scale=scale, unit=unit)
     if all(r is None for r in rows):
-        raise ValueError(f"all gratings are missing: {key} needs at least one grating's values")
+        raise ReadingError(f"all gratings are missing: {key} needs at least one grating's values")
     return curvature_tensor(rows, num_gratings)
 
 
@@ -807,7 +811,7 @@ def parse_reading(
         ValueError: naming the first bad field.
     """
     if type(obj) is not dict and not isinstance(obj, Mapping):  # (a decoded line is a dict: no ABC check)
-        raise ValueError(  # noqa: TRY004 (bad data, one kind of error)
+        raise ReadingError(  # noqa: TRY004 (bad data, one kind of error)
             f'a reading must be an object {{"id": ..., "curvature": [[ux, uy], ...]}}, got {describe(obj)}'
         )
     ident = check_id(obj.get("id"))
@@ -1120,14 +1124,14 @@ class CsvLayout:
         the values alone (per grating in order ``ux, uy`` / ``kappa, phi`` / the C core values);
         ``ValueError`` for any other width."""
         if quantity not in QUANTITIES:
-            raise ValueError(f"quantity must be one of {', '.join(QUANTITIES)}, got {quantity!r}")
+            raise OptionsError(f"quantity must be one of {', '.join(QUANTITIES)}, got {quantity!r}")
         key = QUANTITIES[quantity]
         per = _per_grating(key, fibre, f"rows of --csv-quantity {quantity}")
         G = num_gratings
         values = per * G
         names = {"curvature": "ux, uy", "curvature_polar": "kappa, phi"}.get(key, f"{per} {key.replace('_', ' ')}s")
         if width not in (values, values + 1, values + 2):
-            raise ValueError(
+            raise ReadingError(
                 f"expected {values + 2} cells (id, t, then {names} for {G} gratings), {values + 1} (t, then the "
                 f"values) or {values} (the values alone), got {width}; or give a header row naming the columns"
             )
@@ -1148,7 +1152,7 @@ class CsvLayout:
         n = len(cells)
         if n < self.width or any(c.strip() for c in cells[self.width :]):
             where = f"the header (line {self.header}) names {self.width} columns" if self.header else f"{self.width}"
-            raise ValueError(f"the row has {n} cells, {where}")
+            raise ReadingError(f"the row has {n} cells, {where}")
         obj: dict[str, Any] = {}
         if self.id_column is not None:
             obj["id"] = csv_id(cells[self.id_column])
@@ -1164,7 +1168,7 @@ class CsvLayout:
                 continue
             for j, x in enumerate(row):
                 if x is None:
-                    raise ValueError(
+                    raise ReadingError(
                         f"{key}[{k}][{j}] must be a number, got null (an empty cell): leave all the cells of a "
                         "missing grating empty"
                     )
@@ -1176,7 +1180,7 @@ class CsvLayout:
                 if all(x is None for x in got):
                     continue
                 if any(x is None for x in got):
-                    raise ValueError(f"force {j} has an empty cell: give s_{j}, fx_{j} and fy_{j}, or none of them")
+                    raise ReadingError(f"force {j} has an empty cell: give s_{j}, fx_{j} and fy_{j}, or none of them")
                 forces.append(dict(zip(_FORCE_FIELDS, got, strict=True)))
             obj["forces"] = forces
         if self.jig:
@@ -1324,9 +1328,9 @@ def iter_records(
     from .jsonl import line_bytes, parse_records, read_lines
 
     if fmt not in FORMATS:
-        raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+        raise OptionsError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     if quantity not in QUANTITIES:
-        raise ValueError(f"quantity must be one of {', '.join(QUANTITIES)}, got {quantity!r}")
+        raise OptionsError(f"quantity must be one of {', '.join(QUANTITIES)}, got {quantity!r}")
     limit = line_limit(num_gratings, fibre) if max_line is None else line_bytes(max_line)
     lines: Iterator[tuple[int, str]] = iter(read_lines(source, control, limit))
     if fmt == "auto":
@@ -1407,7 +1411,7 @@ class ReadingSource:
         from .jsonl import ReadControl
 
         if fmt not in FORMATS:
-            raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+            raise OptionsError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
         self.control = ReadControl()
         self.never_waits = (
             isinstance(source, (str, os.PathLike)) and os.fspath(source) != "-" and os.path.isfile(source)

@@ -36,7 +36,7 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from ..errors import ReadingError
+from ..errors import MissingFileError, OptionsError, ReadingError
 from .readings import Reading, quote, to_reading
 
 __all__ = ["ESTIMATE_TOPIC", "MESSAGE_TYPE", "BagSource", "BagWriter", "require_rosbags", "write_readings"]
@@ -53,7 +53,7 @@ def require_rosbags() -> None:
     try:
         import rosbags  # noqa: F401
     except ImportError:
-        raise ValueError(
+        raise ReadingError(
             "ROS bags need the rosbags package: pip install 'torchrod[ros]' (or pip install rosbags)"
         ) from None
 
@@ -79,21 +79,23 @@ class BagSource:
 
         self.path, self.topic, self.G = Path(path), topic, num_gratings
         if not self.path.exists():
-            raise ValueError(f"{self.path}: no such bag")
+            raise MissingFileError(f"{self.path}: no such bag")
         try:
             self._reader = AnyReader([self.path], default_typestore=_typestore(self.path.suffix == ".bag"))
             self._reader.open()
         except Exception as exc:  # noqa: BLE001 - rosbags raises its own classes for every kind of bad bag
-            raise ValueError(f"{self.path}: not a readable ROS bag ({type(exc).__name__}: {quote(str(exc))})") from None
+            raise ReadingError(
+                f"{self.path}: not a readable ROS bag ({type(exc).__name__}: {quote(str(exc))})"
+            ) from None
         self._connections = [c for c in self._reader.connections if c.topic == topic]
         if not self._connections:
             topics = sorted({c.topic for c in self._reader.connections})
             self._reader.close()
-            raise ValueError(f"{self.path}: no topic {topic!r}; the bag has {quote(topics)}")
+            raise ReadingError(f"{self.path}: no topic {topic!r}; the bag has {quote(topics)}")
         kinds = {c.msgtype for c in self._connections}
         if kinds != {MESSAGE_TYPE}:
             self._reader.close()
-            raise ValueError(f"{self.path}: topic {topic!r} holds {sorted(kinds)}, not {MESSAGE_TYPE}")
+            raise ReadingError(f"{self.path}: topic {topic!r} holds {sorted(kinds)}, not {MESSAGE_TYPE}")
 
     def __iter__(self) -> Iterator[Reading]:
         index = 0
@@ -156,7 +158,7 @@ class BagWriter:
         require_rosbags()
         self.path, self.slots = Path(path), slots
         if self.path.exists():
-            raise ValueError(f"{self.path} exists already: a bag is never overwritten; give a new path")
+            raise OptionsError(f"{self.path} exists already: a bag is never overwritten; give a new path")
         self.ros1 = self.path.suffix == ".bag"
         self.store = _typestore(self.ros1)
         if self.ros1:

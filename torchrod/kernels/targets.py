@@ -157,7 +157,7 @@ def _say(message: str) -> None:
 
 
 _FIRST_GUESS = {
-    "cpu-estimation": "one to two minutes",
+    "cpu-estimation": "one to four minutes",
     "cpu-schedule": "a few seconds",
     "cpu-network": "a few seconds",
     "cuda-estimation": "tens of minutes: NVIDIA's optimiser takes long over the whole search",

@@ -81,6 +81,7 @@ from typing import Any, cast
 import numpy as np
 import torch
 
+from ..errors import OptionsError, TorchrodTypeError
 from ..loads import PointForces
 from ..model.body_frame import DEFAULT_STEP_ANGLE, integrate_curvature
 from ..rod import Rod
@@ -124,9 +125,9 @@ def _finite(name: str, value: Any) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
+        raise OptionsError(f"{name} must be a number, got {value!r}") from None
     if not math.isfinite(v):
-        raise ValueError(f"{name} must be finite, got {value!r}")
+        raise OptionsError(f"{name} must be finite, got {value!r}")
     return v
 
 
@@ -134,16 +135,16 @@ def _pair(name: str, value: Any) -> tuple[float, float]:
     try:
         lo, hi = value
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a pair (low, high), got {value!r}") from None
+        raise OptionsError(f"{name} must be a pair (low, high), got {value!r}") from None
     lo, hi = _finite(f"{name}[0]", lo), _finite(f"{name}[1]", hi)
     if hi < lo:
-        raise ValueError(f"{name} must have low <= high, got {value!r}")
+        raise OptionsError(f"{name} must have low <= high, got {value!r}")
     return lo, hi
 
 
 def _int(name: str, value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name} must be an integer, got {value!r}")
+        raise TorchrodTypeError(f"{name} must be an integer, got {value!r}")
     return int(value)
 
 
@@ -171,38 +172,38 @@ class LoadSampler:
         set_ = object.__setattr__
         lo, hi = _int("min_forces", self.min_forces), _int("max_forces", self.max_forces)
         if lo < 1 or hi < lo:
-            raise ValueError(f"need 1 <= min_forces <= max_forces, got min_forces={lo}, max_forces={hi}")
+            raise OptionsError(f"need 1 <= min_forces <= max_forces, got min_forces={lo}, max_forces={hi}")
         set_(self, "min_forces", lo)
         set_(self, "max_forces", hi)
         f_lo, f_hi = _pair("force_range", self.force_range)
         if f_lo < 0.0:
-            raise ValueError(f"force_range must be non-negative, got {self.force_range!r}")
+            raise OptionsError(f"force_range must be non-negative, got {self.force_range!r}")
         set_(self, "force_range", (f_lo, f_hi))
         sep = _finite("min_separation", self.min_separation)
         if sep < 0.0:
-            raise ValueError(f"min_separation must be >= 0, got {self.min_separation!r}")
+            raise OptionsError(f"min_separation must be >= 0, got {self.min_separation!r}")
         set_(self, "min_separation", sep)
         if self.s_range is not None:
             s_lo, s_hi = _pair("s_range", self.s_range)
             if s_lo < 0.0:
-                raise ValueError(f"s_range must be non-negative, got {self.s_range!r}")
+                raise OptionsError(f"s_range must be non-negative, got {self.s_range!r}")
             if s_hi - s_lo < (hi - 1) * sep:
-                raise ValueError(
+                raise OptionsError(
                     f"s_range {self.s_range!r} is too short for {hi} forces {sep} m apart (needs {(hi - 1) * sep} m)"
                 )
             set_(self, "s_range", (s_lo, s_hi))
         mb = float(self.max_bending)
         if not mb > 0.0:
-            raise ValueError(f"max_bending must be positive (rad), got {self.max_bending!r}")
+            raise OptionsError(f"max_bending must be positive (rad), got {self.max_bending!r}")
         set_(self, "max_bending", mb)
 
     def location_range(self, rod: Rod) -> tuple[float, float]:
         """The (low, high) location range [m] on ``rod``, checked against its length and the separation."""
         lo, hi = (0.02 * rod.length, rod.length) if self.s_range is None else self.s_range
         if hi > rod.length:
-            raise ValueError(f"s_range {self.s_range!r} reaches beyond the rod's length {rod.length} m")
+            raise OptionsError(f"s_range {self.s_range!r} reaches beyond the rod's length {rod.length} m")
         if hi - lo < (self.max_forces - 1) * self.min_separation:
-            raise ValueError(
+            raise OptionsError(
                 f"location range ({lo}, {hi}) m is too short for {self.max_forces} forces {self.min_separation} m apart"
             )
         return lo, hi
@@ -249,11 +250,11 @@ class SensorModel:
         for name in ("noise", "offset_std"):
             v = _finite(name, getattr(self, name))
             if v < 0.0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+                raise OptionsError(f"{name} must be >= 0, got {getattr(self, name)!r}")
             set_(self, name, v)
         p = _finite("missing_prob", self.missing_prob)
         if not 0.0 <= p < 1.0:
-            raise ValueError(f"missing_prob must lie in [0, 1), got {self.missing_prob!r}")
+            raise OptionsError(f"missing_prob must lie in [0, 1), got {self.missing_prob!r}")
         set_(self, "missing_prob", p)
         set_(self, "location_bias", _finite("location_bias", self.location_bias))
 
@@ -332,7 +333,7 @@ def _check_resolved(resolved: torch.Tensor, loads: PointForces, what: str) -> No
     if bad.numel():
         k = int(bad[0])
         largest = float(torch.linalg.vector_norm(loads.f[k], dim=-1).masked_fill(~loads.active[k], 0.0).max())
-        raise ValueError(
+        raise OptionsError(
             f"{bad.numel()} {what}(s), the first {what} {k} with a force of {largest:.3g} N, lie beyond what the "
             "forward model resolves (values not finite, or beyond its step rule or error bound): lower the forces "
             "(force_range), or set max_bending"
@@ -366,7 +367,7 @@ def turning_and_peak(
     from ..model.body_frame import simulate
 
     if samples < 2:
-        raise ValueError(f"samples must be >= 2, got {samples}")
+        raise OptionsError(f"samples must be >= 2, got {samples}")
     sim = simulate(rod, loads, samples=samples)
     _check_resolved(sim.accurate, loads, "case")
     size = sim.curvature_magnitude()
@@ -479,7 +480,7 @@ def _sample_rows(
             start += k
     else:
         left = sum(p.numel() for p in pending)
-        raise ValueError(
+        raise OptionsError(
             f"{left} load cases still exceed max_bending={sampler.max_bending} rad (or what the forward model "
             f"resolves) after {_MAX_ROUNDS} rounds of redraws: the sampler almost never meets the bending limit "
             "(lower force_range or max_forces, or raise max_bending)"
@@ -503,12 +504,12 @@ def sample_loads(
     """
     count = _int("count", count)
     if count < 0:
-        raise ValueError(f"count must be >= 0, got {count}")
+        raise OptionsError(f"count must be >= 0, got {count}")
     if not isinstance(sampler, LoadSampler):
-        raise TypeError(f"sampler must be a LoadSampler, got {type(sampler).__name__}")
+        raise TorchrodTypeError(f"sampler must be a LoadSampler, got {type(sampler).__name__}")
     g = torch.Generator() if generator is None else generator
     if not isinstance(g, torch.Generator):
-        raise TypeError(f"generator must be a torch.Generator, got {type(g).__name__}")
+        raise TorchrodTypeError(f"generator must be a torch.Generator, got {type(g).__name__}")
     parts = []
     for start in range(0, count, 4096):
         loads, _, _ = _sample_rows(rod, sampler, [(g, min(4096, count - start))], torch.device("cpu"))
@@ -604,7 +605,7 @@ class SyntheticSet:
         if self.offsets is None:
             self.offsets = torch.zeros(G, 2, dtype=self.clean.dtype, device=self.clean.device)
         if h != self.sampler.max_forces:
-            raise ValueError(f"loads hold {h} forces per case, the sampler's max_forces is {self.sampler.max_forces}")
+            raise OptionsError(f"loads hold {h} forces per case, the sampler's max_forces is {self.sampler.max_forces}")
         for name, want in (
             ("clean", (N, G, 2)),
             ("curvature", (N, G, 2)),
@@ -613,9 +614,9 @@ class SyntheticSet:
         ):
             got = tuple(getattr(self, name).shape)
             if got != want:
-                raise ValueError(f"{name} must have shape {want} (N cases, G = {G} gratings), got {got}")
+                raise OptionsError(f"{name} must have shape {want} (N cases, G = {G} gratings), got {got}")
         if self.mask.dtype != torch.bool:
-            raise ValueError(f"mask must be bool, got {self.mask.dtype}")
+            raise OptionsError(f"mask must be bool, got {self.mask.dtype}")
 
     def __len__(self) -> int:
         return self.loads.s.shape[0]
@@ -695,46 +696,46 @@ class SyntheticSet:
             with np.load(path, allow_pickle=False) as npz:
                 names = set(npz.files)
                 if "meta" not in names:
-                    raise ValueError(f"{path}: not a torchrod data set (no 'meta' entry)")
+                    raise OptionsError(f"{path}: not a torchrod data set (no 'meta' entry)")
                 meta_raw = npz["meta"]
                 if meta_raw.shape != () or meta_raw.dtype.kind != "U":
-                    raise ValueError(f"{path}: not a torchrod data set ('meta' is not a JSON string)")
+                    raise OptionsError(f"{path}: not a torchrod data set ('meta' is not a JSON string)")
                 meta = json.loads(str(meta_raw))
                 if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-                    raise ValueError(f"{path}: not a torchrod data set (format tag {meta.get('format')!r})")
+                    raise OptionsError(f"{path}: not a torchrod data set (format tag {meta.get('format')!r})")
                 version = meta.get("format_version")
                 if not isinstance(version, int):
-                    raise ValueError(f"{path}: format_version is missing or not an integer ({version!r})")  # noqa: TRY004
+                    raise OptionsError(f"{path}: format_version is missing or not an integer ({version!r})")  # noqa: TRY004
                 if version > FORMAT_VERSION:
-                    raise ValueError(
+                    raise OptionsError(
                         f"{path}: format_version {version} was written by a newer torchrod "
                         f"({meta.get('torchrod_version')}); this one reads up to {FORMAT_VERSION}"
                     )
                 missing = [n for n in _ARRAYS if n not in names]
                 extra = sorted(names - set(_ARRAYS) - {"meta"})
                 if missing or extra:
-                    raise ValueError(f"{path}: corrupt data set: missing arrays {missing}, unexpected arrays {extra}")
+                    raise OptionsError(f"{path}: corrupt data set: missing arrays {missing}, unexpected arrays {extra}")
                 arrays = {n: npz[n] for n in _ARRAYS}
         except ValueError as exc:
             if str(exc).startswith(path):
                 raise
-            raise ValueError(f"{path}: corrupt or unreadable data set ({exc})") from None
+            raise OptionsError(f"{path}: corrupt or unreadable data set ({exc})") from None
         except Exception as exc:  # noqa: BLE001 -- zipfile.BadZipFile, zlib.error, EOFError, OSError, ...: a damaged file
-            raise ValueError(f"{path}: corrupt or unreadable data set ({type(exc).__name__}: {exc})") from None
+            raise OptionsError(f"{path}: corrupt or unreadable data set ({type(exc).__name__}: {exc})") from None
         if meta.get("sha256") != _digest(arrays):
-            raise ValueError(f"{path}: corrupt data set: the arrays do not match the stored sha256")
+            raise OptionsError(f"{path}: corrupt data set: the arrays do not match the stored sha256")
         try:
             stored_rod = Rod.from_dict(meta["rod"])
             sampler = LoadSampler.from_dict(meta["sampler"])
             sensor = SensorModel.from_dict(meta["sensor"])
             seed, count = int(meta["seed"]), int(meta["count"])
         except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: corrupt data set metadata ({exc})") from None
+            raise OptionsError(f"{path}: corrupt data set metadata ({exc})") from None
         _check_arrays(path, arrays, count, sampler.max_forces, stored_rod.num_gratings)
         if rod is not None:
             diff = _rod_differences(stored_rod, rod)
             if diff:
-                raise ValueError(f"{path}: the set was made for a different rod ({'; '.join(diff)})")
+                raise OptionsError(f"{path}: the set was made for a different rod ({'; '.join(diff)})")
         loads = PointForces(
             torch.from_numpy(arrays["s"]),
             torch.from_numpy(arrays["f"]),
@@ -779,14 +780,14 @@ def _check_arrays(path: str, arrays: dict[str, np.ndarray], N: int, h: int, G: i
     for name, (shape, dtype) in want.items():
         a = arrays[name]
         if a.shape != shape or a.dtype != dtype:
-            raise ValueError(
+            raise OptionsError(
                 f"{path}: inconsistent data set: {name!r} is {a.dtype}{list(a.shape)}, expected "
                 f"{np.dtype(dtype)}{list(shape)} (N = {N} cases, h = {h} forces, G = {G} gratings)"
             )
         if a.dtype == np.float64 and not np.isfinite(a).all():
-            raise ValueError(f"{path}: inconsistent data set: {name!r} holds non-finite values")
+            raise OptionsError(f"{path}: inconsistent data set: {name!r} holds non-finite values")
     if not np.array_equal(arrays["force_mask"].sum(axis=1), arrays["count"]):
-        raise ValueError(f"{path}: inconsistent data set: 'count' disagrees with 'force_mask'")
+        raise OptionsError(f"{path}: inconsistent data set: 'count' disagrees with 'force_mask'")
 
 
 def _rod_differences(a: Rod, b: Rod) -> list[str]:
@@ -832,13 +833,13 @@ def generate(
     seed = _int("seed", seed)
     batch_size = _int("batch_size", batch_size)
     if count < 0:
-        raise ValueError(f"count must be >= 0, got {count}")
+        raise OptionsError(f"count must be >= 0, got {count}")
     if batch_size < 1:
-        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        raise OptionsError(f"batch_size must be >= 1, got {batch_size}")
     if not isinstance(rod, Rod):
-        raise TypeError(f"rod must be a Rod, got {type(rod).__name__}")
+        raise TorchrodTypeError(f"rod must be a Rod, got {type(rod).__name__}")
     if not isinstance(sampler, LoadSampler) or not isinstance(sensor, SensorModel):
-        raise TypeError("sampler must be a LoadSampler and sensor a SensorModel")
+        raise TorchrodTypeError("sampler must be a LoadSampler and sensor a SensorModel")
     sampler.location_range(rod)
     dev = torch.device("cpu") if device is None else torch.device(device)
     G, h = rod.num_gratings, sampler.max_forces
@@ -935,14 +936,14 @@ class ContactModel:
         for name in ("drift_speed", "rotation_speed", "wobble", "arrival_rate", "margin", "smoothing"):
             v = _finite(name, getattr(self, name))
             if v < 0.0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+                raise OptionsError(f"{name} must be >= 0, got {getattr(self, name)!r}")
             set_(self, name, v)
         if self.wobble >= 1.0:
-            raise ValueError(f"wobble must be < 1, got {self.wobble!r}")
+            raise OptionsError(f"wobble must be < 1, got {self.wobble!r}")
         for name in ("duration", "ramp"):
             lo, hi = _pair(name, getattr(self, name))
             if lo <= 0.0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
+                raise OptionsError(f"{name} must be positive, got {getattr(self, name)!r}")
             set_(self, name, (lo, hi))
 
 
@@ -1175,10 +1176,10 @@ def generate_trajectory(
     """
     count, seed = _int("count", count), _int("seed", seed)
     if count < 1:
-        raise ValueError(f"count must be >= 1, got {count}")
+        raise OptionsError(f"count must be >= 1, got {count}")
     rate = _finite("rate", rate)
     if rate <= 0.0:
-        raise ValueError(f"rate must be positive (Hz), got {rate}")
+        raise OptionsError(f"rate must be positive (Hz), got {rate}")
     if decimals is not None:
         decimals = _int("decimals", decimals)
     frames, events = _plan(

@@ -223,10 +223,10 @@ class TrainingData:
         L, EI = rod.length, rod.bending_stiffness
         active = loads.active
         if bool((active.sum(1) == 0).any()):
-            raise ValueError("every training case needs at least one force")
+            raise OptionsError("every training case needs at least one force")
         N, G = clean.shape[0], rod.num_gratings
         if clean.shape != (N, G, 2) or loads.batch_size != N:
-            raise ValueError(
+            raise OptionsError(
                 f"clean must have shape (N, G, 2) = ({loads.batch_size}, {G}, 2), got {tuple(clean.shape)}"
             )
         if mask is None:
@@ -687,12 +687,12 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
     rod = data.rod
     if given is not None and (diff := rod.differences(given)):
         source = f"the data set {config.data}" if config.data is not None else "the training data"
-        raise ValueError(
+        raise OptionsError(
             f"--rod {config.rod} contradicts {source}, made for another rod: {'; '.join(diff)} (the set's value "
             "first); leave out --rod to train for the set's rod"
         )
     if data.max_forces != config.max_forces:
-        raise ValueError(f"the data hold up to {data.max_forces} forces but max_forces is {config.max_forces}")
+        raise OptionsError(f"the data hold up to {data.max_forces} forces but max_forces is {config.max_forces}")
     held = (
         _simulated(rod, config.validation, config.max_forces, _mix(config.seed, 1), config.noise, config.missing_prob)
         if main_rank
@@ -704,7 +704,7 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
         net, meta = load_checkpoint(config.resume)
         net_config = net.config
         if len(net_config.relative_gratings) != rod.num_gratings or not WarmStart(net, rod).matches(rod):
-            raise ValueError(f"{config.resume}: its network does not match the rod's grating layout")
+            raise OptionsError(f"{config.resume}: its network does not match the rod's grating layout")
         say(f"resuming from {config.resume} (epoch {meta['epoch']}, step {meta['step']})")
     else:
         net_config = NetConfig.for_rod(
@@ -732,7 +732,7 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
     )
     steps_per_epoch = len(sampler) // config.batch_size
     if steps_per_epoch < 1:
-        raise ValueError(f"{len(data)} cases over {world} processes make no batch of {config.batch_size}")
+        raise OptionsError(f"{len(data)} cases over {world} processes make no batch of {config.batch_size}")
     total_steps = steps_per_epoch * config.epochs
     writer = None
     if main_rank and config.logdir is not None:

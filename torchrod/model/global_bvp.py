@@ -47,6 +47,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from ..errors import OptionsError, TorchrodTypeError
 from ..loads import PointForces
 from ..rod import DEFAULT_POISSON_RATIO, Rod
 
@@ -120,18 +121,18 @@ def _force_array(rod: Rod, forces) -> np.ndarray:
     """(h, 3) rows (s [m], f_x [N], f_y [N]) sorted by s, validated against the rod."""
     if isinstance(forces, PointForces):
         if forces.batch_size != 1:
-            raise ValueError(f"one load case at a time: PointForces must have batch size 1, got {forces.batch_size}")
+            raise OptionsError(f"one load case at a time: PointForces must have batch size 1, got {forces.batch_size}")
         forces = forces.to_lists()[0]
     arr = np.asarray(list(forces) if not isinstance(forces, np.ndarray) else forces, dtype=np.float64)
     if arr.size == 0:
         return np.zeros((0, 3))
     if arr.ndim != 2 or arr.shape[1] != 3:
-        raise ValueError(f"forces must be a list of (s, fx, fy) rows, shape (h, 3), got {arr.shape}")
+        raise OptionsError(f"forces must be a list of (s, fx, fy) rows, shape (h, 3), got {arr.shape}")
     if not np.isfinite(arr).all():
-        raise ValueError(f"forces must be finite, got {arr.tolist()}")
+        raise OptionsError(f"forces must be finite, got {arr.tolist()}")
     bad = (arr[:, 0] < 0.0) | (arr[:, 0] > rod.length)
     if bad.any():
-        raise ValueError(f"force locations must lie in [0, L = {rod.length}] m, got {arr[bad, 0].tolist()}")
+        raise OptionsError(f"force locations must lie in [0, L = {rod.length}] m, got {arr[bad, 0].tolist()}")
     return arr[np.argsort(arr[:, 0], kind="stable")]
 
 
@@ -344,9 +345,9 @@ def _default_query(rod: Rod, at) -> np.ndarray:
         return np.unique(np.concatenate(([0.0], rod.gratings, [rod.length])))
     q = np.asarray(at, dtype=np.float64).reshape(-1)
     if not np.isfinite(q).all() or (q < 0.0).any() or (q > rod.length).any():
-        raise ValueError(f"sample positions must lie in [0, L = {rod.length}] m, got {q.tolist()}")
+        raise OptionsError(f"sample positions must lie in [0, L = {rod.length}] m, got {q.tolist()}")
     if (np.diff(q) < 0).any():
-        raise ValueError("sample positions must be non-decreasing")
+        raise OptionsError("sample positions must be non-decreasing")
     return q
 
 
@@ -490,13 +491,13 @@ class ShootingSolver:
         continuation: bool = True,
     ) -> None:
         if not isinstance(rod, Rod):
-            raise TypeError(f"rod must be a Rod, got {type(rod).__name__}")
+            raise TorchrodTypeError(f"rod must be a Rod, got {type(rod).__name__}")
         if not isinstance(nodes, (int, np.integer)) or nodes < 2:
-            raise ValueError(f"nodes must be an integer >= 2, got {nodes!r}")
+            raise OptionsError(f"nodes must be an integer >= 2, got {nodes!r}")
         if jacobian not in ("fd", "dp"):
-            raise ValueError(f"jacobian must be 'fd' or 'dp', got {jacobian!r}")
+            raise OptionsError(f"jacobian must be 'fd' or 'dp', got {jacobian!r}")
         if scheme not in ("exact", "nodes"):
-            raise ValueError(f"scheme must be 'exact' or 'nodes', got {scheme!r}")
+            raise OptionsError(f"scheme must be 'exact' or 'nodes', got {scheme!r}")
         self.rod = rod
         self.nodes = int(nodes)
         self.jacobian = jacobian

@@ -35,6 +35,7 @@ from typing import Any
 
 import torch
 
+from ..errors import OptionsError
 from ..kernels.precurved import EXACT_MAX_STEP, FIT_MAX_STEP
 from ..loads import PointForces
 from ..rod import Rod
@@ -119,7 +120,7 @@ def march(
         u (R, Q, 3) body-frame curvature [1/m]; n (R, Q, 3) body-frame internal force [N] (proximal side).
     """
     if not (isinstance(max_step, (int, float)) and math.isfinite(max_step) and max_step > 0.0):
-        raise ValueError(f"max_step must be a positive length [m], got {max_step!r}")
+        raise OptionsError(f"max_step must be a positive length [m], got {max_step!r}")
     R, h = s.shape
     Q = query.shape[-1]
     dtype, device = s.dtype, s.device
