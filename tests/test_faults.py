@@ -4,6 +4,7 @@ hang or a traceback."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -410,3 +411,72 @@ def test_a_damaged_kernel_cache_entry_is_compiled_again(tmp_path, part):
     assert second.stdout == first.stdout
     third = run()
     assert third.returncode == 0 and third.stdout == first.stdout and "damaged" not in third.stderr
+
+
+@contextlib.contextmanager
+def _held_cache_lock(cache_root):
+    """The CPU kernel cache's lock under ``cache_root``, held by this process (as a compiling process stopped by
+    Ctrl-Z holds it)."""
+    import fcntl
+
+    from torchrod.kernels import targets
+
+    old = os.environ.get("TORCHROD_CACHE_DIR")
+    os.environ["TORCHROD_CACHE_DIR"] = str(cache_root)
+    try:
+        directory = targets._cache_directory("cpu")
+    finally:
+        if old is None:
+            del os.environ["TORCHROD_CACHE_DIR"]
+        else:
+            os.environ["TORCHROD_CACHE_DIR"] = old
+    with open(directory / ".lock", "a+") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def test_a_locked_kernel_cache_is_waited_for_with_a_word_and_a_bound(tmp_path):
+    """Another process holding the cache's lock (stopped while compiling, say): the run says what it waits for,
+    gives up after the bound, compiles the kernels itself and answers as a run with the cache free does."""
+    env = {**ENV, "TORCHROD_CACHE_DIR": str(tmp_path), "TORCHROD_LOCK_WAIT": "2"}
+    with _held_cache_lock(tmp_path):
+        began = time.monotonic()
+        waited = subprocess.run([sys.executable, "-c", NETWORK_GUESS], capture_output=True, text=True, env=env,
+                                timeout=300, cwd=ROOT)  # fmt: skip
+        took = time.monotonic() - began
+    assert waited.returncode == 0, waited.stderr[-2000:]
+    assert "waiting for another torchrod process that is compiling the kernels" in waited.stderr
+    assert "still locked after 2 s: compiling the kernels here" in waited.stderr
+    assert took < 120
+    free = subprocess.run([sys.executable, "-c", NETWORK_GUESS], capture_output=True, text=True, env=env,
+                          timeout=300, cwd=ROOT)  # fmt: skip
+    assert free.returncode == 0 and free.stdout == waited.stdout and "waiting" not in free.stderr
+
+
+def test_a_run_waiting_for_the_cache_lock_stops_on_sigterm(tmp_path):
+    """Waiting for a locked cache, ``torchrod estimate`` ends promptly on SIGTERM (143), without a traceback."""
+    readings = tmp_path / "r.jsonl"
+    readings.write_text("".join(_lines(1)))
+    env = {**ENV, "TORCHROD_CACHE_DIR": str(tmp_path / "cache"), "TORCHROD_LOCK_WAIT": "120"}
+    (tmp_path / "cache").mkdir()
+    with _held_cache_lock(tmp_path / "cache"):
+        command = _torchrod("estimate", "--rod", "nitinol290", "--noise", "0.05", str(readings))
+        pipe = subprocess.PIPE
+        proc = subprocess.Popen(command, stdout=pipe, stderr=pipe, text=True, env=env, cwd=ROOT)
+        deadline = time.monotonic() + 120
+        seen = ""
+        while "waiting for another torchrod process" not in seen and time.monotonic() < deadline:
+            line = proc.stderr.readline()
+            if not line:
+                break
+            seen += line
+        assert "waiting for another torchrod process" in seen, seen
+        sent = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+        assert time.monotonic() - sent < 10, "SIGTERM was not answered promptly"
+    assert proc.returncode in (143, -signal.SIGTERM), (proc.returncode, err[-2000:])
+    assert "Traceback" not in err

@@ -617,6 +617,9 @@ def until_interrupted(command: Callable[[], int]) -> int:
         try:
             return command()
         except KeyboardInterrupt as exc:
+            from ..kernels.targets import note_interrupt
+
+            note_interrupt()  # (an interrupted run ends now, not when a first compile would)
             return interrupt_status(exc)
 
 

@@ -63,6 +63,7 @@ import torch
 from ..errors import OptionsError, TorchrodTypeError
 from ..estimate.noise import NoiseLearning, RunningNoise
 from ..estimate.status import STATUSES
+from ..kernels.targets import note_interrupt
 from ..loads import PointForces
 from .readings import Reading, stack_readings, to_reading
 
@@ -808,7 +809,9 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
             if interrupted is not None:
                 break
         if interrupted is not None:
-            # Flush: everything already taken from the source (a second interrupt is not caught).
+            # Flush: everything already taken from the source (a second interrupt is not caught), waiting neither
+            # for the kernel cache's lock nor, at exit, for a compile.
+            note_interrupt()
             state.drain()
             while flight:
                 yield from state.take(flight)

@@ -131,21 +131,78 @@ def cache_root() -> Path:
     return Path(base) / "torchrod"
 
 
+LOCK_WAIT = 300.0
+"""[s] How long a process waits for another that holds the kernel cache's lock (compiling the kernels into it)
+before it compiles them itself without waiting (the cache's own writes are atomic). ``$TORCHROD_LOCK_WAIT``
+overrides it; the answers are the same either way."""
+
+LOCK_POLL = 0.2
+"""[s] How often a waiting process tries the lock again (and so how soon it answers a signal)."""
+
+
+def _lock_wait() -> float:
+    try:
+        return max(0.0, float(os.environ.get("TORCHROD_LOCK_WAIT", LOCK_WAIT)))
+    except ValueError:
+        return LOCK_WAIT
+
+
 @contextlib.contextmanager
 def _file_lock(path: Path):
     """An exclusive lock on ``path`` between processes (POSIX; elsewhere no lock: the cache's own writes are
-    atomic, a second process only compiles too)."""
+    atomic, a second process only compiles too). A lock held by another process is said once on stderr and tried
+    again every :data:`LOCK_POLL` seconds (so Ctrl-C and SIGTERM stop the wait), for at most :data:`LOCK_WAIT`
+    seconds (a process holding it stopped, by Ctrl-Z say, would hold it for ever): then the work goes on without
+    it, and says so."""
     try:
         import fcntl
     except ImportError:  # pragma: no cover - not POSIX
         yield
         return
     with open(path, "a+") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
+        held = _try_lock(fcntl, handle)
+        if not held and _INTERRUPTED:
+            _say(f"the kernel cache {path.parent} is locked: after the interrupt, compiling the kernels here")
+        elif not held:
+            wait = _lock_wait()
+            _say(
+                f"waiting for another torchrod process that is compiling the kernels into {path.parent} (up to "
+                f"{wait:.0f} s; Ctrl-C stops)"
+            )
+            deadline = time.monotonic() + wait
+            try:
+                while not held and time.monotonic() < deadline:
+                    time.sleep(LOCK_POLL)
+                    held = _try_lock(fcntl, handle)
+            except BaseException:  # an interrupt: what the run still answers on its way out waits no more
+                _interrupted()
+                raise
+            if not held:
+                _say(f"the kernel cache {path.parent} is still locked after {wait:.0f} s: compiling the kernels here")
         try:
             yield
         finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
+            if held:
+                fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+_INTERRUPTED = False
+"""Set once the run was interrupted (in a wait for the lock, or :func:`note_interrupt`): no lock is waited for
+after that, so the readings a run answers on its way out do not wait either."""
+
+
+def _interrupted() -> None:
+    global _INTERRUPTED
+    _INTERRUPTED = True
+
+
+def _try_lock(fcntl: Any, handle: Any) -> bool:
+    """Whether the exclusive lock on ``handle`` was taken now (without waiting)."""
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    return True
 
 
 def _say(message: str) -> None:
@@ -357,11 +414,29 @@ def die_with_parent(parent: int) -> None:
 
 
 def _finish(child: subprocess.Popen[bytes]) -> None:
-    """At the parent's exit: a compile still running is waited for, so the cache is filled for the next run."""
-    if child.poll() is None:
-        _say("finishing the compile of the kernels before exiting (once: later runs load them)")
-        with contextlib.suppress(KeyboardInterrupt):
-            child.wait()
+    """At the parent's exit: a compile still running is waited for, so the cache is filled for the next run; after
+    an interrupt (:func:`note_interrupt`) it is stopped instead, and said, so that the run ends at once."""
+    if child.poll() is not None:
+        return
+    if _INTERRUPTED:
+        with contextlib.suppress(OSError):
+            child.terminate()
+        try:
+            child.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(OSError):
+                child.kill()
+        _say("the kernels' compile stopped with the run; a later run compiles them again")
+        return
+    _say("finishing the compile of the kernels before exiting (once: later runs load them)")
+    with contextlib.suppress(KeyboardInterrupt):
+        child.wait()
+
+
+def note_interrupt() -> None:
+    """The run was interrupted (Ctrl-C, SIGTERM) and is answering what it read on its way out: from now on no lock
+    of the kernel cache is waited for, and a background compile is stopped at exit instead of waited for."""
+    _interrupted()
 
 
 def _cache_directory(target: str, extra: str = "") -> Path | None:

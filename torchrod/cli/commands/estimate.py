@@ -360,7 +360,10 @@ class _Answers:
         except KeyboardInterrupt:
             # Everything read before the interrupt: the lines already in memory too (when the interrupt came
             # while estimating; one that came inside the reader ended it), then the pending readings. A second
-            # interrupt is not caught.
+            # interrupt is not caught. No wait for the kernel cache's lock, nor for a compile, from now on.
+            from ...kernels.targets import note_interrupt
+
+            note_interrupt()
             readings.halt()
             self.pending.extend(readings)
             self.flush()
