@@ -187,7 +187,7 @@ def read_jig_readings(
     :data:`torchrod.io.readings.FORMATS`; every line must be usable (a calibration from a silently thinned set
     would mislead): ``ReadingError`` naming the bad lines otherwise. ``max_line``: the longest line read [bytes]
     (None: the rod's, :func:`torchrod.io.readings.line_limit`)."""
-    from .io.readings import iter_records, wavelength_shifts, wavelength_values
+    from .io.readings import iter_records, unusable_lines, wavelength_shifts, wavelength_values
 
     fibre = rod.fibre
     if fibre is None or (fibre.wavelength is None and fibre.num_cores == 0):
@@ -225,8 +225,7 @@ def read_jig_readings(
         rows.append(record.value)
         ids.append(record.id)
     if bad:
-        more = f" (and {len(bad) - 5} more)" if len(bad) > 5 else ""
-        raise ReadingError(f"{name}: {len(bad)} unusable line(s): " + "; ".join(bad[:5]) + more)
+        raise unusable_lines(name, bad)
     if not rows:
         raise ReadingError(f"{name}: no jig readings")
     kinds = {raw for _, raw, _ in rows}

@@ -20,7 +20,7 @@ from ..errors import ReadingError
 from ..estimate.calibration import CalibrationData
 from ..loads import PointForces
 from ..rod import Rod
-from .readings import as_number, describe, iter_records
+from .readings import as_number, describe, iter_records, unusable_lines
 from .readings import parse_reading as parse_one
 
 __all__ = ["parse_reading", "read_readings"]
@@ -88,8 +88,7 @@ def read_readings(
         forces.append(known)
         ids.append(record.id)
     if bad:
-        more = f" (and {len(bad) - 5} more)" if len(bad) > 5 else ""
-        raise ReadingError(f"{name}: {len(bad)} unusable line(s): " + "; ".join(bad[:5]) + more)
+        raise unusable_lines(name, bad)
     if not rows:
         raise ReadingError(f"{name}: no readings")
     present = torch.tensor([[p is not None for p in r] for r in rows], dtype=torch.bool, device=device)

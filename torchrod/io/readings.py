@@ -132,6 +132,7 @@ __all__ = [
     "to_reading",
     "wavelength_curvature",
     "wavelength_shifts",
+    "unusable_lines",
     "wavelength_values",
 ]
 
@@ -1453,3 +1454,10 @@ def line_limit(num_gratings: int, fibre: Any = None) -> int:
     cores = len(getattr(fibre, "cores", None) or ())
     values = num_gratings * (max(2, cores) + 1)
     return max(MIN_LINE_BYTES, LINE_BYTES_PER_VALUE * values)
+
+
+def unusable_lines(name: str, bad: list[str]) -> ReadingError:
+    """The error of a file whose every line must be usable (a calibration's): how many lines were not, and the
+    first five of their error lines."""
+    more = f" (and {len(bad) - 5} more)" if len(bad) > 5 else ""
+    return ReadingError(f"{name}: {len(bad)} unusable line(s): " + "; ".join(bad[:5]) + more)

@@ -58,6 +58,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import Any
 
 from . import add_input_options, add_sensor_options, rod_help, sensor_rod
 
@@ -158,15 +159,7 @@ def run(args: argparse.Namespace) -> int:
     for line in summary(result, rod):
         if not line.startswith("problem: "):
             print(line, file=sys.stderr)
-    if result.problems and not args.force:
-        for text in result.problems:
-            print(f"torchrod calibrate: refused: {text}", file=sys.stderr)
-        print("torchrod calibrate: no rod written (--force writes it anyway)", file=sys.stderr)
-        return 1
-    for text in result.problems:
-        print(f"torchrod calibrate: warning (forced): {text}", file=sys.stderr)
-    _write(result.apply(base, force=args.force), args.out)
-    return 0
+    return _refuse_or_write("torchrod calibrate", result.problems, args, lambda: result.apply(base, force=args.force))
 
 
 def _fibre(args: argparse.Namespace, rod, base) -> int:
@@ -178,12 +171,18 @@ def _fibre(args: argparse.Namespace, rod, base) -> int:
     result = calibrate_fibre(rod, data, tolerance)
     for line in report(result, data):
         print(f"torchrod calibrate --fibre: {line}", file=sys.stderr)
-    if result.problems and not args.force:
-        for text in result.problems:
-            print(f"torchrod calibrate --fibre: refused: {text}", file=sys.stderr)
-        print("torchrod calibrate --fibre: no rod written (--force writes it anyway)", file=sys.stderr)
+    return _refuse_or_write("torchrod calibrate --fibre", result.problems, args, lambda: result.apply(base))
+
+
+def _refuse_or_write(who: str, problems: Any, args: argparse.Namespace, calibrated: Any) -> int:
+    """Exit status 1 and no rod written while the calibration has ``problems`` (each said), unless ``--force``
+    (then each is a warning); else the rod ``calibrated()`` makes is written to ``--out`` and 0."""
+    if problems and not args.force:
+        for text in problems:
+            print(f"{who}: refused: {text}", file=sys.stderr)
+        print(f"{who}: no rod written (--force writes it anyway)", file=sys.stderr)
         return 1
-    for text in result.problems:
-        print(f"torchrod calibrate --fibre: warning (forced): {text}", file=sys.stderr)
-    _write(result.apply(base), args.out)
+    for text in problems:
+        print(f"{who}: warning (forced): {text}", file=sys.stderr)
+    _write(calibrated(), args.out)
     return 0
