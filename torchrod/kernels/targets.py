@@ -356,7 +356,9 @@ class Compiled:
             self._compile_in_child()  # (before the cache's lock is taken here: the child takes it)
             root = cache_root()
             lock: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
-            if self.directory is not None:
+            # The lock is for compiling: kernels already in the cache are loaded without it (the cache's index is
+            # written last, and atomically), so a run never waits for another's compile of other kernels.
+            if self.directory is not None and not (self._cached() and not self._repaired):
                 lock = _file_lock(self.directory / ".lock")
             damaged = False
             with lock:  # (the cache looked at once the lock is held: another process may just have filled it)
