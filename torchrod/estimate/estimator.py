@@ -48,11 +48,6 @@ first grating's value), fitted with a fixed count and answered ``misfit``, is se
 count's answer (:meth:`Estimator._fixed_count_escape`)."""
 
 
-def _put(old: torch.Tensor, idx: torch.Tensor, better: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
-    """``old`` with its rows ``idx[better]`` replaced by ``new[better]``."""
-    return old.index_put((idx[better],), new[better].to(old.dtype))
-
-
 @dataclass(frozen=True)
 class EstimateResult:
     """Estimates for B readings, batch first (W = the options' ``width``: max_forces, or num_forces if fixed).
@@ -602,21 +597,9 @@ class Estimator:
         # (A row without a usable answer starts from no load: it cannot win, ``better`` leaves it out.)
         again = self.estimate(c, m, options=opts, extra_starts={h: PointForces(s, f)}, _escape=False)
         better = usable.to(again.loss.device) & (again.loss < result.loss[idx])
-        fields: dict[str, Any] = {}
-        for field in dataclasses.fields(result):
-            old = getattr(result, field.name)
-            new = getattr(again, field.name)
-            if isinstance(old, PointForces):
-                fields[field.name] = PointForces(
-                    _put(old.s, idx, better, new.s),
-                    _put(old.f, idx, better, new.f),
-                    _put(old.active, idx, better, new.active),
-                )
-            else:
-                fields[field.name] = _put(old, idx, better, new)
+        kept = _spliced(result, idx[better], again[better])
         spent = result.evaluations[idx] + free.evaluations + again.evaluations
-        fields["evaluations"] = result.evaluations.index_put((idx,), spent)
-        return EstimateResult(**fields)
+        return dataclasses.replace(kept, evaluations=result.evaluations.index_put((idx,), spent))
 
     # ------------------------------------------------------------------ stages
     def _guesses(
@@ -846,16 +829,18 @@ def _per_reading(
 
 
 def _spliced(result: EstimateResult, idx: torch.Tensor, rows: EstimateResult) -> EstimateResult:
-    """``result`` with its readings ``idx`` replaced by ``rows``'s."""
+    """``result`` with its readings ``idx`` replaced by ``rows``'s (in ``result``'s dtypes)."""
+
+    def put(old: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
+        return old.index_put((idx,), new.to(old.dtype))
+
     fields: dict[str, Any] = {}
     for field in dataclasses.fields(result):
         old, new = getattr(result, field.name), getattr(rows, field.name)
         if isinstance(old, PointForces):
-            fields[field.name] = PointForces(
-                old.s.index_put((idx,), new.s), old.f.index_put((idx,), new.f), old.active.index_put((idx,), new.active)
-            )
+            fields[field.name] = PointForces(put(old.s, new.s), put(old.f, new.f), put(old.active, new.active))
         else:
-            fields[field.name] = old.index_put((idx,), new.to(old.dtype))
+            fields[field.name] = put(old, new)
     return EstimateResult(**fields)
 
 

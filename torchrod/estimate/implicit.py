@@ -124,6 +124,5 @@ def through_optimum(
     free = active[..., None] & torch.stack(
         [~on_bound(rod, s.detach()), torch.ones_like(active), torch.ones_like(active)], dim=-1
     )
-    free = free & active[..., None]
     out = _Optimum.apply(u, theta, free, present, _Fit(rod, step_angle))
     return out[..., 0], out[..., 1:]
