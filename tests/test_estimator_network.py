@@ -286,16 +286,55 @@ def test_a_network_guess_starts_only_the_readings_that_find_its_count_likely(tru
     opts = EstimatorOptions(noise=noise, trust_guesses=trust)
     batch = Estimator(rod, opts, warm_start=_FixedGuess(probs, forces)).estimate(kappa)
     for b in range(len(cases)):
-        likely = [h for h in forces if probs[b, h - 1] >= 0.01]
+        if trust:  # trusted: the most probable count (the first at a tie) and the one below, whatever p is
+            top = int(probs[b].argmax()) + 1
+            likely = [h for h in forces if h in (top, top - 1)]
+        else:
+            likely = [h for h in forces if probs[b, h - 1] >= 0.01]
         kept = {h: tr.PointForces(forces[h].s[b : b + 1], forces[h].f[b : b + 1]) for h in likely}
-        alone = Estimator(rod, opts, warm_start=_FixedGuess(torch.ones(1, 3), kept)).estimate(kappa[b : b + 1])
-        assert batch.statuses[b] == alone.statuses[0], b
-        assert int(batch.num_forces[b]) == int(alone.num_forces[0]), b
-        assert torch.allclose(batch.forces.s[b], alone.forces.s[0], atol=1e-7, equal_nan=True), b
-        assert int(batch.evaluations[b]) == int(alone.evaluations[0]), b
-    # Every guess used (p = 0) is another search, with more evaluations.
-    every = Estimator(rod, dataclasses.replace(opts, guess_probability=0.0), warm_start=_FixedGuess(probs, forces))
-    assert int(every.estimate(kappa).evaluations.sum()) > int(batch.evaluations.sum())
+        one = torch.zeros(1, 3, dtype=torch.float64)
+        one[0, max(likely) - 1] = 1.0  # the same counts chosen again for the reading alone
+        alone = Estimator(rod, opts, warm_start=_FixedGuess(one if trust else torch.ones(1, 3), kept))
+        answer = alone.estimate(kappa[b : b + 1])
+        assert batch.statuses[b] == answer.statuses[0], b
+        assert int(batch.num_forces[b]) == int(answer.num_forces[0]), b
+        assert torch.allclose(batch.forces.s[b], answer.forces.s[0], atol=1e-7, equal_nan=True), b
+        assert int(batch.evaluations[b]) == int(answer.evaluations[0]), b
+    if not trust:  # every guess used (p = 0) is another search, with more evaluations
+        every = Estimator(rod, dataclasses.replace(opts, guess_probability=0.0), warm_start=_FixedGuess(probs, forces))
+        assert int(every.estimate(kappa).evaluations.sum()) > int(batch.evaluations.sum())
+
+
+def test_trusted_guesses_fit_only_the_most_probable_count_and_the_one_below():
+    """A trusted network amortises the search: its most probable count and the one below are fitted from its
+    guesses alone, a count below those is not fitted at all (NaN loss), the count above is scanned for as the full
+    search does; clean readings get the full search's count and forces, for fewer evaluations."""
+    rod = tr.presets.nitinol290()
+    cases = [
+        [(0.1, -0.5, 0.4), (0.22, 0.2, 0.3), (0.27, 0.3, -0.2)],
+        [(0.08, 0.3, 0.2), (0.16, -0.4, 0.1), (0.25, 0.4, 0.3)],
+    ]
+    kappa, loads = _readings(rod, cases)
+    kappa = kappa + 0.02 * torch.randn(kappa.shape, generator=torch.Generator().manual_seed(3), dtype=kappa.dtype)
+    probs = torch.tensor([[0.0, 0.0, 1.0]] * len(cases), dtype=torch.float64)
+    # Guesses near the truth for 3 forces, and the 2 forces nearest the tip for 2.
+    forces = {
+        3: tr.PointForces(loads.s + 0.003, loads.f * 1.05),
+        2: tr.PointForces(loads.s[:, 1:], loads.f[:, 1:]),
+        1: tr.PointForces(loads.s[:, 2:], loads.f[:, 2:]),
+    }
+    opts = EstimatorOptions(noise=0.02)
+    trusted = Estimator(rod, dataclasses.replace(opts, trust_guesses=True), warm_start=_FixedGuess(probs, forces))
+    full = Estimator(rod, opts).estimate(kappa)
+    got = trusted.estimate(kappa)
+    assert got.losses_by_count[:, 1].isnan().all()  # count 1: below the one below the network's count
+    assert not got.losses_by_count[:, 2:].isnan().any()
+    assert torch.equal(got.num_forces, full.num_forces) and (got.num_forces == 3).all()
+    # The same minimum within one standard deviation (a force on a grating sits in a flat valley of the loss).
+    assert torch.allclose(got.loss, full.loss, rtol=1e-3)
+    assert ((got.forces.s - full.forces.s).abs() <= full.std[..., 0]).all()
+    assert ((got.forces.f - full.forces.f).abs() <= full.std[..., 1:]).all()
+    assert (got.evaluations < full.evaluations).all()
 
 
 def test_guess_probability_is_a_probability():

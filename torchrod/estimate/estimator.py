@@ -25,6 +25,7 @@ import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -502,7 +503,9 @@ class Estimator:
         device = curvature.device
         B = mask.shape[0]
         # Every count's guesses, however improbable the network finds the count: each count is fitted from them.
-        blocks = self._guesses(curvature, mask, dataclasses.replace(opts, guess_probability=0.0), extra_starts)
+        blocks = self._guesses(
+            curvature, mask, dataclasses.replace(opts, guess_probability=0.0, trust_guesses=False), extra_starts
+        )
         needed = [h for h in opts.counts if h > 0]
         missing = sorted(set(needed) - {h for h, _, _, _ in blocks})
         if missing:
@@ -639,9 +642,18 @@ class Estimator:
         def gate(probs: Any) -> tuple[Any, list[bool]]:
             # Where each count's guess starts a fit, (B, H) (None: everywhere), and whether it does anywhere, per
             # count: where the network gives the count at least guess_probability (a tensor or a NumPy array).
-            if probs is None or opts.starts <= 0 or opts.guess_probability <= 0:
+            # Trusted, only the network's most probable count and the one below it: the kernels fit those alone,
+            # and the count tests need the one below.
+            if probs is None or opts.starts <= 0 or (opts.guess_probability <= 0 and not opts.trust_guesses):
                 return None, []
-            likely = probs >= opts.guess_probability
+            if opts.trust_guesses:
+                top = probs.argmax(1)[:, None]
+                h = (np.arange if isinstance(probs, np.ndarray) else partial(torch.arange, device=device))(
+                    probs.shape[1]
+                )[None, :]
+                likely = (h == top) | (h == top - 1)
+            else:
+                likely = probs >= opts.guess_probability
             return likely, likely.any(0).tolist()  # (one transfer for every count)
 
         if extra_starts:

@@ -167,8 +167,10 @@ class EstimatorOptions:
         max_step_angle: accuracy of the fitting model: the bound on (local rate) x (step) of its steps.
         condition_limit: ``poorly_determined`` above this condition number.
         trust_guesses: a count with guesses (a warm-start network's, ``extra_starts``) is first fitted from them
-            alone; the scan's starts serve only a fit found suspicious. Set by
-            :func:`torchrod.load_estimator` when the network's recorded quality is trusted.
+            alone; the scan's starts serve only a fit found suspicious. A network's guesses are then used for its
+            most probable count and the one below only (``guess_probability`` aside), and the counts below those
+            are not fitted: the network amortises the search. Set by :func:`torchrod.load_estimator` when the
+            network's recorded quality is trusted.
         guess_probability: a network's guess of h forces starts a fit only where the network gives h at least this
             probability (0: every guess is used). Ignored with ``starts=0``.
         relative: readings of a precurved rod are the change of curvature from the unloaded shape, u - u*.

@@ -153,6 +153,7 @@ SPEC: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
     },
     "search": {  # the search's bookkeeping: counts fitted, scans kept, exchange starts, stop rules, the report
         "fitted": (("R",), "b"), "have_scan": (("R",), "b"), "unscanned": (("R",), "b"), "losses": (("R",), "f"),
+        "gain": (("R",), "f"),
         "near_limit": (("R",), "f"), "sc_s": (("R", "NT", "W"), "f"), "sc_f": (("R", "NT", "W", 2), "f"),
         "sc_int": (("R", "NT", "W"), "i"), "sc_pred": (("R", "NT"), "f"), "ex_s": (("TE", "W"), "f"),
         "ex_f": (("TE", "W", 2), "f"), "ex_int": (("TE", "W"), "i"), "ex_pred": (("TE",), "f"),

@@ -9,7 +9,8 @@ For counts h = 1, ..., H in turn, each from the one below (:func:`fit_counts`):
 * **First fits**: the guesses (a warm-start network's, the caller's) and the scan's best start, fitted side by
   side (:func:`solve_rows`); a row that another row of the reading has joined in the same intervals with a lower
   loss stops (its *twin*: one force has one minimum per interval, and more forces are taken to behave alike);
-  the best is finished on the exact model. Trusted guesses start alone.
+  the best is finished on the exact model. Trusted guesses start alone, with no scan, and a count below the largest
+  they give that has none of its own is not fitted (the network's count probabilities stand for those fits).
 
 Then the fits that matter are searched further where they look suspicious (unconverged, a loss above a quantile
 of a correct fit's, or a force on a grating with a loss above a lower one): the chosen count's, those of smaller
@@ -524,6 +525,19 @@ def load_guess(k, i, h, gs, gf):
         rows.held[i, j] = False
 
 
+def scan_from(k, h):
+    """The scan for a force added to the best fit of h - 1 forces: its starts for h forces, and the loss it
+    promises to take away (``gain[h]``)."""
+    rows = rows_of(k)
+    sw = search_of(k)
+    opt = k.opt
+    T = opt.starts if opt.starts > 1 else 1
+    base_loss = scan_model(k, rows.s[h - 1], rows.f[h - 1], rows.interval[h - 1], h - 1, h - 1)
+    sw.gain[h] = scan_starts(k, rows.s[h - 1], rows.f[h - 1], h - 1, base_loss, T, opt.max_force_step, sw.sc_s[h],
+                             sw.sc_f[h], sw.sc_int[h], sw.sc_pred[h], 0, 1)  # fmt: skip
+    sw.have_scan[h] = True
+
+
 def fit_counts(k, gs, gf, guse, gcount):
     """The best fit of each count 0..H (module docstring). Guesses: block g holds gcount[g] forces (gs (K, H) [m],
     gf (K, H, 2) [N]) and is used where guse[g]."""
@@ -531,7 +545,6 @@ def fit_counts(k, gs, gf, guse, gcount):
     sw = search_of(k)
     opt = k.opt
     H = opt.max_forces
-    T = opt.starts if opt.starts > 1 else 1
     rule_settle = opt.settle and opt.fixed < 0 and opt.starts > 0
     rows.count[0] = 0
     finish(k, 0, 0)
@@ -540,6 +553,13 @@ def fit_counts(k, gs, gf, guse, gcount):
     rows.steps[0] = 0
     sw.fitted[0] = True
     sw.losses[0] = rows.loss[0]
+    # Trusted guesses amortise the search: a count they give is fitted from them alone with no scan, and a count
+    # below the largest they give, without a guess of its own, is not fitted at all.
+    top_guess = 0
+    if opt.trusted:
+        for g in range(gcount.shape[0]):
+            if guse[g] and gcount[g] > top_guess:
+                top_guess = gcount[g]
     is_open = True
     for h in range(1, H + 1):
         sw.fitted[h] = False
@@ -550,22 +570,23 @@ def fit_counts(k, gs, gf, guse, gcount):
         if is_open and late(k):
             k.info[0].cut = True
             is_open = False
-        if is_open and opt.starts > 0:
-            base_loss = scan_model(k, rows.s[h - 1], rows.f[h - 1], rows.interval[h - 1], h - 1, h - 1)
-            gain = scan_starts(k, rows.s[h - 1], rows.f[h - 1], h - 1, base_loss, T, opt.max_force_step, sw.sc_s[h],
-                               sw.sc_f[h], sw.sc_int[h], sw.sc_pred[h], 0, 1)  # fmt: skip
-            sw.have_scan[h] = True
-            if rule_settle and settled(k, sw.losses, h, gain):
+        nr = 0
+        if is_open:
+            for g in range(gcount.shape[0]):
+                if gcount[g] == h and guse[g]:
+                    load_guess(k, H + 1 + nr, h, gs[g], gf[g])
+                    nr += 1
+        guessed = opt.trusted and nr > 0
+        if is_open and opt.starts > 0 and h < top_guess and not guessed:
+            continue
+        if is_open and opt.starts > 0 and not guessed:
+            scan_from(k, h)
+            if rule_settle and settled(k, sw.losses, h, sw.gain[h]):
                 is_open = False
         if not is_open:
             continue
-        nr = 0
-        for g in range(gcount.shape[0]):
-            if gcount[g] == h and guse[g]:
-                load_guess(k, H + 1 + nr, h, gs[g], gf[g])
-                nr += 1
         if opt.starts > 0:
-            if nr > 0 and opt.trusted:
+            if guessed:
                 sw.unscanned[h] = True  # trusted guesses start alone
             else:
                 load_row(k, H + 1 + nr, h, sw.sc_s[h, 0], sw.sc_f[h, 0], sw.sc_int[h, 0])
@@ -585,12 +606,14 @@ def search_further(k):
     for h in range(2, H + 1):
         # Above a chosen count whose fit came from trusted guesses alone: the scan's best start too, as the full
         # search fits it (a guess in a wrong local minimum there would keep the count too small).
-        if not sw.unscanned[h] or not sw.have_scan[h]:
+        if not sw.unscanned[h] or not sw.fitted[h - 1]:
             continue
         if sw.fitted[h] and choose(k) == h - 1:
             if late(k):
                 k.info[0].cut = True
                 continue
+            if not sw.have_scan[h]:
+                scan_from(k, h)
             load_row(k, H + 1, h, sw.sc_s[h, 0], sw.sc_f[h, 0], sw.sc_int[h, 0])
             try_starts(k, h, 1)
     chosen = choose(k)
@@ -602,7 +625,8 @@ def search_further(k):
         loss_limit, kink_limit = suspect_limits(k, h)
         cand = sw.fitted[h] and suspicious(k, h, loss_limit, kink_limit)
         near = rows.loss[h] <= sw.near_limit[h]
-        most = rows.loss[h] <= opt.explained * rows.loss[h - 1]
+        # (a count fitted from trusted guesses alone is not searched further for explaining most of the one below)
+        most = rows.loss[h] <= opt.explained * rows.loss[h - 1] and not sw.unscanned[h]
         forced = (chosen == h + 1 and doubt) or (chosen == h - 1 and misfit)
         cand = (cand and (chosen == h or (chosen > h and (near or most)))) or (sw.fitted[h] and forced)
         wide = chosen == h or forced
@@ -614,6 +638,8 @@ def search_further(k):
         if forced:  # next to a doubtful or unexplained answer every fit is suspicious
             loss_limit = 0.0
             kink_limit = 0.0
+        if not sw.have_scan[h] and sw.fitted[h - 1] and opt.starts > 1:
+            scan_from(k, h)  # a count fitted from trusted guesses alone, scanned once it looks suspicious
         if sw.have_scan[h] and opt.starts > 1:
             for t in range(1, opt.starts):
                 load_row(k, H + t, h, sw.sc_s[h, t], sw.sc_f[h, t], sw.sc_int[h, t])
