@@ -167,3 +167,24 @@ def test_the_pacers_child_runs_this_torchrod_not_the_one_in_its_working_director
     assert subprocess.run([sys.executable, "-m", "torchrod", "--version"], cwd=tmp_path).returncode != 0
     out = subprocess.run(child_command("--version"), cwd=tmp_path, capture_output=True, text=True)
     assert out.returncode == 0 and out.stdout.startswith("torchrod "), out.stderr
+
+
+def test_bench_backlog_runs_this_version_beside_another_checkout(capsys, tmp_path):
+    """The backlog bench streams the same readings through this version and through a checkout given with
+    ``--against`` (here a folder that imports this package), and reports both rates, their ratio and statuses."""
+    import torchrod
+
+    other = tmp_path / "other"
+    (other / "torchrod").mkdir(parents=True)
+    here = os.path.dirname(os.path.dirname(torchrod.__file__))
+    # A checkout whose `python -m torchrod` runs this package's CLI: the bench cannot tell it from another version.
+    (other / "torchrod" / "__init__.py").write_text(
+        f"import sys\nsys.path.insert(0, {here!r})\ndel sys.modules['torchrod']\nimport torchrod\n"
+    )
+    (other / "torchrod" / "__main__.py").write_text("from torchrod.cli import main\nraise SystemExit(main())\n")
+    assert main(["bench", "backlog", "--count", "60", "--runs", "1", "--against", str(other)]) == 0
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith(("this version  ", str(other)))]
+    assert len(rows) == 2 and all(re.search(r"\d+\s+ok \d+", row) for row in rows), out
+    assert re.search(r"this version / .*: \d+\.\d\d", out), out
+    assert main(["bench", "backlog", "--against", str(tmp_path)]) == 2  # not a checkout

@@ -10,6 +10,7 @@ names ``torchrod bench`` knows (a suite whose module is missing is reported as n
 * ``startup``: time to the first answer (``--version``, ``--help``, a one-reading estimate) against importing torch.
 * ``gpu``: the CUDA kernels: their compiled size (no GPU needed), the CUDA tests and readings per second on a GPU.
 * ``memory``: a ``torchrod stream`` process fed a million readings, its memory sampled: flat or growing.
+* ``backlog``: a backlog of 1-3 force readings through ``torchrod stream``, beside other versions' checkouts.
 """
 
 from __future__ import annotations
@@ -25,4 +26,5 @@ SUITES: dict[str, str] = {
     "startup": "time to the first answer (--version, --help, a one-reading estimate) against importing torch",
     "gpu": "the CUDA kernels: PTX size and registers, the CUDA tests, readings per second on a GPU",
     "memory": "a long stream's memory: RSS of torchrod stream over a million readings, flat or growing",
+    "backlog": "a backlog of 1-3 force readings through torchrod stream, this version beside other checkouts",
 }
