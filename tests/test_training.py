@@ -399,3 +399,53 @@ def test_cli_train_refuses_a_rod_that_contradicts_the_data_set_and_accepts_one_t
         ckpt.unlink()
     # Without --rod, the set's rod (a network for a 16-grating set, say) is used without a check.
     assert TrainConfig().rod is None
+
+
+def test_search_labels_are_the_searchs_own_fit_of_every_count_and_its_count():
+    """Each count's label is the search's best fit of that many forces (in model coordinates: the location bias
+    taken away), sorted by location; the count label is the count the search chooses. On clean one-force readings
+    that is the truth, and the fit of one more force keeps the loss no higher."""
+    from torchrod.estimate.estimator import Estimator, EstimatorOptions
+    from torchrod.learn.labels import search_labels
+
+    rod = tr.presets.nitinol290()
+    rod = tr.Rod(length=rod.length, bending_stiffness=rod.bending_stiffness, gratings=rod.gratings, location_bias=0.004)
+    truth = tr.PointForces.from_lists([[(0.12, 0.5, -0.3)], [(0.21, -0.2, 0.6)], [(0.26, 0.4, 0.4)]])
+    u = tr.grating_curvature(rod, tr.PointForces(truth.s - rod.location_bias, truth.f))
+    mask = torch.ones(u.shape[:2], dtype=torch.bool)
+    labels = search_labels(rod, u, mask, noise=0.01, batch_size=2)
+    assert labels.count.tolist() == [1, 1, 1]
+    assert labels.fitted.all()
+    torch.testing.assert_close(labels.s[:, 0, :1], truth.s - rod.location_bias, atol=1e-5, rtol=0)
+    torch.testing.assert_close(labels.f[:, 0, :1], truth.f, atol=1e-4, rtol=0)
+    for h in (2, 3):
+        assert (labels.s[:, h - 1, :h].diff(dim=1) >= 0).all() and labels.s[:, h - 1, h:].isnan().all()
+    fixed = Estimator(rod, EstimatorOptions(noise=0.01, num_forces=2)).estimate(u, mask)
+    torch.testing.assert_close(labels.s[:, 1, :2], fixed.forces.s - rod.location_bias)
+
+
+def test_a_network_trained_on_the_searchs_fits_learns_every_head(tiny, tmp_path):
+    """``labels="search"``: one fixed noisy reading per case, labelled by the search (a count of 0 allowed, left
+    out of the cross-entropy), and every head learns its count's fit: the losses fall over a tiny run."""
+    small = TrainingData(
+        rod=tiny.rod, s=tiny.s[:128], f=tiny.f[:128], count=tiny.count[:128], clean=tiny.clean[:128],
+        mask=tiny.mask[:128],
+    )  # fmt: skip
+    labelled = small.with_search_labels(noise=0.1, missing_prob=0.05, seed=3)
+    assert labelled.reading is not None and labelled.fits is not None
+    assert labelled.fits[0].shape == (128, 3, 3) and labelled.fits[1].shape == (128, 3, 3, 2)
+    assert not torch.equal(labelled.reading, small.clean) and (labelled.count <= 3).all()
+    assert not labelled.mask.all()  # gratings missing as drawn, the same every epoch
+    config = TrainConfig(epochs=6, lr=1e-2, checkpoint=str(tmp_path / "s.pt"), labels="search", **TINY)
+    result = train(config, data=labelled)
+    first, last = result.history[0], result.history[-1]
+    assert last["location"] < first["location"] and last["force"] < first["force"]
+    # A batch whose count labels are all 0 has no cross-entropy term to learn from, and nothing breaks.
+    net = result.net
+    zero = torch.zeros(4, dtype=torch.long)
+    fits = tuple(x[:4] for x in labelled.fits)
+    terms = compute_losses(
+        net, net.config, labelled.reading[:4], labelled.mask[:4], labelled.s[:4], labelled.f[:4], zero,
+        physics_weight=0.1, physics_batch=4, fits=fits,
+    )  # fmt: skip
+    assert terms["total"].isfinite() and float(terms["count"]) == 0.0

@@ -6,6 +6,11 @@ One entry point, :func:`train`, driven by a frozen :class:`TrainConfig`; ``pytho
 it. Under ``torchrun --nproc_per_node=N`` it trains with DistributedDataParallel (gloo on CPU, nccl on CUDA), each
 process taking its share of every epoch through a DistributedSampler; only rank 0 logs and saves.
 
+Labels (``labels``). By default the network learns the simulated loads. With ``"search"`` it learns instead the
+search's own fit of every count and the count it chooses, on one fixed noisy reading per case
+(:mod:`torchrod.learn.labels`): every head is trained on its count's fit, and a reading the search answers with no
+force takes no part in the count's cross-entropy.
+
 Data. The load cases and their clean readings come from a :class:`torchrod.learn.synthetic.SyntheticSet` (``data``: a
 saved set) or are generated at start (``generate`` cases, seeded). Every training step draws fresh sensor noise and
 fresh missing gratings for its batch (a per-step seed, so a resumed run draws what the uninterrupted run would
@@ -58,6 +63,7 @@ from .warm_start import WarmStart, WarmStartGuess
 __all__ = [
     "DEFAULT_ROD",
     "FORCE_UNIT",
+    "LABELS",
     "LOCATION_UNIT",
     "TrainConfig",
     "TrainResult",
@@ -72,6 +78,9 @@ __all__ = [
 
 DEFAULT_ROD = "nitinol290"
 """The rod simulated when generating training cases without ``rod`` (the paper's tube)."""
+
+LABELS = ("truth", "search")
+"""What a network may be trained on (:attr:`TrainConfig.labels`)."""
 
 LOCATION_UNIT = 0.02
 """Location errors enter the loss in units of 0.02 L (about 6 mm on the 290 mm rod)."""
@@ -114,6 +123,9 @@ class TrainConfig:
         device: ``auto`` (CUDA when present), ``cpu`` or ``cuda``.
         threads: CPU threads per process (None: torch's default, divided among local processes).
         progress: print a line per epoch (rank 0).
+        labels: what the network learns: ``"truth"``, the simulated loads, each step on fresh noise; or
+            ``"search"``, the search's own fit of every count and the count it chooses, on one noisy reading per
+            case drawn at ``noise`` (:mod:`torchrod.learn.labels`): a network that amortises the search.
     """
 
     rod: str | None = None
@@ -144,6 +156,7 @@ class TrainConfig:
     device: str = "auto"
     threads: int | None = None
     progress: bool = True
+    labels: str = "truth"
 
     def __post_init__(self) -> None:
         positive = (
@@ -182,6 +195,8 @@ class TrainConfig:
             )
         if not isinstance(self.physics_batch, int) or self.physics_batch < 0:
             raise OptionsError(f"physics_batch must be an integer >= 0, got {self.physics_batch!r}")
+        if self.labels not in LABELS:
+            raise OptionsError(f"labels must be one of {', '.join(map(repr, LABELS))}, got {self.labels!r}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise OptionsError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
         if self.threads is not None and (not isinstance(self.threads, int) or self.threads < 1):
@@ -205,6 +220,11 @@ class TrainingData:
         count: (N,) number of forces, 1..H.
         clean: (N, G, 2) noiseless readings u L.
         mask: (N, G) bool, gratings the data set says are read (fresh random gaps are added on top in training).
+        reading: None, or (N, G, 2) fixed noisy readings u L that training uses as they are (no fresh noise or
+            gaps): those the search labelled (:meth:`with_search_labels`).
+        fits: None, or the search's fit of every count on ``reading``: s (N, H, H) (row h - 1 holds h
+            locations s / L), f (N, H, H, 2) (f L^2 / EI) and whether each converged (N, H); ``count`` is then
+            the search's chosen count, 0..H.
     """
 
     rod: Rod
@@ -213,6 +233,8 @@ class TrainingData:
     count: torch.Tensor
     clean: torch.Tensor
     mask: torch.Tensor
+    reading: torch.Tensor | None = None
+    fits: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
 
     @classmethod
     def from_loads(
@@ -246,6 +268,25 @@ class TrainingData:
     def from_set(cls, data: Any) -> TrainingData:
         """From a :class:`torchrod.learn.synthetic.SyntheticSet` (its clean readings and mask)."""
         return cls.from_loads(data.rod, data.loads, data.clean, data.mask)
+
+    def with_search_labels(
+        self, noise: float, missing_prob: float, seed: int, progress: Callable[[int, int], None] | None = None
+    ) -> TrainingData:
+        """These cases with one noisy reading each (sigma ``noise`` [1/m], each grating missing with probability
+        ``missing_prob``, from ``seed``) and the search's fits of them as the targets
+        (:func:`torchrod.learn.labels.search_labels`)."""
+        from .labels import search_labels
+
+        L, EI = self.rod.length, self.rod.bending_stiffness
+        gen = torch.Generator().manual_seed(seed)
+        reading = self.clean + (noise * L) * torch.randn(self.clean.shape, generator=gen)
+        mask = self.mask & (torch.rand(self.mask.shape, generator=gen) >= missing_prob)
+        u = reading.to(torch.float64) / L
+        labels = search_labels(self.rod, u, mask, noise, max_forces=self.max_forces, progress=progress)
+        fit_s = torch.nan_to_num(labels.s / L, nan=0.0).to(torch.float32)
+        fit_f = (labels.f * (L * L / EI)).to(torch.float32)
+        fits = (fit_s, fit_f, labels.fitted)
+        return dataclasses.replace(self, count=labels.count, mask=mask, reading=reading, fits=fits)
 
     def __len__(self) -> int:
         return self.s.shape[0]
@@ -295,7 +336,10 @@ def noisy_batch(
     missing_prob: float,
     generator: torch.Generator,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Readings u L (B, G, 2) with fresh noise and their masks (B, G) for the cases ``index`` (on the CPU)."""
+    """Readings u L (B, G, 2) with fresh noise and their masks (B, G) for the cases ``index`` (on the CPU); the
+    data's own fixed readings where it holds them (labelled by the search)."""
+    if data.reading is not None:
+        return data.reading[index], data.mask[index]
     clean = data.clean[index]
     B, G, _ = clean.shape
     level = noise * data.rod.length * (1.0 + jitter * (2.0 * torch.rand(B, 1, 1, generator=generator) - 1.0))
@@ -333,16 +377,34 @@ def compute_losses(
     physics_weight: float,
     physics_batch: int,
     count_weight: float = 1.0,
+    fits: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
 ) -> dict[str, torch.Tensor]:
-    """The loss terms of one batch (dimensionless tensors, see the module docstring); ``total`` is their sum."""
+    """The loss terms of one batch (dimensionless tensors, see the module docstring); ``total`` is their sum.
+    With the search's ``fits`` (s (B, H, H), f (B, H, H, 2), converged (B, H): :class:`TrainingData`), every
+    head learns its count's fit, and a count of 0 takes no part in the cross-entropy."""
     out = net(reading, present)
-    ce = F.cross_entropy(out.count_logits, count - 1)
+    counted = count > 0
+    target = torch.where(counted, count - 1, -100)
+    ce = F.cross_entropy(out.count_logits, target, ignore_index=-100, reduction="sum") / counted.sum().clamp(min=1)
     s, f, mask = _padded_head(out.s, out.f, count)
-    w = mask.to(s.dtype)
-    n = w.sum()
-    loc = (F.smooth_l1_loss(s / LOCATION_UNIT, s_true / LOCATION_UNIT, reduction="none") * w).sum() / n
     funit = FORCE_UNIT * config.force_scale
-    force = (F.smooth_l1_loss(f / funit, f_true / funit, reduction="none").sum(-1) * w).sum() / n
+    if fits is None:
+        w = mask.to(s.dtype)
+        n = w.sum()
+        loc = (F.smooth_l1_loss(s / LOCATION_UNIT, s_true / LOCATION_UNIT, reduction="none") * w).sum() / n
+        force = (F.smooth_l1_loss(f / funit, f_true / funit, reduction="none").sum(-1) * w).sum() / n
+    else:
+        fit_s, fit_f, fitted = fits
+        loc = s.new_zeros(())
+        force = s.new_zeros(())
+        n = fitted.to(s.dtype).sum().clamp(min=1.0)
+        for h in range(1, len(out.s) + 1):
+            w = fitted[:, h - 1].to(s.dtype)[:, None]
+            ds = F.smooth_l1_loss(out.s[h - 1] / LOCATION_UNIT, fit_s[:, h - 1, :h] / LOCATION_UNIT, reduction="none")
+            df = F.smooth_l1_loss(out.f[h - 1] / funit, fit_f[:, h - 1, :h] / funit, reduction="none").sum(-1)
+            loc = loc + (ds * w).sum() / h
+            force = force + (df * w).sum() / h
+        loc, force = loc / n, force / n
     total = count_weight * ce + loc + force
     terms = {"count": ce, "location": loc, "force": force}
     if physics_weight > 0 and physics_batch > 0:
@@ -693,6 +755,10 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
         )
     if data.max_forces != config.max_forces:
         raise OptionsError(f"the data hold up to {data.max_forces} forces but max_forces is {config.max_forces}")
+    if config.labels == "search" and data.fits is None:
+        tl = time.perf_counter()
+        data = data.with_search_labels(config.noise, config.missing_prob, _mix(config.seed, 2))
+        say(f"labelled {len(data)} cases with the search's fits in {time.perf_counter() - tl:.0f} s")
     held = (
         _simulated(rod, config.validation, config.max_forces, _mix(config.seed, 1), config.noise, config.missing_prob)
         if main_rank
@@ -771,6 +837,7 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
                     generator=gen,
                 )
                 count = data.count[index].to(device)
+                fits = None if data.fits is None else tuple(x[index].to(device) for x in data.fits)
                 for group in optimiser.param_groups:
                     group["lr"] = _lr_at(step, total_steps, config)
                 terms = compute_losses(
@@ -784,6 +851,7 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
                     physics_weight=config.physics_weight,
                     physics_batch=config.physics_batch,
                     count_weight=config.count_weight,
+                    fits=fits,
                 )
                 optimiser.zero_grad(set_to_none=True)
                 terms["total"].backward()

@@ -15,6 +15,7 @@ import argparse
 
 from ...learn.training import (
     DEFAULT_ROD,
+    LABELS,
     TrainConfig,
     distributed_env,
     format_metrics,
@@ -86,6 +87,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.missing_prob,
         help="probability of a missing grating (%(default)s)",
     )
+    a(
+        "--labels",
+        default=d.labels,
+        choices=LABELS,
+        help="what the network learns: the simulated loads ('truth', fresh noise each step), or the search's own fit "
+        "of every count and its chosen count on one noisy reading per case ('search': amortises the search; the "
+        "labelling runs the search on every case first) (%(default)s)",
+    )
     a("--hidden", type=int, default=d.hidden, help="hidden width (%(default)s)")
     a("--depth", type=int, default=d.depth, help="hidden layers (%(default)s)")
     a("--logdir", default=d.logdir, help="tensorboard folder (%(default)s); 'none' for no logs")
@@ -138,6 +147,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         device=args.device,
         threads=args.threads,
         progress=not args.quiet,
+        labels=args.labels,
     )
 
 
