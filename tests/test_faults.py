@@ -561,3 +561,40 @@ def test_a_read_only_cache_that_holds_the_kernels_is_loaded_from(tmp_path):
     assert again.returncode == 0, again.stderr[-2000:]
     assert again.stdout.split() == ["1", "0"], again.stdout  # a cache hit, no compile
     assert "compiling" not in again.stderr and "could not write" not in again.stderr, again.stderr
+
+
+def test_ctrl_c_during_a_first_compile_answers_the_readings_read_unsolved_at_once(tmp_path):
+    """Interrupted while a first compile runs in the background (its readings solved as Python meanwhile), a stream
+    solves nothing more: every reading it read is answered, in order, those not yet solved as such, it says so,
+    and it ends at once, stopping the compile instead of waiting for it."""
+    count = 600
+    readings = tmp_path / "r.jsonl"
+    curvature = [json.loads(line)["curvature"] for line in _lines(30)]
+    lines = (json.dumps({"id": f"r{k}", "curvature": curvature[k % 30]}) + "\n" for k in range(count))
+    readings.write_text("".join(lines))
+    script = f"""
+import os, signal, sys
+from torchrod.cli import main
+from torchrod.io import stream
+from torchrod.kernels import targets
+targets.COMPILE_CHILD = "import time; time.sleep(300)"  # (a first compile that outlasts the run)
+advance, solved = stream._Stream.advance, []
+def counted(self, flight):  # (Ctrl-C once 20 readings were solved as Python)
+    solved.append(1)
+    if len(solved) == 20:
+        os.kill(os.getpid(), signal.SIGINT)
+    return advance(self, flight)
+stream._Stream.advance = counted
+sys.exit(main([*{STREAM!r}, "--threads", "1", "--input", {str(readings)!r}]))
+"""
+    env = {**ENV, "TORCHROD_CACHE_DIR": str(tmp_path / "cache")}  # (empty: the estimation kernels compile)
+    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=120, check=False, preexec_fn=interruptible)  # fmt: skip
+    assert done.returncode == 130, done.stderr[-2000:]
+    answers = [json.loads(line) for line in done.stdout.splitlines()]
+    assert [a["id"] for a in answers] == [f"r{k}" for k in range(count)]
+    unsolved = [k for k, a in enumerate(answers) if "not solved" in a.get("error", "")]
+    assert unsolved and unsolved == list(range(unsolved[0], count)), "the readings after the interrupt were solved"
+    assert 19 <= unsolved[0] <= 20 and all("forces" in a for a in answers[: unsolved[0]])
+    assert f"answering the {len(unsolved)} readings read and not yet solved as not solved" in done.stderr
+    assert "compile stopped with the run" in done.stderr and "Traceback" not in done.stderr

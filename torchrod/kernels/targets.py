@@ -33,6 +33,7 @@ import functools
 import hashlib
 import importlib
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -343,6 +344,8 @@ class Compiled:
             return False
         if child.poll() is None:
             return True
+        if _INTERRUPTED and not self._cached():  # (it ended with the run, without the kernels: none compiled here)
+            return True
         with _lock:
             self._child = None
             self._tried_child = True  # (what it left in the cache is loaded; if nothing, compiled here)
@@ -463,7 +466,10 @@ class Compiled:
 
 def die_with_parent(parent: int) -> None:
     """In a compiling child: end as soon as the process that started it is gone (killed: a parent that exits
-    normally waits for the compile first, :meth:`Compiled.start`). A watchdog thread looks every half second."""
+    normally waits for the compile first, :meth:`Compiled.start`). A watchdog thread looks every half second. Ctrl-C,
+    which a terminal sends to the child too, is the parent's to answer: it stops the child, or waits for it."""
+    with contextlib.suppress(ValueError):  # (not the main thread: nothing to ignore it for)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def watch() -> None:
         while os.getppid() == parent:
@@ -497,6 +503,15 @@ def note_interrupt() -> None:
     """The run was interrupted (Ctrl-C, SIGTERM) and is answering what it read on its way out: from now on no lock
     of the kernel cache is waited for, and a background compile is stopped at exit instead of waited for."""
     _interrupted()
+
+
+def note_unsolved(count: int) -> None:
+    """Say that a run interrupted while its kernels compile answers the ``count`` readings it read and had not
+    solved as unsolved (solving them as Python would take minutes), and stops the compile at exit."""
+    _say(
+        f"interrupted while the kernels compile: answering the {count} readings read and not yet solved as not "
+        "solved, and stopping the compile"
+    )
 
 
 def _cache_directory(target: str, extra: str = "") -> Path | None:
