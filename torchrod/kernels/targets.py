@@ -13,8 +13,10 @@ Compilation is done once per machine and kept on disk, under a directory named a
 source and the compiler's version (so a changed kernel or Numba never loads stale code): ``$TORCHROD_CACHE_DIR``,
 else ``$XDG_CACHE_HOME/torchrod`` or ``~/.cache/torchrod``. It is announced once on stderr (what compiles, about how
 long, where it is kept), and processes that start together take turns through a file lock, so one compiles and
-the others load. A caller compiles before it starts any clock (:meth:`Compiled.ready`): the time never counts against a
-reading's budget, and a cold run answers as a warm one does.
+the others load. A cache folder that cannot be written is loaded from when it holds the kernels; a write that fails
+(a full disk) leaves no entry behind, is said once, and the kernels are kept in memory for the run. A caller
+compiles before it starts any clock (:meth:`Compiled.ready`): the time never counts against a reading's budget, and
+a cold run answers as a warm one does.
 
 A first compile for the CPU need not hold the first answers back (:meth:`Compiled.start`): it runs in a child
 process (announced as above), and meanwhile readings are solved one at a time by the same source run as Python
@@ -165,7 +167,12 @@ def _file_lock(path: Path):
     except ImportError:  # pragma: no cover - not POSIX
         yield
         return
-    with open(path, "a+") as handle:
+    try:
+        opened = open(path, "a+")
+    except OSError:  # (no lock file can be made: a full disk; the work goes on as without POSIX)
+        yield
+        return
+    with opened as handle:
         held = _try_lock(fcntl, handle)
         if not held and _INTERRUPTED:
             _say(f"the kernel cache {path.parent} is locked: after the interrupt, compiling the kernels here")
