@@ -301,6 +301,32 @@ def test_start_announces_the_background_compile_and_loads_when_it_is_done(tmp_pa
     assert not fourth.compiling() and len(loaded) == 6
 
 
+def test_a_background_compile_that_could_not_write_the_cache_is_done_again_here_in_memory(
+    tmp_path, monkeypatch, capsys
+):
+    """The compiling child could not write the kernels into the cache (a full disk: it said so, and ends with
+    :data:`targets.UNKEPT`): the kernels are compiled here, announced as kept in memory, the cache neither read nor
+    tried again."""
+    monkeypatch.setattr(targets, "COMPILE_CHILD", f"raise SystemExit({targets.UNKEPT})")
+    monkeypatch.delenv("TORCHROD_COMPILE", raising=False)
+    monkeypatch.setenv("TORCHROD_CACHE_DIR", str(tmp_path / "root"))
+    compiled_here = []
+
+    def estimate_rows():  # (the entry's name: what the cache is looked for by)
+        pass
+
+    compiled = targets.Compiled("cpu", estimate_rows, tmp_path, lambda entry: compiled_here.append(entry))
+    compiled.start()
+    deadline = time.monotonic() + 30
+    while compiled.compiling():
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    assert compiled_here == [estimate_rows] and compiled._ready and compiled._unkept
+    err = capsys.readouterr().err
+    assert f"kept in memory: the kernel cache {tmp_path} cannot be written" in err
+    assert not (tmp_path / ".lock").exists()  # (no lock taken for a compile the cache will not keep)
+
+
 def test_a_process_that_waits_for_a_first_compile_runs_the_kernels_loaded_from_the_cache(tmp_path):
     """The network's kernels (the quickest to compile) compiled into an empty cache in the foreground: the process
     that asked for them runs them as loaded from the cache (a hit, no compile of its own), as a later run does."""

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -480,3 +481,120 @@ def test_a_run_waiting_for_the_cache_lock_stops_on_sigterm(tmp_path):
         assert time.monotonic() - sent < 10, "SIGTERM was not answered promptly"
     assert proc.returncode in (143, -signal.SIGTERM), (proc.returncode, err[-2000:])
     assert "Traceback" not in err
+
+
+FULL_DISK = """
+import errno
+from numba.core import caching
+
+
+def _no_space(self, name, data):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+caching.IndexDataCacheFile._save_data = _no_space  # (after the index is written: what a full disk leaves)
+"""
+
+
+def test_a_kernel_cache_on_a_full_disk_keeps_the_kernels_in_memory_and_leaves_no_entry(tmp_path):
+    """Writing the compiled kernels into the cache fails (no space left, once the index is written): the run says so
+    once, answers as a run with a cache does, and leaves no entry behind, so the next run announces its compile."""
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(FULL_DISK)
+    cache = tmp_path / "cache"
+    free = {**ENV, "TORCHROD_CACHE_DIR": str(cache)}
+    full = {**free, "PYTHONPATH": str(site) + os.pathsep + ENV["PYTHONPATH"]}
+
+    def run(env: dict[str, str]) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-c", NETWORK_GUESS], capture_output=True, text=True, env=env,
+                              timeout=300, cwd=ROOT)  # fmt: skip
+
+    first = run(full)
+    assert first.returncode == 0, first.stderr[-2000:]
+    assert first.stderr.count("could not write the network kernels into the kernel cache") == 1, first.stderr
+    assert "No space left on device" in first.stderr and "Traceback" not in first.stderr
+    assert "kept in memory" in first.stderr
+    assert not list(cache.rglob("*network_rows*.nb[ic]")), "a partial entry was left in the cache"
+    second = run(free)
+    assert second.returncode == 0, second.stderr[-2000:]
+    assert second.stdout == first.stdout
+    assert "compiling the network kernels for the CPU" in second.stderr and "could not write" not in second.stderr
+    assert list(cache.rglob("*network_rows*.nbc"))
+
+
+CACHE_HITS = (
+    "from torchrod.kernels import targets; c = targets.cpu_network(); c.ready(); "
+    "print(sum(c.entry.stats.cache_hits.values()), sum(c.entry.stats.cache_misses.values()))"
+)
+
+
+def _read_only_run(cache: Path, program: str, env: dict[str, str]) -> subprocess.CompletedProcess:
+    """``program`` run with the folder ``cache`` read-only: its permissions taken away, or, for root (whom they do
+    not stop), mounted read-only in a mount namespace of its own (skipped where that cannot be done)."""
+    command = [sys.executable, "-c", program]
+    if os.geteuid() == 0:
+        mount = 'mount --bind "$0" "$0" && mount -o remount,bind,ro "$0" && exec "$@"'
+        probe = subprocess.run(["unshare", "-m", "sh", "-c", mount, str(cache), "true"], capture_output=True,
+                               check=False) if shutil.which("unshare") else None  # fmt: skip
+        if probe is None or probe.returncode != 0:
+            pytest.skip("root ignores permissions, and no read-only mount can be made here")
+        command = ["unshare", "-m", "sh", "-c", mount, str(cache), *command]
+    modes = {path: path.stat().st_mode for path in [cache, *cache.rglob("*")]}
+    for path, mode in modes.items():
+        path.chmod(mode & ~0o222)
+    try:
+        return subprocess.run(command, capture_output=True, text=True, env=env, timeout=300, cwd=ROOT, check=False)
+    finally:
+        for path, mode in modes.items():
+            path.chmod(mode)
+
+
+def test_a_read_only_cache_that_holds_the_kernels_is_loaded_from(tmp_path):
+    """Kernels compiled into a cache that is read-only afterwards (a shared or packaged cache) are loaded from it,
+    without a compile, a lock or a write."""
+    env = {**ENV, "TORCHROD_CACHE_DIR": str(tmp_path)}
+    first = subprocess.run([sys.executable, "-c", CACHE_HITS], capture_output=True, text=True, env=env, timeout=300,
+                           cwd=ROOT)  # fmt: skip
+    assert first.returncode == 0, first.stderr[-2000:]
+    again = _read_only_run(tmp_path, CACHE_HITS, env)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert again.stdout.split() == ["1", "0"], again.stdout  # a cache hit, no compile
+    assert "compiling" not in again.stderr and "could not write" not in again.stderr, again.stderr
+
+
+def test_ctrl_c_during_a_first_compile_answers_the_readings_read_unsolved_at_once(tmp_path):
+    """Interrupted while a first compile runs in the background (its readings solved as Python meanwhile), a stream
+    solves nothing more: every reading it read is answered, in order, those not yet solved as such, it says so,
+    and it ends at once, stopping the compile instead of waiting for it."""
+    count = 600
+    readings = tmp_path / "r.jsonl"
+    curvature = [json.loads(line)["curvature"] for line in _lines(30)]
+    lines = (json.dumps({"id": f"r{k}", "curvature": curvature[k % 30]}) + "\n" for k in range(count))
+    readings.write_text("".join(lines))
+    script = f"""
+import os, signal, sys
+from torchrod.cli import main
+from torchrod.io import stream
+from torchrod.kernels import targets
+targets.COMPILE_CHILD = "import time; time.sleep(300)"  # (a first compile that outlasts the run)
+advance, solved = stream._Stream.advance, []
+def counted(self, flight):  # (Ctrl-C once 20 readings were solved as Python)
+    solved.append(1)
+    if len(solved) == 20:
+        os.kill(os.getpid(), signal.SIGINT)
+    return advance(self, flight)
+stream._Stream.advance = counted
+sys.exit(main([*{STREAM!r}, "--threads", "1", "--input", {str(readings)!r}]))
+"""
+    env = {**ENV, "TORCHROD_CACHE_DIR": str(tmp_path / "cache")}  # (empty: the estimation kernels compile)
+    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=120, check=False, preexec_fn=interruptible)  # fmt: skip
+    assert done.returncode == 130, done.stderr[-2000:]
+    answers = [json.loads(line) for line in done.stdout.splitlines()]
+    assert [a["id"] for a in answers] == [f"r{k}" for k in range(count)]
+    unsolved = [k for k, a in enumerate(answers) if "not solved" in a.get("error", "")]
+    assert unsolved and unsolved == list(range(unsolved[0], count)), "the readings after the interrupt were solved"
+    assert 19 <= unsolved[0] <= 20 and all("forces" in a for a in answers[: unsolved[0]])
+    assert f"answering the {len(unsolved)} readings read and not yet solved as not solved" in done.stderr
+    assert "compile stopped with the run" in done.stderr and "Traceback" not in done.stderr

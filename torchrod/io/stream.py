@@ -38,7 +38,10 @@ iterable of readings and yields one result per reading, in input order, as soon 
   the lines it has already read), every reading already taken from it (queued, or in the reader's hands) is
   solved and yielded, then the same exception is raised again. A source read by the stream's own thread is
   read with SIGINT and SIGTERM held (in the main thread), so the signal is raised between readings, never
-  inside the source. The end of the input flushes the same way.
+  inside the source. The end of the input flushes the same way. Interrupted while a first compile of the kernels
+  runs (readings are then solved as Python, far slower), the flush solves nothing more: the readings taken and not
+  yet solved are answered in order as error results (:data:`UNSOLVED`), said once on stderr, and the compile is
+  stopped, not waited for.
 
 Readings are :class:`~torchrod.io.readings.Reading` objects or dicts with the same keys; results are
 :class:`StreamResult`.
@@ -63,7 +66,7 @@ import torch
 from ..errors import OptionsError, TorchrodTypeError
 from ..estimate.noise import NoiseLearning, RunningNoise
 from ..estimate.status import STATUSES
-from ..kernels.targets import note_interrupt
+from ..kernels.targets import note_interrupt, note_unsolved
 from ..loads import PointForces
 from .readings import Reading, stack_readings, to_reading
 
@@ -170,6 +173,9 @@ _END = object()
 _HALTED = object()  # the reader stopped taking from the source, as asked (a flush)
 _POLL = 0.1  # [s] longest uninterrupted wait (keeps the reader thread responsive to stop)
 _LEARNING_PART = 64  # fewest readings of a part when a batch of the noise's learning is shared among threads
+UNSOLVED = "not solved: the run was interrupted while the kernels were compiling"
+"""The error of a reading taken from the source and not solved when the run was interrupted during a first compile
+(module docstring)."""
 
 
 def _reader(state: _Stream, source: Iterable[Any]) -> None:
@@ -517,6 +523,26 @@ class _Stream:
                 continue
             self._take(entry)
 
+    def unsolved(self, flight: collections.deque[_Slot]) -> Iterator[StreamResult]:
+        """The flush after an interrupt while the kernels compile: the answers already solved, then every other
+        reading taken from the source as an error result, in order (said on stderr); nothing is solved."""
+        left = [p for slot in flight if slot.here and slot.results is None for p in slot.batch[slot.solved :]]
+        note_unsolved(sum(p.ok for p in [*left, *self.pending]))
+        while flight:
+            slot = flight[0]
+            if slot.here and slot.results is None:
+                slot.results = self._unsolved(slot.batch[slot.solved :])
+            yield from self.take(flight)
+        while self.pending:
+            batch = self.pending[: self.batch_size]
+            del self.pending[: len(batch)]
+            yield from self._unsolved(batch)
+
+    def _unsolved(self, batch: Sequence[_Pending]) -> list[StreamResult]:
+        """Each reading of ``batch`` as an error result: not solved (:meth:`unsolved`); an unusable one with its
+        own error."""
+        return self._results(batch, [(None, 0, None, UNSOLVED)] * sum(p.ok for p in batch), 0.0)
+
     def solve(self, batch: Sequence[_Pending]) -> list[StreamResult]:
         """Estimate the usable readings of ``batch`` together, here; one result per reading, in order."""
         return self._solve(batch, self.hand_out())
@@ -813,6 +839,11 @@ def _run(state: _Stream, options: StreamOptions) -> Iterator[StreamResult]:
             # for the kernel cache's lock nor, at exit, for a compile.
             note_interrupt()
             state.drain()
+            if state.compiling:
+                # Solved as Python one at a time, a read-ahead of readings would take minutes: each is answered
+                # unsolved, in order, at once, and said.
+                yield from state.unsolved(flight)
+                raise interrupted
             while flight:
                 yield from state.take(flight)
             while state.pending:

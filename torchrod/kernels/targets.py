@@ -13,8 +13,10 @@ Compilation is done once per machine and kept on disk, under a directory named a
 source and the compiler's version (so a changed kernel or Numba never loads stale code): ``$TORCHROD_CACHE_DIR``,
 else ``$XDG_CACHE_HOME/torchrod`` or ``~/.cache/torchrod``. It is announced once on stderr (what compiles, about how
 long, where it is kept), and processes that start together take turns through a file lock, so one compiles and
-the others load. A caller compiles before it starts any clock (:meth:`Compiled.ready`): the time never counts against a
-reading's budget, and a cold run answers as a warm one does.
+the others load. A cache folder that cannot be written is loaded from when it holds the kernels; a write that fails
+(a full disk) leaves no entry behind, is said once, and the kernels are kept in memory for the run. A caller
+compiles before it starts any clock (:meth:`Compiled.ready`): the time never counts against a reading's budget, and
+a cold run answers as a warm one does.
 
 A first compile for the CPU need not hold the first answers back (:meth:`Compiled.start`): it runs in a child
 process (announced as above), and meanwhile readings are solved one at a time by the same source run as Python
@@ -33,6 +35,7 @@ import functools
 import hashlib
 import importlib
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -52,11 +55,16 @@ _lock = threading.Lock()
 
 COMPILE_CHILD = (
     "import sys; sys.path.insert(0, sys.argv[2]); from torchrod.kernels import targets; "
-    "targets.die_with_parent(int(sys.argv[1])); getattr(targets, sys.argv[3])().ready()"
+    "targets.die_with_parent(int(sys.argv[1])); c = getattr(targets, sys.argv[3])(); c.ready(); "
+    "raise SystemExit(targets.UNKEPT if c._unkept else 0)"
 )
 """The program of the child process that compiles CPU kernels (arguments: the parent's pid, the folder holding the
 parent's ``torchrod`` package, so that the child compiles the same source whatever its import path, and the name of
 the function of this module that makes them: ``cpu``, ``cpu_network``, ``cpu_schedule``)."""
+
+UNKEPT = 3
+"""The exit status of a compiling child that could not write the kernels into the cache (a full disk, say): it said
+so, and its parent compiles them for itself, kept in memory, without trying the cache again."""
 
 _CHILD = "TORCHROD_COMPILING_CHILD"
 """Set in the environment of the child process that compiles CPU kernels (:meth:`Compiled.start`,
@@ -159,7 +167,12 @@ def _file_lock(path: Path):
     except ImportError:  # pragma: no cover - not POSIX
         yield
         return
-    with open(path, "a+") as handle:
+    try:
+        opened = open(path, "a+")
+    except OSError:  # (no lock file can be made: a full disk; the work goes on as without POSIX)
+        yield
+        return
+    with opened as handle:
         held = _try_lock(fcntl, handle)
         if not held and _INTERRUPTED:
             _say(f"the kernel cache {path.parent} is locked: after the interrupt, compiling the kernels here")
@@ -244,6 +257,7 @@ class Compiled:
         what: str = "estimation",
         quiet: bool = False,
         maker: str = "cpu",
+        writable: bool = True,
     ) -> None:
         self.target = target
         self.entry = entry
@@ -256,11 +270,43 @@ class Compiled:
         self._child: subprocess.Popen[bytes] | None = None
         self._tried_child = False  # a compiling child ran to its end: no second one
         self._repaired = False  # a damaged cache entry was removed and compiled again (once)
+        self.writable = writable  # False: a read-only cache that holds the kernels, loaded from, never written
+        self._unkept = False  # the cache could not be written (or read): the kernels are compiled and kept in memory
+        self._guard_saves()
+
+    def _guard_saves(self) -> None:
+        """Numba's write of the compiled entry into the cache, made to fail softly: should it fail (a full disk, a
+        read-only cache), what it left is removed (so that a later run finds no entry and announces its compile),
+        it is said once, and the kernels compiled are used from memory (:meth:`_in_memory`)."""
+        cache: Any = getattr(self.entry, "_cache", None)
+        save = getattr(cache, "save_overload", None)
+        if self.directory is None or save is None:
+            return
+
+        def guarded(sig: Any, data: Any) -> None:
+            try:
+                save(sig, data)
+            except OSError as exc:
+                self._in_memory()
+                if self.writable:
+                    self._drop_entry()
+                _say(
+                    f"could not write the {self.what} kernels into the kernel cache {self.directory} "
+                    f"({exc.strerror or exc}): they are kept in memory for this run; a later run compiles them again"
+                )
+
+        cache.save_overload = guarded
+
+    def _in_memory(self) -> None:
+        """From now on the kernels are compiled here and kept in memory: the cache is neither read nor written."""
+        self._unkept = True
+        with contextlib.suppress(AttributeError):
+            self.entry._cache.disable()
 
     def _cached(self) -> bool:
         """Whether the entry's compiled code is in the on-disk cache (looked at without the lock)."""
         pattern = f"**/*{self.entry.__name__}*.nbi" if self.target != "cuda" else "**/*.nbi"
-        return self.directory is not None and any(self.directory.glob(pattern))
+        return self.directory is not None and not self._unkept and any(self.directory.glob(pattern))
 
     def start(self) -> None:
         """Make the kernels usable: loaded now where they are cached; a first CPU compile started in a child process
@@ -274,6 +320,7 @@ class Compiled:
             or self.what != "estimation"
             or not background
             or self.directory is None
+            or not self.writable
             or self._cached()
         ):
             self.ready()
@@ -304,9 +351,13 @@ class Compiled:
             return False
         if child.poll() is None:
             return True
+        if _INTERRUPTED and not self._cached():  # (it ended with the run, without the kernels: none compiled here)
+            return True
         with _lock:
             self._child = None
             self._tried_child = True  # (what it left in the cache is loaded; if nothing, compiled here)
+            if child.returncode == UNKEPT:
+                self._in_memory()
         self.ready()
         return False
 
@@ -325,20 +376,29 @@ class Compiled:
         compiled in the process that runs them ran at about half that speed, for the life of the process
         (docs/core.md, Compilation). Should the child fail, or a child have run already (in the background) and
         left nothing, :meth:`ready` compiles here."""
-        if self.target != "cpu" or self.directory is None or os.environ.get(_CHILD) or self._tried_child:
+        if (
+            self.target != "cpu"
+            or self.directory is None
+            or not self.writable
+            or os.environ.get(_CHILD)
+            or self._tried_child
+        ):
             return
         if self._cached():  # (looked at last: it reads the cache's directory)
             return
         self._announce()
         self._tried_child = True
         try:
-            self._compiling_child().wait()
+            if self._compiling_child().wait() == UNKEPT:
+                self._in_memory()
         except OSError:
             return
 
     def _announce(self) -> None:
         """Say on stderr that these kernels compile now: about how long, and where they are kept."""
         where = f"kept in {self.directory}" if self.directory is not None else "not kept (no writable cache)"
+        if self._unkept:
+            where = f"kept in memory: the kernel cache {self.directory} cannot be written"
         _say(
             f"compiling the {self.what} kernels for {'the CPU' if self.target == 'cpu' else 'CUDA'} "
             f"({_expected_seconds(cache_root(), self.target, self.what)}; once per machine and version, {where})"
@@ -358,7 +418,12 @@ class Compiled:
             lock: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
             # The lock is for compiling: kernels already in the cache are loaded without it (the cache's index is
             # written last, and atomically), so a run never waits for another's compile of other kernels.
-            if self.directory is not None and not (self._cached() and not self._repaired):
+            if (
+                self.directory is not None
+                and self.writable
+                and not self._unkept
+                and not (self._cached() and not self._repaired)
+            ):
                 lock = _file_lock(self.directory / ".lock")
             damaged = False
             with lock:  # (the cache looked at once the lock is held: another process may just have filled it)
@@ -377,10 +442,13 @@ class Compiled:
                     if fresh or self._repaired or self.directory is None:
                         raise
                     damaged = True
-                    self._drop_entry()
+                    if self.writable:
+                        self._drop_entry()
+                    else:  # (a read-only cache: compiled here, kept in memory)
+                        self._in_memory()
                     _say(
                         f"the kernel cache {self.directory} held a damaged copy of the {self.what} kernels "
-                        f"({type(exc).__name__}): removed; compiling them again"
+                        f"({type(exc).__name__}): {'removed' if self.writable else 'not used'}; compiling them again"
                     )
                 took = time.perf_counter() - began
                 if fresh:
@@ -405,7 +473,10 @@ class Compiled:
 
 def die_with_parent(parent: int) -> None:
     """In a compiling child: end as soon as the process that started it is gone (killed: a parent that exits
-    normally waits for the compile first, :meth:`Compiled.start`). A watchdog thread looks every half second."""
+    normally waits for the compile first, :meth:`Compiled.start`). A watchdog thread looks every half second. Ctrl-C,
+    which a terminal sends to the child too, is the parent's to answer: it stops the child, or waits for it."""
+    with contextlib.suppress(ValueError):  # (not the main thread: nothing to ignore it for)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def watch() -> None:
         while os.getppid() == parent:
@@ -441,6 +512,15 @@ def note_interrupt() -> None:
     _interrupted()
 
 
+def note_unsolved(count: int) -> None:
+    """Say that a run interrupted while its kernels compile answers the ``count`` readings it read and had not
+    solved as unsolved (solving them as Python would take minutes), and stops the compile at exit."""
+    _say(
+        f"interrupted while the kernels compile: answering the {count} readings read and not yet solved as not "
+        "solved, and stopping the compile"
+    )
+
+
 def _cache_directory(target: str, extra: str = "") -> Path | None:
     path = cache_root() / f"kernels-{target}-{source_digest(extra)}"
     try:
@@ -451,6 +531,36 @@ def _cache_directory(target: str, extra: str = "") -> Path | None:
     except OSError:
         return None
     return path
+
+
+def _read_only_directory(target: str, name: str, extra: str = "") -> Path | None:
+    """The cache's directory of ``target`` when it cannot be written (:func:`_cache_directory` gave none) but holds
+    the compiled entry ``name`` (its index): loaded from as it is, never written (:func:`_read_only_cache`)."""
+    path = cache_root() / f"kernels-{target}-{source_digest(extra)}"
+    try:
+        return path if any(path.glob(f"**/*{name}*.nbi")) else None
+    except OSError:
+        return None
+
+
+def _read_only_cache(py_func: Any) -> Any:
+    """Numba's on-disk cache of ``py_func`` in ``numba.config.CACHE_DIR`` (the same files a writable cache holds)
+    for a folder that cannot be written: Numba's own finds no place for such a function's cache when it cannot write
+    a probe file there, and compiles it again in every run. Its writes fail, as they do on a full disk
+    (:meth:`Compiled._guard_saves`)."""
+    from numba.core import caching
+
+    class Locator(caching.UserProvidedCacheLocator):
+        def ensure_cache_path(self) -> None:  # (read from: nothing to make, nothing to probe)
+            pass
+
+    class Impl(caching.CompileResultCacheImpl):
+        _locator_classes = [Locator]
+
+    class ReadOnlyCache(caching.FunctionCache):
+        _impl_class = Impl
+
+    return ReadOnlyCache(py_func)
 
 
 @contextlib.contextmanager
@@ -561,10 +671,15 @@ def _cpu_entry(name: str, warm: Any, what: str, maker: str) -> Compiled:
     import numba
 
     directory = _cache_directory("cpu")
-    flags: dict[str, Any] = {**CPU_FLAGS, "cache": directory is not None}
+    writable = directory is not None
+    if directory is None:
+        directory = _read_only_directory("cpu", name)
+    flags: dict[str, Any] = {**CPU_FLAGS, "cache": writable}
     with _numba_cache_dir(directory):
         entry = numba.njit(**flags)(_cpu_namespace()[name].py_func)
-    return Compiled("cpu", entry, directory, warm, what, maker=maker)
+        if directory is not None and not writable:
+            entry._cache = _read_only_cache(entry.py_func)
+    return Compiled("cpu", entry, directory, warm, what, maker=maker, writable=writable)
 
 
 @functools.cache
