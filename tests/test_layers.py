@@ -22,6 +22,7 @@ LAYERS = (
     ("data", "presets"),
     ("kernels",),
     ("model",),
+    ("synthetic",),
     ("estimate",),
     ("learn",),
     ("io",),

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _noisy(rod, count, seed, noise=0.1):
     """1 to 3 forces over [second grating, L], magnitudes scaled with 1 / L^2 from the 290 mm envelope (0.05-2 N)
     so that the rods bend alike (at most 90 degrees)."""
-    from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
+    from torchrod.synthetic import LoadSampler, SensorModel, generate
 
     k = (0.29 / rod.length) ** 2
     sampler = LoadSampler(

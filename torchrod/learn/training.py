@@ -6,7 +6,7 @@ One entry point, :func:`train`, driven by a frozen :class:`TrainConfig`; ``pytho
 it. Under ``torchrun --nproc_per_node=N`` it trains with DistributedDataParallel (gloo on CPU, nccl on CUDA), each
 process taking its share of every epoch through a DistributedSampler; only rank 0 logs and saves.
 
-Data. The load cases and their clean readings come from a :class:`torchrod.learn.synthetic.SyntheticSet` (``data``: a
+Data. The load cases and their clean readings come from a :class:`torchrod.synthetic.loadsets.SyntheticSet` (``data``: a
 saved set) or are generated at start (``generate`` cases, seeded). Every training step draws fresh sensor noise and
 fresh missing gratings for its batch (a per-step seed, so a resumed run draws what the uninterrupted run would
 have): the noise level of each case is ``noise * U(1 - noise_jitter, 1 + noise_jitter)`` [1/m]. A held-back set
@@ -87,7 +87,7 @@ class TrainConfig:
         rod: preset name or rod JSON file. Generating (no ``data``): the rod to simulate, None meaning
             ``DEFAULT_ROD``. With ``data`` the set's own rod is used; a ``rod`` given as well must agree with it
             (length, stiffness, gratings: :meth:`Rod.differences`), else ``ValueError`` naming both.
-        data: a saved :class:`~torchrod.learn.synthetic.SyntheticSet`, or None to generate ``generate`` cases.
+        data: a saved :class:`~torchrod.synthetic.loadsets.SyntheticSet`, or None to generate ``generate`` cases.
         generate: number of training cases generated at start when ``data`` is None.
         validation: number of held-back cases, generated with another seed.
         max_forces: largest number of forces (H) in the data and the network.
@@ -244,7 +244,7 @@ class TrainingData:
 
     @classmethod
     def from_set(cls, data: Any) -> TrainingData:
-        """From a :class:`torchrod.learn.synthetic.SyntheticSet` (its clean readings and mask)."""
+        """From a :class:`torchrod.synthetic.loadsets.SyntheticSet` (its clean readings and mask)."""
         return cls.from_loads(data.rod, data.loads, data.clean, data.mask)
 
     def __len__(self) -> int:
@@ -266,7 +266,7 @@ class TrainingData:
 
 
 def _simulated(rod: Rod, count: int, max_forces: int, seed: int, noise: float, missing_prob: float):
-    from .synthetic import LoadSampler, SensorModel, generate
+    from ..synthetic import LoadSampler, SensorModel, generate
 
     return generate(
         rod,
@@ -676,7 +676,7 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
     given = load_rod(config.rod) if config.rod is not None else None  # a bad --rod fails before any data loads
     if data is None:
         if config.data is not None:
-            from .synthetic import SyntheticSet
+            from ..synthetic import SyntheticSet
 
             data = TrainingData.from_set(SyntheticSet.load(config.data))
             say(f"loaded {len(data)} cases from {config.data}")
