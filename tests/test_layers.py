@@ -19,7 +19,7 @@ LAYERS = (
     ("sensors",),
     ("rod",),
     ("loads",),
-    ("data", "presets"),
+    ("_shipped", "presets"),
     ("kernels",),
     ("model",),
     ("synthetic",),

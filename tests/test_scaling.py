@@ -1,4 +1,4 @@
-"""The estimator scales with the rod: a 1.0 m rod with 40 gratings (``torchrod/data/tube1000.json``) estimates 1 to 3
+"""The estimator scales with the rod: a 1.0 m rod with 40 gratings (``data/tube1000.json``) estimates 1 to 3
 forces in bounded memory, with work per grating comparable to the 290 mm rod's.
 
 Work is counted, not timed (the machine is shared): forward-model evaluations per reading, each a march whose cost

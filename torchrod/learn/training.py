@@ -104,8 +104,9 @@ class TrainConfig:
         noise_jitter: relative spread of the training noise level, in [0, 1).
         missing_prob: probability that a grating is missing in a reading.
         hidden, depth: network width and number of hidden layers.
-        logdir: tensorboard folder, or None for no logs.
-        checkpoint: where the checkpoint is written after every epoch.
+        logdir: tensorboard folder, or None for no logs (a relative path is in the current folder).
+        checkpoint: where the checkpoint is written after every epoch (a relative path is in the current folder:
+            the default, from the repository's root, is its ``checkpoints/`` folder).
         resume: a checkpoint to continue from (network, optimiser, step, epoch), or None.
         optimizer_state: store the optimiser state in the checkpoint (what ``resume`` needs to continue exactly;
             without it a resumed run starts a fresh optimiser, and the file is three times smaller).
