@@ -570,3 +570,12 @@ def test_turning_and_peak_of_a_small_tip_force_are_the_lever_arm_s():
     assert float(peak[0]) == pytest.approx(F * L / EI, rel=1e-6)
     assert float(turning[0]) == pytest.approx(F * L**2 / (2 * EI), rel=1e-3)
     assert torch.equal(total_turning(rod, loads), turning)
+
+
+def test_the_learn_package_gives_the_same_names():
+    """``torchrod.learn.synthetic`` is another name for the same objects (code that imports them from there)."""
+    from torchrod.learn import synthetic as learn_synthetic
+
+    assert learn_synthetic.__all__ == sy.__all__
+    for name in sy.__all__:
+        assert getattr(learn_synthetic, name) is getattr(sy, name), name

@@ -1,5 +1,5 @@
-"""The synthetic load sets and streams under the name they had before :mod:`torchrod.synthetic`, kept for code
-that imports them from here: the same objects as :mod:`torchrod.synthetic`'s."""
+"""Another name for :mod:`torchrod.synthetic`'s load sets and streams, for code that imports them from here: the
+same objects."""
 
 from ..synthetic import (
     CHUNK,
