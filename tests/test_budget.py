@@ -13,7 +13,7 @@ import torch
 import torchrod as tr
 from torchrod.cli import main
 from torchrod.estimate.estimator import Estimator, EstimatorOptions
-from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
+from torchrod.synthetic import LoadSampler, SensorModel, generate
 
 
 @pytest.fixture(scope="module")

@@ -210,7 +210,7 @@ def test_bench_estimate_with_the_network_and_idle_gaps(capsys):
     finally:
         torch.set_num_threads(threads)
     out = capsys.readouterr().out
-    assert "network torchrod/data/nitinol290.pt" in out
+    assert "network checkpoints/nitinol290.pt" in out
     assert "2 ms idle before each one-at-a-time call" in out
     assert main(["bench", "estimate", "--quick", "--gap-ms", "-1"]) == 2
     assert "--gap-ms must be" in capsys.readouterr().err

@@ -33,7 +33,7 @@ def sampled(
     separation=0.025,
     force=(0.05, 2.0),
 ):
-    from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
+    from torchrod.synthetic import LoadSampler, SensorModel, generate
 
     sampler = LoadSampler(
         min_forces=k, max_forces=k, force_range=force, min_separation=separation, s_range=(s_min, rod.length)
@@ -436,7 +436,7 @@ def test_trusted_guesses_in_a_wrong_place_do_not_keep_the_count_too_small(rod):
     the full search starts it, so trusted guesses all bunched at the tip (a network gone wrong) leave the counts of
     80 noisy three-force readings within 3 of the full search's (without that, 61 of them came out with fewer
     forces)."""
-    from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
+    from torchrod.synthetic import LoadSampler, SensorModel, generate
 
     B = 80
     sampler = LoadSampler(min_forces=3, max_forces=3, s_range=(rod.gratings[1], rod.length))

@@ -187,8 +187,8 @@ def test_an_under_trained_network_changes_the_count_accuracy_by_less_than_a_poin
     """A network trained for a handful of steps guesses badly; beside the scan's starts it cannot make the
     estimator worse: the count accuracy on 400 noisy readings moves by less than one point (4 readings). Its extra
     starts can only lower each count's best loss, so where it moves the count at all it is towards the truth."""
-    from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
     from torchrod.learn.training import TrainConfig, train
+    from torchrod.synthetic import LoadSampler, SensorModel, generate
 
     rod = tr.presets.nitinol290()
     path = tmp_path / "weak.pt"
@@ -349,7 +349,7 @@ def test_twins_answer_as_the_search_without_them_for_fewer_evaluations():
     with the shipped network, the estimates equal those of the search without twins: the same counts and
     statuses, the chosen losses within a hundredth of sigma^2 on all but a few readings and never worse by more
     than 2 sigma^2. It spends fewer evaluations."""
-    from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
+    from torchrod.synthetic import LoadSampler, SensorModel, generate
 
     rod = tr.presets.nitinol290()
     sampler = LoadSampler(min_forces=1, max_forces=3, force_range=(0.05, 2.0), min_separation=0.025)
@@ -418,7 +418,7 @@ def test_with_the_network_a_reading_answers_alike_alone_and_in_a_large_batch(rod
     (larger than the network's blocks of readings): its guesses, made in float32, do not depend on the batch, so a
     file's answers do not depend on how it is split (one reading at a time while the kernels compile, then in
     batches)."""
-    from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
+    from torchrod.synthetic import LoadSampler, SensorModel, generate
 
     def drawn(k: int) -> torch.Tensor:
         sampler = LoadSampler(min_forces=k, max_forces=k, min_separation=0.025, s_range=(0.05, rod.length))

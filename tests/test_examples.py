@@ -58,7 +58,7 @@ def test_estimate_file_writes_one_answer_per_reading(tmp_path):
 
 def test_estimate_file_reports_a_bad_line_and_goes_on(tmp_path):
     readings = tmp_path / "r.jsonl"
-    good = (ROOT / "torchrod" / "data" / "example_stream.jsonl").read_text().splitlines()[0]
+    good = (ROOT / "data" / "example_stream.jsonl").read_text().splitlines()[0]
     readings.write_text(good + "\n" + '{"id": "bad", "curvature": [[1, 2]]}\n')
     out = run("estimate_file.py", str(readings), cwd=tmp_path)
     assert "skipped: line 2" in out and "1 readings" in out

@@ -1,9 +1,13 @@
 """What a user gets from an installed torchrod: the shipped files inside the wheel and found through
-importlib.resources, one version, the licence and citation files, and a named path that does not exist refused."""
+importlib.resources, one version, the licence and citation files, and a named path that does not exist refused.
+
+The shipped files live at the repository's top level (``data/``, ``checkpoints/``) and install inside the package
+(``torchrod.data``, ``torchrod.checkpoints``: pyproject.toml's ``package-dir``)."""
 
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -14,6 +18,7 @@ from pathlib import Path
 import pytest
 
 import torchrod
+from torchrod._shipped import PACKAGES
 from torchrod.cli import main
 from torchrod.data import FILES, path
 from torchrod.errors import MissingFileError
@@ -25,7 +30,7 @@ def test_every_shipped_file_is_found_through_importlib_resources():
     for name in FILES:
         found = path(name)
         assert found.is_file() and found.stat().st_size > 0, name
-        assert found.parent == Path(torchrod.__file__).resolve().parent / "data" or found.parent.name == "data"
+        assert found.parent.name == PACKAGES[name].rpartition(".")[2], name  # data/ or checkpoints/
     # The rod files are the presets, and the example truth answers the example stream line for line.
     assert torchrod.Rod.from_json(torchrod.presets.rod_file("nitinol290")) == torchrod.presets.nitinol290()
     assert torchrod.Rod.from_json(torchrod.presets.rod_file("ctr250")) == torchrod.presets.ctr250()
@@ -72,15 +77,36 @@ def test_the_version_is_written_once():
     assert "MIT License" in licence and "the torchrod developers" in licence
 
 
+def test_pyproject_lists_every_package_and_ships_every_file_by_name():
+    """The packages are listed (a mapped folder is not found by a search): every folder of the package with Python
+    files is in the list, and the package data names the shipped files, each in its package's folder."""
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+    setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    mapped = setuptools["package-dir"]
+    assert mapped == {"torchrod.data": "data", "torchrod.checkpoints": "checkpoints"}
+    folders = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "torchrod").rglob("*.py")}
+    assert set(setuptools["packages"]) == folders | set(mapped)
+    shipped = {name: package for package, names in setuptools["package-data"].items() for name in names}
+    assert shipped.pop("py.typed") == "torchrod"
+    assert shipped == PACKAGES
+    for name, package in PACKAGES.items():
+        assert (ROOT / mapped[package] / name).is_file(), name
+
+
 def test_a_built_wheel_holds_the_package_data(tmp_path):
     """``pip wheel`` of a copy of the source (so no build files land in the checkout): the wheel carries the rod
-    files, the example data, the network and py.typed, under the version torchrod reports."""
+    files, the example data, the network and py.typed, under the version torchrod reports, and not the other files
+    that the top-level folders may hold (a set generated there, a network trained there); unpacked and imported,
+    it finds its files."""
     pytest.importorskip("setuptools", minversion="70.1")  # builds wheels without the `wheel` package
     src = tmp_path / "src"
     src.mkdir()
     for name in ("pyproject.toml", "README.md", "LICENSE"):
         shutil.copy(ROOT / name, src / name)
-    shutil.copytree(ROOT / "torchrod", src / "torchrod", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    for folder in ("torchrod", "data", "checkpoints"):
+        shutil.copytree(ROOT / folder, src / folder, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    (src / "checkpoints" / "warm_start.pt").write_bytes(b"trained here")
+    (src / "data" / "my_stream.jsonl").write_text("{}\n")
     out = tmp_path / "wheel"
     done = subprocess.run(
         [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(out), str(src)],
@@ -93,10 +119,25 @@ def test_a_built_wheel_holds_the_package_data(tmp_path):
     assert wheel.name.startswith(f"torchrod-{torchrod.__version__}-")
     names = set(zipfile.ZipFile(wheel).namelist())
     for name in FILES:
-        assert f"torchrod/data/{name}" in names, name
-    assert "torchrod/py.typed" in names and "torchrod/data/__init__.py" in names
+        assert f"{PACKAGES[name].replace('.', '/')}/{name}" in names, name
+    assert {"torchrod/py.typed", "torchrod/data/__init__.py", "torchrod/checkpoints/__init__.py"} <= names
+    assert not any(n.endswith(("warm_start.pt", "my_stream.jsonl")) for n in names)
     assert any(n.endswith(".dist-info/licenses/LICENSE") or n.endswith(".dist-info/LICENSE") for n in names)
-    assert not any(n.startswith(("tests/", "docs/", "examples/")) for n in names)
+    assert not any(n.startswith(("tests/", "docs/", "examples/", "data/", "checkpoints/")) for n in names)
+    # Installed (unpacked; run away from the checkout), torchrod.data finds the files inside it.
+    site = tmp_path / "site"
+    zipfile.ZipFile(wheel).extractall(site)
+    for name in ("nitinol290.pt", "example_stream.jsonl"):
+        done = subprocess.run(
+            [sys.executable, "-m", "torchrod.data", name],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            cwd=tmp_path,
+            env={**os.environ, "PYTHONPATH": str(site)},
+        )
+        assert done.returncode == 0, done.stderr
+        assert Path(done.stdout.strip()) == site / PACKAGES[name].replace(".", "/") / name
 
 
 @pytest.mark.parametrize(

@@ -1,4 +1,4 @@
-"""The estimator scales with the rod: a 1.0 m rod with 40 gratings (``torchrod/data/tube1000.json``) estimates 1 to 3
+"""The estimator scales with the rod: a 1.0 m rod with 40 gratings (``data/tube1000.json``) estimates 1 to 3
 forces in bounded memory, with work per grating comparable to the 290 mm rod's.
 
 Work is counted, not timed (the machine is shared): forward-model evaluations per reading, each a march whose cost
@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _noisy(rod, count, seed, noise=0.1):
     """1 to 3 forces over [second grating, L], magnitudes scaled with 1 / L^2 from the 290 mm envelope (0.05-2 N)
     so that the rods bend alike (at most 90 degrees)."""
-    from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
+    from torchrod.synthetic import LoadSampler, SensorModel, generate
 
     k = (0.29 / rod.length) ** 2
     sampler = LoadSampler(

@@ -12,9 +12,10 @@ import pytest
 import torch
 
 import torchrod as tr
+from torchrod import synthetic as sy
 from torchrod.cli import main
 from torchrod.data import path as shipped_file
-from torchrod.learn import synthetic as sy
+from torchrod.synthetic.loadsets import _digest, _profile
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +109,7 @@ def test_cases_the_forward_model_does_not_resolve_are_redrawn(rod, monkeypatch):
 
     sampler = sy.LoadSampler(max_forces=1, force_range=(1.0, 1000.0), max_bending=math.inf)
     loads = sy.sample_loads(rod, 64, sampler, torch.Generator().manual_seed(3))
-    clean = sy._profile(rod, loads)[0]
+    clean = _profile(rod, loads)[0]
     sim = tr.simulate(rod, loads)
     assert bool(getattr(sim, "accurate", torch.ones(1, dtype=torch.bool)).all())
     err = (clean - sim.grating_curvature).abs().amax(dim=(1, 2)) / sim.grating_curvature.abs().amax(dim=(1, 2))
@@ -311,7 +312,7 @@ def test_load_rejects_inconsistent_shapes(saved, tmp_path):
 
     def shorten(arrays, meta):  # a consistent hash over inconsistent arrays
         arrays["clean"] = arrays["clean"][:-1]
-        meta["sha256"] = sy._digest(arrays)
+        meta["sha256"] = _digest(arrays)
 
     _rewrite(saved, bad, shorten)
     with pytest.raises(ValueError, match="inconsistent.*'clean'"):
@@ -319,7 +320,7 @@ def test_load_rejects_inconsistent_shapes(saved, tmp_path):
 
     def miscount(arrays, meta):
         arrays["count"] = arrays["count"] + 1
-        meta["sha256"] = sy._digest(arrays)
+        meta["sha256"] = _digest(arrays)
 
     _rewrite(saved, bad, miscount)
     with pytest.raises(ValueError, match="'count' disagrees"):
@@ -559,7 +560,7 @@ def test_shipped_example_stream():
 def test_turning_and_peak_of_a_small_tip_force_are_the_lever_arm_s():
     """Small deflection, a force F at the tip: |u(s)| = F (L - s) / EI, so the peak is F L / EI at the base and the
     turning F L^2 / (2 EI)."""
-    from torchrod.learn.synthetic import total_turning, turning_and_peak
+    from torchrod.synthetic import total_turning, turning_and_peak
 
     rod = tr.presets.nitinol290()
     L, EI, F = rod.length, rod.bending_stiffness, 1e-5
@@ -569,3 +570,12 @@ def test_turning_and_peak_of_a_small_tip_force_are_the_lever_arm_s():
     assert float(peak[0]) == pytest.approx(F * L / EI, rel=1e-6)
     assert float(turning[0]) == pytest.approx(F * L**2 / (2 * EI), rel=1e-3)
     assert torch.equal(total_turning(rod, loads), turning)
+
+
+def test_the_learn_package_gives_the_same_names():
+    """``torchrod.learn.synthetic`` is another name for the same objects (code that imports them from there)."""
+    from torchrod.learn import synthetic as learn_synthetic
+
+    assert learn_synthetic.__all__ == sy.__all__
+    for name in sy.__all__:
+        assert getattr(learn_synthetic, name) is getattr(sy, name), name

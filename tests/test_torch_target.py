@@ -13,8 +13,8 @@ import torch
 import torchrod as tr
 from torchrod.errors import OptionsError
 from torchrod.estimate import refine
-from torchrod.learn.synthetic import SensorModel, generate
 from torchrod.learn.warm_start import SHIPPED_CHECKPOINT
+from torchrod.synthetic import SensorModel, generate
 
 F64 = torch.float64
 

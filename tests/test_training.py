@@ -14,7 +14,6 @@ import torchrod as tr
 from torchrod.cli import main as cli_main
 from torchrod.learn.checkpoint import load_checkpoint
 from torchrod.learn.network import NetConfig, NetOutput
-from torchrod.learn.synthetic import LoadSampler, SensorModel, SyntheticSet, generate
 from torchrod.learn.training import (
     TrainConfig,
     TrainingData,
@@ -23,6 +22,7 @@ from torchrod.learn.training import (
     train,
 )
 from torchrod.learn.warm_start import WarmStart, WarmStartGuess
+from torchrod.synthetic import LoadSampler, SensorModel, SyntheticSet, generate
 
 TINY = {
     "batch_size": 64,

@@ -329,8 +329,8 @@ def test_layout_mismatch(rod, tmp_path):
 
 def test_the_shipped_checkpoint_guesses_well_on_fresh_readings(rod):
 
-    from torchrod.learn.synthetic import LoadSampler, SensorModel, generate
     from torchrod.learn.training import evaluate_guess
+    from torchrod.synthetic import LoadSampler, SensorModel, generate
 
     path = shipped_file("nitinol290.pt")
     ws = WarmStart.load(path, rod)

@@ -15,7 +15,8 @@ The public surface (SI units everywhere: m, N, Pa, 1/m):
   :class:`CheckpointError`, :class:`TorchrodTypeError`) and :class:`TorchrodWarning` (with :class:`RodWarning`);
 - subpackages for the rest: :mod:`torchrod.model` (forward model, the global-frame reference and the paper's
   baselines), :mod:`torchrod.estimate` (options, status, noise, calibration), :mod:`torchrod.kernels` (the
-  estimator's numerical core), :mod:`torchrod.learn` (synthetic data, the warm-start network, training),
+  estimator's numerical core), :mod:`torchrod.learn` (the warm-start network, training),
+  :mod:`torchrod.synthetic` (synthetic load sets and reading streams),
   :mod:`torchrod.io` (readings, streams, files), :mod:`torchrod.sensors` (strain and wavelengths to curvature).
 
 The names are loaded on first use (PEP 562): ``import torchrod`` and ``torchrod.__version__`` do not import torch,
@@ -98,7 +99,7 @@ __all__ = [  # the names of _LAZY and __version__ (a test holds them equal)
 
 # Subpackages and modules that ``torchrod.<name>`` reaches without an import of its own (as when they were eager).
 _SUBMODULES = frozenset(
-    {"cli", "errors", "estimate", "eval", "io", "kernels", "learn", "loads", "model", "rod", "sensors"}
+    {"cli", "errors", "estimate", "eval", "io", "kernels", "learn", "loads", "model", "rod", "sensors", "synthetic"}
 )
 
 if _typing.TYPE_CHECKING:  # what static tools see; at run time __getattr__ imports on first use

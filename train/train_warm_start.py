@@ -1,8 +1,8 @@
 """Train the warm-start network: a thin wrapper around :func:`torchrod.cli.commands.train.main` (as
 ``torchrod train``).
 
-The shipped weights (torchrod/data/nitinol290.pt: 200k generated cases, 30 epochs, 5.5 min on two CPU cores):
-                  python train/train_warm_start.py --checkpoint torchrod/data/nitinol290.pt --no-optimizer-state \
+The shipped weights (checkpoints/nitinol290.pt: 200k generated cases, 30 epochs, 5.5 min on two CPU cores):
+                  python train/train_warm_start.py --checkpoint checkpoints/nitinol290.pt --no-optimizer-state \
                       --logdir runs/nitinol290
 Single process:   python train/train_warm_start.py --generate 200000 --epochs 30 --checkpoint runs/ws.pt
 Data parallel:    torchrun --nproc_per_node=2 train/train_warm_start.py ...

@@ -477,13 +477,13 @@ def paper_readings(
 ) -> Readings:
     """``count`` readings with ``forces`` forces each, shaped like the paper's experiments (module docstring).
 
-    Loads come from :func:`torchrod.learn.synthetic.generate` (``LoadSampler`` with ``force_range``, ``s_range``
+    Loads come from :func:`torchrod.synthetic.loadsets.generate` (``LoadSampler`` with ``force_range``, ``s_range``
     (default: the second grating to 10 mm short of the tip), ``min_separation`` and ``max_bending``;
     ``SensorModel(noise=noise, location_bias=rod.location_bias)``): from a pool of 12 x ``count`` cases, case j is
     the first whose mean location lies in the j-th of ``count`` equal parts of the location range (the nearest
     unused case when a part is empty), so the cases spread along the rod.
     """
-    from ..learn.synthetic import LoadSampler, SensorModel, generate
+    from ..synthetic import LoadSampler, SensorModel, generate
 
     if count < 1:
         raise OptionsError(f"count must be >= 1, got {count}")

@@ -100,7 +100,7 @@ def recovery_cases(
 ) -> list[RecoveryCase]:
     """``count`` stratified random cases (module docstring), reproducible from ``seed``: within ``max_bending``
     [rad] of total turning, or with ``elastic`` within the elastic range (bending strain at most ``max_strain``)."""
-    from ..learn.synthetic import turning_and_peak
+    from ..synthetic import turning_and_peak
 
     if not 0.0 < max_strain < 1.0:
         raise OptionsError(f"max_strain must lie in (0, 1), got {max_strain!r}")

@@ -1,1 +1,2 @@
-"""Simulated data and the warm-start network: synthetic sets and streams, the network, its training."""
+"""The warm-start network: the network, its checkpoints, its training and its inference (the synthetic sets it
+learns from are :mod:`torchrod.synthetic`)."""

@@ -11,7 +11,7 @@ search's own fit of every count and the count it chooses, on one fixed noisy rea
 (:mod:`torchrod.learn.labels`): every head is trained on its count's fit, and a reading the search answers with no
 force takes no part in the count's cross-entropy.
 
-Data. The load cases and their clean readings come from a :class:`torchrod.learn.synthetic.SyntheticSet` (``data``: a
+Data. The load cases and their clean readings come from a :class:`torchrod.synthetic.loadsets.SyntheticSet` (``data``: a
 saved set) or are generated at start (``generate`` cases, seeded). Every training step draws fresh sensor noise and
 fresh missing gratings for its batch (a per-step seed, so a resumed run draws what the uninterrupted run would
 have): the noise level of each case is ``noise * U(1 - noise_jitter, 1 + noise_jitter)`` [1/m]. A held-back set
@@ -96,7 +96,7 @@ class TrainConfig:
         rod: preset name or rod JSON file. Generating (no ``data``): the rod to simulate, None meaning
             ``DEFAULT_ROD``. With ``data`` the set's own rod is used; a ``rod`` given as well must agree with it
             (length, stiffness, gratings: :meth:`Rod.differences`), else ``ValueError`` naming both.
-        data: a saved :class:`~torchrod.learn.synthetic.SyntheticSet`, or None to generate ``generate`` cases.
+        data: a saved :class:`~torchrod.synthetic.loadsets.SyntheticSet`, or None to generate ``generate`` cases.
         generate: number of training cases generated at start when ``data`` is None.
         validation: number of held-back cases, generated with another seed.
         max_forces: largest number of forces (H) in the data and the network.
@@ -113,8 +113,9 @@ class TrainConfig:
         noise_jitter: relative spread of the training noise level, in [0, 1).
         missing_prob: probability that a grating is missing in a reading.
         hidden, depth: network width and number of hidden layers.
-        logdir: tensorboard folder, or None for no logs.
-        checkpoint: where the checkpoint is written after every epoch.
+        logdir: tensorboard folder, or None for no logs (a relative path is in the current folder).
+        checkpoint: where the checkpoint is written after every epoch (a relative path is in the current folder:
+            the default, from the repository's root, is its ``checkpoints/`` folder).
         resume: a checkpoint to continue from (network, optimiser, step, epoch), or None.
         optimizer_state: store the optimiser state in the checkpoint (what ``resume`` needs to continue exactly;
             without it a resumed run starts a fresh optimiser, and the file is three times smaller).
@@ -266,7 +267,7 @@ class TrainingData:
 
     @classmethod
     def from_set(cls, data: Any) -> TrainingData:
-        """From a :class:`torchrod.learn.synthetic.SyntheticSet` (its clean readings and mask)."""
+        """From a :class:`torchrod.synthetic.loadsets.SyntheticSet` (its clean readings and mask)."""
         return cls.from_loads(data.rod, data.loads, data.clean, data.mask)
 
     def with_search_labels(
@@ -307,7 +308,7 @@ class TrainingData:
 
 
 def _simulated(rod: Rod, count: int, max_forces: int, seed: int, noise: float, missing_prob: float):
-    from .synthetic import LoadSampler, SensorModel, generate
+    from ..synthetic import LoadSampler, SensorModel, generate
 
     return generate(
         rod,
@@ -738,7 +739,7 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
     given = load_rod(config.rod) if config.rod is not None else None  # a bad --rod fails before any data loads
     if data is None:
         if config.data is not None:
-            from .synthetic import SyntheticSet
+            from ..synthetic import SyntheticSet
 
             data = TrainingData.from_set(SyntheticSet.load(config.data))
             say(f"loaded {len(data)} cases from {config.data}")

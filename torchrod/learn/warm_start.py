@@ -35,9 +35,12 @@ from .checkpoint import load_checkpoint
 from .network import NetConfig, NetOutput, WarmStartNet
 
 # cast: importlib's Traversable is not typed PathLike, though a package's files are paths
-SHIPPED_CHECKPOINT = os.fspath(cast("os.PathLike[str]", resources.files("torchrod.data").joinpath("nitinol290.pt")))
-"""The shipped warm-start network, trained for the ``nitinol290`` grating layout (``torchrod/data/nitinol290.pt``,
-installed with the package; :func:`shipped_network` finds it for a rod)."""
+SHIPPED_CHECKPOINT = os.fspath(
+    cast("os.PathLike[str]", resources.files("torchrod.checkpoints").joinpath("nitinol290.pt"))
+)
+"""The shipped warm-start network, trained for the ``nitinol290`` grating layout (the repository's
+``checkpoints/nitinol290.pt``, installed with the package as ``torchrod.checkpoints``; :func:`shipped_network` finds
+it for a rod)."""
 
 __all__ = [
     "LAYOUT_TOLERANCE",
@@ -440,7 +443,7 @@ def _finite(value: Any) -> bool:
 
 
 SHIPPED_NETWORKS = ("nitinol290.pt",)
-"""The warm-start networks shipped in :mod:`torchrod.data`, each for one grating layout."""
+"""The warm-start networks shipped with the package (:mod:`torchrod.data` finds them), each for one grating layout."""
 
 
 def shipped_network(rod: Rod) -> tuple[WarmStart | None, str]:
@@ -450,7 +453,7 @@ def shipped_network(rod: Rod) -> tuple[WarmStart | None, str]:
     A network serves every rod whose gratings sit at its layout's positions relative to the length, whatever the
     rod's length and stiffness (the network works in dimensionless form).
     """
-    from ..data import path
+    from .._shipped import path
 
     for name in SHIPPED_NETWORKS:
         net, meta = load_checkpoint(path(name))

@@ -62,8 +62,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def readings(rod, k: int | None, count: int, noise: float, seed: int):
-    """A :class:`torchrod.learn.synthetic.SyntheticSet` of ``count`` readings with k forces (None: 1 to 3)."""
-    from ...learn.synthetic import LoadSampler, SensorModel, generate
+    """A :class:`torchrod.synthetic.loadsets.SyntheticSet` of ``count`` readings with k forces (None: 1 to 3)."""
+    from ...synthetic import LoadSampler, SensorModel, generate
 
     lo = rod.gratings[1] if rod.num_gratings > 1 else 0.02 * rod.length
     scale = (0.29 / rod.length) ** 2  # the same turning as on the 290 mm tube (moment ~ force x length)

@@ -2,7 +2,7 @@
 
 A ``torchrod stream --rod ROD --workers W`` process (the torchrod this benchmark runs) is fed ``--count`` readings
 as JSON lines through a pipe, as fast as it takes them: ``--distinct`` simulated readings of a synthetic trajectory
-(torchrod.learn.synthetic.generate_trajectory, noise ``--noise`` [1/m]), cycled, each line with its own id, so that
+(torchrod.synthetic.generate_trajectory, noise ``--noise`` [1/m]), cycled, each line with its own id, so that
 no two lines are the same. Its answers are counted as they come, by a reader that keeps nothing of them. Every
 ``--interval`` seconds the resident memory (RSS, ``VmRSS`` of Linux's /proc) of the process and of any process it
 started is sampled, with the count of answers so far.
@@ -103,7 +103,7 @@ def reading_lines(rod: Rod, distinct: int, noise: float) -> list[tuple[str, str]
     ``', "t": T, "curvature": [...]}'``) with the curvature [1/m] to 1e-6 1/m, null for a missing grating."""
     import torch
 
-    from ...learn.synthetic import SensorModel, generate_trajectory
+    from ...synthetic import SensorModel, generate_trajectory
 
     sensor = SensorModel(noise=noise, location_bias=rod.location_bias)
     trajectory = generate_trajectory(rod, distinct, sensor=sensor, seed=0)

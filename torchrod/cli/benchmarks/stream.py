@@ -1,6 +1,6 @@
 """``torchrod bench stream``: amortised estimation on a stream of readings against one reading at a time.
 
-Readings: a synthetic trajectory (:func:`torchrod.learn.synthetic.generate_trajectory`) of ``--count`` readings at
+Readings: a synthetic trajectory (:func:`torchrod.synthetic.generate_trajectory`) of ``--count`` readings at
 ``--rate`` Hz: 1 to 3 contacts that appear, move, grow and vanish, Gaussian noise ``--noise`` per component. The
 estimator (default options, count chosen among 0..3, told the noise; the warm-start network of ``--checkpoint``
 when it fits the rod, loaded as :func:`torchrod.load_estimator` does: its guesses are starts beside the scan's
@@ -450,7 +450,7 @@ def _options(noise: float | None, settings: list[str], network: Any) -> Estimato
 
 
 def run(args: argparse.Namespace) -> int:
-    from ...learn.synthetic import SensorModel, generate_trajectory
+    from ...synthetic import SensorModel, generate_trajectory
 
     rod = load_rod(args.rod)
     count, single, paced = (300, 20, 100) if args.quick else (args.count, args.single, args.paced)

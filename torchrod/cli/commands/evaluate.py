@@ -3,7 +3,7 @@
 Usage: ``torchrod evaluate [--rod ROD] [--count-per-cell N] [--noise 0,0.1,0.3] [--seed S]``.
 
 For every number of forces k = 1..``--max-forces`` and every noise level sigma, N load cases are drawn
-(:mod:`torchrod.learn.synthetic`): k forces at least ``--min-separation`` apart (25 mm), magnitudes uniform in
+(:mod:`torchrod.synthetic.loadsets`): k forces at least ``--min-separation`` apart (25 mm), magnitudes uniform in
 ``--force-range`` (0.05 to 2 N) in any body-frame direction, locations uniform over [``--s-min``, L], cases whose
 rod turns by more than ``--max-bending-deg`` (90 degrees) redrawn; their readings carry Gaussian noise sigma per
 component (and the rod's location bias). The estimator (``torchrod.Estimator``, default options, up to
@@ -198,7 +198,7 @@ def evaluate_cell(
     cases whose most proximal force lies between the first grating and 20 mm distal to the second (drawn over
     [first grating, L] and kept when they do). ``fibre``: readings pass through its core strains, or its peak
     wavelengths when it is a :class:`WavelengthInput` (:func:`through_sensor`)."""
-    from ...learn.synthetic import LoadSampler, SensorModel, generate
+    from ...synthetic import LoadSampler, SensorModel, generate
 
     lo = s_min if s_min is not None else (rod.gratings[1] if rod.num_gratings > 1 else 0.02 * rod.length)
     if near_base:

@@ -23,7 +23,7 @@ HELP = "synthetic training sets (.npz) and synthetic reading streams (.jsonl)"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    from ...learn.synthetic import ContactModel, LoadSampler, SensorModel
+    from ...synthetic import ContactModel, LoadSampler, SensorModel
 
     ls, sm, cm = LoadSampler(), SensorModel(), ContactModel()
     parser.add_argument("--rod", required=True, help=rod_help())
@@ -122,7 +122,8 @@ def _bytes(n: float) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ...learn.synthetic import (
+    from ...presets import load as load_rod
+    from ...synthetic import (
         ContactModel,
         LoadSampler,
         SensorModel,
@@ -131,7 +132,6 @@ def run(args: argparse.Namespace) -> int:
         truth_path,
         write_trajectory,
     )
-    from ...presets import load as load_rod
 
     rod = load_rod(args.rod)
     if args.count < 0:

@@ -4,6 +4,10 @@
 ``torchrun --nproc_per_node=N -m torchrod train ...`` it trains with DistributedDataParallel. See
 :mod:`torchrod.learn.training` for what is trained and logged.
 
+Where it writes: the network to ``--checkpoint`` (default ``checkpoints/warm_start.pt``) and the logs to ``--logdir``
+(default ``runs/warm_start``), both in the current folder; from the repository's root, the network lands in its
+top-level ``checkpoints/``, beside the shipped one (only the shipped one installs with the package).
+
 The rod: generating, ``--rod`` (default nitinol290). With ``--data SET`` the network is trained for the set's rod;
 a ``--rod`` given as well must agree with it (length, bending stiffness, gratings), else the command stops with
 an error naming both instead of silently training for the set's rod.
@@ -97,8 +101,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     a("--hidden", type=int, default=d.hidden, help="hidden width (%(default)s)")
     a("--depth", type=int, default=d.depth, help="hidden layers (%(default)s)")
-    a("--logdir", default=d.logdir, help="tensorboard folder (%(default)s); 'none' for no logs")
-    a("--checkpoint", default=d.checkpoint, help="checkpoint written after every epoch (%(default)s)")
+    a("--logdir", default=d.logdir, help="tensorboard folder (%(default)s, in the current folder); 'none' for no logs")
+    a(
+        "--checkpoint",
+        default=d.checkpoint,
+        help="checkpoint written after every epoch (%(default)s, in the current folder: run from the repository's "
+        "root, its checkpoints/ folder)",
+    )
     a("--resume", default=None, help="continue from this checkpoint")
     a(
         "--no-optimizer-state",

@@ -10,6 +10,10 @@
 
 ``python -m torchrod.data`` lists them with their paths; ``python -m torchrod.data NAME`` prints one path (for a
 shell: ``torchrod stream --rod nitinol290 --input "$(python -m torchrod.data example_stream.jsonl)"``).
+
+In the repository the rod files and the example data are the top-level folder ``data/``, which installs as the
+package ``torchrod.data``, and the network is in ``checkpoints/``, which installs as ``torchrod.checkpoints``
+(``pyproject.toml``'s ``package-dir``: one copy of each file). This module is the code of :mod:`torchrod.data`.
 """
 
 from __future__ import annotations
@@ -20,9 +24,9 @@ import os
 from importlib import resources
 from pathlib import Path
 
-from ..errors import MissingFileError
+from .errors import MissingFileError
 
-__all__ = ["FILES", "path"]
+__all__ = ["FILES", "PACKAGES", "main", "path"]
 
 FILES: dict[str, str] = {
     "nitinol290.json": "the paper's 290 mm Nitinol tube, 14 gratings (preset nitinol290)",
@@ -34,6 +38,10 @@ FILES: dict[str, str] = {
     "example_stream_truth.jsonl": "the true forces of example_stream.jsonl",
 }
 """The shipped files, by name, with what each holds."""
+
+PACKAGES: dict[str, str] = {name: "torchrod.checkpoints" if name.endswith(".pt") else "torchrod.data" for name in FILES}
+"""The package each shipped file installs in: the networks in ``torchrod.checkpoints`` (the repository's
+``checkpoints/``), the rest in ``torchrod.data`` (its ``data/``)."""
 
 _extracted = contextlib.ExitStack()  # files copied out of a zipped install live until the interpreter exits
 atexit.register(_extracted.close)
@@ -47,10 +55,14 @@ def path(name: str) -> Path:
     """
     if name not in FILES:
         raise MissingFileError(f"torchrod ships no file {name!r}; shipped files: {', '.join(FILES)}")
-    resource = resources.files(__name__).joinpath(name)
-    if not resource.is_file():
+    try:
+        resource = resources.files(PACKAGES[name]).joinpath(name)
+    except ModuleNotFoundError:  # an install made before the package held it: its files are not found
+        resource = None
+    if resource is None or not resource.is_file():
+        where = f" ({resource})" if resource is not None else f" (no package {PACKAGES[name]})"
         raise MissingFileError(
-            f"torchrod's shipped file {name!r} is missing from this installation ({resource}): reinstall torchrod"
+            f"torchrod's shipped file {name!r} is missing from this installation{where}: reinstall torchrod"
         )
     if isinstance(resource, Path):
         return resource
