@@ -11,6 +11,13 @@ The estimate: a correct fit of h forces to n residuals leaves ``loss ~ sigma^2 c
 then). The median ignores the fits that are not correct (a misfit, a force missed) as long as they are fewer than half.
 Fits without degrees of freedom left, and unconverged ones, are not used. Only the most recent ``window`` fits count, so
 a sensor whose noise drifts slowly is followed.
+
+A rod with a calibration error (``Rod.calibration_error``) adds ``(rel_k u_k)^2`` to each value's variance. A fit
+made with the noise known weighs it out (its loss is in the units of the sensor's sigma^2, as the estimator's
+weights make it); a fit made with the noise unknown does not, and its loss holds on average ``(n - 3h) / n`` of the
+calibration's summed variance besides the noise: the caller gives that share (:meth:`RunningNoise.add`'s
+``calibration``, :func:`calibration_share`) and it is taken off before the ratio, so what is learned is the
+sensor's own sigma.
 """
 
 from __future__ import annotations
@@ -23,7 +30,16 @@ from dataclasses import dataclass
 from ..errors import OptionsError
 from ..kernels.host import chi2_quantile
 
-__all__ = ["NoiseLearning", "RunningNoise"]
+__all__ = ["NoiseLearning", "RunningNoise", "calibration_share"]
+
+
+def calibration_share(variance: Iterable[float], values: Iterable[int], dof: Iterable[int]) -> list[float]:
+    """Per fit, the share of its loss [1/m^2] that a calibration error makes on average where the fit does not weigh
+    it out: ``(dof / n) x`` the summed calibration ``variance`` of its n present ``values`` (module docstring)."""
+    return [
+        float(v) * int(d) / int(n) if int(n) > 0 and int(d) > 0 else 0.0
+        for v, n, d in zip(variance, values, dof, strict=True)
+    ]
 
 
 @dataclass(frozen=True)
@@ -60,14 +76,17 @@ class RunningNoise:
         self._ratios: collections.deque[float] = collections.deque(maxlen=learning.window)
         self.used = 0  # fits added in all
 
-    def add(self, loss: Iterable[float], dof: Iterable[int]) -> None:
+    def add(self, loss: Iterable[float], dof: Iterable[int], calibration: Iterable[float] | None = None) -> None:
         """Add fits: their losses [1/m^2] and degrees of freedom (residuals less 3 per force); fits with no
-        degree of freedom or a non-finite loss are skipped."""
-        for x, d in zip(loss, dof, strict=True):
+        degree of freedom or a non-finite loss are skipped. ``calibration``: per fit, the share of its loss a
+        calibration error makes [1/m^2] (module docstring; None: none), taken off first (not below zero)."""
+        losses = [float(x) for x in loss]
+        shares = [0.0] * len(losses) if calibration is None else [float(c) for c in calibration]
+        for x, d, c in zip(losses, dof, shares, strict=True):
             d = int(d)
-            if d <= 0 or not math.isfinite(float(x)) or float(x) < 0.0:
+            if d <= 0 or not math.isfinite(x) or x < 0.0:
                 continue
-            self._ratios.append(float(x) / chi2_quantile(0.5, d))
+            self._ratios.append(max(x - c, 0.0) / chi2_quantile(0.5, d))
             self.used += 1
 
     @property

@@ -61,7 +61,7 @@ from typing import Any, cast
 import torch
 
 from ..errors import OptionsError, TorchrodTypeError
-from ..estimate.noise import NoiseLearning, RunningNoise
+from ..estimate.noise import NoiseLearning, RunningNoise, calibration_share
 from ..estimate.status import STATUSES
 from ..kernels.targets import note_interrupt
 from ..loads import PointForces
@@ -647,8 +647,16 @@ class _Stream:
         if self.noise is not None:
             # fits that stopped early (unconverged, or cut by the time budget) overstate the noise
             use = (result.status != STATUSES.index("unconverged")) & (result.status != STATUSES.index("timeout"))
-            dof = 2 * mask.sum(1) - 3 * result.num_forces.to(mask.device)
-            self.noise.add(result.loss[use].tolist(), dof[use].tolist())
+            values = 2 * mask.sum(1)
+            dof = values - 3 * result.num_forces.to(mask.device)
+            share = None
+            rod = getattr(self.estimator, "rod", None)
+            if learned is None and rod is not None and rod.calibration_error:  # unweighted fits: the calibration's
+                curvature = stack_readings([p.reading for p in good])[0].to(mask.device)
+                variance = rod.calibration_variance(torch.where(mask[..., None], curvature, 0.0))
+                variance = torch.where(mask[..., None], variance, 0.0).sum((1, 2))
+                share = calibration_share(variance[use].tolist(), values[use].tolist(), dof[use].tolist())
+            self.noise.add(result.loss[use].tolist(), dof[use].tolist(), share)
         if self.options.track:
             self.previous = _last_solution(result)
         return [(result, k, rec, None) for k, rec in enumerate(records)]
