@@ -479,8 +479,7 @@ def report(result: JigCalibration, data: JigData) -> Sequence[str]:
     out = [
         f"{data.curvature.shape[0]} jig readings on {len(jigs)} jigs, {G} gratings x {result.matrices.shape[2]} cores",
         f"{'grating':>7} {'readings':>8} {'residual':>10} {'left out':>10} {'relative':>9} {'gain':>12} "
-        f"{'vs median':>10} "
-        + (f"{'vs physics':>10}" if result.physics_gains is not None else ""),
+        f"{'vs median':>10} " + (f"{'vs physics':>10}" if result.physics_gains is not None else ""),
         f"{'':>7} {'':>8} {'[1/m]':>10} {'[1/m]':>10} {'':>9} {'[1/m per nm]':>12} {'':>10}",
     ]
     median = statistics.median(result.gains.tolist())

@@ -199,11 +199,7 @@ def check_counts(args: argparse.Namespace, rod: Rod | None = None) -> None:
 
         from ...errors import RodWarning
 
-        effect = (
-            f"a fit of {count} is not tested"
-            if option == "num_forces"
-            else f"more than {most} are never chosen"
-        )
+        effect = f"a fit of {count} is not tested" if option == "num_forces" else f"more than {most} are never chosen"
         warnings.warn(
             f"--{option.replace('_', '-')} {count} asks for more forces than a reading of this rod's "
             f"{rod.num_gratings} grating(s) can test ({most}: {FORCE_RULE}): {effect}",
