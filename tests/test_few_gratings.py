@@ -148,3 +148,31 @@ def test_a_calibration_error_survives_dataclass_copies():
     rod = needle(0.2)
     assert dataclasses.replace(rod, location_bias=0.001).calibration_error == (0.2, 0.2, 0.2)
     assert rod.with_(bending_stiffness=0.01).calibration_error == (0.2, 0.2, 0.2)
+
+
+def test_bench_gratings_quick_prints_the_table(capsys):
+    from torchrod.cli import main
+
+    assert main(["bench", "gratings", "--quick"]) == 0
+    out = capsys.readouterr().out
+    assert "| gain error | calibration error | 0 forces | 1 force | 2+ forces |" in out
+    assert "| 50 % | 0.5 |" in out and "| 0 % | none |" in out
+
+
+def test_the_gradients_hold_the_calibration_weights():
+    """The differentiable path fits what the kernels fit: the loss's gradient in the readings is that of the
+    weighed loss at the optimum, -2 w^2 (c(theta*) - u), with the weights held fixed."""
+    rod = needle(0.2)
+    u, _ = needle_readings(rod, 2, 0.0, SIGMA, seed=3)
+    options = EstimatorOptions(noise=SIGMA)
+    estimator = Estimator(rod, options)
+    x = u.clone().requires_grad_(True)
+    result = estimator.estimate(x)
+    assert result.num_forces.tolist() == [1, 1]
+    (grad,) = torch.autograd.grad(result.loss.sum(), x)
+    _, w, _ = estimator._kernel_readings(u, torch.ones(2, 3, dtype=torch.bool), options)
+    w = torch.as_tensor(w).view(2, 3, 2)
+    assert bool((w < 0.99).any())
+    loads = PointForces(result.forces.s.detach() - rod.location_bias, result.forces.f.detach(), result.forces.active)
+    c = simulate(rod, loads).grating_curvature
+    assert torch.allclose(grad, -2 * w.square() * (c - u), rtol=1e-6, atol=1e-9)

@@ -385,9 +385,11 @@ class Estimator:
         s, f, loss = base.forces.s - rod.location_bias, base.forces.f, base.loss
         if torch.is_grad_enabled() and curvature.requires_grad:
             u = self._filled(curvature, mask, opts)
-            s, f = implicit.through_optimum(rod, u, mask, s, f, active, opts.max_step_angle)
+            weights = self._weights(curvature.detach(), mask, opts)  # held fixed, as the kernels hold them
+            present = mask if weights is None else torch.where(mask[..., None], weights.to(u.device), 0.0)
+            s, f = implicit.through_optimum(rod, u, present, s, f, active, opts.max_step_angle)
             theta = torch.cat([s.detach()[..., None], f.detach()], dim=-1)
-            again = implicit.fit_loss(rod, theta, active, u, mask, opts.max_step_angle)
+            again = implicit.fit_loss(rod, theta, active, u, present, opts.max_step_angle)
             loss = loss + (again - again.detach())  # the loss's value, its gradient (the envelope theorem)
         std = base.std
         if ei is not None:
