@@ -12,7 +12,7 @@ import torch
 
 from torchrod.errors import RodError
 from torchrod.estimate.estimator import Estimator, EstimatorOptions
-from torchrod.estimate.noise import RunningNoise, calibration_share
+from torchrod.estimate.noise import RunningNoise, calibration_terms
 from torchrod.estimate.options import default_max_forces
 from torchrod.eval.few_gratings import needle, needle_readings
 from torchrod.loads import PointForces
@@ -131,17 +131,24 @@ def test_nonsense_calibration_errors_are_refused(value, message):
 
 
 def test_the_learned_noise_takes_the_calibrations_share_off():
-    """Losses of fits with equal weights hold the calibration's variance besides the noise: taken off, the median
-    of loss / median(chi2) is the sensor's sigma^2 again."""
-    n, d, sigma, variance = 6, 3, 0.05, 0.02  # the calibration's summed variance per reading [1/m^2]
-    chi = torch.distributions.Chi2(d)
+    """Losses of fits that hold the calibration's variance besides the noise (equal weights, or weights made at a
+    sigma far too small): with the calibration's terms taken off, the median of the fits' estimates is the sensor's
+    sigma^2 again."""
+    n, d, sigma = 6, 3, 0.05
+    variance = torch.tensor([0.001, 0.004, 0.0001, 0.002, 0.0, 0.003], dtype=F64).view(1, 3, 2)  # m_k^2 [1/m^2]
+    present = torch.ones(1, 3, dtype=torch.bool)
     torch.manual_seed(0)
-    losses = (sigma**2 * chi.sample((2000,)) + d / n * variance).tolist()
-    plain, corrected = RunningNoise(), RunningNoise()
-    plain.add(losses, [d] * len(losses))
-    corrected.add(losses, [d] * len(losses), calibration_share([variance] * len(losses), [n] * len(losses), [d] * 2000))
-    assert corrected.sigma == pytest.approx(sigma, rel=0.05)
-    assert plain.sigma > 1.5 * sigma
+    chi = torch.distributions.Chi2(d).sample((4000,)).double() / d  # the loss's spread about its mean
+    for noise2 in (None, 1e-6):
+        w2 = torch.ones(6, dtype=F64) if noise2 is None else noise2 / (noise2 + variance.flatten())
+        mean = d / n * float((w2 * (sigma**2 + variance.flatten())).sum())
+        losses = (mean * chi).tolist()
+        terms = calibration_terms(variance.expand(len(losses), -1, -1), present.expand(len(losses), -1), noise2)
+        plain, corrected = RunningNoise(), RunningNoise()
+        plain.add(losses, [d] * len(losses))
+        corrected.add(losses, [d] * len(losses), terms)
+        assert corrected.sigma == pytest.approx(sigma, rel=0.1)
+        assert abs(plain.sigma / sigma - 1.0) > 0.2
 
 
 def test_a_calibration_error_survives_dataclass_copies():
@@ -176,3 +183,26 @@ def test_the_gradients_hold_the_calibration_weights():
     loads = PointForces(result.forces.s.detach() - rod.location_bias, result.forces.f.detach(), result.forces.active)
     c = simulate(rod, loads).grating_curvature
     assert torch.allclose(grad, -2 * w.square() * (c - u), rtol=1e-6, atol=1e-9)
+
+
+def test_a_stream_learns_the_sensors_own_noise_beside_a_calibration_error():
+    """Readings whose every value carries a gain error of 10 % (drawn per reading) besides the sensor's noise: a
+    stream on the rod that says so comes down to the sensor's sigma (from above: 0.125 from its first fits, 0.059
+    after 300 readings); on a rod that does not, it learns a sigma that takes in the calibration's share too."""
+    import torchrod as tr
+    from torchrod.estimate.noise import NoiseLearning
+
+    rod = needle().with_(gratings=FIVE)
+    clean, _ = needle_readings(rod, 300, 0.0, 0.0, seed=5)
+    gen = torch.Generator().manual_seed(6)
+    u = clean * (1.0 + 0.1 * torch.randn(clean.shape, generator=gen, dtype=F64))
+    u = u + SIGMA * torch.randn(clean.shape, generator=gen, dtype=F64)
+    readings = [{"id": k, "curvature": u[k]} for k in range(len(u))]
+    options = tr.StreamOptions(learn_noise=NoiseLearning(after=32), workers=1)
+    learned = {}
+    for rel in (0.0, 0.1):
+        est = Estimator(rod.with_(calibration_error=rel), EstimatorOptions(max_forces=2))
+        out = [r.record for r in tr.stream(est, readings, options)]
+        learned[rel] = out[-1]["noise"]
+    assert learned[0.1] == pytest.approx(SIGMA, rel=0.25)
+    assert learned[0.0] > 1.5 * SIGMA
