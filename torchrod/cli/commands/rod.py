@@ -152,8 +152,8 @@ def report_lines(report, where: str) -> list[str]:
     lines += wrap.wrap(f"forces              {forces}")
     if h < 3:
         lines += wrap.wrap(
-            f"                    estimate and stream choose among 0 to {h} (their default here); a larger "
-            "--max-forces never chooses more"
+            f"                    estimate and stream choose among 0 to {h} forces (their default here), and "
+            "never more whatever the largest count they are given"
         )
     network = report.network_reason
     if report.network_weak:
