@@ -365,17 +365,21 @@ def test_generate_refuses_out_and_truth_on_one_file(tmp_path, capsys):
 
 
 def test_a_count_the_rod_cannot_determine_is_warned(tmp_path, capsys):
-    """Two gratings give 4 values per reading: one force (3 unknowns) can be told apart, three cannot."""
+    """Three gratings give 6 values per reading: one force (3 unknowns) leaves 3 degrees of freedom to test its fit,
+    two leave none. The default count follows the rod (no warning); a larger --max-forces is warned about."""
     rod = tmp_path / "rod.json"
-    rod.write_text(json.dumps({"length": 0.29, "bending_stiffness": 7.39e-3, "gratings": [0.05, 0.15]}))
+    rod.write_text(json.dumps({"length": 0.29, "bending_stiffness": 7.39e-3, "gratings": [0.05, 0.15, 0.25]}))
     readings = tmp_path / "r.jsonl"
-    readings.write_text('{"id": 0, "curvature": [[0.5, 0.1], [0.2, 0.0]]}\n')
+    readings.write_text('{"id": 0, "curvature": [[0.5, 0.1], [0.2, 0.0], [0.05, 0.0]]}\n')
     assert main(["estimate", "--rod", str(rod), "--noise", "0.1", str(readings)]) == 0
-    err = capsys.readouterr().err.splitlines()
+    assert not any("warning" in line for line in capsys.readouterr().err.splitlines())
+    assert main(["estimate", "--rod", str(rod), "--noise", "0.1", "--max-forces", "3", str(readings)]) == 0
+    err = capsys.readouterr().err
     assert (
-        "torchrod estimate: warning: --max-forces 3 asks for up to 9 unknowns (s, fx, fy per force) from the 4 values "
-        "of a reading of this rod's 2 grating(s): at most 1 force(s) can be told apart"
+        "torchrod estimate: warning: --max-forces 3 asks for more forces than a reading of this rod's 3 grating(s) "
+        "can test (1: a fit of h forces has 3h unknowns"
     ) in err
+    assert "more than 1 are never chosen" in err
     assert main(["estimate", "--rod", str(rod), "--noise", "0.1", "--max-forces", "1", str(readings)]) == 0
     assert not any("warning" in line for line in capsys.readouterr().err.splitlines())
 

@@ -124,6 +124,8 @@ def test_calibrate_fibre_command_writes_the_rod_and_refuses_its_input(tmp_path, 
     assert "warning" not in err
     calibrated = tr.Rod.from_json(out)
     assert calibrated.fibre.route == "calibration" and calibrated.fibre.curvature_unit == "1/m"
+    # each grating's leave-one-jig-out error as a fraction of the jig curvatures: its calibration error
+    assert len(calibrated.calibration_error) == G and all(0.0 < x < 0.05 for x in calibrated.calibration_error)
     # the straight jig's mean: the reference up to its readings' temperature, a shift common to each grating's cores
     offset = torch.tensor(calibrated.fibre.wavelength.reference, dtype=F64) - torch.tensor(REFERENCE, dtype=F64)
     assert torch.allclose(offset - offset.mean(-1, keepdim=True), torch.zeros(G, C, dtype=F64), atol=0.01)

@@ -422,7 +422,24 @@ def test_with_no_count_accepted_the_fewest_forces_no_larger_count_improves_on_wi
     for noise in (sigma, None):  # two residuals: one force fits exactly and no count has a degree of freedom
         k = _counts_kit(2, noise)
         k.opt.floor2 = 1e-6
+        k.opt.min_dof = -1000  # no count left out of the choice
         assert counts.select_count(k, np.array([5.0, 1e-12, 1e-13, 1e-14, math.nan]), 4)[0] == 1
+
+
+def test_a_count_the_reading_cannot_test_is_never_chosen():
+    """A count whose fit leaves fewer than ``min_dof`` degrees of freedom is left out of the choice altogether (as if
+    not fitted), however well it fits: 6 residuals test one force (3 left), not two (none)."""
+    sigma = 0.1
+    for noise in (sigma, None):
+        k = _counts_kit(6, noise)
+        k.opt.floor2 = 1e-6
+        assert k.opt.min_dof == 3 and counts.testable(k, 4) == 2
+        assert counts.select_count(k, np.array([5000.0, 3.0, 1e-12, 1e-13, math.nan]), 4)[0] == 1
+        k = _counts_kit(2, noise)
+        assert counts.testable(k, 4) == 1
+        assert counts.select_count(k, np.array([5.0, 1e-12, 1e-13, 1e-14, math.nan]), 4)[0] == 0
+    k = _counts_kit(6, sigma)
+    assert counts.settled(k, np.array([50.0, 0.01, math.nan, math.nan, math.nan]), 2, 0.0)  # count 2: not fitted
 
 
 def test_a_count_is_chosen_just_below_its_ceiling_and_not_just_above():

@@ -12,7 +12,10 @@ u = A_g (d - mean(d)) (:mod:`torchrod.sensors`), is fitted by least squares:
 * the residual per grating is the RMS of U - D A_g^T [1/m];
 * leave-one-jig-out: each jig (by its ``name``, else its curvature) is left out in turn, the matrices fitted on
   the others, and the left-out readings predicted: the RMS of that prediction, per jig and per grating [1/m], is
-  what the calibration is worth on a curvature it was not fitted to;
+  what the calibration is worth on a curvature it was not fitted to; divided by the RMS of the jig curvatures'
+  components over the readings it was taken on, it is the grating's relative error (a fraction of the signal,
+  noise included, so on the safe side), which the rod written takes as its ``calibration_error`` (the estimator
+  weighs each grating's values by it: docs/guides/calibrate.md);
 * each grating's gain, sqrt(s_1 s_2) of A_g's singular values [1/m per nm], is compared with the median of the
   gratings' gains and, where the rod file gives the cores, with the physics route's gain
   (1 / (lambda_ref (1 - p_e)) over the cores' geometry); a grating off by more than ``tolerance`` (a fraction,
@@ -40,7 +43,7 @@ from typing import Any
 import torch
 
 from .errors import ReadingError
-from .rod import Rod
+from .rod import MAX_CALIBRATION_ERROR, Rod
 
 __all__ = [
     "FIT_TOLERANCE",
@@ -110,6 +113,8 @@ class JigCalibration:
             determine the matrices}.
         leave_one_out_grating: (G,) per grating, the RMS of its left-out predictions over all jigs [1/m] (NaN when
             no jig could be left out).
+        relative_error: (G,) ``leave_one_out_grating`` over the RMS of the jig curvatures' components on the same
+            readings: each grating's relative calibration error (NaN where not known).
         gains: (G,) sqrt(s_1 s_2) of each A_g [1/m per nm].
         physics_gains: (G,) the physics route's gains [1/m per nm], or None without the cores or a reference.
         tolerance: the fraction the warnings use.
@@ -131,10 +136,12 @@ class JigCalibration:
     warnings: tuple[str, ...]
     reference: torch.Tensor | None = None
     problems: tuple[str, ...] = ()
+    relative_error: torch.Tensor | None = None
 
     def apply(self, rod: Rod) -> Rod:
         """``rod`` with ``fibre.wavelength.calibration`` set to the fitted matrices (1/m per nm), its reference from
-        the straight jig when it had none."""
+        the straight jig when it had none, and its ``calibration_error`` the gratings' relative errors where every
+        grating has one (else the rod's own)."""
         from .sensors import WAVELENGTH_UNITS, Fibre, Wavelength
 
         nm = WAVELENGTH_UNITS["nm"]
@@ -150,7 +157,11 @@ class JigCalibration:
             photoelastic=old.photoelastic if old is not None else Wavelength.photoelastic,
             peaks=old.peaks if old is not None else "by-core",
         )
-        return rod.with_(fibre=fibre.with_(wavelength=wavelength))
+        changes: dict[str, Any] = {"fibre": fibre.with_(wavelength=wavelength)}
+        rel = self.relative_error
+        if rel is not None and bool(torch.isfinite(rel).all()):
+            changes["calibration_error"] = [min(float(x), MAX_CALIBRATION_ERROR) for x in rel]
+        return rod.with_(**changes)
 
 
 # ---------------------------------------------------------------------------------------------------- reading
@@ -310,6 +321,7 @@ def calibrate_fibre(rod: Rod, data: JigData, tolerance: float = GAIN_TOLERANCE) 
     lojo: dict[Any, float | None] = {}
     sq = torch.zeros(G, dtype=torch.float64)
     n = torch.zeros(G, dtype=torch.float64)
+    signal = torch.zeros(G, dtype=torch.float64)  # the jig curvatures' squares on the readings left out
     for jig in jigs:
         out = torch.tensor([j == jig for j in data.jigs])
         try:
@@ -324,7 +336,9 @@ def calibrate_fibre(rod: Rod, data: JigData, tolerance: float = GAIN_TOLERANCE) 
         lojo[jig] = float(err[read].sum().div(2 * read.sum()).sqrt()) if bool(read.any()) else None
         sq += torch.where(read, err, 0.0).sum(0)
         n += 2 * read.sum(0)
+        signal += (read * data.curvature[out].pow(2).sum(-1)[:, None]).sum(0)
     lojo_grating = (sq / n).sqrt()
+    relative = lojo_grating / (signal / n).sqrt()
     gains = _gain(matrices) * nm
     physics = phys_maps = None
     reference = data.reference
@@ -368,6 +382,7 @@ def calibrate_fibre(rod: Rod, data: JigData, tolerance: float = GAIN_TOLERANCE) 
         warnings=tuple(warnings),
         reference=data.reference,
         problems=problems,
+        relative_error=relative,
     )
 
 
@@ -450,21 +465,29 @@ def _problems(
     return tuple(problems)
 
 
+def _percent(values: torch.Tensor | None, g: int) -> str:
+    """Entry g of ``values`` (fractions) as a percentage, or ``-`` where not known."""
+    if values is None or not math.isfinite(float(values[g])):
+        return "-"
+    return f"{100 * float(values[g]):.2f}%"
+
+
 def report(result: JigCalibration, data: JigData) -> Sequence[str]:
     """The lines ``torchrod calibrate --fibre`` prints: per grating, the per-jig check, the warnings."""
     G = result.matrices.shape[0]
     jigs = list(dict.fromkeys(data.jigs))
     out = [
         f"{data.curvature.shape[0]} jig readings on {len(jigs)} jigs, {G} gratings x {result.matrices.shape[2]} cores",
-        f"{'grating':>7} {'readings':>8} {'residual':>10} {'left out':>10} {'gain':>12} {'vs median':>10} "
-        + (f"{'vs physics':>10}" if result.physics_gains is not None else ""),
-        f"{'':>7} {'':>8} {'[1/m]':>10} {'[1/m]':>10} {'[1/m per nm]':>12} {'':>10}",
+        f"{'grating':>7} {'readings':>8} {'residual':>10} {'left out':>10} {'relative':>9} {'gain':>12} "
+        f"{'vs median':>10} " + (f"{'vs physics':>10}" if result.physics_gains is not None else ""),
+        f"{'':>7} {'':>8} {'[1/m]':>10} {'[1/m]':>10} {'':>9} {'[1/m per nm]':>12} {'':>10}",
     ]
     median = statistics.median(result.gains.tolist())
     for g in range(G):
         line = (
             f"{g + 1:>7} {int(result.readings[g]):>8} {float(result.residual[g]):>10.4g} "
-            f"{float(result.leave_one_out_grating[g]):>10.4g} {float(result.gains[g]):>12.4g} "
+            f"{float(result.leave_one_out_grating[g]):>10.4g} {_percent(result.relative_error, g):>9} "
+            f"{float(result.gains[g]):>12.4g} "
             f"{100 * (float(result.gains[g]) / median - 1):>+9.1f}%"
         )
         if result.physics_gains is not None:

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 from .errors import RodError, RodWarning
 from .values import clip as _clip
+from .values import is_number
 from .values import positive as _positive
 from .values import real as _real
 from .values import show as _show
@@ -38,6 +39,7 @@ __all__ = [
     "MAX_DIAMETER",
     "YOUNGS_MODULUS_RANGE",
     "FORCE_RULE",
+    "MAX_CALIBRATION_ERROR",
     "MIN_TEST_DOF",
     "Rod",
     "max_testable_forces",
@@ -150,6 +152,10 @@ class Rod:
         fibre: the sensor (:class:`torchrod.sensors.Fibre`, or its JSON form ``{"cores": [[x, y], ...],
             "wavelength": {...}, "curvature_unit": ..., ...}``), optional: needed only for readings given as core
             strains or peak wavelengths, or in units other than SI (docs/sensors.md).
+        calibration_error: the relative error of each grating's calibration (a fraction of the signal: 0.1 for a
+            gain known to 10 %), one per grating, or () for none (a single number is every grating's; all zeros is
+            none). The estimator then weighs each value of a reading by ``sigma_k^2 = sigma^2 + (rel_k |u_k|)^2``
+            (:meth:`calibration_variance`, docs/guides/calibrate.md); ``torchrod calibrate --fibre`` writes it.
 
     Build one with :meth:`from_geometry`, the constructor (stiffness given directly), :meth:`from_dict` or
     :meth:`from_json`. The constructor validates everything strictly (a bool, a string or null is not a number;
@@ -169,6 +175,7 @@ class Rod:
     fibre: Fibre | None = None
     torsional_stiffness: float | None = None
     intrinsic_curvature: tuple[tuple[float, float, float, float], ...] = ()
+    calibration_error: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -229,6 +236,7 @@ class Rod:
                 )
             set_(self, "torsional_stiffness", _positive("torsional_stiffness", self.torsional_stiffness, " [N m^2]"))
         set_(self, "intrinsic_curvature", _check_intrinsic(self.intrinsic_curvature, length))
+        set_(self, "calibration_error", _check_calibration_error(self.calibration_error, len(self.gratings)))
         for text in self.limitations:
             warnings.warn(text, RodWarning, stacklevel=3)
 
@@ -246,6 +254,7 @@ class Rod:
         fibre: Fibre | Mapping[str, Any] | None = None,
         torsional_stiffness: float | None = None,
         intrinsic_curvature: Any = (),
+        calibration_error: Any = (),
     ) -> Rod:
         """A tube of the given diameters [m] and Young's modulus [Pa]; EI follows from them."""
         d_out, d_in, e, ei = _geometry_stiffness(outer_diameter, inner_diameter, youngs_modulus)
@@ -261,6 +270,7 @@ class Rod:
             fibre=cast("Fibre | None", fibre),  # __post_init__ reads a mapping as a Fibre
             torsional_stiffness=torsional_stiffness,
             intrinsic_curvature=intrinsic_curvature,
+            calibration_error=calibration_error,
         )
 
     @classmethod
@@ -269,7 +279,8 @@ class Rod:
         ``bending_stiffness`` or ``outer_diameter`` + ``inner_diameter`` + ``youngs_modulus`` (or both, if they
         agree to ``AGREEMENT``), ``poisson_ratio`` or ``torsional_stiffness`` (optional), ``fibre`` (optional:
         :meth:`torchrod.sensors.Fibre.from_dict`), ``intrinsic_curvature`` (optional:
-        ``[{"from", "to", "u": [ux, uy]}, ...]``). Unknown keys are refused (a misspelt key would otherwise be
+        ``[{"from", "to", "u": [ux, uy]}, ...]``), ``calibration_error`` (optional: one fraction per grating, or one
+        for all). Unknown keys are refused (a misspelt key would otherwise be
         ignored)."""
         if not isinstance(data, Mapping):
             raise RodError(f"a rod description must be a JSON object, got {type(data).__name__}")  # noqa: TRY004 (a bad file)
@@ -349,6 +360,8 @@ class Rod:
             out["intrinsic_curvature"] = [
                 {"from": a, "to": b, "u": [ux, uy]} for a, b, ux, uy in self.intrinsic_curvature
             ]
+        if self.calibration_error:
+            out["calibration_error"] = list(self.calibration_error)
         return out
 
     def to_json(self, path: str | os.PathLike) -> None:
@@ -402,6 +415,18 @@ class Rod:
         return torch.tensor(
             self.intrinsic_at(self.gratings), dtype=torch.float64 if dtype is None else dtype, device=device
         ).reshape(self.num_gratings, 2)
+
+    def calibration_variance(self, curvature: torch.Tensor) -> torch.Tensor:
+        """(..., G, 2) the variance [1/m^2] the calibration error adds to each value of readings ``curvature``
+        (..., G, 2) [1/m]: ``(rel_g |u|)^2`` with the measured value u (so a reading's weights are fixed before any
+        fit); zeros for a rod without a calibration error, and at a value that is not finite (a missing grating)."""
+        import torch
+
+        if not self.calibration_error:
+            return torch.zeros_like(curvature)
+        rel = torch.tensor(self.calibration_error, dtype=curvature.dtype, device=curvature.device)
+        u = torch.nan_to_num(curvature, nan=0.0, posinf=0.0, neginf=0.0)
+        return (rel[:, None] * u).square()
 
     def breakpoints(self) -> list[float]:
         """The positions [m] inside (0, L) where u* may jump: every segment's ends."""
@@ -525,6 +550,33 @@ def _check_gratings(gratings: Any, length: float) -> tuple[float, ...]:
         if b <= a:
             raise RodError(f"gratings must be strictly increasing: gratings[{k}] = {b} m follows {a} m")
     return g
+
+
+MAX_CALIBRATION_ERROR = 10.0
+"""The largest relative calibration error a rod may give (1000 % of the signal): a larger one is no calibration."""
+
+
+def _check_calibration_error(errors: Any, count: int) -> tuple[float, ...]:
+    """Relative calibration errors as a tuple of ``count`` floats in [0, MAX_CALIBRATION_ERROR] (one number: every
+    grating's), or () for none (all zeros)."""
+    if is_number(errors) or isinstance(errors, bool):
+        errors = [errors] * count
+    if (
+        isinstance(errors, (str, bytes, Mapping, set, frozenset))
+        or not isinstance(errors, Iterable)
+        or getattr(errors, "ndim", 1) != 1
+    ):
+        raise RodError(f"calibration_error must be a fraction, or a list of one per grating, got {_show(errors)}")
+    out = tuple(_real(f"calibration_error[{k}]", x, " (a fraction of the signal)") for k, x in enumerate(errors))
+    if len(out) not in (0, count):
+        raise RodError(f"calibration_error must hold one fraction per grating ({count}), got {len(out)}")
+    for k, x in enumerate(out):
+        if not 0.0 <= x <= MAX_CALIBRATION_ERROR:
+            raise RodError(
+                f"calibration_error[{k}] must lie in [0, {MAX_CALIBRATION_ERROR:g}] (a fraction of the signal: 0.1 "
+                f"for 10 %), got {x:g}"
+            )
+    return out if any(x > 0.0 for x in out) else ()
 
 
 def _check_intrinsic(segments: Any, length: float) -> tuple[tuple[float, float, float, float], ...]:

@@ -38,7 +38,7 @@ from ..loads import PointForces
 from ..rod import Rod
 from . import implicit, refine
 from .checks import check_readings, host_view
-from .options import EstimatorOptions, LMPolicy, SearchOptions
+from .options import EstimatorOptions, LMPolicy, SearchOptions, default_max_forces
 from .status import Status
 
 __all__ = ["EstimateResult", "Estimator", "EstimatorOptions", "GuessSource", "LMPolicy", "SearchOptions"]
@@ -189,7 +189,8 @@ class Estimator:
 
     Args:
         rod: the rod (length, EI, gratings, location bias).
-        options: :class:`EstimatorOptions`.
+        options: :class:`EstimatorOptions` (None: the defaults, with ``max_forces`` as many as the rod's gratings
+            can test, at most 3: :func:`~torchrod.estimate.options.default_max_forces`).
         warm_start: optional source of extra starts (:class:`GuessSource`, e.g. :class:`torchrod.WarmStart`), or a
             callable ``(curvature, mask) -> {h: PointForces}``. Its guesses are starts beside the scan's (``starts``
             > 0): a network can add starts, never take the search's away, unless the options trust them
@@ -199,7 +200,7 @@ class Estimator:
     def __init__(self, rod: Rod, options: EstimatorOptions | None = None, warm_start: Any = None) -> None:
         if not isinstance(rod, Rod):
             raise TorchrodTypeError(f"rod must be a Rod, got {type(rod).__name__}")
-        options = EstimatorOptions() if options is None else options
+        options = EstimatorOptions(max_forces=default_max_forces(rod.num_gratings)) if options is None else options
         if not isinstance(options, EstimatorOptions):
             raise TorchrodTypeError(f"options must be EstimatorOptions, got {type(options).__name__}")
         if warm_start is not None and not (hasattr(warm_start, "guess") or callable(warm_start)):
@@ -384,9 +385,11 @@ class Estimator:
         s, f, loss = base.forces.s - rod.location_bias, base.forces.f, base.loss
         if torch.is_grad_enabled() and curvature.requires_grad:
             u = self._filled(curvature, mask, opts)
-            s, f = implicit.through_optimum(rod, u, mask, s, f, active, opts.max_step_angle)
+            weights = self._weights(curvature.detach(), mask, opts)  # held fixed, as the kernels hold them
+            present = mask if weights is None else torch.where(mask[..., None], weights.to(u.device), 0.0)
+            s, f = implicit.through_optimum(rod, u, present, s, f, active, opts.max_step_angle)
             theta = torch.cat([s.detach()[..., None], f.detach()], dim=-1)
-            again = implicit.fit_loss(rod, theta, active, u, mask, opts.max_step_angle)
+            again = implicit.fit_loss(rod, theta, active, u, present, opts.max_step_angle)
             loss = loss + (again - again.detach())  # the loss's value, its gradient (the envelope theorem)
         std = base.std
         if ei is not None:
@@ -469,23 +472,46 @@ class Estimator:
     def _kernel_readings(self, curvature: torch.Tensor, mask: torch.Tensor, opts: EstimatorOptions) -> tuple[Any, ...]:
         """The kernels' readings of checked ``curvature`` (B, G, 2) [1/m] and ``mask`` (B, G): u (B, 2G) float64
         [1/m] (zero at a missing grating; a precurved rod's unloaded shape added back to ``relative`` readings), w
-        (B, 2G) 1.0 where present, noise2 (B,) (``opts.noise2``); NumPy arrays for a CPU batch (cheaper than
-        torch's operations on a few readings), tensors on curvature's device otherwise."""
+        (B, 2G) the weights of the values (:meth:`_weights`; 0 where missing), noise2 (B,) (``opts.noise2``); NumPy
+        arrays for a CPU batch (cheaper than torch's operations on a few readings), tensors on curvature's device
+        otherwise."""
         B, G = mask.shape
         values, present = host_view(curvature.to(torch.float64)), host_view(mask)
+        weights = self._weights(curvature, mask, opts)
         if opts.relative and self.rod.precurved:  # readings of the change from the unloaded shape: add it back
             values = values + host_view(self.rod.unloaded_curvature(torch.float64, curvature.device))
         if isinstance(values, np.ndarray):
+            w = np.repeat(present, 2, axis=1).astype(np.float64)
+            if weights is not None:
+                w = w * host_view(weights).reshape(B, 2 * G)
             return (
                 np.where(present[:, :, None], values, 0.0).reshape(B, 2 * G),
-                np.repeat(present, 2, axis=1).astype(np.float64),
+                w,
                 np.full(B, opts.noise2),
             )
+        w = present.repeat_interleave(2, dim=1).to(torch.float64)
+        if weights is not None:
+            w = w * weights.reshape(B, 2 * G)
         return (
             torch.where(present[:, :, None], values, 0.0).reshape(B, 2 * G),
-            present.repeat_interleave(2, dim=1).to(torch.float64),
+            w,
             torch.full((B,), opts.noise2, device=curvature.device, dtype=torch.float64),
         )
+
+    def _weights(self, curvature: torch.Tensor, mask: torch.Tensor, opts: EstimatorOptions) -> torch.Tensor | None:
+        """(B, G, 2) float64 the weights of a rod's calibration error (``Rod.calibration_error``), None without one
+        or with the noise unknown.
+
+        A value u_k of relative calibration error rel_k carries ``sigma_k^2 = sigma^2 + (rel_k |u_k|)^2`` (the
+        measured value: the weights are fixed per reading), and its residual is weighed by ``sigma / sigma_k``: the
+        loss stays in the units of the sensor's sigma^2 (``opts.noise2``, the floor included), so every test of the
+        kernels reads it as it reads an unweighted one. With the noise unknown there is no sigma to weigh against
+        (one sigma per reading cannot be split into the sensor's and the calibration's parts): the values keep
+        equal weights and the per-reading sigma takes in the calibration error too."""
+        if not self.rod.calibration_error or opts.noise is None:
+            return None
+        model = self.rod.calibration_variance(torch.where(mask[..., None], curvature.to(torch.float64), 0.0))
+        return (opts.noise2 / (opts.noise2 + model)).sqrt()
 
     def _estimate_torch(
         self,

@@ -2,7 +2,8 @@
 
 The compiled search (:mod:`torchrod.kernels`) finds each reading's fit; it is the forward pass and is never
 unrolled. At the chosen fit theta* (each active force's location s [m] and components f_x, f_y [N], in model
-coordinates) the loss ``L(theta, u) = sum over present gratings of |c(theta) - u|^2`` is stationary in theta:
+coordinates) the loss ``L(theta, u) = sum over present gratings of |w (c(theta) - u)|^2`` (w the values' weights:
+1, or a rod's calibration error's, held fixed as the kernels hold them) is stationary in theta:
 ``g(theta*, u) = dL/dtheta = 0``. Differentiating that condition gives the fit's response to the readings u,
 
     d theta* / d u = -H^-1 d g / d u,        H = d g / d theta   (the Newton matrix of the fit at theta*),
@@ -50,10 +51,13 @@ def fit_loss(
     rod: Rod, theta: torch.Tensor, active: torch.Tensor, u: torch.Tensor, present: torch.Tensor, step_angle: float
 ) -> torch.Tensor:
     """(B,) the fit's loss [1/m^2] at parameters ``theta`` (B, W, 3) = (s [m], f_x, f_y [N]) of the ``active``
-    (B, W) forces, against readings ``u`` (B, G, 2) [1/m] at the ``present`` (B, G) gratings; twice differentiable
-    in ``theta`` and ``u`` (the simulator's autograd record, not its adjoint)."""
+    (B, W) forces, against readings ``u`` (B, G, 2) [1/m] at the ``present`` (B, G) gratings, or weighed by
+    ``present`` (B, G, 2) float weights (0 at a missing grating); twice differentiable in ``theta`` and ``u`` (the
+    simulator's autograd record, not its adjoint)."""
     loads = PointForces(theta[..., 0], theta[..., 1:], active)
     model = grating_curvature(rod, loads, max_step_angle=step_angle, adjoint=False)
+    if present.dtype != torch.bool:
+        return ((model - u) * present).square().sum((1, 2))
     residual = torch.where(present[..., None], model - u, torch.zeros((), dtype=u.dtype, device=u.device))
     return residual.square().sum((1, 2))
 
@@ -119,7 +123,8 @@ def through_optimum(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The fit (s (B, W) [m] in model coordinates, f (B, W, 2) [N]) at the rod's own stiffness, as differentiable
     functions of the readings ``u`` (B, G, 2) [1/m] (float64, zero at missing gratings, a precurved rod's unloaded
-    shape included), with the values the search found (module docstring)."""
+    shape included), with the values the search found (module docstring); ``present``: the (B, G) mask, or the
+    (B, G, 2) weights of :func:`fit_loss`."""
     theta = torch.cat([s[..., None], f], dim=-1).detach()
     free = active[..., None] & torch.stack(
         [~on_bound(rod, s.detach()), torch.ones_like(active), torch.ones_like(active)], dim=-1

@@ -11,6 +11,18 @@ The estimate: a correct fit of h forces to n residuals leaves ``loss ~ sigma^2 c
 then). The median ignores the fits that are not correct (a misfit, a force missed) as long as they are fewer than half.
 Fits without degrees of freedom left, and unconverged ones, are not used. Only the most recent ``window`` fits count, so
 a sensor whose noise drifts slowly is followed.
+
+A rod with a calibration error (``Rod.calibration_error``) adds ``m_k^2 = (rel_k u_k)^2`` to each value's variance,
+and a fit with the noise known weighs each residual by ``w_k = sigma_ref / sqrt(sigma_ref^2 + m_k^2)`` at the sigma
+it was told. Such a fit's loss holds on average ``(n - 3h) / n`` of ``sum_k w_k^2 (sigma^2 + m_k^2)`` over its n
+values, so ``loss / median(chi2(n - 3h))`` estimates ``sigma^2 mean(w^2) + mean(w^2 m^2)``, and each fit gives
+``(loss / median(chi2) - mean(w^2 m^2)) / mean(w^2)`` (not below zero) as its sigma^2 (:func:`calibration_terms`,
+:meth:`RunningNoise.add`). The equal share assumes each value takes an equal part of the fit's degrees of freedom;
+a value the fit leans on more leaves less of its error in the loss, but at ``sigma_ref = sigma`` every weighed
+residual has the same variance and the estimate is sigma^2 whatever the shares: the learned sigma is the sensor's
+own at its fixed point. The fits made before a sigma is learned (the noise unknown, no weights) teach sigma^2 plus
+the calibration's share, an overestimate, so the stream starts above the sensor's sigma and comes down to it (from
+below, taking the share off fits that do not weigh it out, it would start near zero and flag every reading).
 """
 
 from __future__ import annotations
@@ -19,11 +31,31 @@ import collections
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from ..errors import OptionsError
 from ..kernels.host import chi2_quantile
 
-__all__ = ["NoiseLearning", "RunningNoise"]
+if TYPE_CHECKING:
+    import torch
+
+__all__ = ["NoiseLearning", "RunningNoise", "calibration_terms"]
+
+
+def calibration_terms(
+    variance: torch.Tensor, present: torch.Tensor, noise2: float | None
+) -> tuple[list[float], list[float]]:
+    """Per fit, ``mean(w^2)`` and ``mean(w^2 m^2)`` [1/m^2] over its present values (module docstring): the
+    calibration's ``variance`` m^2 (B, G, 2) [1/m^2] of each value, the ``present`` (B, G) gratings, and the
+    ``noise2`` (sigma_ref^2 [1/m^2]) the weights were made at, None for fits with the noise unknown (no weights)."""
+    import torch
+
+    w2 = torch.ones_like(variance) if noise2 is None else noise2 / (noise2 + variance)
+    keep = present[..., None].to(variance.dtype)
+    n = 2.0 * present.sum(1).to(variance.dtype).clamp(min=1)
+    weight = (w2 * keep).sum((1, 2)) / n
+    share = (w2 * variance * keep).sum((1, 2)) / n
+    return weight.tolist(), share.tolist()
 
 
 @dataclass(frozen=True)
@@ -60,14 +92,19 @@ class RunningNoise:
         self._ratios: collections.deque[float] = collections.deque(maxlen=learning.window)
         self.used = 0  # fits added in all
 
-    def add(self, loss: Iterable[float], dof: Iterable[int]) -> None:
+    def add(
+        self, loss: Iterable[float], dof: Iterable[int], calibration: tuple[list[float], list[float]] | None = None
+    ) -> None:
         """Add fits: their losses [1/m^2] and degrees of freedom (residuals less 3 per force); fits with no
-        degree of freedom or a non-finite loss are skipped."""
-        for x, d in zip(loss, dof, strict=True):
+        degree of freedom or a non-finite loss are skipped. ``calibration``: with a rod's calibration error, per fit
+        ``mean(w^2)`` and ``mean(w^2 m^2)`` (:func:`calibration_terms`; module docstring); None: none."""
+        losses = [float(x) for x in loss]
+        weight, share = calibration if calibration is not None else ([1.0] * len(losses), [0.0] * len(losses))
+        for x, d, a, c in zip(losses, dof, weight, share, strict=True):
             d = int(d)
-            if d <= 0 or not math.isfinite(float(x)) or float(x) < 0.0:
+            if d <= 0 or not math.isfinite(x) or x < 0.0:
                 continue
-            self._ratios.append(float(x) / chi2_quantile(0.5, d))
+            self._ratios.append(max(x / chi2_quantile(0.5, d) - c, 0.0) / a)
             self.used += 1
 
     @property

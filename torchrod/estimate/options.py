@@ -16,10 +16,19 @@ from typing import Any
 from ..errors import OptionsError
 from ..kernels.counts import PAPER_THRESHOLD
 from ..kernels.march import FIT_STEP_ANGLE
+from ..rod import MIN_TEST_DOF, max_testable_forces
 from ..values import MAX_CURVATURE
 from .status import MISFIT_LEVEL
 
-__all__ = ["MISFIT_LEVEL", "RULES", "TARGETS", "EstimatorOptions", "LMPolicy", "SearchOptions"]
+__all__ = [
+    "MISFIT_LEVEL",
+    "RULES",
+    "TARGETS",
+    "EstimatorOptions",
+    "LMPolicy",
+    "SearchOptions",
+    "default_max_forces",
+]
 
 RULES = ("noise", "threshold")
 """The count rules: the significance tests at the noise (default), or the paper's loss threshold."""
@@ -147,7 +156,10 @@ class EstimatorOptions:
     """Settings of :class:`torchrod.Estimator`.
 
     Attributes:
-        max_forces: the largest count considered; the count is chosen among 0..max_forces.
+        max_forces: the largest count considered; the count is chosen among 0..max_forces, and only among the counts
+            a reading can test: a fit leaving fewer than :data:`torchrod.rod.MIN_TEST_DOF` degrees of freedom in
+            the reading's values (2 per present grating) is never chosen (:mod:`torchrod.kernels.counts`). An
+            estimator made without options takes :func:`default_max_forces` of its rod.
         num_forces: a fixed count instead (0 allowed); the result then holds num_forces slots.
         noise: sensor sigma per curvature component [1/m]; None: estimated per reading (the F test).
         max_noise: [1/m] with ``noise`` None, the largest sensor sigma the verdict believes: a reading that needs
@@ -270,6 +282,7 @@ class EstimatorOptions:
         return options_record(
             max_forces=self.width,
             fixed=-1 if self.num_forces is None else self.num_forces,
+            min_dof=MIN_TEST_DOF,
             starts=self.starts,
             settle=self.settle,
             trusted=self.trust_guesses,
@@ -301,3 +314,9 @@ class EstimatorOptions:
             probe=lm.probe,
             acceleration_limit=lm.acceleration_limit,
         )
+
+
+def default_max_forces(num_gratings: int) -> int:
+    """The largest count an estimator considers unless told otherwise: ``EstimatorOptions.max_forces`` (3), or
+    fewer where the rod's ``num_gratings`` cannot test as many (:func:`torchrod.rod.max_testable_forces`)."""
+    return min(EstimatorOptions.max_forces, max_testable_forces(num_gratings))

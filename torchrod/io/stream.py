@@ -64,7 +64,7 @@ from typing import Any, cast
 import torch
 
 from ..errors import OptionsError, TorchrodTypeError
-from ..estimate.noise import NoiseLearning, RunningNoise
+from ..estimate.noise import NoiseLearning, RunningNoise, calibration_terms
 from ..estimate.status import STATUSES
 from ..kernels.targets import note_interrupt, note_unsolved
 from ..loads import PointForces
@@ -673,8 +673,16 @@ class _Stream:
         if self.noise is not None:
             # fits that stopped early (unconverged, or cut by the time budget) overstate the noise
             use = (result.status != STATUSES.index("unconverged")) & (result.status != STATUSES.index("timeout"))
-            dof = 2 * mask.sum(1) - 3 * result.num_forces.to(mask.device)
-            self.noise.add(result.loss[use].tolist(), dof[use].tolist())
+            values = 2 * mask.sum(1)
+            dof = values - 3 * result.num_forces.to(mask.device)
+            rod = getattr(self.estimator, "rod", None)
+            terms = None
+            if rod is not None and rod.calibration_error and learned is not None:  # the calibration's share
+                curvature = stack_readings([p.reading for p in good])[0].to(mask.device)
+                variance = rod.calibration_variance(torch.where(mask[..., None], curvature, 0.0))
+                s2 = None if learned is None else learned**2 + float(self.estimate_options.noise_floor) ** 2
+                terms = calibration_terms(variance[use], mask[use], s2)
+            self.noise.add(result.loss[use].tolist(), dof[use].tolist(), terms)
         if self.options.track:
             self.previous = _last_solution(result)
         return [(result, k, rec, None) for k, rec in enumerate(records)]

@@ -16,6 +16,13 @@ rules (``Options.rule``):
     estimated from the largest fit, ``sigma^2 = loss_H / (n - 3 H)``, and the drops are tested with the F law (no
     misfit guard: the misfit is what estimates sigma). sigma^2 includes the floor^2 in both cases.
 
+Either rule chooses only among the counts the reading can test (:func:`testable`): a fit of h forces has 3h unknowns
+against the reading's n values (2 per present grating), and a count leaving fewer than ``Options.min_dof`` degrees
+of freedom is never chosen, however well it fits (with none left it always fits exactly). Those counts are left out
+of the tests altogether (the noise's estimate and the drops included), as if not fitted; a fixed count
+(``Options.fixed``) is the caller's choice and is not judged. Where the chosen count cannot explain the reading at
+the noise, the verdict says so (:func:`unexplained`: ``misfit``).
+
 The quantiles come from tables the caller makes once (:func:`torchrod.kernels.host.count_tables`, held in the
 ``tables`` group of :data:`torchrod.kernels.layout.SPEC`, indexed by the count difference and by the degrees of
 freedom). The one special function computed here is the chi-square
@@ -42,6 +49,7 @@ SETTLE_SAFETY = 2.0
 local estimate) would not make the next count chosen."""
 
 INLINE = (
+    "testable",
     "dof_index",
     "largest_fitted",
     "test_sigma2",
@@ -55,6 +63,14 @@ INLINE = (
     "ceiling",
 )
 """Small functions the CUDA target inlines where they are called (:func:`.targets.cuda_namespace`)."""
+
+
+def testable(k, C):
+    """How many of the counts 0..C-1 the reading can test: those whose fit leaves at least ``min_dof`` degrees of
+    freedom in its residuals (module docstring), no force always among them."""
+    d = k.info[0].residuals - k.opt.min_dof
+    top = d // 3 + 1 if d >= 0 else 1
+    return top if top < C else C
 
 
 def dof_index(k, d):
@@ -111,8 +127,10 @@ def passes_drops(k, losses, C, h, s2, dof_ref):
 
 
 def select_count(k, losses, C):
-    """The chosen count among 0..C-1 (losses NaN where not fitted), and sigma [1/m] (module docstring)."""
+    """The chosen count among the testable ones of 0..C-1 (losses NaN where not fitted), and sigma [1/m] (module
+    docstring)."""
     info = k.info[0]
+    C = testable(k, C)
     last = largest_fitted(losses, C)
     if k.opt.rule == RULE_THRESHOLD:
         chosen = last
@@ -146,6 +164,7 @@ def ceiling(k, losses, C, h):
     forces that no better local minimum could bring below it cannot be chosen."""
     if k.opt.rule == RULE_THRESHOLD:
         return k.opt.threshold
+    C = testable(k, C)
     s2, dof_ref = test_sigma2(k, losses, C)
     best = math.inf
     for h2 in range(h + 1, C):
@@ -159,7 +178,10 @@ def ceiling(k, losses, C, h):
 def settled(k, losses, C, gain):
     """Whether the count among 0..C-1 is decided whatever count C would reach, given the scan's promised ``gain``
     [1/m^2] of one more force: with a known noise, or the threshold rule; never with the noise unknown (every
-    count is needed to estimate it). Uses losses[C] as scratch."""
+    count is needed to estimate it); always where count C is one the reading cannot test (:func:`testable`).
+    Uses losses[C] as scratch."""
+    if testable(k, C + 1) <= C:
+        return True
     if k.opt.rule == RULE_THRESHOLD:
         for h in range(C):
             if losses[h] == losses[h] and losses[h] < k.opt.threshold:

@@ -44,6 +44,7 @@ OPTIONS = np.dtype(
     [
         ("max_forces", np.int64),  # H: counts 0..H are fitted
         ("fixed", np.int64),  # the fixed count, or -1: chosen
+        ("min_dof", np.int64),  # a count leaving fewer degrees of freedom is never chosen (counts.testable)
         ("starts", np.int64),
         ("settle", np.bool_),
         ("trusted", np.bool_),

@@ -31,9 +31,9 @@ def tiny_setup() -> tuple[Setup, Sizes]:
         max_steps=4, exact_angle=0.8, exact_max_steps=4, method=_Euler(),
     )  # fmt: skip
     opt = options_record(
-        max_forces=1, fixed=-1, starts=2, settle=True, trusted=False, twins=True, rule="noise", threshold=3.0,
-        floor2=1e-6, max_noise2=1.0, hopeless=3.0, explained=0.01, per_interval=2, exchange_top=2, rounds=2,
-        explore=8, condition_limit=1e8, max_evaluations=0, damping=1e-3, increase=4.0, decrease=3.0,
+        max_forces=1, fixed=-1, min_dof=0, starts=2, settle=True, trusted=False, twins=True, rule="noise",
+        threshold=3.0, floor2=1e-6, max_noise2=1.0, hopeless=3.0, explained=0.01, per_interval=2, exchange_top=2,
+        rounds=2, explore=8, condition_limit=1e8, max_evaluations=0, damping=1e-3, increase=4.0, decrease=3.0,
         min_damping=1e-9, max_damping=1e9, max_force_step=10.0, tolerance=1e-3, iterations=5, refine_iterations=5,
         exact_steps=1, exact_tolerance=1e-4, acceleration=0.5, probe=0.1, acceleration_limit=0.75,
     )  # fmt: skip

@@ -9,6 +9,7 @@ names ``torchrod bench`` knows (a suite whose module is missing is reported as n
 * ``network``: the warm-start network alone, and the estimator with and without it.
 * ``startup``: time to the first answer (``--version``, ``--help``, a one-reading estimate) against importing torch.
 * ``gpu``: the CUDA kernels: their compiled size (no GPU needed), the CUDA tests and readings per second on a GPU.
+* ``gratings``: a needle with 3 gratings and one grating's gain off, with and without a calibration error.
 * ``memory``: a ``torchrod stream`` process fed a million readings, its memory sampled: flat or growing.
 * ``backlog``: a backlog of 1-3 force readings through ``torchrod stream``, beside other versions' checkouts.
 """
@@ -27,4 +28,6 @@ SUITES: dict[str, str] = {
     "gpu": "the CUDA kernels: PTX size and registers, the CUDA tests, readings per second on a GPU",
     "memory": "a long stream's memory: RSS of torchrod stream over a million readings, flat or growing",
     "backlog": "a backlog of 1-3 force readings through torchrod stream, this version beside other checkouts",
+    "gratings": "a 3-grating needle with one grating's gain off: the count and the forces, with and without a "
+    "calibration error",
 }

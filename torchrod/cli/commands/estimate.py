@@ -127,7 +127,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--rod", help=rod_help(what=", instead of the first argument"))
     count = parser.add_mutually_exclusive_group()
-    count.add_argument("--max-forces", type=int, default=3, metavar="H", help="choose the count in 0..H (default 3)")
+    count.add_argument(
+        "--max-forces",
+        type=int,
+        metavar="H",
+        help="choose the count in 0..H (default: as many as the rod's gratings can test, at most 3)",
+    )
     count.add_argument("--num-forces", type=int, metavar="N", help="fit exactly N forces")
     parser.add_argument("--noise", type=float, metavar="SIGMA", help="sensor noise sigma [1/m]; default: estimated")
     parser.add_argument("--selection", choices=RULES, default="noise", help="count rule (default noise)")
@@ -168,28 +173,36 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def check_counts(args: argparse.Namespace, rod: Rod | None = None) -> None:
     """``--max-forces`` and ``--num-forces`` (where the command has them) must be >= 0 (``ValueError``, status 2);
-    the estimator judges the rest. With the ``rod``, a count whose 3 unknowns per force (s, fx, fy) leave no
-    degree of freedom in the 2 values per grating of a reading is warned about
-    (:class:`~torchrod.errors.RodWarning`): such counts cannot be told apart."""
+    the estimator judges the rest. ``--max-forces`` not given becomes the ``rod``'s default
+    (:func:`~torchrod.estimate.options.default_max_forces`: as many as its gratings can test, at most 3). With the
+    ``rod``, a count asked for that a full reading cannot test (its 3 unknowns per force, s, fx, fy, leave fewer
+    than :data:`~torchrod.rod.MIN_TEST_DOF` degrees of freedom in the 2 values per grating) is warned about
+    (:class:`~torchrod.errors.RodWarning`): the estimator never chooses such a count, and a fixed one is not
+    tested."""
+    from ...estimate.options import default_max_forces
+    from ...rod import FORCE_RULE, max_testable_forces
+
     for option in ("max_forces", "num_forces"):
         value = getattr(args, option, None)
         if value is not None and value < 0:
             raise ValueError(f"--{option.replace('_', '-')} must be >= 0, got {value}")
+    if hasattr(args, "max_forces") and args.max_forces is None:
+        args.max_forces = default_max_forces(rod.num_gratings) if rod is not None else EstimatorOptions.max_forces
+        return
     if rod is None:
         return
     option = "num_forces" if getattr(args, "num_forces", None) is not None else "max_forces"
     count = getattr(args, option, None)
-    values = 2 * rod.num_gratings
-    if count is not None and 3 * count >= values:
+    most = max_testable_forces(rod.num_gratings)
+    if count is not None and count > most:
         import warnings
 
         from ...errors import RodWarning
 
-        most = (values - 1) // 3
+        effect = f"a fit of {count} is not tested" if option == "num_forces" else f"more than {most} are never chosen"
         warnings.warn(
-            f"--{option.replace('_', '-')} {count} asks for up to {3 * count} unknowns (s, fx, fy per force) from the "
-            f"{values} values of a reading of this rod's {rod.num_gratings} grating(s): at most {most} force(s) "
-            "can be told apart",
+            f"--{option.replace('_', '-')} {count} asks for more forces than a reading of this rod's "
+            f"{rod.num_gratings} grating(s) can test ({most}: {FORCE_RULE}): {effect}",
             RodWarning,
             stacklevel=2,
         )

@@ -39,6 +39,8 @@ NUMBER_OPTIONS: dict[str, str] = {
     "location_bias": "added to every reported location [m] (default 0; torchrod calibrate fits it)",
     "poisson_ratio": "nu of a precurved rod's torsion, GJ = EI / (1 + nu) (default 0.33)",
     "torsional_stiffness": "GJ [N m^2], instead of --poisson-ratio",
+    "calibration_error": "every grating's relative calibration error, a fraction of the signal (0.1: 10 %%; default "
+    "none; per grating in the file; torchrod calibrate --fibre writes it)",
 }
 """The rod file's number keys that are options of their own (``--length`` for ``length``, ...), with their help;
 ``gratings`` is ``--gratings``, and ``fibre`` and ``intrinsic_curvature`` are added to the file by hand."""
@@ -84,7 +86,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="S1,S2,...",
         help="each grating's arc length from the clamp [m], increasing, comma-separated",
     )
-    for key in ("location_bias", "poisson_ratio", "torsional_stiffness"):
+    for key in ("location_bias", "poisson_ratio", "torsional_stiffness", "calibration_error"):
         numbers.add_argument(_option(key), type=float, metavar="X", help=NUMBER_OPTIONS[key])
     parser.add_argument(
         "--out",
@@ -148,9 +150,10 @@ def report_lines(report, where: str) -> list[str]:
             "the fit of one force (3 unknowns: s, fx, fy)"
         )
     lines += wrap.wrap(f"forces              {forces}")
-    if h and h < 3:
+    if h < 3:
         lines += wrap.wrap(
-            f"                    give estimate and stream --max-forces {h} (their default, 3, asks for more)"
+            f"                    estimate and stream choose among 0 to {h} forces (their default here), and "
+            "never more whatever the largest count they are given"
         )
     network = report.network_reason
     if report.network_weak:

@@ -202,7 +202,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="also start small batches from the last answer's forces (StreamOptions.track; off: it costs time)",
     )
-    parser.add_argument("--max-forces", type=int, default=3, metavar="H", help="choose the count in 0..H (3)")
+    parser.add_argument(
+        "--max-forces",
+        type=int,
+        metavar="H",
+        help="choose the count in 0..H (default: as many as the rod's gratings can test, at most 3)",
+    )
     parser.add_argument(
         "--noise", type=float, metavar="SIGMA", help="sensor noise sigma [1/m]; default: learned from the stream"
     )
