@@ -133,3 +133,21 @@ def test_the_top_level_holds_the_public_api_and_no_internals():
     for name in ("Rod", "PointForces", "simulate", "Estimator", "EstimatorOptions", "EstimateResult", "Status",
                  "stream", "StreamOptions", "calibrate", "presets", "WarmStart", "TorchrodError"):  # fmt: skip
         assert name in torchrod.__all__, name
+
+
+def test_an_estimate_and_a_stream_load_none_of_the_experiments():
+    """The experiments ship in the package (docs/core.md says why), but answering readings loads none of them:
+    not ``torchrod.eval``, not the benchmarks, not matplotlib or scipy.stats."""
+    code = (
+        "import sys, io, contextlib, torchrod as tr; "
+        "rod = tr.presets.nitinol290(); "
+        "u = tr.grating_curvature(rod, tr.PointForces.from_lists([[(0.2, 0.3, 0.1)]])); "
+        "tr.Estimator(rod, tr.EstimatorOptions(noise=0.05, target='python')).estimate(u); "
+        "list(tr.stream(tr.Estimator(rod, tr.EstimatorOptions(noise=0.05, target='python')), "
+        "[{'id': 1, 'curvature': u[0].tolist()}])); "
+        "print(sorted(m for m in sys.modules if m.startswith(('torchrod.eval', 'torchrod.cli.benchmarks', "
+        "'matplotlib', 'scipy.stats'))))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "[]", out.stdout
