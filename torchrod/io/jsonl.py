@@ -12,13 +12,13 @@ Reading::
 
 A line is what ends with ``\\n``; it is decoded as UTF-8 (undecodable bytes become U+FFFD and fail as bad JSON on
 their own line; a byte-order mark on the first line is dropped); a line longer than the reader's limit (``max_line``,
-by default :data:`MAX_LINE_BYTES`; readings are read with their rod's, :func:`torchrod.io.readings.line_limit`) is an
+by default :data:`MAX_LINE_BYTES`; readings are read with their rod's, :func:`torchrod.io.sources.line_limit`) is an
 error line and is skipped without being held in memory. JSON is decoded by :func:`decode`: Python's decoder, except
-that an integer of more than 4300 digits becomes a :class:`~torchrod.io.readings.HugeInteger` (refused by the number
+that an integer of more than 4300 digits becomes a :class:`~torchrod.io.values.HugeInteger` (refused by the number
 rules, naming its field) instead of aborting the decoding, and nesting too deep for the decoder is an error of its
 line. ``NaN``, ``Infinity`` and overflowing literals (``1e999``) decode as non-finite floats and are refused by the
-number rules of :mod:`torchrod.io.readings`, so the line's id is still reported. An id that JSON cannot echo
-(:func:`torchrod.io.readings.id_problem`) makes the line an error with id null.
+number rules of :mod:`torchrod.io.numbers`, so the line's id is still reported. An id that JSON cannot echo
+(:func:`torchrod.io.reading.id_problem`) makes the line an error with id null.
 
 ``parse(obj)`` turns one decoded JSON object into what the command needs and raises ``ValueError`` (or
 ``TypeError``/``KeyError``) for a line it cannot use; the helpers :func:`get_number`, :func:`get_list`,
@@ -53,8 +53,10 @@ from dataclasses import dataclass
 from typing import IO, Any, Generic, TypeVar
 
 from ..errors import MissingFileError, OptionsError, ReadingError
-from .readings import HugeInteger, as_number, check_id, describe, id_problem, int_digit_limit, quote
+from .numbers import as_number
+from .reading import check_id, id_problem
 from .tcp import TcpReader, is_tcp
+from .values import HugeInteger, describe, int_digit_limit, quote
 
 __all__ = [
     "MAX_LINE_BYTES",
@@ -97,7 +99,7 @@ MAX_LINE_BYTES = 16 * 2**20
 """The longest input line a reader takes by default [bytes]; a longer one is an error line, read past in chunks
 without being held. Decoding a line into Python objects costs up to about 20 times its size in memory (an array of
 small numbers), so this bound also bounds what one line can cost. Readings are read with a much lower bound, their
-rod's (:func:`torchrod.io.readings.line_limit`)."""
+rod's (:func:`torchrod.io.sources.line_limit`)."""
 
 MAX_MESSAGE_CHARS = 600
 """The longest error message written (messages quote at most ~100 characters of a value; this is a safety net)."""

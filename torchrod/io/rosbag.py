@@ -7,7 +7,7 @@ Reading (:class:`BagSource`)
     [1/m] in the rod file's grating order, with NaN for both values of a missing grating. A reading's ``t`` is
     the bag's time stamp of the message [s] and its ``id`` the message's index in the topic (0-based). A message
     that cannot be used (another length, a half-missing grating, a value beyond the bounds) becomes an error
-    answer in its place, as a bad line of a file does (:mod:`torchrod.io.readings`).
+    answer in its place, as a bad line of a file does (:mod:`torchrod.io.reading`).
 
 Writing (:class:`BagWriter`)
     A ROS 2 bag directory (SQLite3 storage), or a ROS 1 bag when the path ends in ``.bag``; standard messages only,
@@ -37,7 +37,8 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import MissingFileError, OptionsError, ReadingError
-from .readings import Reading, quote, to_reading
+from .reading import Reading, to_reading
+from .values import quote
 
 __all__ = ["ESTIMATE_TOPIC", "MESSAGE_TYPE", "BagSource", "BagWriter", "require_rosbags", "write_readings"]
 

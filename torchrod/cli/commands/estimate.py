@@ -83,7 +83,8 @@ from ...errors import MissingFileError
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.options import RULES
 from ...io.jsonl import LineWriter, check_input, check_output, open_output, until_interrupted
-from ...io.readings import Reading, ReadingSource, stack_readings
+from ...io.reading import Reading, stack_readings
+from ...io.sources import ReadingSource
 from ...presets import load as load_rod
 from ...rod import Rod
 from . import (

@@ -124,7 +124,7 @@ from ...io.jsonl import (
     same_path,
     until_interrupted,
 )
-from ...io.readings import ReadingSource
+from ...io.sources import ReadingSource
 from ...io.stream import StreamOptions, StreamResult, StreamStats, stream, warm_up
 from ...presets import load as load_rod
 from ...rod import Rod
@@ -235,7 +235,7 @@ def read_stream(
     source: str, rod: Rod, fmt: str = "auto", *, quantity: str = "curvature", topic: str | None = None
 ) -> Any:
     """Readings from ``source`` (a path, ``"-"`` or ``tcp://HOST:PORT``) in a format of
-    :data:`torchrod.io.readings.FORMATS`, lazily, checked by :mod:`torchrod.io.readings`: unusable lines become
+    :data:`torchrod.io.sources.FORMATS`, lazily, checked by :mod:`torchrod.io.reading`: unusable lines become
     readings with an ``error``. The flush after an interrupt ends it at the lines already read. With ``topic``,
     ``source`` is a ROS bag (:class:`torchrod.io.rosbag.BagSource`)."""
     if topic is not None:
