@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from ..errors import OptionsError, ReadingError
-from .csv_rows import csv_records
+from .formats import AUTO_DEFAULT, AUTO_OTHERWISE, INPUT_FORMATS, ReadOptions, line_formats
 from .quantities import QUANTITIES
 from .reading import Reading, parse_reading
 
@@ -25,6 +25,7 @@ __all__ = [
     "MIN_LINE_BYTES",
     "ReadingSource",
     "detect_format",
+    "format_names",
     "iter_readings",
     "iter_records",
     "line_limit",
@@ -41,30 +42,43 @@ LINE_BYTES_PER_VALUE = 64
 characters, with its separator and brackets about 30."""
 
 
-FORMATS = ("auto", "jsonl", "csv", "peaks")
-"""Input formats of a readings file: JSON lines, CSV, an interrogator's peak log (:mod:`torchrod.io.peaklog`), or
-``auto``: by the file's extension (``.csv``; ``.jsonl``, ``.json``, ``.ndjson``), else by its first non-blank line
-(``{`` opens JSON lines, ``TIME: number, ...`` a peak log, anything else is CSV)."""
+FORMATS = ("auto", *line_formats())
+"""Input formats of a readings file: the line formats of :data:`torchrod.io.formats.INPUT_FORMATS` (JSON lines, CSV,
+an interrogator's peak log, :mod:`torchrod.io.peaklog`), or ``auto``: by the file's extension (``.jsonl``, ``.json``,
+``.ndjson``; ``.csv``), else by its first non-blank line (``{`` opens JSON lines, ``TIME: number, ...`` a peak log,
+anything else is CSV)."""
+
+
+def format_names() -> tuple[str, ...]:
+    """``auto`` and the line formats of :data:`torchrod.io.formats.INPUT_FORMATS` as the table holds them now
+    (:data:`FORMATS` is their names when the package was loaded)."""
+    return ("auto", *line_formats())
+
+
+def _check_format(fmt: str) -> None:
+    names = format_names()
+    if fmt not in names:
+        raise OptionsError(f"format must be one of {', '.join(names)}, got {fmt!r}")
 
 
 def detect_format(source: Any, head: str | None) -> str:
-    """The format ``auto`` reads ``source`` as, given its first non-blank line ``head`` (:data:`FORMATS`)."""
-    from .peaklog import is_peak_line
-
+    """The format ``auto`` reads ``source`` as, given its first non-blank line ``head`` (:data:`FORMATS`): the line
+    format whose extension the name has, else the first whose test the line passes
+    (:attr:`torchrod.io.formats.InputFormat.detect`), else :data:`torchrod.io.formats.AUTO_OTHERWISE`; without a
+    line, :data:`torchrod.io.formats.AUTO_DEFAULT`."""
+    formats = line_formats()
     name = os.fspath(source) if isinstance(source, (str, os.PathLike)) else str(getattr(source, "name", ""))
     ext = os.path.splitext(name)[1].lower()
-    if ext == ".csv":
-        return "csv"
-    if ext in (".jsonl", ".json", ".ndjson"):
-        return "jsonl"
+    for fmt, entry in formats.items():
+        if ext in entry.extensions:
+            return fmt
     if head is None:
-        return "jsonl"
+        return AUTO_DEFAULT
     text = head.lstrip("\ufeff").lstrip()
-    if text.startswith(("{", "[")):
-        return "jsonl"
-    if is_peak_line(text):
-        return "peaks"
-    return "csv"
+    for fmt, entry in formats.items():
+        if entry.detect is not None and entry.detect(text):
+            return fmt
+    return AUTO_OTHERWISE
 
 
 def iter_records(
@@ -94,10 +108,9 @@ def iter_records(
         max_line: the longest line read [bytes] (None: the rod's, :func:`line_limit`); a longer one is an error
             record, read past without being held.
     """
-    from .jsonl import line_bytes, parse_records, read_lines
+    from .jsonl import line_bytes, read_lines
 
-    if fmt not in FORMATS:
-        raise OptionsError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    _check_format(fmt)
     if quantity not in QUANTITIES:
         raise OptionsError(f"quantity must be one of {', '.join(QUANTITIES)}, got {quantity!r}")
     limit = line_limit(num_gratings, fibre) if max_line is None else line_bytes(max_line)
@@ -115,14 +128,9 @@ def iter_records(
             return
         fmt = detect_format(source, None if head is None else head[1])
         lines = _chain(held + ([head] if head is not None else []), lines)
-    if fmt == "csv":
-        yield from csv_records(lines, num_gratings, quantity, fibre, parse)
-    elif fmt == "peaks":
-        from .peaklog import PeakLog
-
-        yield from PeakLog(fibre, num_gratings, peaks).records(lines, parse)
-    else:
-        yield from parse_records(lines, parse)
+    reader = INPUT_FORMATS[fmt].lines
+    assert reader is not None  # (_check_format let only a line format through)
+    yield from reader(lines, parse, ReadOptions(num_gratings, quantity, fibre, peaks))
 
 
 def iter_readings(
@@ -179,8 +187,7 @@ class ReadingSource:
     ) -> None:
         from .jsonl import ReadControl
 
-        if fmt not in FORMATS:
-            raise OptionsError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+        _check_format(fmt)
         self.control = ReadControl()
         self.never_waits = (
             isinstance(source, (str, os.PathLike)) and os.fspath(source) != "-" and os.path.isfile(source)

@@ -110,6 +110,7 @@ from ...errors import ReadingError
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.noise import NoiseLearning
 from ...estimate.options import LMPolicy
+from ...io.formats import INPUT_FORMATS, topic_help
 from ...io.jsonl import (
     LineWriter,
     check_input,
@@ -171,7 +172,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--topic",
         help="read --input as a ROS bag (ROS 1 .bag, ROS 2 directory) and take the readings from TOPIC "
-        "(std_msgs/Float64MultiArray, 2G values; needs pip install 'torchrod[ros]')",
+        f"({topic_help()}; needs pip install 'torchrod[ros]')",
     )
     parser.add_argument(
         "--output-bag",
@@ -282,7 +283,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.topic is not None and args.input == "-":
         raise ValueError("--topic reads a ROS bag: give its path with --input")
     if args.topic is not None and args.protocol != "lines":
-        raise ValueError("--topic reads a ROS bag; --protocol fbgs reads shape-sensing records: give one")
+        what = INPUT_FORMATS[args.protocol].what
+        raise ValueError(f"--topic reads a ROS bag; --protocol {args.protocol} reads {what}: give one")
     inputs = _inputs(args)
     check_output(args.out, inputs)
     if args.output_bag is not None:
