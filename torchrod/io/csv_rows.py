@@ -14,7 +14,9 @@ CSV rows (``--format csv``, :class:`CsvLayout`)
     (``"strain"``, ``"wavelength"``, ``"wavelength-shift"``). All the cells of a missing grating are empty. An id
     cell is read as JSON reads the same text (:func:`csv_id`: ``7`` is an integer). A row becomes the reading's JSON
     object and passes the same checks as a JSON line (:func:`torchrod.io.reading.parse_reading`); its numbers follow
-    :mod:`torchrod.io.numbers`.
+    :mod:`torchrod.io.numbers`. A quoted cell may hold a line break: its row then spans the lines up to the closing
+    quote and is one record, numbered by its first line, at most as long as a line may be (a longer one, as a quote
+    never closed makes, is one error record). A line too long to read keeps the id its first cell holds.
 """
 
 from __future__ import annotations
@@ -381,22 +383,105 @@ def _is_csv_header(cells: Sequence[str]) -> bool:
     return not any(CSV_NUMBER.fullmatch(c) or CSV_NONFINITE.fullmatch(c) for c in rest)
 
 
+def _ends_quoted(text: str, inside: bool = False) -> bool:
+    """Whether CSV ``text`` ends inside a quoted cell (``inside``: it starts inside one), as :mod:`csv` reads it: a
+    quote opens a cell only at the cell's start, ``""`` within quotes is one quote, and after a closing quote the
+    cell's quotes are literal. Scans with ``str.find``, so a long line costs little."""
+    i = 0
+    if not inside and text.startswith('"'):
+        inside, i = True, 1
+    while True:
+        if inside:
+            j = text.find('"', i)
+            if j < 0:
+                return True
+            if text.startswith('"', j + 1):
+                i = j + 2
+                continue
+            inside, i = False, j + 1
+        j = text.find(",", i)
+        if j < 0:
+            return False
+        i = j + 1
+        if text.startswith('"', i):
+            inside, i = True, i + 1
+
+
+def _whole_record(number: int, text: str, rows: Iterator[tuple[int, str]], limit: int) -> tuple[str, str | None]:
+    """The record that starts on line ``number`` with ``text``, which ends inside a quoted cell: ``text`` and the
+    lines after it up to the one that closes the cell, joined (the line breaks stay in the cell, as CSV means), and
+    None; or '' and the error of a record longer than ``limit`` (the lines it took are part of it). At the end of the
+    input the record is what was read, as :mod:`csv` reads an unclosed quote."""
+    from .jsonl import Overlong
+
+    parts, size = [text], len(text)
+    while True:
+        more = next(rows, None)
+        if more is None:
+            return "".join(parts), None
+        last, line = more
+        if isinstance(line, Overlong) or size + len(line) > limit:
+            return "", (
+                f"line {number}: a quoted cell holds a line break and runs on to line {last}, making the record "
+                f"longer than {limit} bytes; not read"
+            )
+        parts.append(line)
+        size += len(line)
+        if not _ends_quoted(line, inside=True):
+            return "".join(parts), None
+
+
+def _overlong_id(head: str, layout: CsvLayout | None) -> Any:
+    """The id of a CSV line too long to read, from its first cell when that is the id and ends within ``head``
+    (the line's start): the header's first column is ``id``; or, without a header, the cell is text (a number
+    there could be ``t`` or a value). None otherwise, or when JSON cannot echo it."""
+    import csv
+
+    if layout is not None and layout.id_column != 0:
+        return None
+    try:
+        cells = _csv_cells(head)
+    except csv.Error:
+        return None
+    if len(cells) < 2:  # (the first cell may go on past the head)
+        return None
+    ident = csv_id(cells[0])
+    if layout is None and not isinstance(ident, str):
+        return None
+    return ident if id_problem(ident) is None else None
+
+
 def csv_records(
-    lines: Iterable[tuple[int, str]], num_gratings: int, quantity: str, fibre: Any, parse: Callable[[Any], Any]
+    lines: Iterable[tuple[int, str]],
+    num_gratings: int,
+    quantity: str,
+    fibre: Any,
+    parse: Callable[[Any], Any],
+    max_line: int | None = None,
 ) -> Iterator[Any]:
     """The records of CSV ``lines`` (numbered, as :func:`torchrod.io.jsonl.read_lines` gives them), lazily: a
     header row first when there is one (:class:`CsvLayout`), then one :class:`torchrod.io.jsonl.Record` per row,
-    its reading object handed to ``parse``; a row that cannot be used is an error record (``"line N: ..."``)."""
+    its reading object handed to ``parse``; a row that cannot be used is an error record (``"line N: ..."``). A
+    row whose quoted cell holds a line break spans lines and is one record, numbered by its first line; it may be
+    at most ``max_line`` characters long (None: :data:`torchrod.io.jsonl.MAX_LINE_BYTES`), as a line is. A line
+    too long to read keeps its id when its first cell holds it (:func:`_overlong_id`)."""
     import csv
 
-    from .jsonl import Overlong, Record, overlong_error, parsed_record
+    from .jsonl import MAX_LINE_BYTES, Overlong, Record, overlong_error, parsed_record
 
+    limit = MAX_LINE_BYTES if max_line is None else max_line
     layout: CsvLayout | None = None
     first = True
-    for number, text in lines:
+    rows = iter(lines)
+    for number, text in rows:
         if isinstance(text, Overlong):
-            yield Record(number, None, None, overlong_error(number, text))
+            yield Record(number, _overlong_id(text.head, layout), None, overlong_error(number, text))
             continue
+        if '"' in text and _ends_quoted(text):
+            text, problem = _whole_record(number, text, rows, limit)
+            if problem is not None:
+                yield Record(number, None, None, problem)
+                continue
         try:
             cells = _csv_cells(text)
         except csv.Error as exc:

@@ -49,6 +49,7 @@ class ReadOptions:
         peaks: a peak log's layout, overriding the rod file's (:meth:`torchrod.sensors.Fibre.peak_layout`).
         unit: the curvature unit an option gave (``--curvature-unit``), for a protocol whose records say their own
             unit; None when no option gave one.
+        max_line: the longest line (or CSV record) read [bytes]; None: the reader's default.
     """
 
     num_gratings: int
@@ -56,6 +57,7 @@ class ReadOptions:
     fibre: Any = None
     peaks: Any = None
     unit: str | None = None
+    max_line: int | None = None
 
 
 LineReader = Callable[[Iterable[tuple[int, str]], Callable[[Any], Any], ReadOptions], Iterator[Any]]
@@ -116,7 +118,7 @@ def _jsonl_lines(lines: Iterable[tuple[int, str]], parse: Callable[[Any], Any], 
 def _csv_lines(lines: Iterable[tuple[int, str]], parse: Callable[[Any], Any], options: ReadOptions) -> Iterator[Any]:
     from .csv_rows import csv_records
 
-    return csv_records(lines, options.num_gratings, options.quantity, options.fibre, parse)
+    return csv_records(lines, options.num_gratings, options.quantity, options.fibre, parse, options.max_line)
 
 
 def _peak_lines(lines: Iterable[tuple[int, str]], parse: Callable[[Any], Any], options: ReadOptions) -> Iterator[Any]:

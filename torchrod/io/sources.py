@@ -5,7 +5,8 @@ Lines
     A line of JSON, CSV or a peak log longer than :func:`line_limit` of the rod (1 MiB, more for a rod whose
     readings hold more than 16 384 values) is an error line (``longer than N bytes; not read``) and is read past in
     chunks without being held: no reading of the rod needs such a line, and decoding one would cost up to about 20
-    times its size in memory. ``max_line`` (``--max-line-bytes``) sets another limit.
+    times its size in memory. ``max_line`` (``--max-line-bytes``) sets another limit. The error keeps the line's id
+    when the line starts with it (:func:`torchrod.io.jsonl.overlong_id`; a CSV row's first cell).
 """
 
 from __future__ import annotations
@@ -130,7 +131,7 @@ def iter_records(
         lines = _chain(held + ([head] if head is not None else []), lines)
     reader = INPUT_FORMATS[fmt].lines
     assert reader is not None  # (_check_format let only a line format through)
-    yield from reader(lines, parse, ReadOptions(num_gratings, quantity, fibre, peaks))
+    yield from reader(lines, parse, ReadOptions(num_gratings, quantity, fibre, peaks, max_line=limit))
 
 
 def iter_readings(
