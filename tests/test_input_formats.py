@@ -77,3 +77,14 @@ def test_an_entry_is_exactly_one_kind() -> None:
         InputFormat("both", lines=_tsv, protocol=lambda source, options: [])
     with pytest.raises(TypeError, match="exactly one"):
         InputFormat("a bag type without its reader", bag_type="std_msgs/msg/Float32MultiArray")
+
+
+def test_the_readings_module_still_offers_every_name_from_its_new_home() -> None:
+    """``torchrod.io.readings`` gathers the names of the modules it was split into: old imports keep working and
+    give the same objects."""
+    from torchrod.io import csv_rows, numbers, quantities, reading, readings, values
+
+    homes = (csv_rows, numbers, quantities, reading, sources, values)
+    for name in readings.__all__:
+        assert any(getattr(home, name, None) is getattr(readings, name) for home in homes), name
+    assert readings.ReadingSource is sources.ReadingSource and readings.Reading is reading.Reading
