@@ -96,7 +96,8 @@ def iter_records(
 ) -> Iterator[Any]:
     """Each non-blank line of ``source`` (a path, ``"-"``, ``tcp://HOST:PORT`` or an open text stream) as the
     reading's JSON object (a JSON line decoded, a CSV row or a peak log line made into one), handed to ``parse``:
-    one :class:`torchrod.io.jsonl.Record` per line (a CSV header excepted), in order, lazily; a line that cannot be
+    one :class:`torchrod.io.jsonl.Record` per line (a CSV header excepted; a CSV row over several lines, its quoted
+    cell holding a line break, is one), in order, lazily; a line that cannot be
     used is an error record (``"line N: ..."``). A CSV header that cannot be used raises
     :class:`~torchrod.errors.ReadingError` (no row can be read without it).
 
@@ -147,7 +148,8 @@ def iter_readings(
     max_line: int | None = None,
 ) -> Iterator[Reading]:
     """Readings from ``source`` (:func:`iter_records`, whose ``max_line`` bounds a line), lazily, one
-    :class:`Reading` per non-blank line in order (a CSV header row excepted): checked, or with ``error`` set
+    :class:`Reading` per non-blank line in order (a CSV header row excepted, a CSV row over several lines one):
+    checked, or with ``error`` set
     (``"line N: ..."``) for a line that cannot be used."""
 
     def parse(obj: Any) -> Reading:

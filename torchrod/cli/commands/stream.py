@@ -69,7 +69,8 @@ without a network (said once on stderr); ``--checkpoint none`` turns the network
 answers to FILE.
 ``--device cuda`` estimates on a GPU (the same kernels compiled by numba-cuda; needs ``torchrod[cuda]``).
 
-Every non-blank input line gets exactly one output line (a CSV header excepted). A line that cannot be used (bad
+Every non-blank input line gets exactly one output line (a CSV header excepted; a CSV row whose quoted cell holds a
+line break is one row over several lines, answered once). A line that cannot be used (bad
 JSON or CSV, a wrong number of gratings, NaN, a value out of bounds, all gratings missing) gives
 ``{"id": ... or null, "error": "line N: ..."}`` naming the field and quoting at most about 100 characters of the
 value, and the stream goes on; missing gratings are left out of the fit. The end of the input, Ctrl-C and SIGTERM
