@@ -42,6 +42,40 @@ def _read(text: str, **kw) -> list:
 
 
 # ---------------------------------------------------------------------------------------------------- the parser
+def test_a_quoted_cell_holding_a_line_break_is_one_record(curvature):
+    """CSV lets a quoted cell hold a line break: the row runs on over the next line and gets one answer (numbered
+    by its first line), and the rows after it are read as they are."""
+    u = curvature[0]
+    header = ["id", "t"] + [f"ux_{k}" for k in range(1, G + 1)] + [f"uy_{k}" for k in range(1, G + 1)]
+    values = [*_cells(u[:, 0]), *_cells(u[:, 1])]
+    text = "\n".join(
+        [
+            ",".join(header),
+            ",".join(['"run 1\ntake ""2"""', "0.25", *values]),
+            ",".join(["8", '"0.\n5"', *values]),  # a number cell holding a line break: one error, not two
+            ",".join(["9", "0.75", *values]),
+        ]
+    )
+    got = _read(text + "\n")
+    assert [(r.line, r.id) for r in got] == [(2, 'run 1\ntake "2"'), (4, 8), (6, 9)]
+    assert got[0].ok and got[0].t == 0.25 and torch.equal(got[0].curvature, u)
+    assert got[1].error.startswith('line 4: t must be a number, got "0.\\n5": a CSV number is decimal digits')
+    assert got[2].ok
+
+
+def test_an_unclosed_quote_reads_no_further_than_a_line_may_be_long():
+    """A quote opened and never closed would take in every line after it: the record stops at the line limit, one
+    error line, and the lines after it are read again."""
+    rows = ["a,,0.1,0.2", '"b,,0.1,0.2'] + [f"c{k},,0.1,0.2" for k in range(40)]
+    got = list(iter_readings(io.StringIO("\n".join(rows) + "\n"), 1, fmt="csv", max_line=200))
+    assert got[0].ok and got[0].id == "a"
+    assert got[1].error == (
+        "line 2: a quoted cell holds a line break and runs on to line 18, making the record longer than 200 bytes; "
+        "not read"
+    )
+    assert [r.id for r in got[2:]] == [f"c{k}" for k in range(16, 40)] and all(r.ok for r in got[2:])
+
+
 def test_header_ux_block_then_uy_block_is_read_by_name(curvature):
     """The layout that was misread by position: ux_1..ux_G, then uy_1..uy_G, with a header saying so."""
     u = curvature[0]

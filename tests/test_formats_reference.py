@@ -17,7 +17,7 @@ import torchrod as tr
 from torchrod.cli import main
 from torchrod.errors import RodError
 from torchrod.estimate.noise import NoiseLearning
-from torchrod.io import readings
+from torchrod.io import csv_rows, readings
 from torchrod.rod import Rod
 from torchrod.sensors import Fibre, Wavelength
 
@@ -63,12 +63,12 @@ def test_every_rod_file_key_is_in_the_reference():
 
 def _header_columns() -> set[str]:
     """Every column name form the CSV header parser accepts, from its own tables (K: grating, C: core, J: force)."""
-    stems = re.match(r"\(([a-z|]+)\)", readings._COLUMN.pattern).group(1).split("|")
-    forms = {"id", "t", *readings._JIG_COLUMNS}
+    stems = re.match(r"\(([a-z|]+)\)", csv_rows._COLUMN.pattern).group(1).split("|")
+    forms = {"id", "t", *csv_rows._JIG_COLUMNS}
     for stem in stems:
-        if stem in readings._PER_CORE:
+        if stem in csv_rows._PER_CORE:
             forms.add(f"{stem}_K_C")
-        elif stem in readings._FORCE_FIELDS:
+        elif stem in csv_rows._FORCE_FIELDS:
             forms.add(f"{stem}_J")
         else:
             forms.add(f"{stem}_K")

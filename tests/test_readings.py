@@ -276,3 +276,51 @@ def test_an_overlong_line_is_said_to_be_overlong_in_every_format(tmp_path, fmt):
     readings = list(iter_readings(path, 14, fmt=fmt, max_line=1000))
     assert [r.error for r in readings] == ["line 1: longer than 1000 bytes; not read", None]
     assert readings[1].id in (7, "7") and readings[1].curvature.shape == (14, 2)
+
+
+@pytest.mark.parametrize("source", ["path", "text stream"])
+def test_a_line_refused_for_its_length_keeps_the_id_it_starts_with(tmp_path, source):
+    """The answer to an overlong line names it by the id at its start (a JSON line's ``{"id": ...``, a CSV row's
+    first cell when it is the id): only the line's first bytes are kept, enough for an id."""
+    import io
+
+    from torchrod.io.readings import iter_readings
+
+    rows = [[0.1, -0.2]] * 14
+    pad = ",".join("0.1,-0.2" for _ in range(400))
+    cases = {
+        "jsonl": (
+            [
+                '{"id": "r-1", "curvature": [' + "[0.1, -0.2], " * 400 + "null]}",
+                '{"id": [1, {"a": 2}], "pad": "' + "x" * 5000 + '"}',
+                '{"t": 1, "id": 3, "pad": "' + "x" * 5000 + '"}',  # (the id is not at the start: not looked for)
+                '{"id": NaN, "pad": "' + "x" * 5000 + '"}',  # (an id JSON cannot echo stays null)
+                json.dumps({"id": 7, "curvature": rows}),
+            ],
+            ["r-1", [1, {"a": 2}], None, None, 7],
+        ),
+        "csv": (
+            [
+                "id,t," + ",".join(f"ux_{k},uy_{k}" for k in range(1, 15)),
+                "r-1,0.5," + pad,
+                '"r,2",0.5,' + pad,
+                "7,0.5," + pad,
+            ],
+            ["r-1", "r,2", 7],
+        ),
+        "csv without a header": (
+            ["r-1,0.5," + pad, "7,0.5," + pad, "7,," + ",".join("0.1,-0.2" for _ in rows)],
+            ["r-1", None, 7],  # (a number in the first cell may be t or a value: only text names the line)
+        ),
+    }
+    for fmt, (lines, ids) in cases.items():
+        text = "\n".join(lines) + "\n"
+        if source == "path":
+            path = tmp_path / f"in-{len(ids)}.txt"
+            path.write_text(text)
+            given = path
+        else:
+            given = io.StringIO(text)
+        readings = list(iter_readings(given, 14, fmt=fmt.split()[0], max_line=1000))
+        assert [r.id for r in readings] == ids, fmt
+        assert all(r.error == f"line {r.line}: longer than 1000 bytes; not read" for r in readings[:-1]), fmt

@@ -167,7 +167,9 @@ class JigCalibration:
 # ---------------------------------------------------------------------------------------------------- reading
 def _jig(obj: Any, scale: float) -> tuple[float, float, Any]:
     """(kappa [1/m], theta [rad], name or None) of a reading's ``jig`` object; ``ValueError`` naming the field."""
-    from .io.readings import as_number, check_id, describe
+    from .io.numbers import as_number
+    from .io.reading import check_id
+    from .io.values import describe
 
     if "jig" not in obj:
         raise ReadingError('missing \'jig\' (the jig it was read on: {"curvature": kappa, "angle": theta})')
@@ -195,10 +197,11 @@ def read_jig_readings(
     path: str | os.PathLike, rod: Rod, fmt: str = "auto", *, quantity: str = "wavelength", max_line: int | None = None
 ) -> JigData:
     """Read jig readings (module docstring) from ``path`` (``"-"``: standard input) in a format of
-    :data:`torchrod.io.readings.FORMATS`; every line must be usable (a calibration from a silently thinned set
+    :data:`torchrod.io.sources.FORMATS`; every line must be usable (a calibration from a silently thinned set
     would mislead): ``ReadingError`` naming the bad lines otherwise. ``max_line``: the longest line read [bytes]
-    (None: the rod's, :func:`torchrod.io.readings.line_limit`)."""
-    from .io.readings import iter_records, unusable_lines, wavelength_shifts, wavelength_values
+    (None: the rod's, :func:`torchrod.io.sources.line_limit`)."""
+    from .io.quantities import wavelength_shifts, wavelength_values
+    from .io.sources import iter_records, unusable_lines
 
     fibre = rod.fibre
     if fibre is None or (fibre.wavelength is None and fibre.num_cores == 0):

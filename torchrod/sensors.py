@@ -1,6 +1,6 @@
 """What sensors other than a (u_x, u_y) reading give, turned into curvature at the edge (SI units).
 
-Everything past the reading parser (:mod:`torchrod.io.readings`) sees body-frame curvature [1/m]; this module holds
+Everything past the reading parser (:mod:`torchrod.io.reading`) sees body-frame curvature [1/m]; this module holds
 the one definition of each conversion that gets it there, and the rod file's ``fibre`` section that describes the
 sensor (:class:`Fibre`). docs/sensors.md is the user's reference of every key.
 

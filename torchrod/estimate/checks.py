@@ -1,6 +1,6 @@
 """The checks of a batch of readings handed to the estimator or the network as tensors.
 
-Readings parsed from text are checked where they are read (:mod:`torchrod.io.readings`); a tensor given to
+Readings parsed from text are checked where they are read (:mod:`torchrod.io.reading`); a tensor given to
 :meth:`torchrod.Estimator.estimate` is checked here, with the same bounds, so the estimator never imports the
 parsers.
 """

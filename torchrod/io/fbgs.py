@@ -26,7 +26,7 @@ Fields (tab-separated; a trailing CR/LF is dropped)
     body frame's d1 towards d2 (align the sensor's angle reference with d1 in the rod file's frame).
 
 Each record becomes the reading ``{"id": sample, "t": time, "curvature_polar": [[kappa, phi], ...]}`` (kappa in
-1/m), checked by the one reading parser (:mod:`torchrod.io.readings`). A record that cannot be used (another grating
+1/m), checked by the one reading parser (:mod:`torchrod.io.reading`). A record that cannot be used (another grating
 count, a field that is not a number, no curvature block) is an error answer in its place and the stream goes on; a
 record cut short by the end of the stream (the connection closed mid-record) is one error answer, after every
 complete record before it. An error answer's ``id`` is the record's sample number when it could be read. A time
@@ -45,8 +45,10 @@ from typing import Any
 
 from ..errors import ReadingError
 from ..sensors import CURVATURE_UNITS
-from .readings import Reading, _checked, curvature_tensor, polar_curvature, quote
+from .quantities import curvature_tensor, polar_curvature
+from .reading import Reading, _checked
 from .tcp import TcpReader, is_tcp
+from .values import quote
 
 __all__ = ["DEFAULT_UNIT", "MAX_RECORD_BYTES", "FbgsSource", "parse_record", "read_records"]
 
@@ -166,7 +168,7 @@ def _record_values(fields: list[str], num_gratings: int, unit: str | None) -> tu
 
 
 def _reading(sample: Any, t: float | None, pairs: list[list[float]], G: int) -> Reading:
-    """A record's values as a checked reading (the polar rules of :mod:`torchrod.io.readings`: kappa >= 0, bounds)."""
+    """A record's values as a checked reading (the polar rules of :mod:`torchrod.io.quantities`: kappa >= 0, bounds)."""
     return _checked(Reading(sample, curvature_tensor(polar_curvature(pairs, G), G), t))
 
 
@@ -230,7 +232,7 @@ def _fill(read: Callable[[int], bytes | None], buf: bytearray, size: int) -> boo
 
 class FbgsSource:
     """The readings of an FBGS-style record stream from ``source``: ``tcp://HOST:PORT``, a recorded file, or ``"-"``
-    (standard input), as an iterable the stream can halt (:class:`torchrod.io.readings.ReadingSource`'s interface:
+    (standard input), as an iterable the stream can halt (:class:`torchrod.io.sources.ReadingSource`'s interface:
     :meth:`halt`, :attr:`waiting`). ``unit``: the curvature unit of records whose label names none.
     Opening a TCP source that cannot be reached raises :class:`~torchrod.errors.OptionsError`."""
 

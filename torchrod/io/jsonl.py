@@ -11,14 +11,16 @@ Reading::
         ...  # record.line, record.id, record.value (what parse returned) or record.error (a message)
 
 A line is what ends with ``\\n``; it is decoded as UTF-8 (undecodable bytes become U+FFFD and fail as bad JSON on
-their own line; a byte-order mark on the first line is dropped); a line longer than the reader's limit (``max_line``,
-by default :data:`MAX_LINE_BYTES`; readings are read with their rod's, :func:`torchrod.io.readings.line_limit`) is an
-error line and is skipped without being held in memory. JSON is decoded by :func:`decode`: Python's decoder, except
-that an integer of more than 4300 digits becomes a :class:`~torchrod.io.readings.HugeInteger` (refused by the number
-rules, naming its field) instead of aborting the decoding, and nesting too deep for the decoder is an error of its
-line. ``NaN``, ``Infinity`` and overflowing literals (``1e999``) decode as non-finite floats and are refused by the
-number rules of :mod:`torchrod.io.readings`, so the line's id is still reported. An id that JSON cannot echo
-(:func:`torchrod.io.readings.id_problem`) makes the line an error with id null.
+their own line; a byte-order mark on the first line is dropped); a line longer than the reader's limit
+(``max_line``, by default :data:`MAX_LINE_BYTES`; readings are read with their rod's,
+:func:`torchrod.io.sources.line_limit`) is an error line and is skipped without being held in memory (only its first
+:data:`OVERLONG_HEAD` characters are kept, to name the line by its id when it starts with one: :func:`overlong_id`).
+JSON is decoded by :func:`decode`: Python's decoder, except that an integer of more than 4300 digits becomes a
+:class:`~torchrod.io.values.HugeInteger` (refused by the number rules, naming its field) instead of aborting the
+decoding, and nesting too deep for the decoder is an error of its line. ``NaN``, ``Infinity`` and overflowing
+literals (``1e999``) decode as non-finite floats and are refused by the number rules of :mod:`torchrod.io.numbers`,
+so the line's id is still reported. An id that JSON cannot echo (:func:`torchrod.io.reading.id_problem`) makes the
+line an error with id null.
 
 ``parse(obj)`` turns one decoded JSON object into what the command needs and raises ``ValueError`` (or
 ``TypeError``/``KeyError``) for a line it cannot use; the helpers :func:`get_number`, :func:`get_list`,
@@ -44,6 +46,7 @@ import errno
 import io
 import json
 import os
+import re
 import signal
 import stat
 import sys
@@ -53,11 +56,14 @@ from dataclasses import dataclass
 from typing import IO, Any, Generic, TypeVar
 
 from ..errors import MissingFileError, OptionsError, ReadingError
-from .readings import HugeInteger, as_number, check_id, describe, id_problem, int_digit_limit, quote
+from .numbers import as_number
+from .reading import check_id, id_problem
 from .tcp import TcpReader, is_tcp
+from .values import HugeInteger, describe, int_digit_limit, quote
 
 __all__ = [
     "MAX_LINE_BYTES",
+    "OVERLONG_HEAD",
     "ClosedOutput",
     "LineWriter",
     "ReadControl",
@@ -73,6 +79,7 @@ __all__ = [
     "get_number",
     "interrupt_status",
     "open_output",
+    "overlong_id",
     "parse_records",
     "parsed_record",
     "quiet_closed_pipe",
@@ -97,7 +104,11 @@ MAX_LINE_BYTES = 16 * 2**20
 """The longest input line a reader takes by default [bytes]; a longer one is an error line, read past in chunks
 without being held. Decoding a line into Python objects costs up to about 20 times its size in memory (an array of
 small numbers), so this bound also bounds what one line can cost. Readings are read with a much lower bound, their
-rod's (:func:`torchrod.io.readings.line_limit`)."""
+rod's (:func:`torchrod.io.sources.line_limit`)."""
+
+OVERLONG_HEAD = 4096
+"""[characters] The start of a line over the limit that is kept (:attr:`Overlong.head`): room for ``{"id": `` and
+an id of :data:`torchrod.io.reading.MAX_ID_CHARS` characters, escapes included, or a CSV row's first cell."""
 
 MAX_MESSAGE_CHARS = 600
 """The longest error message written (messages quote at most ~100 characters of a value; this is a safety net)."""
@@ -125,19 +136,41 @@ class Record(Generic[T]):
 
 
 class Overlong(str):
-    """Stands for an input line longer than ``limit`` [bytes], the reader's (its text is not kept)."""
+    """Stands for an input line longer than ``limit`` [bytes], the reader's: its text is not kept, only its first
+    :data:`OVERLONG_HEAD` characters, :attr:`head`."""
 
     limit: int
+    head: str
 
-    def __new__(cls, limit: int) -> Overlong:
+    def __new__(cls, limit: int, head: str = "") -> Overlong:
         self = super().__new__(cls, "")
         self.limit = limit
+        self.head = head
         return self
 
 
 def overlong_error(number: int, text: Overlong) -> str:
     """The error of input line ``number`` when it is the :class:`Overlong` ``text`` (in every format)."""
     return f"line {number}: longer than {text.limit} bytes; not read"
+
+
+_ID_KEY = re.compile(r'\s*\{\s*"id"\s*:\s*')
+_AFTER_VALUE = re.compile(r"\s*[,}]")
+
+
+def overlong_id(text: Overlong) -> Any:
+    """The id of a JSON line too long to read, when the line opens with it (``{"id": ...,``) and the id ends within
+    its :attr:`~Overlong.head`, and JSON can echo it (:func:`torchrod.io.reading.id_problem`); else None."""
+    match = _ID_KEY.match(text.head)
+    if match is None:
+        return None
+    try:
+        ident, end = _DECODER.raw_decode(text.head, match.end())
+    except (ValueError, RecursionError):
+        return None
+    if _AFTER_VALUE.match(text.head, end) is None:  # (a number cut short by the head's end is not the id)
+        return None
+    return ident if id_problem(ident) is None else None
 
 
 def line_bytes(max_line: int | None) -> int:
@@ -222,13 +255,14 @@ def _numbered(stream: IO[str], control: ReadControl, limit: int, chunk: int = 2*
         try:
             text = stream.readline(limit + 1)
             overlong = len(text) > limit
+            head = text[:OVERLONG_HEAD] if overlong else ""
             while overlong and text and not text.endswith("\n"):
                 text = stream.readline(chunk)
         finally:
             control.waiting.clear()
         if overlong:
             number += 1
-            yield number, Overlong(limit)
+            yield number, Overlong(limit, head)
             continue
         if not text:
             return
@@ -237,28 +271,39 @@ def _numbered(stream: IO[str], control: ReadControl, limit: int, chunk: int = 2*
             yield number, text
 
 
+class _Cut(bytes):
+    """The first bytes of a line over the limit (:func:`_raw_lines`), the rest of it dropped."""
+
+
 def _raw_lines(
     read: Callable[[int], bytes | None], control: ReadControl, limit: int, chunk: int = 2**16
-) -> Iterator[bytes | None]:
-    """Lines (with their newline) from an unbuffered ``read``, as soon as each is complete; None for a line over
-    ``limit`` bytes (dropped as it is read, so memory stays bounded). Once ``control`` is halted, ends when
-    the complete lines in memory are out (a partial line is dropped); a ``read`` that returns None (it saw the halt
-    while waiting) ends it the same way."""
+) -> Iterator[bytes]:
+    """Lines (with their newline) from an unbuffered ``read``, as soon as each is complete; for a line over
+    ``limit`` bytes a :class:`_Cut` of its first :data:`OVERLONG_HEAD` bytes (the rest dropped as it is read, so
+    memory stays bounded). Once ``control`` is halted, ends when the complete lines in memory are out (a partial
+    line is dropped); a ``read`` that returns None (it saw the halt while waiting) ends it the same way."""
     buf = bytearray()
     pos = 0  # start of the current line in buf
     scanned = 0  # buf[pos:scanned] holds no newline
     overlong = False
+    head = b""  # the start of an overlong line
     while True:
         nl = buf.find(b"\n", scanned)
         if nl >= 0:
-            # (a memoryview slice: one copy of the line, not two)
-            yield None if overlong or nl + 1 - pos > limit else bytes(memoryview(buf)[pos : nl + 1])
+            if overlong:
+                yield _Cut(head)
+            elif nl + 1 - pos > limit:
+                yield _Cut(buf[pos : min(nl + 1, pos + OVERLONG_HEAD)])
+            else:
+                yield bytes(memoryview(buf)[pos : nl + 1])  # (a memoryview slice: one copy of the line, not two)
             overlong = False
             pos = scanned = nl + 1
             continue
         del buf[:pos]
         pos, scanned = 0, len(buf)
         if len(buf) > limit:
+            if not overlong:
+                head = bytes(buf[:OVERLONG_HEAD])
             overlong = True
             buf.clear()
             scanned = 0
@@ -273,7 +318,7 @@ def _raw_lines(
             return
         if not data:
             if overlong:
-                yield None
+                yield _Cut(head)
             elif buf:
                 yield bytes(buf)
             return
@@ -282,8 +327,9 @@ def _raw_lines(
 
 def _numbered_bytes(read: Callable[[int], bytes | None], control: ReadControl, limit: int) -> Iterator[tuple[int, str]]:
     for number, raw in enumerate(_raw_lines(read, control, limit), start=1):
-        if raw is None:
-            yield number, Overlong(limit)
+        if isinstance(raw, _Cut):
+            head = raw.decode("utf-8", errors="replace")
+            yield number, Overlong(limit, head[1:] if number == 1 and head.startswith("\ufeff") else head)
             continue
         text = raw.decode("utf-8", errors="replace")
         if number == 1 and text.startswith("\ufeff"):
@@ -339,7 +385,7 @@ def parse_records(lines: Iterable[tuple[int, str]], parse: Callable[[dict[str, A
 def _record(number: int, text: str, parse: Callable[[dict[str, Any]], T]) -> Record[T]:
     at = f"line {number}: "
     if isinstance(text, Overlong):
-        return Record(number, None, None, overlong_error(number, text))
+        return Record(number, overlong_id(text), None, overlong_error(number, text))
     try:
         obj = decode(text)
     except ValueError as exc:

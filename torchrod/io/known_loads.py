@@ -3,7 +3,7 @@
 One reading a line, JSON or CSV: ``{"id": ..., "curvature": [[u_x, u_y] or null, ...], "forces": [{"s": ...,
 "fx": ..., "fy": ...}, ...]}``, one curvature pair per grating [1/m] (or the rod's fibre's quantity: strain,
 wavelengths), the known forces with ``s`` [m] in the true (fibre's) coordinate and components [N] in the body
-frame. The reading follows the rules of every reading (:mod:`torchrod.io.readings`); the fit itself is
+frame. The reading follows the rules of every reading (:mod:`torchrod.io.reading`); the fit itself is
 :func:`torchrod.calibrate`.
 """
 
@@ -20,8 +20,10 @@ from ..errors import ReadingError
 from ..estimate.calibration import CalibrationData
 from ..loads import PointForces
 from ..rod import Rod
-from .readings import as_number, describe, iter_records, unusable_lines
-from .readings import parse_reading as parse_one
+from .numbers import as_number
+from .reading import parse_reading as parse_one
+from .sources import iter_records, unusable_lines
+from .values import describe
 
 __all__ = ["parse_reading", "read_readings"]
 
@@ -33,7 +35,7 @@ def parse_reading(
 
     The reading itself (``curvature`` or ``strain`` or ``curvature_polar``, ``id``, ``t``, ``gratings``; other keys
     ignored) follows the rules of every
-    reading (:mod:`torchrod.io.readings`); ``forces`` is required, a list of ``{"s", "fx", "fy"}`` objects (finite,
+    reading (:mod:`torchrod.io.reading`); ``forces`` is required, a list of ``{"s", "fx", "fy"}`` objects (finite,
     nonzero). Raises ``ValueError`` naming the first bad field.
     """
     reading = parse_one(obj, num_gratings, gratings, fibre=fibre)
@@ -65,12 +67,12 @@ def read_readings(
     max_line: int | None = None,
 ) -> CalibrationData:
     """Read a file of readings with known forces (format in the module docstring; ``"-"`` reads standard input):
-    JSON lines, or CSV (:data:`torchrod.io.readings.FORMATS`; the known forces in the columns ``s_J, fx_J, fy_J``,
+    JSON lines, or CSV (:data:`torchrod.io.sources.FORMATS`; the known forces in the columns ``s_J, fx_J, fy_J``,
     J = 1, 2, ..., all three empty for a force a row does not have), in the units the rod's fibre says.
 
     Every line is checked; raises ``ValueError`` naming the bad lines (the first five, and how many there are)
     when any line cannot be used, or when no reading is found. ``max_line``: the longest line read [bytes] (None:
-    the rod's, :func:`torchrod.io.readings.line_limit`).
+    the rod's, :func:`torchrod.io.sources.line_limit`).
     """
     name = "standard input" if os.fspath(path) == "-" else os.fspath(path)
     rows, forces, ids, bad = [], [], [], []

@@ -23,7 +23,7 @@ commas in a row, or nothing after the last comma of N values) is a peak that was
 missing from that reading. One comma after all N values ends the line (some loggers write it) and is read past.
 
 Each line becomes the reading ``{"t": ..., "wavelength": [[l_1, ..., l_C] or null, ...]}``, checked by the one
-reading parser (:mod:`torchrod.io.readings`): the rod's reference is subtracted and the conversion of
+reading parser (:mod:`torchrod.io.reading`): the rod's reference is subtracted and the conversion of
 :mod:`torchrod.sensors` applied.
 """
 
@@ -35,7 +35,8 @@ from collections.abc import Callable, Iterable, Iterator
 from typing import Any, cast
 
 from ..errors import OptionsError, ReadingError
-from .readings import csv_number, quote
+from .numbers import csv_number
+from .values import quote
 
 __all__ = ["PeakLog", "is_peak_line", "parse_peaks_option", "peak_time"]
 

@@ -7,7 +7,7 @@ Reading (:class:`BagSource`)
     [1/m] in the rod file's grating order, with NaN for both values of a missing grating. A reading's ``t`` is
     the bag's time stamp of the message [s] and its ``id`` the message's index in the topic (0-based). A message
     that cannot be used (another length, a half-missing grating, a value beyond the bounds) becomes an error
-    answer in its place, as a bad line of a file does (:mod:`torchrod.io.readings`).
+    answer in its place, as a bad line of a file does (:mod:`torchrod.io.reading`).
 
 Writing (:class:`BagWriter`)
     A ROS 2 bag directory (SQLite3 storage), or a ROS 1 bag when the path ends in ``.bag``; standard messages only,
@@ -37,12 +37,15 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import MissingFileError, OptionsError, ReadingError
-from .readings import Reading, quote, to_reading
+from .formats import CURVATURE_ARRAY, bag_formats
+from .reading import Reading, to_reading
+from .values import quote
 
 __all__ = ["ESTIMATE_TOPIC", "MESSAGE_TYPE", "BagSource", "BagWriter", "require_rosbags", "write_readings"]
 
-MESSAGE_TYPE = "std_msgs/msg/Float64MultiArray"
-"""The message type of a reading topic."""
+MESSAGE_TYPE = CURVATURE_ARRAY
+"""The message type of a topic of curvature readings (:data:`torchrod.io.formats.CURVATURE_ARRAY`), the one
+:func:`write_readings` writes; a bag topic of any message type of :func:`torchrod.io.formats.bag_formats` is read."""
 
 ESTIMATE_TOPIC = "/torchrod/estimate"
 """The topic of the JSON answers; the contact slots' topics are ``/torchrod/contact_<k>/...``."""
@@ -93,9 +96,12 @@ class BagSource:
             self._reader.close()
             raise ReadingError(f"{self.path}: no topic {topic!r}; the bag has {quote(topics)}")
         kinds = {c.msgtype for c in self._connections}
-        if kinds != {MESSAGE_TYPE}:
+        known = bag_formats()
+        if len(kinds) != 1 or not kinds <= set(known):
             self._reader.close()
-            raise ReadingError(f"{self.path}: topic {topic!r} holds {sorted(kinds)}, not {MESSAGE_TYPE}")
+            raise ReadingError(f"{self.path}: topic {topic!r} holds {sorted(kinds)}, not {' or '.join(known)}")
+        (kind,) = kinds
+        self._message = known[kind].message
 
     def __iter__(self) -> Iterator[Reading]:
         index = 0
@@ -119,30 +125,38 @@ class BagSource:
     def _reading(self, index: int, connection: Any, stamp: int, raw: Any) -> Reading:
         t = stamp * 1e-9
         where = f"message {index} of {self.topic}"
+        assert self._message is not None  # (a bag type's entry has its reader)
         try:
             message: Any = self._reader.deserialize(raw, connection.msgtype)  # typed as object by rosbags
-            data = [float(x) for x in message.data]
+            obj = self._message(message, self.G, where)
+        except ReadingError as exc:
+            return Reading(index, t=t, error=str(exc))
         except Exception as exc:  # noqa: BLE001 - one bad message is one error answer
             return Reading(index, t=t, error=f"{where}: cannot be decoded ({type(exc).__name__})")
-        if len(data) != 2 * self.G:
-            return Reading(
-                index,
-                t=t,
-                error=f"{where} holds {len(data)} values; the rod has {self.G} gratings: give 2G = {2 * self.G} "
-                "(ux, uy per grating, NaN for a missing one)",
-            )
-        rows = []
-        for k in range(self.G):
-            a, b = data[2 * k], data[2 * k + 1]
-            if math.isnan(a) != math.isnan(b):
-                return Reading(
-                    index, t=t, error=f"{where}: grating {k} has one NaN value: a missing grating is NaN in both"
-                )
-            rows.append(None if math.isnan(a) else [a, b])
-        reading = to_reading({"id": index, "t": t, "curvature": rows}, self.G)
+        reading = to_reading({"id": index, "t": t, **obj}, self.G)
         if reading.error is not None:
             return Reading(index, t=t, error=f"{where}: {reading.error}")
         return reading
+
+
+def curvature_array(message: Any, num_gratings: int, where: str) -> dict[str, Any]:
+    """The reading object of a ``std_msgs/msg/Float64MultiArray`` message (:data:`MESSAGE_TYPE`; module docstring):
+    ``{"curvature": rows}``; :class:`~torchrod.errors.ReadingError` naming the message (``where``) for another
+    length or a half-missing grating, another exception for data that are not numbers."""
+    data = [float(x) for x in message.data]
+    G = num_gratings
+    if len(data) != 2 * G:
+        raise ReadingError(
+            f"{where} holds {len(data)} values; the rod has {G} gratings: give 2G = {2 * G} "
+            "(ux, uy per grating, NaN for a missing one)"
+        )
+    rows: list[Any] = []
+    for k in range(G):
+        a, b = data[2 * k], data[2 * k + 1]
+        if math.isnan(a) != math.isnan(b):
+            raise ReadingError(f"{where}: grating {k} has one NaN value: a missing grating is NaN in both")
+        rows.append(None if math.isnan(a) else [a, b])
+    return {"curvature": rows}
 
 
 class BagWriter:

@@ -5,7 +5,7 @@ iterable of readings and yields one result per reading, in input order, as soon 
 
 - a reader thread pulls the input into a bounded queue, so a slow source never holds a batch back; a source that
   never waits (a list or tuple of readings, or a source whose ``never_waits`` is true: a
-  :class:`~torchrod.io.readings.ReadingSource` of a regular file, a ROS bag) is read instead by the stream's own
+  :class:`~torchrod.io.sources.ReadingSource` of a regular file, a ROS bag) is read instead by the stream's own
   thread, a batch at a time while the solver threads work: two threads running Python at once cost the
   interpreter more than the reading does (docs/core.md, "Two cores through a backlog");
 - readings are gathered into batches, closed when ``batch_size`` readings (times ``workers``) are pending or when
@@ -25,7 +25,7 @@ iterable of readings and yields one result per reading, in input order, as soon 
   are the static estimator's; with ``track``, readings in batches of at most ``track_limit`` also start from the
   forces of the last solved reading (the count it chose, and that count less its weakest force, for a contact
   that vanishes);
-- every reading is checked by the rules of :mod:`torchrod.io.readings` (the same as ``torchrod estimate``'s): a
+- every reading is checked by the rules of :mod:`torchrod.io.reading` (the same as ``torchrod estimate``'s): a
   reading that cannot be used (an error upstream, NaN in a list, a value beyond the curvature bound, a wrong
   grating count, no grating present, an id JSON cannot echo) yields an error result in its place and the stream
   goes on; missing gratings are masked; should the estimator fail on a reading, that reading alone gets an error
@@ -34,7 +34,7 @@ iterable of readings and yields one result per reading, in input order, as soon 
   reader thread);
 - a ``KeyboardInterrupt`` (Ctrl-C, or SIGTERM as :class:`torchrod.io.jsonl.Terminated` in the CLI) raised while
   the stream waits or solves, or thrown into the generator at a ``yield``, first flushes: the reader thread stops
-  taking from the source (a :class:`~torchrod.io.readings.ReadingSource`, the CLI's, first gives the readings of
+  taking from the source (a :class:`~torchrod.io.sources.ReadingSource`, the CLI's, first gives the readings of
   the lines it has already read), every reading already taken from it (queued, or in the reader's hands) is
   solved and yielded, then the same exception is raised again. A source read by the stream's own thread is
   read with SIGINT and SIGTERM held (in the main thread), so the signal is raised between readings, never
@@ -43,7 +43,7 @@ iterable of readings and yields one result per reading, in input order, as soon 
   yet solved are answered in order as error results (:data:`UNSOLVED`), said once on stderr, and the compile is
   stopped, not waited for.
 
-Readings are :class:`~torchrod.io.readings.Reading` objects or dicts with the same keys; results are
+Readings are :class:`~torchrod.io.reading.Reading` objects or dicts with the same keys; results are
 :class:`StreamResult`.
 """
 
@@ -68,7 +68,7 @@ from ..estimate.noise import NoiseLearning, RunningNoise, calibration_terms
 from ..estimate.status import STATUSES
 from ..kernels.targets import note_interrupt, note_unsolved
 from ..loads import PointForces
-from .readings import Reading, stack_readings, to_reading
+from .reading import Reading, stack_readings, to_reading
 
 __all__ = ["Reading", "StreamOptions", "StreamResult", "StreamStats", "stream", "warm_up"]
 
@@ -495,7 +495,7 @@ class _Stream:
     def drain(self) -> None:
         """The flush after an interrupt: take everything the reader already took (the queue, and the reading in
         its hands) and no more. A source with ``halt()`` and ``waiting``
-        (:class:`~torchrod.io.readings.ReadingSource`) is asked to end after the lines it already read, and the
+        (:class:`~torchrod.io.sources.ReadingSource`) is asked to end after the lines it already read, and the
         reader runs until it ends or waits on its input; any other source is left at once: the reader stops after
         the reading in its hands and is left alone once it waits on the source (it then holds nothing). A source
         read on this thread is read here to the end of the lines it already read (a ReadingSource), or left at
@@ -727,7 +727,7 @@ class _Stream:
 
 def _never_waits(source: Any) -> bool:
     """Whether taking a reading from ``source`` never waits: a list or tuple, or a source that says so by a true
-    ``never_waits`` (a :class:`~torchrod.io.readings.ReadingSource` of a regular file, a ROS bag)."""
+    ``never_waits`` (a :class:`~torchrod.io.sources.ReadingSource` of a regular file, a ROS bag)."""
     return isinstance(source, (list, tuple)) or getattr(source, "never_waits", False) is True
 
 

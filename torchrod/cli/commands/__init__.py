@@ -76,7 +76,7 @@ def check_estimation_options(args: argparse.Namespace) -> None:
     if args.batch_size < 1:
         raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
     from ...errors import OptionsError
-    from ...io.readings import MAX_CURVATURE
+    from ...io.quantities import MAX_CURVATURE
 
     if args.noise is not None and not args.noise >= 0.0:
         raise ValueError(f"--noise must be >= 0, got {args.noise}")
@@ -153,7 +153,7 @@ def add_sensor_options(parser: argparse.ArgumentParser, *, estimating: bool = Tr
     ``--peaks``, the unit options, and for an estimating command ``--strain-noise``, ``--wavelength-noise`` and
     ``--relative``. :func:`sensor_rod` and :func:`sensor_noise` apply them."""
     from ...io.peaklog import parse_peaks_option
-    from ...io.readings import QUANTITIES
+    from ...io.quantities import QUANTITIES
     from ...sensors import CURVATURE_UNITS, STRAIN_UNITS, WAVELENGTH_UNITS
 
     parser.add_argument(
@@ -249,7 +249,7 @@ def sensor_noise(args: argparse.Namespace, rod) -> None:
     import sys
 
     from ...errors import OptionsError
-    from ...io.readings import MAX_CURVATURE
+    from ...io.quantities import MAX_CURVATURE
     from ...sensors import MAX_STRAIN, MAX_WAVELENGTH_SHIFT, WAVELENGTH_UNITS
 
     strain = getattr(args, "strain_noise", None)
@@ -304,13 +304,24 @@ def sensor_noise(args: argparse.Namespace, rod) -> None:
 
 
 def reading_source(args: argparse.Namespace, rod, path: str):
-    """The readings of ``path`` as the options ask: FBGS records (``--protocol fbgs``, :mod:`torchrod.io.fbgs`), or
-    lines in ``--format`` (:class:`torchrod.io.readings.ReadingSource`)."""
-    if getattr(args, "protocol", "lines") == "fbgs":
-        from ...io.fbgs import FbgsSource
+    """The readings of ``path`` as the options ask: a protocol's records (``--protocol NAME``, an entry of
+    :data:`torchrod.io.formats.INPUT_FORMATS`, e.g. :mod:`torchrod.io.fbgs`), or lines in ``--format``
+    (:class:`torchrod.io.sources.ReadingSource`)."""
+    protocol = getattr(args, "protocol", "lines")
+    if protocol != "lines":
+        from ...io.formats import ReadOptions, protocols
 
-        return FbgsSource(path, rod.num_gratings, unit=getattr(args, "curvature_unit", None))
-    from ...io.readings import ReadingSource
+        reader = protocols()[protocol].protocol
+        assert reader is not None  # (a protocol's entry has its reader)
+        options = ReadOptions(
+            rod.num_gratings,
+            quantity=getattr(args, "csv_quantity", "curvature"),
+            fibre=rod.fibre,
+            peaks=getattr(args, "peaks", None),
+            unit=getattr(args, "curvature_unit", None),
+        )
+        return reader(path, options)
+    from ...io.sources import ReadingSource
 
     return ReadingSource(
         path,
@@ -337,15 +348,10 @@ def _line_bytes(text: str) -> int:
 
 def add_input_options(parser: argparse.ArgumentParser, *, protocol: bool = True) -> None:
     """``--format``, ``--max-line-bytes`` (and ``--protocol``): how a readings input is read."""
-    from ...io.readings import FORMATS, MIN_LINE_BYTES
+    from ...io.formats import format_help, protocol_help, protocols
+    from ...io.sources import MIN_LINE_BYTES, format_names
 
-    parser.add_argument(
-        "--format",
-        choices=FORMATS,
-        default="auto",
-        help="input format: jsonl, csv, peaks (an interrogator's peak log), or auto (default): by the extension "
-        "(.csv; .jsonl, .json), else by the first line ({ for JSON lines, TIME: numbers for a peak log, else CSV)",
-    )
+    parser.add_argument("--format", choices=format_names(), default="auto", help=format_help())
     parser.add_argument(
         "--max-line-bytes",
         type=_line_bytes,
@@ -358,9 +364,7 @@ def add_input_options(parser: argparse.ArgumentParser, *, protocol: bool = True)
     if protocol:
         parser.add_argument(
             "--protocol",
-            choices=("lines", "fbgs"),
+            choices=("lines", *protocols()),
             default="lines",
-            help="lines (default: one reading a line, in --format) or fbgs: length-prefixed records of curvature "
-            "[1/cm] and bend angle per grating from shape-sensing software (a tcp://HOST:PORT server, a recording, or "
-            "stdin)",
+            help=protocol_help(),
         )

@@ -136,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
     if args.noise is not None and not 0.0 < args.noise < float("inf"):
         raise ValueError(f"--noise must be a positive sigma [1/m], got {args.noise}")
     from ...errors import OptionsError
-    from ...io.readings import MAX_CURVATURE
+    from ...io.quantities import MAX_CURVATURE
 
     if args.noise is not None and args.noise > MAX_CURVATURE:
         raise OptionsError(

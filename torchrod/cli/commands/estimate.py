@@ -52,7 +52,8 @@ layout the command says once on stderr that it runs without one), ``--checkpoint
 show to be trustworthy only adds starts beside the scan's, so it cannot make results worse. ``torchrod stream``
 chooses its network the same way.
 
-Every non-blank input line gets exactly one output line, in order, whatever it holds. A line that cannot be used
+Every non-blank input line gets exactly one output line, in order, whatever it holds (a CSV row whose quoted cell
+holds a line break is one row over several lines, answered once). A line that cannot be used
 (bad JSON, a wrong number of gratings, a non-numeric, non-finite or out-of-bound value, all gratings missing, an id
 JSON cannot echo such as NaN) gives ``{"id": ... or null, "error": "line N: ..."}`` naming the field and quoting
 at most about 100 characters of the value, and the other lines go on. The exit status is 1 if any line failed,
@@ -83,7 +84,8 @@ from ...errors import MissingFileError
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.options import RULES
 from ...io.jsonl import LineWriter, check_input, check_output, open_output, until_interrupted
-from ...io.readings import Reading, ReadingSource, stack_readings
+from ...io.reading import Reading, stack_readings
+from ...io.sources import ReadingSource
 from ...presets import load as load_rod
 from ...rod import Rod
 from . import (

@@ -458,7 +458,7 @@ def run(args: argparse.Namespace) -> int:
     if len(args.force_range) != 2 or not 0 < args.force_range[0] <= args.force_range[1]:
         raise ValueError(f"--force-range must be two magnitudes low,high [N], got {args.force_range}")
     from ...errors import OptionsError
-    from ...io.readings import MAX_CURVATURE
+    from ...io.quantities import MAX_CURVATURE
 
     if max(args.noise) > MAX_CURVATURE:
         raise OptionsError(

@@ -136,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
     rod = load_rod(args.rod)
     if args.count < 0:
         raise ValueError(f"--count must be >= 0, got {args.count}")
-    from ...io.readings import MAX_CURVATURE
+    from ...io.quantities import MAX_CURVATURE
 
     if args.noise > MAX_CURVATURE:  # (NaN and negative sigmas are refused by the sensor model)
         raise OptionsError(

@@ -91,8 +91,9 @@ def _time(obj: dict[str, Any]) -> float | None:
 
 
 def _readings(args: argparse.Namespace, rod: Rod) -> list[Any]:
-    """The records of READINGS (:func:`torchrod.io.readings.iter_records`), each value (curvature [1/m], t)."""
-    from ...io.readings import iter_records, parse_reading
+    """The records of READINGS (:func:`torchrod.io.sources.iter_records`), each value (curvature [1/m], t)."""
+    from ...io.reading import parse_reading
+    from ...io.sources import iter_records
 
     def parse(obj: dict[str, Any]):
         reading = parse_reading(obj, rod.num_gratings, rod.gratings, fibre=rod.fibre)

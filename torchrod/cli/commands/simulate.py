@@ -224,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.noise) and args.noise >= 0.0):
         raise ValueError(f"--noise must be a finite sigma >= 0 [1/m], got {args.noise}")
     from ...errors import OptionsError
-    from ...io.readings import MAX_CURVATURE
+    from ...io.quantities import MAX_CURVATURE
 
     if args.noise > MAX_CURVATURE:
         raise OptionsError(

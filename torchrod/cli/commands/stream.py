@@ -69,7 +69,8 @@ without a network (said once on stderr); ``--checkpoint none`` turns the network
 answers to FILE.
 ``--device cuda`` estimates on a GPU (the same kernels compiled by numba-cuda; needs ``torchrod[cuda]``).
 
-Every non-blank input line gets exactly one output line (a CSV header excepted). A line that cannot be used (bad
+Every non-blank input line gets exactly one output line (a CSV header excepted; a CSV row whose quoted cell holds a
+line break is one row over several lines, answered once). A line that cannot be used (bad
 JSON or CSV, a wrong number of gratings, NaN, a value out of bounds, all gratings missing) gives
 ``{"id": ... or null, "error": "line N: ..."}`` naming the field and quoting at most about 100 characters of the
 value, and the stream goes on; missing gratings are left out of the fit. The end of the input, Ctrl-C and SIGTERM
@@ -110,6 +111,7 @@ from ...errors import ReadingError
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.noise import NoiseLearning
 from ...estimate.options import LMPolicy
+from ...io.formats import INPUT_FORMATS, topic_help
 from ...io.jsonl import (
     LineWriter,
     check_input,
@@ -124,7 +126,7 @@ from ...io.jsonl import (
     same_path,
     until_interrupted,
 )
-from ...io.readings import ReadingSource
+from ...io.sources import ReadingSource
 from ...io.stream import StreamOptions, StreamResult, StreamStats, stream, warm_up
 from ...presets import load as load_rod
 from ...rod import Rod
@@ -171,7 +173,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--topic",
         help="read --input as a ROS bag (ROS 1 .bag, ROS 2 directory) and take the readings from TOPIC "
-        "(std_msgs/Float64MultiArray, 2G values; needs pip install 'torchrod[ros]')",
+        f"({topic_help()}; needs pip install 'torchrod[ros]')",
     )
     parser.add_argument(
         "--output-bag",
@@ -240,7 +242,7 @@ def read_stream(
     source: str, rod: Rod, fmt: str = "auto", *, quantity: str = "curvature", topic: str | None = None
 ) -> Any:
     """Readings from ``source`` (a path, ``"-"`` or ``tcp://HOST:PORT``) in a format of
-    :data:`torchrod.io.readings.FORMATS`, lazily, checked by :mod:`torchrod.io.readings`: unusable lines become
+    :data:`torchrod.io.sources.FORMATS`, lazily, checked by :mod:`torchrod.io.reading`: unusable lines become
     readings with an ``error``. The flush after an interrupt ends it at the lines already read. With ``topic``,
     ``source`` is a ROS bag (:class:`torchrod.io.rosbag.BagSource`)."""
     if topic is not None:
@@ -287,7 +289,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.topic is not None and args.input == "-":
         raise ValueError("--topic reads a ROS bag: give its path with --input")
     if args.topic is not None and args.protocol != "lines":
-        raise ValueError("--topic reads a ROS bag; --protocol fbgs reads shape-sensing records: give one")
+        what = INPUT_FORMATS[args.protocol].what
+        raise ValueError(f"--topic reads a ROS bag; --protocol {args.protocol} reads {what}: give one")
     inputs = _inputs(args)
     check_output(args.out, inputs)
     if args.output_bag is not None:
