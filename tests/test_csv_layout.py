@@ -63,17 +63,22 @@ def test_a_quoted_cell_holding_a_line_break_is_one_record(curvature):
     assert got[2].ok
 
 
-def test_an_unclosed_quote_reads_no_further_than_a_line_may_be_long():
-    """A quote opened and never closed would take in every line after it: the record stops at the line limit, one
-    error line, and the lines after it are read again."""
+@pytest.mark.parametrize("max_line", [200, 10**6])
+def test_an_unclosed_quote_costs_its_own_line_only(max_line):
+    """A quote opened and never closed would take in every line after it (and hold a live stream's answers until
+    it closed): the record stops at MAX_RECORD_LINES lines or the line limit, whichever comes first, the line that
+    opened it is one error line, and every line after it is read again as a row of its own."""
+    from torchrod.io.csv_rows import MAX_RECORD_LINES
+
     rows = ["a,,0.1,0.2", '"b,,0.1,0.2'] + [f"c{k},,0.1,0.2" for k in range(40)]
-    got = list(iter_readings(io.StringIO("\n".join(rows) + "\n"), 1, fmt="csv", max_line=200))
+    got = list(iter_readings(io.StringIO("\n".join(rows) + "\n"), 1, fmt="csv", max_line=max_line))
     assert got[0].ok and got[0].id == "a"
+    limit = max_line
     assert got[1].error == (
-        "line 2: a quoted cell holds a line break and runs on to line 18, making the record longer than 200 bytes; "
-        "not read"
+        f"line 2: a quoted cell opens here and is not closed within {MAX_RECORD_LINES} lines or {limit} bytes (a "
+        "stray quote?); the line is not read, the lines after it are"
     )
-    assert [r.id for r in got[2:]] == [f"c{k}" for k in range(16, 40)] and all(r.ok for r in got[2:])
+    assert [r.id for r in got[2:]] == [f"c{k}" for k in range(40)] and all(r.ok for r in got[2:])
 
 
 def test_header_ux_block_then_uy_block_is_read_by_name(curvature):

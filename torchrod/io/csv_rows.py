@@ -407,28 +407,60 @@ def _ends_quoted(text: str, inside: bool = False) -> bool:
             inside, i = True, i + 1
 
 
-def _whole_record(number: int, text: str, rows: Iterator[tuple[int, str]], limit: int) -> tuple[str, str | None]:
+MAX_RECORD_LINES = 16
+"""The most lines one CSV record may span through quoted line breaks. A quote left open by mistake then costs its
+own line only: the lines after it are read again as rows of their own, and a live stream's answers wait for at most
+this many lines."""
+
+
+def _whole_record(
+    number: int, text: str, rows: Iterator[tuple[int, str]], limit: int
+) -> tuple[str, str | None, list[tuple[int, str]]]:
     """The record that starts on line ``number`` with ``text``, which ends inside a quoted cell: ``text`` and the
-    lines after it up to the one that closes the cell, joined (the line breaks stay in the cell, as CSV means), and
-    None; or '' and the error of a record longer than ``limit`` (the lines it took are part of it). At the end of the
-    input the record is what was read, as :mod:`csv` reads an unclosed quote."""
+    lines after it up to the one that closes the cell, joined (the line breaks stay in the cell, as CSV means), with
+    no problem and nothing to read again. A cell not closed within :data:`MAX_RECORD_LINES` lines or ``limit``
+    bytes is a quote left open: '', the error of line ``number``, and the lines taken after it, to be read again
+    as rows. At the end of the input the record is what was read, as :mod:`csv` reads an unclosed quote."""
     from .jsonl import Overlong
 
     parts, size = [text], len(text)
+    taken: list[tuple[int, str]] = []
     while True:
         more = next(rows, None)
         if more is None:
-            return "".join(parts), None
+            return "".join(parts), None, []
+        taken.append(more)
         last, line = more
-        if isinstance(line, Overlong) or size + len(line) > limit:
-            return "", (
-                f"line {number}: a quoted cell holds a line break and runs on to line {last}, making the record "
-                f"longer than {limit} bytes; not read"
+        if isinstance(line, Overlong) or size + len(line) > limit or len(taken) >= MAX_RECORD_LINES:
+            return (
+                "",
+                (
+                    f"line {number}: a quoted cell opens here and is not closed within {MAX_RECORD_LINES} lines or "
+                    f"{limit} bytes (a stray quote?); the line is not read, the lines after it are"
+                ),
+                taken,
             )
         parts.append(line)
         size += len(line)
         if not _ends_quoted(line, inside=True):
-            return "".join(parts), None
+            return "".join(parts), None, []
+
+
+class _Again:
+    """Numbered lines, with lines taken ahead handed back to be read again first."""
+
+    def __init__(self, lines: Iterable[tuple[int, str]]) -> None:
+        self._lines = iter(lines)
+        self._back: list[tuple[int, str]] = []
+
+    def __iter__(self) -> _Again:
+        return self
+
+    def __next__(self) -> tuple[int, str]:
+        return self._back.pop() if self._back else next(self._lines)
+
+    def again(self, taken: list[tuple[int, str]]) -> None:
+        self._back.extend(reversed(taken))
 
 
 def _overlong_id(head: str, layout: CsvLayout | None) -> Any:
@@ -472,15 +504,16 @@ def csv_records(
     limit = MAX_LINE_BYTES if max_line is None else max_line
     layout: CsvLayout | None = None
     first = True
-    rows = iter(lines)
+    rows = _Again(lines)
     for number, text in rows:
         if isinstance(text, Overlong):
             yield Record(number, _overlong_id(text.head, layout), None, overlong_error(number, text))
             continue
         if '"' in text and _ends_quoted(text):
-            text, problem = _whole_record(number, text, rows, limit)
+            text, problem, again = _whole_record(number, text, rows, limit)
             if problem is not None:
                 yield Record(number, None, None, problem)
+                rows.again(again)
                 continue
         try:
             cells = _csv_cells(text)
