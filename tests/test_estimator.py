@@ -531,3 +531,134 @@ def test_a_status_is_a_string_enum_member_and_a_plain_string_in_records(rod):
     record = result.to_records()[0]
     assert type(record["status"]) is str and json.loads(json.dumps(record))["status"] == "ok"
     assert [s.value for s in tr.Status] == list(STATUSES)
+
+
+def _options_record_written_out(o: EstimatorOptions):
+    """The kernels' options record of ``o``, every field written out by hand: the reference the record is held to."""
+    import numpy as np
+
+    from torchrod.kernels.layout import OPTIONS, record
+
+    lm, sr = o.lm, o.search
+    floor2 = float(o.noise_floor) ** 2
+    return record(
+        OPTIONS,
+        max_forces=o.width,
+        fixed=-1 if o.num_forces is None else o.num_forces,
+        min_dof=tr.rod.MIN_TEST_DOF,
+        starts=o.starts,
+        settle=o.settle,
+        trusted=o.trust_guesses,
+        twins=sr.twins,
+        rule={"noise": 0, "threshold": 1}[o.selection],
+        threshold=o.threshold,
+        floor2=floor2,
+        max_noise2=float(o.max_noise) ** 2 + floor2,
+        hopeless=sr.hopeless,
+        explained=sr.explained,
+        per_interval=sr.per_interval,
+        exchange_top=sr.exchange_top,
+        rounds=sr.rounds,
+        explore=sr.explore,
+        condition_limit=o.condition_limit,
+        max_evaluations=o.max_evaluations,
+        damping=lm.damping,
+        increase=lm.increase,
+        decrease=lm.decrease,
+        min_damping=lm.min_damping,
+        max_damping=lm.max_damping,
+        max_force_step=lm.max_force_step,
+        tolerance=lm.tolerance,
+        iterations=lm.iterations,
+        refine_iterations=lm.refine_iterations,
+        exact_steps=lm.exact_steps,
+        exact_tolerance=lm.exact_tolerance,
+        acceleration=-np.inf if lm.acceleration is None else lm.acceleration,
+        probe=lm.probe,
+        acceleration_limit=lm.acceleration_limit,
+    )
+
+
+@pytest.mark.parametrize(
+    "opts",
+    [
+        EstimatorOptions(),
+        EstimatorOptions(noise=0.02, max_forces=2, noise_floor=0.0, max_evaluations=500, condition_limit=1e6),
+        EstimatorOptions(
+            num_forces=2,
+            max_forces=4,
+            selection="threshold",
+            threshold=2.5,
+            max_noise=0.3,
+            noise_floor=2e-3,
+            starts=5,
+            settle=False,
+            trust_guesses=True,
+            lm=tr.LMPolicy(
+                damping=1e-2,
+                increase=5.0,
+                decrease=2.5,
+                min_damping=1e-8,
+                max_damping=1e8,
+                max_force_step=4.0,
+                tolerance=1e-4,
+                iterations=17,
+                refine_iterations=0,
+                exact_steps=2,
+                exact_tolerance=1e-5,
+                acceleration=None,
+                probe=0.2,
+                acceleration_limit=0.5,
+            ),
+            search=tr.SearchOptions(
+                per_interval=3,
+                exchange_top=4,
+                rounds=1,
+                explore=5,
+                suspect=0.9,
+                kink_suspect=0.4,
+                hopeless=2.0,
+                explained=0.02,
+                twins=False,
+            ),
+        ),
+        EstimatorOptions(max_forces=0, lm=tr.LMPolicy(acceleration=0.25)),
+    ],
+    ids=["default", "known-noise", "fixed-threshold-policies", "no-forces"],
+)
+def test_the_options_record_holds_each_option_as_written_out_by_hand(opts):
+    """The kernels' options record, made from the options by name, is byte for byte the one every field of it written
+    out by hand gives."""
+    assert opts.record().tobytes() == _options_record_written_out(opts).tobytes()
+
+
+def test_every_options_record_field_is_filled_once_and_every_option_of_its_name_is_passed():
+    """Each field of the kernels' options record is made by one conversion or is one option of its name (none twice,
+    none by nobody, no conversion for a field that is not there), and each option of an OPTIONS field's name that no
+    conversion makes reaches the record as it is."""
+    from torchrod.estimate.options import KERNEL_CONVERSIONS
+    from torchrod.kernels.layout import OPTIONS
+
+    names = set(OPTIONS.names)
+    parts = {"": EstimatorOptions, "lm": tr.LMPolicy, "search": tr.SearchOptions}
+    by_name = [
+        (part, f.name)
+        for part, cls in parts.items()
+        for f in dataclasses.fields(cls)
+        if f.name in names and f.name not in KERNEL_CONVERSIONS
+    ]
+    filled = list(KERNEL_CONVERSIONS) + [name for _, name in by_name]
+    assert sorted(filled) == sorted(names)
+    base = EstimatorOptions()
+    for part, name in by_name:
+        old = getattr(getattr(base, part) if part else base, name)
+        new = (not old) if isinstance(old, bool) else old + 1 if isinstance(old, int) else old * 1.5
+        if part:
+            changed = dataclasses.replace(base, **{part: dataclasses.replace(getattr(base, part), **{name: new})})
+        else:
+            changed = dataclasses.replace(base, **{name: new})
+        assert changed.record()[0][name] == new, name
+    # two dataclasses of the options that name one field of the record are an error, not a silent choice
+    clash = dataclasses.make_dataclass("Clash", [("damping", float, 1.0)], bases=(tr.SearchOptions,), frozen=True)
+    with pytest.raises(tr.OptionsError, match="'damping' is named by both LMPolicy and Clash"):
+        EstimatorOptions(search=clash()).record()

@@ -691,3 +691,23 @@ def test_the_numba_patches_step_aside_outside_the_releases_they_were_checked_on(
     before = codegen.CPUCodeLibrary._optimize_final_module
     with patches.optimised_at_entry("anything"):
         assert codegen.CPUCodeLibrary._optimize_final_module is before
+
+
+def test_the_warm_up_runs_the_search_on_its_tiny_reading_as_python():
+    """The warm-up's options are the dtype's zeros but for the few its tiny problem needs: with them the kernel
+    source, run as Python, scans from two starts, fits both counts (settling and twins on, the acceleration finite)
+    and answers one converged force, every number finite."""
+    from torchrod.kernels import warmup
+    from torchrod.kernels.layout import OPTIONS, allocate
+
+    setup, sizes = warmup.tiny_setup()
+    o = setup.opt[0]
+    assert setup.opt.dtype == OPTIONS and set(warmup.WARM_OPTIONS) <= set(OPTIONS.names)
+    assert o.max_forces == 1 and o.fixed == -1 and o.starts >= 2 and o.settle and o.twins
+    assert math.isfinite(o.acceleration) and o.probe > 0.0 and o.iterations > 0 and o.exact_steps > 0
+    batch = warmup.tiny_batch()
+    search.estimate_rows(0, 1, setup, batch, allocate(sizes), np.zeros(1, np.int64))
+    out = batch.out
+    assert out.count[0] == 1 and out.converged[0] and out.evaluations[0] > 0 and not out.cut[0]
+    assert np.isfinite(out.s).all() and np.isfinite(out.f).all() and np.isfinite(out.losses).all()
+    assert out.status[0] in (counts.OK, counts.POORLY_DETERMINED)  # (two gratings hold one force loosely)

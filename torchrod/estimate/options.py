@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from ..errors import OptionsError
-from ..kernels.counts import PAPER_THRESHOLD
+from ..kernels.counts import PAPER_THRESHOLD, RULE_NOISE, RULE_THRESHOLD
+from ..kernels.layout import OPTIONS
 from ..kernels.march import FIT_STEP_ANGLE
 from ..rod import MIN_TEST_DOF, max_testable_forces
 from ..values import MAX_CURVATURE
@@ -274,46 +275,47 @@ class EstimatorOptions:
         return -1.0 if self.noise is None else float(self.noise) ** 2 + float(self.noise_floor) ** 2
 
     def record(self) -> Any:
-        """These options as the kernels' :data:`~torchrod.kernels.layout.OPTIONS` record."""
+        """These options as the kernels' :data:`~torchrod.kernels.layout.OPTIONS` record: :func:`kernel_values`."""
         from ..kernels.host import options_record
 
-        lm, sr = self.lm, self.search
-        floor2 = float(self.noise_floor) ** 2
-        return options_record(
-            max_forces=self.width,
-            fixed=-1 if self.num_forces is None else self.num_forces,
-            min_dof=MIN_TEST_DOF,
-            starts=self.starts,
-            settle=self.settle,
-            trusted=self.trust_guesses,
-            twins=sr.twins,
-            rule=self.selection,
-            threshold=self.threshold,
-            floor2=floor2,
-            max_noise2=float(self.max_noise) ** 2 + floor2,
-            hopeless=sr.hopeless,
-            explained=sr.explained,
-            per_interval=sr.per_interval,
-            exchange_top=sr.exchange_top,
-            rounds=sr.rounds,
-            explore=sr.explore,
-            condition_limit=self.condition_limit,
-            max_evaluations=self.max_evaluations,
-            damping=lm.damping,
-            increase=lm.increase,
-            decrease=lm.decrease,
-            min_damping=lm.min_damping,
-            max_damping=lm.max_damping,
-            max_force_step=lm.max_force_step,
-            tolerance=lm.tolerance,
-            iterations=lm.iterations,
-            refine_iterations=lm.refine_iterations,
-            exact_steps=lm.exact_steps,
-            exact_tolerance=lm.exact_tolerance,
-            acceleration=lm.acceleration,
-            probe=lm.probe,
-            acceleration_limit=lm.acceleration_limit,
-        )
+        return options_record(**kernel_values(self))
+
+
+KERNEL_CONVERSIONS: dict[str, Callable[[EstimatorOptions], Any]] = {
+    "max_forces": lambda o: o.width,
+    "fixed": lambda o: -1 if o.num_forces is None else o.num_forces,
+    "min_dof": lambda o: MIN_TEST_DOF,
+    "trusted": lambda o: o.trust_guesses,
+    "rule": lambda o: {"noise": RULE_NOISE, "threshold": RULE_THRESHOLD}[o.selection],
+    "floor2": lambda o: float(o.noise_floor) ** 2,
+    "max_noise2": lambda o: float(o.max_noise) ** 2 + float(o.noise_floor) ** 2,
+    "acceleration": lambda o: -math.inf if o.lm.acceleration is None else o.lm.acceleration,
+}
+"""The fields of :data:`~torchrod.kernels.layout.OPTIONS` that are not an option's value as it stands, each made
+from the options: the result's width, the fixed count (-1: chosen), the least degrees of freedom a chosen count
+leaves, the count rule's code, the squared noise floor and misfit sigma, the acceleration's -inf for never. Where an
+option has an OPTIONS field's name (``max_forces``, ``acceleration``) this, not the option, fills it."""
+
+
+def kernel_values(options: EstimatorOptions) -> dict[str, Any]:
+    """Every field of :data:`~torchrod.kernels.layout.OPTIONS` from ``options``: a field of the options, of their
+    :class:`LMPolicy` or of their :class:`SearchOptions` that has an OPTIONS field's name goes in as it is, unless
+    :data:`KERNEL_CONVERSIONS` makes that field. A new setting is thus a dataclass field and an OPTIONS field of one
+    name; an OPTIONS field that two of the dataclasses name is an error."""
+    names = set(OPTIONS.names or ())
+    values = {name: make(options) for name, make in KERNEL_CONVERSIONS.items()}
+    owner: dict[str, str] = {}
+    for source in (options, options.lm, options.search):
+        for f in fields(source):
+            if f.name not in names or f.name in KERNEL_CONVERSIONS:
+                continue
+            if f.name in owner:
+                raise OptionsError(
+                    f"the kernels' option {f.name!r} is named by both {owner[f.name]} and {type(source).__name__}"
+                )
+            owner[f.name] = type(source).__name__
+            values[f.name] = getattr(source, f.name)
+    return values
 
 
 def default_max_forces(num_gratings: int) -> int:

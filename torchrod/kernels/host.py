@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .counts import MISFIT_FACTOR, RULE_NOISE, RULE_THRESHOLD
+from .counts import MISFIT_FACTOR
 from .layout import KINDS, OPTIONS, ROD, Arenas, Batch, Outputs, Setup, Sizes, allocate, constants, layout, record
 
 __all__ = ["Plan", "chi2_quantile", "count_tables", "f_quantile", "options_record", "rod_setup", "setup_of"]
@@ -130,12 +130,7 @@ def rod_setup(
 
 
 def options_record(**values: Any) -> np.recarray:
-    """The :data:`.layout.OPTIONS` record from its fields (``rule`` as "noise" or "threshold"; ``acceleration``
-    None for never)."""
-    values = dict(values)
-    values["rule"] = {"noise": RULE_NOISE, "threshold": RULE_THRESHOLD}[values["rule"]]
-    if values.get("acceleration") is None:
-        values["acceleration"] = -math.inf
+    """The :data:`.layout.OPTIONS` record from its fields, every one given (:func:`.layout.record`)."""
     return record(OPTIONS, **values)
 
 

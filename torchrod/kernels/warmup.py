@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from .layout import Batch, Setup, Sizes
+from .layout import OPTIONS, Batch, Setup, Sizes
 
 
 class _Euler:
@@ -22,21 +22,29 @@ class _Euler:
         return np.zeros((1, 1))
 
 
+WARM_OPTIONS = {
+    "max_forces": 1, "fixed": -1, "starts": 2, "per_interval": 2, "exchange_top": 2, "settle": True, "twins": True,
+    "damping": 1e-3, "increase": 4.0, "decrease": 3.0, "max_damping": 1e9, "max_force_step": 10.0,
+    "tolerance": 1e-3, "iterations": 5, "exact_steps": 1, "exact_tolerance": 1e-4,
+    "acceleration": 0.5, "probe": 0.1, "acceleration_limit": 0.75,
+}  # fmt: skip
+"""The warm-up's :data:`.layout.OPTIONS` fields that are not 0 (False): counts 0 and 1, chosen; two scan starts of
+two candidates per interval and two exchange re-placements (the arenas' sizes); settling and twins on; and a
+Levenberg-Marquardt policy under which every step is defined (nothing it divides by is 0, the acceleration finite).
+The tiny reading then runs a scan, the fits of both counts with their exact steps, the covariance and the verdict."""
+
+
 def tiny_setup() -> tuple[Setup, Sizes]:
     """A setup for a straight two-grating rod with counts up to 1, and its sizes."""
-    from .host import count_tables, options_record, rod_setup, setup_of
+    from .host import count_tables, rod_setup, setup_of
 
     rod, model = rod_setup(
         length=1.0, ei=1.0, gj=1.0, bias=0.0, gratings=[0.2, 0.6], segments=[], breakpoints=[], step_angle=0.3,
         max_steps=4, exact_angle=0.8, exact_max_steps=4, method=_Euler(),
     )  # fmt: skip
-    opt = options_record(
-        max_forces=1, fixed=-1, min_dof=0, starts=2, settle=True, trusted=False, twins=True, rule="noise",
-        threshold=3.0, floor2=1e-6, max_noise2=1.0, hopeless=3.0, explained=0.01, per_interval=2, exchange_top=2,
-        rounds=2, explore=8, condition_limit=1e8, max_evaluations=0, damping=1e-3, increase=4.0, decrease=3.0,
-        min_damping=1e-9, max_damping=1e9, max_force_step=10.0, tolerance=1e-3, iterations=5, refine_iterations=5,
-        exact_steps=1, exact_tolerance=1e-4, acceleration=0.5, probe=0.1, acceleration_limit=0.75,
-    )  # fmt: skip
+    opt = np.zeros(1, OPTIONS).view(np.recarray)
+    for name, value in WARM_OPTIONS.items():
+        opt[name] = value
     return setup_of(rod, model, opt, count_tables(2, 1, 0.05, 0.95, 0.5, 1e-3), [1])
 
 
