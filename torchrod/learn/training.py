@@ -758,7 +758,7 @@ def _train(config, data, device, world, rank, distributed, main_rank, say, DDP, 
         raise OptionsError(f"the data hold up to {data.max_forces} forces but max_forces is {config.max_forces}")
     if config.labels == "search" and data.fits is None:
         tl = time.perf_counter()
-        data = data.with_search_labels(config.noise, config.missing_prob, _mix(config.seed, 2))
+        data = data.with_search_labels(config.noise, config.missing_prob, _mix(config.seed, 3))
         say(f"labelled {len(data)} cases with the search's fits in {time.perf_counter() - tl:.0f} s")
     held = (
         _simulated(rod, config.validation, config.max_forces, _mix(config.seed, 1), config.noise, config.missing_prob)
