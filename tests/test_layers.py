@@ -19,7 +19,7 @@ LAYERS = (
     ("sensors",),
     ("rod",),
     ("loads",),
-    ("_shipped", "presets"),
+    ("shipped", "presets"),
     ("kernels",),
     ("model",),
     ("synthetic",),

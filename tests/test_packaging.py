@@ -18,10 +18,10 @@ from pathlib import Path
 import pytest
 
 import torchrod
-from torchrod._shipped import PACKAGES
 from torchrod.cli import main
 from torchrod.data import FILES, path
 from torchrod.errors import MissingFileError
+from torchrod.shipped import PACKAGES
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -255,6 +255,18 @@ def test_a_signal_while_the_stream_reads_a_file_comes_between_readings_and_loses
     from torchrod.io.jsonl import Terminated, sigterm_as_interrupt
     from torchrod.io.readings import ReadingSource
 
+    # Python's own SIGINT handler, as an interactive run has it: a test run started in the background (`cmd &`)
+    # inherits SIGINT ignored.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _signal_while_reading(rod, estimator, tmp_path, monkeypatch, sig, stream_module, Terminated, ReadingSource,
+                              sigterm_as_interrupt)  # fmt: skip
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _signal_while_reading(rod, estimator, tmp_path, monkeypatch, sig, stream_module, Terminated, ReadingSource,
+                          sigterm_as_interrupt):  # fmt: skip
     lines = [{**line, "id": f"r{k}"} for k, line in enumerate(_one_force_lines(rod, 60) * 5)]
     path = tmp_path / "in.jsonl"
     path.write_text("".join(json.dumps(line) + "\n" for line in lines))

@@ -61,7 +61,7 @@ ROD_FILES = {"nitinol290": "nitinol290.json", "ctr250": "ctr250.json"}
 def rod_file(name: str) -> Path:
     """The path of the shipped rod file of preset ``name``: the same rod as :func:`get`, as JSON, a template to
     copy for a rod of your own. Raises :class:`~torchrod.errors.RodError` naming the presets for another name."""
-    from ._shipped import path
+    from .shipped import path
 
     if name not in ROD_FILES:
         raise RodError(f"unknown rod preset {name!r}; known presets: {', '.join(PRESETS)}")

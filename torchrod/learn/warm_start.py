@@ -453,7 +453,7 @@ def shipped_network(rod: Rod) -> tuple[WarmStart | None, str]:
     A network serves every rod whose gratings sit at its layout's positions relative to the length, whatever the
     rod's length and stiffness (the network works in dimensionless form).
     """
-    from .._shipped import path
+    from ..shipped import path
 
     for name in SHIPPED_NETWORKS:
         net, meta = load_checkpoint(path(name))
