@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import shutil
 import warnings
 
@@ -240,9 +241,15 @@ def test_bench_network_runs_and_prints_its_table(capsys):
         warnings.simplefilter("ignore")
         assert main(["bench", "network", "--quick", "--count", "6"]) == 0
     out = capsys.readouterr().out
+    assert "within 1 sd" in out and "trust verdict: " in out
     for k in (1, 2, 3):
-        for name in ("network", "estimator", "estimator+network"):
+        for name in ("network", "estimator", "estimator+network", "trusted"):
             assert any(line.split()[:2] == [str(k), name] for line in out.splitlines()), (k, name)
+        # The estimator alone agrees with itself: its count and every force within 1 sd, on every reading.
+        (alone,) = [line.split() for line in out.splitlines() if line.split()[:2] == [str(k), "estimator"]]
+        assert alone[-2:] == ["100.0%", "100.0%"], alone
+        (torch_row,) = [line for line in out.splitlines() if line.startswith(f" {k} torch target")]
+        assert re.search(r"\d+\.\d%\s+(\d+\.\d%|-)$", torch_row), torch_row
 
 
 class _FixedGuess:

@@ -8,14 +8,17 @@ body-frame direction, locations from the second grating to the tip, bending <= 9
 * ``estimator``: the estimator without a network (the scan's starts);
 * ``estimator+network``: :func:`torchrod.load_estimator`: the network's guesses beside the scan's
   starts, or alone where the checkpoint's recorded quality says it can be trusted;
+* ``trusted``: the estimator trusting the network whatever its recorded verdict (``trust_guesses``: its most
+  probable count and the one below fitted from its guesses alone, the counts below not fitted);
 * ``torch target``: the same estimator with ``target="torch"``: the network's guesses refined in torch, judged
   by the kernels, the readings not answered ``ok`` searched again (:mod:`torchrod.estimate.refine`).
 
 Columns: count accuracy, median force error (|f_est - f_true| / |f_true|, %) and location error (mm) over readings
 whose count is right, median solver steps of the chosen fit, mean forward-model evaluations per reading, readings
 per second batched (``--batch-size``), time of one reading alone (``--single`` readings, median), and agreement
-with the estimator alone: the share of readings given its count. All rows run side by side in one process; the
-checkpoint's trust verdict comes first.
+with the estimator alone: the share of readings given its count, and among those the share whose every force and
+location is within one of its standard deviations of the estimator alone's (``within 1 sd``). All rows run side by
+side in one process; the checkpoint's trust verdict comes first.
 """
 
 from __future__ import annotations
@@ -72,6 +75,19 @@ def _network_alone(warm_start, data, k: int) -> dict:
     return cell_metrics([fake], data.loads.s, data.loads.f, k)
 
 
+def _within_sd(answers: list, reference: list) -> torch.Tensor:
+    """(N,) whether each answer's forces and locations lie within one of the reference answer's standard deviations
+    of the reference's (answers of the same count; padding ignored)."""
+    got = [torch.cat([getattr(r.forces, x) for r in answers]) for x in ("s", "f")]
+    ref = [torch.cat([getattr(r.forces, x) for r in reference]) for x in ("s", "f")]
+    std = torch.cat([r.std for r in reference])
+    active = torch.cat([r.forces.mask for r in reference])
+    width = min(got[0].shape[1], ref[0].shape[1])
+    ok_s = (got[0][:, :width] - ref[0][:, :width]).abs() <= std[:, :width, 0]
+    ok_f = ((got[1][:, :width] - ref[1][:, :width]).abs() <= std[:, :width, 1:]).all(-1)
+    return ((ok_s & ok_f) | ~active[:, :width]).all(1)
+
+
 def _timed(estimator: Estimator, data, batch_size: int, single: int) -> tuple[list, float, float]:
     estimator.estimate(data.curvature[:2], data.mask[:2])  # warm-up (per-rod caches)
     results = []
@@ -97,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
     plain = Estimator(rod, EstimatorOptions(noise=args.noise))
     with_net = load_estimator(args.checkpoint, rod, EstimatorOptions(noise=args.noise), warn=lambda _: None)
     on_torch = Estimator(rod, dataclasses.replace(with_net.options, target="torch"), warm_start=with_net.warm_start)
+    trusting = Estimator(rod, EstimatorOptions(noise=args.noise, trust_guesses=True), warm_start=warm_start)
     weak = quality_verdict(warm_start.meta)
     print(
         f"torchrod bench network: {rod.num_gratings} gratings, noise {args.noise} 1/m, {count} held-back readings "
@@ -105,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"trust verdict: {'trusted' if not weak else f'not trusted ({weak})'}")
     header = (
         f"{'k':>2} {'method':<18} {'count ok':>9} {'force err':>10} {'loc err':>8} {'iters':>6} {'evals':>7} "
-        f"{'readings/s':>11} {'ms at B=1':>10} {'agree':>7}"
+        f"{'readings/s':>11} {'ms at B=1':>10} {'agree':>7} {'within 1 sd':>12}"
     )
     print(header)
     print("-" * len(header))
@@ -114,22 +131,27 @@ def run(args: argparse.Namespace) -> int:
         rows: list[tuple[str, dict[str, Any], list | None, float | None, float | None]] = [
             ("network", _network_alone(warm_start, data, k), None, None, None)
         ]
-        for name, est in (("estimator", plain), ("estimator+network", with_net), ("torch target", on_torch)):
+        ways = [("estimator", plain), ("estimator+network", with_net), ("trusted", trusting)]
+        for name, est in [*ways, ("torch target", on_torch)]:
             results, t_batched, t_one = _timed(est, data, args.batch_size, single)
             rows.append((name, cell_metrics(results, data.loads.s, data.loads.f, k), results, t_batched, t_one))
-        alone = torch.cat([r.num_forces for r in rows[1][2] or []])
+        reference = rows[1][2] or []
+        alone = torch.cat([r.num_forces for r in reference])
         for name, m, answers, batched, one in rows:
             if answers is not None:
                 iters = f"{torch.cat([r.iterations for r in answers]).double().median().item():.0f}"
                 evals = f"{torch.cat([r.evaluations for r in answers]).double().mean().item():.1f}"
-                agree = f"{100 * (torch.cat([r.num_forces for r in answers]) == alone).double().mean().item():.1f}%"
+                same = torch.cat([r.num_forces for r in answers]) == alone
+                agree = f"{100 * same.double().mean().item():.1f}%"
+                near = _within_sd(answers, reference)[same]
+                within = f"{100 * near.double().mean().item():.1f}%" if near.numel() else "-"
             else:
-                iters = evals = agree = "-"
+                iters = evals = agree = within = "-"
             print(
                 f"{k:>2} {name:<18} {100 * m['count_accuracy']:>8.1f}% {m['force_error_median']:>9.2f}% "
                 f"{m['location_error_median']:>6.2f}mm {iters:>6} {evals:>7} "
                 f"{'-' if batched is None else f'{1 / batched:.0f}':>11} "
-                f"{'-' if one is None else f'{1e3 * one:.1f}':>10} {agree:>7}",
+                f"{'-' if one is None else f'{1e3 * one:.1f}':>10} {agree:>7} {within:>12}",
                 flush=True,
             )
     return 0
