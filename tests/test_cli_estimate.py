@@ -435,3 +435,65 @@ def test_evaluate_recovery_up_to_the_elastic_limit_has_a_large_bend_stratum(caps
     assert main(["evaluate", "--large-bends"]) == 2
     assert "--large-bends and --max-strain go with --recovery N" in capsys.readouterr().err
     assert main(["evaluate", "--recovery", "4", "--large-bends", "--max-strain", "5"]) == 2
+
+
+def test_estimate_interrupted_while_the_kernels_compile_answers_what_it_read_unsolved(monkeypatch, capsys):
+    """Ctrl-C while a first run's kernels compile: solving the readings read ahead as Python would take minutes, so
+    they are written at once, in order, as not solved (an unusable line keeps its own error), said on stderr, and
+    the interrupt goes on; nothing is solved after it."""
+    import io as _io
+
+    from torchrod.cli.commands.estimate import _Answers
+    from torchrod.io.jsonl import LineWriter
+    from torchrod.io.reading import Reading
+    from torchrod.io.stream import UNSOLVED
+
+    rod = tr.presets.nitinol290()
+    u = tr.grating_curvature(rod, tr.PointForces.from_lists([[(0.2, 0.3, 0.1)]]))[0]
+
+    class Compiling:
+        solved = 0
+
+        def compiling(self):
+            return True
+
+        def estimate(self, curvature, mask):
+            Compiling.solved += curvature.shape[0]
+            return tr.Estimator(rod, tr.EstimatorOptions(noise=0.05, target="python")).estimate(curvature, mask)
+
+    def reading(k):
+        if k == 3:
+            return Reading(id=f"r{k}", line=k + 1, error=f"line {k + 1}: not valid JSON")
+        return Reading(id=f"r{k}", line=k + 1, curvature=u.double())
+
+    class Source:
+        def __init__(self):
+            self.k = 0
+            self.halted = False
+
+        def __iter__(self):
+            return self
+
+        def __next__(self):
+            if self.halted and self.k >= 6:
+                raise StopIteration
+            if self.k == 2 and not self.halted:
+                raise KeyboardInterrupt
+            self.k += 1
+            return reading(self.k - 1)
+
+        def halt(self):
+            self.halted = True
+
+    out = _io.StringIO()
+    writer = LineWriter(out)
+    answers = _Answers(Compiling(), writer, torch.device("cpu"), type("Bar", (), {"update": lambda self, n: None})())
+    with pytest.raises(KeyboardInterrupt):
+        answers.run(Source(), batch_size=64)
+    lines = [json.loads(x) for x in out.getvalue().splitlines()]
+    assert [x["id"] for x in lines] == [f"r{k}" for k in range(6)]
+    assert "error" not in lines[0] and "error" not in lines[1]  # solved one at a time before the interrupt
+    assert lines[3]["error"] == "line 4: not valid JSON"
+    assert [x["error"] for x in lines[2:] if x["id"] != "r3"] == [f"line {k}: {UNSOLVED}" for k in (3, 5, 6)]
+    assert Compiling.solved == 2
+    assert "answering the 3 readings read and not yet solved as not solved" in capsys.readouterr().err

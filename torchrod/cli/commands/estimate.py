@@ -357,7 +357,7 @@ def _run(args: argparse.Namespace) -> int:
 
 class _Answers:
     """Reads, estimates in batches and writes answers in order; on an interrupt (Ctrl-C, SIGTERM) it answers every
-    reading already read before the interrupt propagates."""
+    reading already read before the interrupt propagates (while the kernels still compile, as not solved)."""
 
     def __init__(self, estimator: Any, writer: LineWriter, device: torch.device, bar: Any) -> None:
         self.estimator, self.writer, self.device, self.bar = estimator, writer, device, bar
@@ -381,8 +381,24 @@ class _Answers:
             note_interrupt()
             readings.halt()
             self.pending.extend(readings)
-            self.flush()
+            if getattr(self.estimator, "compiling", bool)():
+                self.unsolved()  # solved as Python, the readings read ahead would take minutes
+            else:
+                self.flush()
             raise
+
+    def unsolved(self) -> None:
+        """Write every pending reading, in order, without solving any: those not yet solved as error lines (not
+        solved: the run was interrupted while the kernels compiled; said once on stderr)."""
+        from ...io.stream import UNSOLVED
+        from ...kernels.targets import note_unsolved
+
+        left = self.pending[len(self.ready) :]
+        note_unsolved(sum(r.ok for r in left))
+        self.ready = self.ready + [
+            {"id": r.id, "error": f"line {r.line}: {UNSOLVED}" if r.ok else r.error} for r in left
+        ]
+        self.flush()
 
     def flush(self) -> None:
         """Estimate and write every pending reading, in order."""
