@@ -567,15 +567,19 @@ def test_a_read_only_cache_that_holds_the_kernels_is_loaded_from(tmp_path):
     assert "compiling" not in again.stderr and "could not write" not in again.stderr, again.stderr
 
 
-def test_ctrl_c_during_a_first_compile_answers_the_readings_read_unsolved_at_once(tmp_path):
+@pytest.mark.parametrize("command", ["stream", "estimate"])
+def test_ctrl_c_during_a_first_compile_answers_the_readings_read_unsolved_at_once(tmp_path, command):
     """Interrupted while a first compile runs in the background (its readings solved as Python meanwhile), a stream
     solves nothing more: every reading it read is answered, in order, those not yet solved as such, it says so,
-    and it ends at once, stopping the compile instead of waiting for it."""
+    and it ends at once, stopping the compile instead of waiting for it. ``torchrod estimate`` is the same stream."""
     count = 600
     readings = tmp_path / "r.jsonl"
     curvature = [json.loads(line)["curvature"] for line in _lines(30)]
     lines = (json.dumps({"id": f"r{k}", "curvature": curvature[k % 30]}) + "\n" for k in range(count))
     readings.write_text("".join(lines))
+    args = [*STREAM, "--threads", "1", "--input", str(readings)]
+    if command == "estimate":
+        args = ["estimate", *STREAM[1:], str(readings)]
     script = f"""
 import os, signal, sys
 from torchrod.cli import main
@@ -589,7 +593,7 @@ def counted(self, flight):  # (Ctrl-C once 20 readings were solved as Python)
         os.kill(os.getpid(), signal.SIGINT)
     return advance(self, flight)
 stream._Stream.advance = counted
-sys.exit(main([*{STREAM!r}, "--threads", "1", "--input", {str(readings)!r}]))
+sys.exit(main([*{args!r}]))
 """
     env = {**ENV, "TORCHROD_CACHE_DIR": str(tmp_path / "cache")}  # (empty: the estimation kernels compile)
     done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, env=env, capture_output=True, text=True,

@@ -57,8 +57,9 @@ import queue
 import signal
 import threading
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
+from types import GeneratorType
 from typing import Any, cast
 
 import torch
@@ -70,7 +71,7 @@ from ..kernels.targets import note_interrupt, note_unsolved
 from ..loads import PointForces
 from .reading import Reading, stack_readings, to_reading
 
-__all__ = ["Reading", "StreamOptions", "StreamResult", "StreamStats", "stream", "warm_up"]
+__all__ = ["Reading", "StreamOptions", "StreamResult", "StreamStats", "answer_each", "stream", "warm_up"]
 
 
 @dataclass(frozen=True)
@@ -1029,3 +1030,40 @@ class StreamStats:
                 )
             )
         return lines
+
+
+def answer_each(
+    estimator: Any,
+    source: Iterable[Any],
+    options: StreamOptions,
+    emit: Callable[[StreamResult], None],
+    written: Callable[[], int] = lambda: 0,
+) -> KeyboardInterrupt | None:
+    """:func:`stream` with every result handed to ``emit``, in order: the one loop that ``torchrod stream`` and
+    ``torchrod estimate`` answer readings by. An interrupt (``KeyboardInterrupt``, or the CLI's ``Terminated``)
+    that comes while ``emit`` runs is thrown into the stream, which flushes: every reading already read is still
+    emitted. ``written`` counts what ``emit`` has written (a writer's lines): a result whose emit was interrupted
+    is emitted again only if it wrote nothing. Returns the interrupt, or None."""
+    results = cast("GeneratorType[StreamResult, None, None]", stream(estimator, source, options))  # (a generator)
+    interrupted: KeyboardInterrupt | None = None
+    current: StreamResult | None = None
+    before = written()
+    try:
+        for current in results:
+            emit(current)
+            current = None
+            before = written()
+    except KeyboardInterrupt as exc:
+        interrupted = exc
+        try:
+            if current is not None and written() == before:  # interrupted before it was written
+                emit(current)
+            if results.gi_frame is not None:  # interrupted here, not inside the stream: let it flush
+                emit(results.throw(exc))
+                for result in results:
+                    emit(result)
+        except (KeyboardInterrupt, StopIteration):
+            pass
+    finally:
+        results.close()
+    return interrupted

@@ -75,17 +75,13 @@ import argparse
 import dataclasses
 import os
 import sys
-import time
 from typing import Any
-
-import torch
 
 from ...errors import MissingFileError
 from ...estimate.estimator import Estimator, EstimatorOptions
 from ...estimate.options import RULES
 from ...io.jsonl import LineWriter, check_input, check_output, open_output, until_interrupted
-from ...io.reading import Reading, stack_readings
-from ...io.sources import ReadingSource
+from ...io.stream import StreamOptions, StreamResult, answer_each
 from ...presets import load as load_rod
 from ...rod import Rod
 from . import (
@@ -322,7 +318,7 @@ def _run(args: argparse.Namespace) -> int:
     check_estimation_options(args)
     sensor_noise(args, rod)
     check_counts(args, rod)
-    check_workers(args)
+    workers = check_workers(args)
     device = check_device(args)
     if args.starts is not None and args.starts < 0:
         raise ValueError(f"--starts must be >= 0, got {args.starts}")
@@ -336,6 +332,9 @@ def _run(args: argparse.Namespace) -> int:
     readings = reading_source(args, rod, args.readings)
     from tqdm import tqdm
 
+    # A stream with no latency bound: the batches, the fall-back to single readings, the flush on an interrupt and
+    # the first run's compile are the stream's (torchrod.io.stream); each reading's noise is its own.
+    options = StreamOptions(batch_size=args.batch_size, learn_noise=None, device=device, workers=workers)
     with open_output(args.out, inputs) as out:
         writer = LineWriter(out)
         bar = tqdm(
@@ -345,97 +344,27 @@ def _run(args: argparse.Namespace) -> int:
             dynamic_ncols=True,
             leave=False,
         )
-        answers = _Answers(estimator, writer, device, bar)
+
+        def emit(result: StreamResult) -> None:
+            if result.error is not None:
+                writer.error(result.id, result.error)
+            else:
+                record = {k: v for k, v in result.record.items() if k not in _STREAM_ONLY}
+                record["time_ms"] = 1e3 * result.solve_time / max(result.batch, 1)
+                writer.answer(record, result.line, flush=result.batch_end)
+            bar.update(1)
+
         try:
-            answers.run(readings, args.batch_size)
+            interrupted = answer_each(estimator, readings, options, emit, lambda: writer.lines)
         except BrokenPipeError:  # the reader went away (| head): stop quietly
             return 141
         finally:
             bar.close()
+    if interrupted is not None:
+        raise interrupted
     return 1 if writer.errors else 0
 
 
-class _Answers:
-    """Reads, estimates in batches and writes answers in order; on an interrupt (Ctrl-C, SIGTERM) it answers every
-    reading already read before the interrupt propagates (while the kernels still compile, as not solved)."""
-
-    def __init__(self, estimator: Any, writer: LineWriter, device: torch.device, bar: Any) -> None:
-        self.estimator, self.writer, self.device, self.bar = estimator, writer, device, bar
-        self.pending: list[Reading] = []  # read, not yet answered
-        self.ready: list[dict[str, Any]] = []  # the answers of pending[: len(ready)]
-
-    def run(self, readings: ReadingSource, batch_size: int) -> None:
-        try:
-            for reading in readings:
-                self.pending.append(reading)
-                # (While the kernels compile in the background, each reading is answered as it is solved.)
-                if len(self.pending) >= batch_size or getattr(self.estimator, "compiling", bool)():
-                    self.flush()
-            self.flush()
-        except KeyboardInterrupt:
-            # Everything read before the interrupt: the lines already in memory too (when the interrupt came
-            # while estimating; one that came inside the reader ended it), then the pending readings. A second
-            # interrupt is not caught. No wait for the kernel cache's lock, nor for a compile, from now on.
-            from ...kernels.targets import note_interrupt
-
-            note_interrupt()
-            readings.halt()
-            self.pending.extend(readings)
-            if getattr(self.estimator, "compiling", bool)():
-                self.unsolved()  # solved as Python, the readings read ahead would take minutes
-            else:
-                self.flush()
-            raise
-
-    def unsolved(self) -> None:
-        """Write every pending reading, in order, without solving any: those not yet solved as error lines (not
-        solved: the run was interrupted while the kernels compiled; said once on stderr)."""
-        from ...io.stream import UNSOLVED
-        from ...kernels.targets import note_unsolved
-
-        left = self.pending[len(self.ready) :]
-        note_unsolved(sum(r.ok for r in left))
-        self.ready = self.ready + [
-            {"id": r.id, "error": f"line {r.line}: {UNSOLVED}" if r.ok else r.error} for r in left
-        ]
-        self.flush()
-
-    def flush(self) -> None:
-        """Estimate and write every pending reading, in order."""
-        if len(self.ready) < len(self.pending):
-            self.ready = self.ready + self._estimate(self.pending[len(self.ready) :])
-        while self.pending:
-            reading, answer = self.pending[0], self.ready[0]
-            if "error" in answer:
-                self.writer.error(answer["id"], answer["error"])
-            else:
-                self.writer.answer(answer, reading.line, flush=len(self.pending) == 1)
-            del self.pending[0], self.ready[0]
-            self.bar.update(1)
-
-    def _estimate(self, readings: list[Reading]) -> list[dict[str, Any]]:
-        """One answer per reading: its record, or ``{"id", "error"}``."""
-        good = [r for r in readings if r.ok]
-        records: list[dict[str, Any]] = []
-        if good:
-            records = self._solve(good)
-        answers = iter(records)
-        return [next(answers) if r.ok else {"id": r.id, "error": r.error} for r in readings]
-
-    def _solve(self, good: list[Reading]) -> list[dict[str, Any]]:
-        curvature, mask = stack_readings(good)
-        start = time.perf_counter()
-        try:
-            result = self.estimator.estimate(curvature.to(self.device), mask.to(self.device))
-        except Exception as exc:  # noqa: BLE001 - one reading that breaks the solver must not stop the others
-            if len(good) == 1:
-                message = str(exc)[:300]
-                if not isinstance(exc, (ValueError, RuntimeError)):
-                    message = f"{type(exc).__name__}: {message}"
-                return [{"id": good[0].id, "error": f"line {good[0].line}: estimation failed: {message}"}]
-            return [a for r in good for a in self._solve([r])]
-        elapsed = time.perf_counter() - start
-        records = result.to_records([r.id for r in good])
-        for record in records:
-            record["time_ms"] = 1e3 * elapsed / len(good)
-        return records
+_STREAM_ONLY = ("t", "latency_ms")
+"""What a stream's record holds that an estimate's does not: an estimate answers a file, so it echoes no time and
+has no latency; its ``time_ms`` is the solve time per reading of its batch."""

@@ -104,7 +104,6 @@ import json
 import os
 import sys
 import time
-from types import GeneratorType
 from typing import Any, cast
 
 from ...errors import ReadingError
@@ -127,7 +126,7 @@ from ...io.jsonl import (
     until_interrupted,
 )
 from ...io.sources import ReadingSource
-from ...io.stream import StreamOptions, StreamResult, StreamStats, stream, warm_up
+from ...io.stream import StreamOptions, StreamResult, StreamStats, answer_each, warm_up
 from ...presets import load as load_rod
 from ...rod import Rod
 from . import (
@@ -411,28 +410,9 @@ def _answer(
             known = truth.get(_key(result.id)) if truth is not None and result.ok else None
             stats.add(result, known)
 
-    results = cast("GeneratorType[StreamResult, None, None]", stream(estimator, source, options))  # a generator
-    interrupted: KeyboardInterrupt | None = None
-    current: StreamResult | None = None
-    written = writer.lines
     try:
-        for current in results:
-            emit(current)
-            current = None
-            written = writer.lines
-    except KeyboardInterrupt as exc:
-        interrupted = exc
-        try:
-            if current is not None and writer.lines == written:  # interrupted before it was written
-                emit(current)
-            if results.gi_frame is not None:  # interrupted here, not inside the stream: let it flush
-                emit(results.throw(exc))
-                for result in results:
-                    emit(result)
-        except (KeyboardInterrupt, StopIteration):
-            pass
+        interrupted = answer_each(estimator, source, options, emit, lambda: writer.lines)
     finally:
-        results.close()
         if args.summary:
             for line in stats.summary(time.perf_counter() - start):
                 print(f"torchrod stream: {line}", file=sys.stderr)
