@@ -1150,3 +1150,32 @@ def test_a_lone_reading_is_solved_on_the_streams_thread_and_a_burst_by_the_solve
     got = list(stream(burst, (Reading(k, u) for k in range(40)), StreamOptions(batch_size=8, workers=2)))
     assert [r.id for r in got] == list(range(40)) and all(r.ok for r in got)
     assert any(name.startswith("torchrod-stream") for name, _ in burst.calls)
+
+
+def test_a_reading_is_checked_once_as_it_is_read_not_again_per_batch(rod, estimator, monkeypatch):
+    """Each reading is checked when the stream takes it; the estimator does not check the stacked batch again,
+    and the answers are those of the estimator's own checked call."""
+    import torchrod.estimate.estimator as estimator_module
+
+    lines = _one_force_lines(rod, 12)
+    lines[4] = {"id": "bad", "curvature": [[1e9, 0.0]] * rod.num_gratings}  # beyond the curvature bound
+    expected = list(stream(estimator, lines, StreamOptions(batch_size=4, workers=1)))
+    calls = []
+    checks = estimator_module.check_readings
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return checks(*args, **kwargs)
+
+    monkeypatch.setattr(estimator_module, "check_readings", counted)
+    got = list(stream(estimator, lines, StreamOptions(batch_size=4, workers=1)))
+    assert calls == []
+
+    def answers(results):
+        return [{k: v for k, v in r.record.items() if k != "latency_ms"} for r in results]
+
+    assert answers(got) == answers(expected)
+    assert got[4].error is not None and "bad" == got[4].id
+    u = torch.tensor([line["curvature"] for line in lines[:2]], dtype=torch.float64)
+    estimator.estimate(u)  # a caller's own tensors are checked
+    assert calls == [1]

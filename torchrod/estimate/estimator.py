@@ -317,6 +317,7 @@ class Estimator:
         bending_stiffness: float | torch.Tensor | None = None,
         location_bias: float | torch.Tensor | None = None,
         _escape: bool = True,
+        _checked: bool = False,
     ) -> EstimateResult:
         """Estimate the forces behind B readings.
 
@@ -344,7 +345,8 @@ class Estimator:
         opts = self.options if options is None else options
         if not isinstance(opts, EstimatorOptions):
             raise TorchrodTypeError(f"options must be EstimatorOptions, got {type(opts).__name__}")
-        curvature, mask = self._check(curvature, mask)
+        if not _checked or mask is None:  # (a stream's readings, each checked as it was read, are not again)
+            curvature, mask = self._check(curvature, mask)
         B = curvature.shape[0]
         ei = _per_reading("bending_stiffness", bending_stiffness, B, curvature, positive=True)
         bias = _per_reading("location_bias", location_bias, B, curvature, positive=False)

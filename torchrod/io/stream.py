@@ -65,6 +65,7 @@ from typing import Any, cast
 import torch
 
 from ..errors import OptionsError, TorchrodTypeError
+from ..estimate.estimator import Estimator
 from ..estimate.noise import NoiseLearning, RunningNoise, calibration_terms
 from ..estimate.status import STATUSES
 from ..kernels.targets import note_interrupt, note_unsolved
@@ -255,6 +256,7 @@ class _Stream:
         from ..kernels.host import cpu_threads
 
         self.estimator, self.options = estimator, options
+        self._checked_call = isinstance(estimator, Estimator)  # (its readings need no second check: _call)
         self.estimate_options = estimate  # the EstimatorOptions of every batch
         # those options per learned noise (None: none learned) and CPU threads
         self._options: dict[tuple[float | None, int], Any] = {}
@@ -544,6 +546,14 @@ class _Stream:
         own error."""
         return self._results(batch, [(None, 0, None, UNSOLVED)] * sum(p.ok for p in batch), 0.0)
 
+    def _call(self, curvature: torch.Tensor, mask: torch.Tensor, options: Any, starts: Any) -> Any:
+        """The estimator's call on stacked readings, each checked when it was taken (:func:`to_reading`), so an
+        :class:`~torchrod.estimate.estimator.Estimator` does not check them again; any other estimator gets the
+        plain call."""
+        if self._checked_call:
+            return self.estimator.estimate(curvature, mask, options=options, extra_starts=starts, _checked=True)
+        return self.estimator.estimate(curvature, mask, options=options, extra_starts=starts)
+
     def solve(self, batch: Sequence[_Pending]) -> list[StreamResult]:
         """Estimate the usable readings of ``batch`` together, here; one result per reading, in order."""
         return self._solve(batch, self.hand_out())
@@ -649,7 +659,7 @@ class _Stream:
                 self._options.clear()
             self._options[learned, threads] = options
         try:
-            result = self.estimator.estimate(curvature, mask, options=options, extra_starts=starts)
+            result = self._call(curvature, mask, options, starts)
         except Exception as exc:  # noqa: BLE001 - a reading that breaks the solver must not stop the stream
             if len(good) == 1:
                 return None, mask, learned, f"estimation failed: {_exception_text(exc)}"
