@@ -29,6 +29,7 @@ def test_every_example_is_tested():
         "stream_sensor.py",
         "own_rod.py",
         "fit_rod_by_gradient.py",
+        "distributed_contact.py",
     }
 
 
@@ -98,3 +99,15 @@ def test_fit_rod_by_gradient_lands_where_calibrate_does(tmp_path):
     )
     assert abs(ei / ei_cal - 1) < 0.01 and abs(bias - bias_cal) < 0.2  # [mm]
     assert abs(ei / ei_true - 1) < 0.02 and abs(bias - bias_true) < 0.3
+
+
+def test_distributed_contact_counts_the_two_force_answers_of_patches(tmp_path):
+    out = run("distributed_contact.py", "--count", "40", "--seed", "2", cwd=tmp_path)
+    assert out.startswith("40 patches 12 mm long on 14 gratings 20 mm apart")
+    lines = out.splitlines()
+    for said in ("given", "each reading's own"):
+        (line,) = [x for x in lines if x.startswith(f"noise {said}: ")]
+        two = int(line.split(": ")[1].split(" of ")[0])
+        assert 0 <= two <= 40
+    answers = [x for x in lines if x.startswith("  patch at ")]
+    assert all("one force alone: p-value" in x for x in answers)

@@ -120,15 +120,18 @@ def study(
     max_forces: int = 3,
     seed: int = 0,
     threads: int | None = None,
+    noise_known: bool = True,
 ) -> list[StudyRow]:
-    """The table (module docstring): for each gain error, a row without a calibration error and one with it."""
+    """The table (module docstring): for each gain error, a row without a calibration error and one with it; with
+    ``noise_known`` False the estimator is not told ``sigma`` (each reading's noise is its own, and the calibration
+    error, which needs a known noise, changes nothing)."""
     rows = []
     plain = needle()
     for k, e in enumerate(gain_errors):
         u, truth = needle_readings(plain, count, e, sigma, seed + k)
         for rel in (0.0, e) if e > 0.0 else (0.0,):
             rod = needle(rel)
-            options = EstimatorOptions(max_forces=max_forces, noise=sigma, threads=threads)
+            options = EstimatorOptions(max_forces=max_forces, noise=sigma if noise_known else None, threads=threads)
             result = Estimator(rod, options).estimate(u)
             rows.append(_row(e, rel, result, truth))
     return rows
