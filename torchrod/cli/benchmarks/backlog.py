@@ -28,7 +28,7 @@ from ...presets import load as load_rod
 from ..commands import rod_help
 from . import SUITES
 from .estimate import readings
-from .pacer import child_command
+from .pacer import child_command, reading_line
 
 HELP = SUITES["backlog"]
 
@@ -57,8 +57,7 @@ def _write(rod, args: argparse.Namespace, path: Path) -> None:
     data = readings(rod, None, args.count, args.noise, args.seed)
     with open(path, "w") as fh:
         for i, reading in enumerate(data.curvature.tolist()):
-            cells = ",".join(f"[{a:.6f},{b:.6f}]" for a, b in reading)
-            fh.write(f'{{"id":{i},"curvature":[{cells}]}}\n')
+            fh.write(reading_line(i, None, [[round(a, 6), round(b, 6)] for a, b in reading]) + "\n")
 
 
 def _stream(folder: str | None, rod: str, path: Path) -> tuple[int, str]:
