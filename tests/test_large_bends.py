@@ -3,6 +3,7 @@ global-frame boundary-value problem (an independent solver), are recovered as on
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -26,6 +27,11 @@ def _cases(count: int, seed: int) -> list[tuple[float, float, float]]:
         ang = rng.uniform(0.0, 2.0 * math.pi)
         out.append((float(s), float(mag * math.cos(ang)), float(mag * math.sin(ang))))
     return out
+
+
+def _no_escape(options: tr.EstimatorOptions) -> tr.EstimatorOptions:
+    """``options`` whose fixed count is never searched again through one more force."""
+    return dataclasses.replace(options, search=dataclasses.replace(options.search, escape_turning=math.inf))
 
 
 def _reading(case: tuple[float, float, float]) -> tuple[np.ndarray, float]:
@@ -62,12 +68,13 @@ def test_clean_large_bends_are_one_force_with_no_phantom():
 def test_a_fixed_count_at_a_large_bend_is_recovered():
     """With the count fixed to one, the search of one force alone ends in a wrong minimum at a large bend (before:
     ``misfit``, the force near the base with its sign turned, in 25 of 30 such readings); the free search up to two
-    forces reaches the right one, and the fixed count starts from it (``Estimator._fixed_count_escape``)."""
+    forces reaches the right one, and the fixed count starts from it (``SearchOptions.escape_turning``,
+    :func:`torchrod.kernels.search.escape`)."""
     cases = _cases(6, seed=5)
     u = torch.tensor(np.stack([_reading(c)[0] for c in cases]))
-    est = tr.Estimator(ROD, tr.EstimatorOptions(noise=0.1, num_forces=1))
-    result = est.estimate(u)
-    alone = est.estimate(u, _escape=False)
+    options = tr.EstimatorOptions(noise=0.1, num_forces=1)
+    result = tr.Estimator(ROD, options).estimate(u)
+    alone = tr.Estimator(ROD, _no_escape(options)).estimate(u)
     assert (alone.status == tr.Status.MISFIT.code).sum() >= 3  # the readings this test is for
     for case, record, spent, before in zip(
         cases, result.to_records(), result.evaluations.tolist(), alone.evaluations.tolist(), strict=True
@@ -85,7 +92,7 @@ def test_a_fixed_count_below_the_truth_at_a_small_bend_is_not_searched_twice():
     s = torch.tensor([[0.12, 0.25]], dtype=torch.float64)
     f = torch.tensor([[[0.3, 0.0], [-0.3, 0.1]]], dtype=torch.float64)
     u = tr.simulate(ROD, tr.PointForces(s, f)).grating_curvature
-    est = tr.Estimator(ROD, tr.EstimatorOptions(noise=0.01, num_forces=1))
-    result, alone = est.estimate(u), est.estimate(u, _escape=False)
+    options = tr.EstimatorOptions(noise=0.01, num_forces=1)
+    result, alone = tr.Estimator(ROD, options).estimate(u), tr.Estimator(ROD, _no_escape(options)).estimate(u)
     assert result.statuses == ["misfit"]
     assert result.evaluations.tolist() == alone.evaluations.tolist()

@@ -43,11 +43,6 @@ from .status import Status
 
 __all__ = ["EstimateResult", "Estimator", "EstimatorOptions", "GuessSource", "LMPolicy", "SearchOptions"]
 
-ESCAPE_TURNING = math.pi / 2
-"""[rad] A reading turning the rod by more than this (the integral of |u| over its gratings, the base's segment at the
-first grating's value), fitted with a fixed count and answered ``misfit``, is searched once more from the free
-count's answer (:meth:`Estimator._fixed_count_escape`)."""
-
 
 @dataclass(frozen=True)
 class EstimateResult:
@@ -269,15 +264,16 @@ class Estimator:
                     exact_max_steps=EXACT_MAX_STEPS,
                     method=RKN8,
                 )
+                record = opts.record()
                 tables = count_tables(
                     rod.num_gratings,
-                    opts.width,
+                    int(record[0].max_forces),
                     opts.significance,
                     opts.search.suspect,
                     opts.search.kink_suspect,
                     opts.misfit_level,
                 )
-                setup, sizes = setup_of(rec, model, opts.record(), tables, guess_counts)
+                setup, sizes = setup_of(rec, model, record, tables, guess_counts)
                 plan = Plan(target, setup, sizes)
                 if len(self._plans) > 32:
                     self._plans.clear()
@@ -316,7 +312,6 @@ class Estimator:
         extra_starts: Mapping[int, PointForces] | None = None,
         bending_stiffness: float | torch.Tensor | None = None,
         location_bias: float | torch.Tensor | None = None,
-        _escape: bool = True,
         _checked: bool = False,
     ) -> EstimateResult:
         """Estimate the forces behind B readings.
@@ -354,12 +349,12 @@ class Estimator:
             isinstance(x, torch.Tensor) and x.requires_grad for x in (curvature, bending_stiffness, location_bias)
         )
         if ei is None and bias is None and not tracked:
-            return self._estimate(curvature, mask, opts, extra_starts, _escape, curvature.dtype)
+            return self._estimate(curvature, mask, opts, extra_starts, curvature.dtype)
         if extra_starts and (ei is not None or bias is not None):  # the caller's starts at the rod's own values
             extra_starts = {
                 h: self._own_values(pf, ei, bias) for h, pf in extra_starts.items() if isinstance(pf, PointForces)
             }
-        base = self._estimate(curvature.detach(), mask, opts, extra_starts, _escape, torch.float64)
+        base = self._estimate(curvature.detach(), mask, opts, extra_starts, torch.float64)
         return self._differentiable(base, curvature, mask, opts, ei, bias)
 
     def _own_values(self, pf: PointForces, ei: torch.Tensor | None, bias: torch.Tensor | None) -> PointForces:
@@ -418,7 +413,6 @@ class Estimator:
         mask: torch.Tensor,
         opts: EstimatorOptions,
         extra_starts: Mapping[int, PointForces] | None,
-        _escape: bool,
         out_dtype: torch.dtype,
         network: bool = True,
     ) -> EstimateResult:
@@ -426,7 +420,7 @@ class Estimator:
         ``network`` False, the warm start's guesses are left out: only ``extra_starts``)."""
         gpu_default = opts.target == "auto" and curvature.device.type == "cuda"
         if opts.target == "torch" or (gpu_default and (self.warm_start is not None or bool(extra_starts))):
-            return self._estimate_torch(curvature, mask, opts, extra_starts, _escape, out_dtype)
+            return self._estimate_torch(curvature, mask, opts, extra_starts, out_dtype)
         device = curvature.device
         B, G = mask.shape
         W = opts.width
@@ -465,11 +459,7 @@ class Estimator:
         finally:
             if alarm is not None:
                 _ALARMS.cancel(alarm)
-        result = self._report(out, mask, opts, out_dtype)
-        if opts.num_forces and _escape:
-            u3 = torch.as_tensor(u, device=device).view(B, G, 2)
-            result = self._fixed_count_escape(result, curvature, mask, opts, u3)
-        return result
+        return self._report(out, mask, opts, out_dtype)
 
     def _kernel_readings(self, curvature: torch.Tensor, mask: torch.Tensor, opts: EstimatorOptions) -> tuple[Any, ...]:
         """The kernels' readings of checked ``curvature`` (B, G, 2) [1/m] and ``mask`` (B, G): u (B, 2G) float64
@@ -521,7 +511,6 @@ class Estimator:
         mask: torch.Tensor,
         opts: EstimatorOptions,
         extra_starts: Mapping[int, PointForces] | None,
-        _escape: bool,
         out_dtype: torch.dtype,
     ) -> EstimateResult:
         """``target="torch"`` (:mod:`torchrod.estimate.refine`): each count's starts refined in torch on the readings'
@@ -573,64 +562,15 @@ class Estimator:
         c, m = curvature.to(host), mask.to(host)
         kernel_opts = dataclasses.replace(opts, target="auto", starts=0, trust_guesses=True)
         on_host = {h: pf.to(device=host) for h, pf in starts.items()}
-        result = self._estimate(c, m, kernel_opts, on_host, _escape, out_dtype, network=False)
+        result = self._estimate(c, m, kernel_opts, on_host, out_dtype, network=False)
         result = dataclasses.replace(result, evaluations=result.evaluations + spent.to(host))
         again = (result.status != Status.OK.code).nonzero().squeeze(1)
         if again.numel():
             sub = None if not extra_starts else {h: pf[again] for h, pf in extra_starts.items()}
-            full = self._estimate(c[again], m[again], dataclasses.replace(opts, target="auto"), sub, _escape, out_dtype)
+            full = self._estimate(c[again], m[again], dataclasses.replace(opts, target="auto"), sub, out_dtype)
             full = dataclasses.replace(full, evaluations=full.evaluations + result.evaluations[again])
             result = _spliced(result, again, full)
         return _to_device(result, device)
-
-    def _fixed_count_escape(
-        self,
-        result: EstimateResult,
-        curvature: torch.Tensor,
-        mask: torch.Tensor,
-        opts: EstimatorOptions,
-        u: torch.Tensor,
-    ) -> EstimateResult:
-        """A fixed count h's misfits at a large bend, searched once more from the free count's answer.
-
-        The scan's first start of a count assumes small deflections; where the rod turns far (beyond
-        :data:`ESCAPE_TURNING`), the search of h forces alone can end in a wrong minimum that misfits, while the free
-        search reaches the right one through h + 1 forces, one of them zero. So for those readings: the free search
-        up to h + 1 forces, then the fixed count again with the free answer (its h strongest forces) as an extra
-        start; the better fit of the two is kept, and every evaluation is counted."""
-        h = int(opts.num_forces or 0)
-        G = mask.shape[1]
-        q = torch.tensor(self.rod.gratings, dtype=torch.float64, device=u.device)
-        bend = u
-        if self.rod.precurved:
-            bend = u - self.rod.unloaded_curvature(torch.float64, u.device)
-        size = torch.where(mask, torch.linalg.vector_norm(bend, dim=-1), torch.zeros((), dtype=torch.float64))
-        turning = size[:, 0] * q[0] + torch.trapezoid(size, q.expand(size.shape[0], G), dim=-1)
-        chosen = (result.status == Status.MISFIT.code) & (turning.to(result.status.device) > ESCAPE_TURNING)
-        if not bool(chosen.any()):
-            return result
-        idx = chosen.nonzero().flatten()
-        c, m = curvature[idx.to(curvature.device)], mask[idx.to(mask.device)]
-        try:
-            free = self.estimate(c, m, options=dataclasses.replace(opts, num_forces=None, max_forces=h + 1))
-        except OptionsError:  # (no start for a count h + 1 where starts=0 asks for the network's alone)
-            return result
-        n = free.num_forces
-        usable = n >= h
-        if not bool(usable.any()):
-            return result
-        # The free answer's h strongest forces (by magnitude), in reported coordinates, as a start of h forces.
-        strength = torch.where(free.forces.active, torch.linalg.vector_norm(free.forces.f, dim=-1), -1.0)
-        keep = strength.argsort(dim=-1, descending=True)[:, :h]
-        s = torch.gather(free.forces.s, 1, keep)
-        f = torch.gather(free.forces.f, 1, keep[:, :, None].expand(-1, -1, 2))
-        s = torch.where(usable[:, None], s, torch.full_like(s, math.nan))
-        # (A row without a usable answer starts from no load: it cannot win, ``better`` leaves it out.)
-        again = self.estimate(c, m, options=opts, extra_starts={h: PointForces(s, f)}, _escape=False)
-        better = usable.to(again.loss.device) & (again.loss < result.loss[idx])
-        kept = _spliced(result, idx[better], again[better])
-        spent = result.evaluations[idx] + free.evaluations + again.evaluations
-        return dataclasses.replace(kept, evaluations=result.evaluations.index_put((idx,), spent))
 
     # ------------------------------------------------------------------ stages
     def _guesses(

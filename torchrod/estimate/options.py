@@ -128,6 +128,10 @@ class SearchOptions:
         twins: stop a row that another row of the same reading has joined in the same intervals with a lower loss,
             and a start of the wider search that reaches the intervals of the fit it is to beat without a lower
             loss (False: only the one-force case, which always holds).
+        escape_turning: with the count fixed to h >= 1, a fit that misfits a reading turning the rod by more than
+            this [rad] (the integral of the bend's |u| along the rod) is searched once more through h + 1 forces,
+            whose fit less its weakest force starts h again (:func:`torchrod.kernels.search.escape`): at a large
+            bend the search of h forces alone can end in a wrong minimum. ``math.inf``: never.
     """
 
     per_interval: int = 2
@@ -139,6 +143,7 @@ class SearchOptions:
     hopeless: float = 3.0
     explained: float = 0.01
     twins: bool = True
+    escape_turning: float = math.pi / 2
 
     def __post_init__(self) -> None:
         for name in ("per_interval", "exchange_top", "explore"):
@@ -148,6 +153,9 @@ class SearchOptions:
             _number(self, name, lambda v: 0.0 < v < 1.0, "in (0, 1)")
         _number(self, "hopeless", lambda v: v >= 1.0, ">= 1")
         _number(self, "explained", lambda v: v >= 0.0, ">= 0")
+        v = self.escape_turning
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0.0:  # (math.inf allowed: never)
+            raise OptionsError(f"escape_turning must be a positive angle [rad] or math.inf, got {v!r}")
         if not isinstance(self.twins, bool):
             raise OptionsError(f"twins must be True or False, got {self.twins!r}")
 
@@ -282,7 +290,7 @@ class EstimatorOptions:
 
 
 KERNEL_CONVERSIONS: dict[str, Callable[[EstimatorOptions], Any]] = {
-    "max_forces": lambda o: o.width,
+    "max_forces": lambda o: o.width + (1 if o.num_forces and math.isfinite(o.search.escape_turning) else 0),
     "fixed": lambda o: -1 if o.num_forces is None else o.num_forces,
     "min_dof": lambda o: MIN_TEST_DOF,
     "trusted": lambda o: o.trust_guesses,
@@ -292,9 +300,10 @@ KERNEL_CONVERSIONS: dict[str, Callable[[EstimatorOptions], Any]] = {
     "acceleration": lambda o: -math.inf if o.lm.acceleration is None else o.lm.acceleration,
 }
 """The fields of :data:`~torchrod.kernels.layout.OPTIONS` that are not an option's value as it stands, each made
-from the options: the result's width, the fixed count (-1: chosen), the least degrees of freedom a chosen count
-leaves, the count rule's code, the squared noise floor and misfit sigma, the acceleration's -inf for never. Where an
-option has an OPTIONS field's name (``max_forces``, ``acceleration``) this, not the option, fills it."""
+from the options: the rows' largest count (the result's width; one more for a fixed count's escape), the fixed count
+(-1: chosen), the least degrees of freedom a chosen count leaves, the count rule's code, the squared noise floor and
+misfit sigma, the acceleration's -inf for never. Where an option has an OPTIONS field's name (``max_forces``,
+``acceleration``) this, not the option, fills it."""
 
 
 def kernel_values(options: EstimatorOptions) -> dict[str, Any]:

@@ -42,7 +42,7 @@ ROD = np.dtype(
 
 OPTIONS = np.dtype(
     [
-        ("max_forces", np.int64),  # H: counts 0..H are fitted
+        ("max_forces", np.int64),  # H: the rows hold counts 0..H (a fixed count's H is one more, for its escape)
         ("fixed", np.int64),  # the fixed count, or -1: chosen
         ("min_dof", np.int64),  # a count leaving fewer degrees of freedom is never chosen (counts.testable)
         ("starts", np.int64),
@@ -55,6 +55,7 @@ OPTIONS = np.dtype(
         ("max_noise2", np.float64),  # (max_noise^2 + floor^2) [1/m^2]: the misfit test's sigma^2, noise unknown
         ("hopeless", np.float64),
         ("explained", np.float64),
+        ("escape_turning", np.float64),  # [rad] (search.escape)
         ("per_interval", np.int64),
         ("exchange_top", np.int64),
         ("rounds", np.int64),

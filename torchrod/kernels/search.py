@@ -22,6 +22,9 @@ intervals. A chosen fit holding a force that is zero within its uncertainty star
 force (:func:`drop_negligible`). The chosen fit, where its step budget left it open, takes more steps from where it
 stands (:func:`refine`).
 
+With the count fixed to h, a fit that misfits a reading bending the rod far is searched once more through h + 1
+forces (:func:`escape`).
+
 The count is chosen (:mod:`.counts`), its uncertainty judged (:mod:`.covariance`), and the forces reported by
 location with the rod's location bias, with the fit's p-value and the reading's status (:func:`.counts.verdict`).
 The caller's stop flag (a deadline) or an evaluation budget cut the search where it stands; the reading is then
@@ -98,6 +101,7 @@ INLINE = (
     "estimate_one",
     "blank_row",
     "load_row",
+    "searched",
 )
 """Small functions the CUDA target inlines where they are called (:func:`.targets.cuda_namespace`)."""
 
@@ -567,6 +571,8 @@ def fit_counts(k, gs, gf, guse, gcount):
         sw.unscanned[h] = False
         blank_row(k, h, h)
         sw.losses[h] = math.nan
+        if h > searched(k):  # (the fixed count's escape fits the count above it: :func:`escape`)
+            continue
         if is_open and late(k):
             k.info[0].cut = True
             is_open = False
@@ -603,7 +609,8 @@ def search_further(k):
     sw = search_of(k)
     opt = k.opt
     H = opt.max_forces
-    for h in range(2, H + 1):
+    top = searched(k)
+    for h in range(2, top + 1):
         # Above a chosen count whose fit came from trusted guesses alone: the scan's best start too, as the full
         # search fits it (a guess in a wrong local minimum there would keep the count too small).
         if not sw.unscanned[h] or not sw.fitted[h - 1]:
@@ -617,11 +624,11 @@ def search_further(k):
             load_row(k, H + 1, h, sw.sc_s[h, 0], sw.sc_f[h, 0], sw.sc_int[h, 0])
             try_starts(k, h, 1)
     chosen = choose(k)
-    for h in range(H + 1):
-        sw.near_limit[h] = plausible_limit(k, sw.losses, H + 1, h)
+    for h in range(top + 1):
+        sw.near_limit[h] = plausible_limit(k, sw.losses, top + 1, h)
     misfit = unexplained(k, chosen, rows.loss[chosen])
     doubt = chosen >= 2 and sw.fitted[chosen] and doubtful(k, chosen)
-    for h in range(1, H + 1):
+    for h in range(1, top + 1):
         loss_limit, kink_limit = suspect_limits(k, h)
         cand = sw.fitted[h] and suspicious(k, h, loss_limit, kink_limit)
         near = rows.loss[h] <= sw.near_limit[h]
@@ -654,6 +661,79 @@ def search_further(k):
                 k.info[0].cut = True
         else:
             refine(k, chosen)
+
+
+def searched(k):
+    """The largest count the search fits and chooses among: the fixed count, else ``max_forces`` (with a fixed
+    count the rows hold one count more, for :func:`escape`)."""
+    return k.opt.fixed if k.opt.fixed >= 0 else k.opt.max_forces
+
+
+def turning(k):
+    """How far the reading turns the rod [rad]: the integral of |u - u0| along it (u0 the unloaded curvature), from
+    the gratings' values by the trapezoid rule, the base's segment at the first grating's value and a missing
+    grating's value zero. Read from the residual of no force (row 0), which holds ``(u0 - u) w``."""
+    G = k.rod.num_gratings
+    q = model_of(k).query
+    r = rows_of(k).r[0]
+    total = 0.0
+    before = 0.0
+    for g in range(G):
+        size = 0.0
+        if k.w[2 * g] > 0.0 and k.w[2 * g + 1] > 0.0:
+            x = r[2 * g] / k.w[2 * g]
+            y = r[2 * g + 1] / k.w[2 * g + 1]
+            size = math.sqrt(x * x + y * y)
+        if g == 0:
+            total += size * q[0]
+        else:
+            total += 0.5 * (size + before) * (q[g] - q[g - 1])
+        before = size
+    return total
+
+
+def escape(k):
+    """A fixed count h >= 1 whose fit misfits a reading that turns the rod far (more than ``escape_turning``),
+    searched once more through h + 1 forces.
+
+    The scan's starts assume small deflections; at a large bend the search of h forces alone can end in a wrong
+    minimum that misfits, while the fit of h + 1 forces reaches the right one with one force to spare. So the count
+    h + 1 is fitted from every start the scan of the best h gives, and that fit without its weakest force starts h
+    once more; the better fit of h is kept. The count above stays out of the answer; its evaluations are
+    counted."""
+    opt = k.opt
+    h = opt.fixed
+    if h < 1 or opt.max_forces <= h or k.info[0].cut:
+        return
+    rows = rows_of(k)
+    sw = search_of(k)
+    if not unexplained(k, h, rows.loss[h]) or not turning(k) > opt.escape_turning:
+        return
+    if late(k):
+        k.info[0].cut = True
+        return
+    H = opt.max_forces
+    up = h + 1
+    scan_from(k, up)
+    load_row(k, H + 1, up, sw.sc_s[up, 0], sw.sc_f[up, 0], sw.sc_int[up, 0])
+    first_fits(k, up, 1)
+    sw.fitted[up] = True
+    if opt.starts > 1:
+        for t in range(1, opt.starts):
+            load_row(k, H + t, up, sw.sc_s[up, t], sw.sc_f[up, t], sw.sc_int[up, t])
+        try_starts(k, up, opt.starts - 1)
+    weakest = 0
+    least = math.inf
+    for j in range(up):
+        size = rows.f[up, j, 0] * rows.f[up, j, 0] + rows.f[up, j, 1] * rows.f[up, j, 1]
+        if size < least:
+            least = size
+            weakest = j
+    without_force(k, up, weakest)
+    load_row(k, H + 1, h, sw.bs, sw.bf, sw.bint)
+    try_starts(k, h, 1)
+    if not late(k):
+        refine(k, h)
 
 
 # ------------------------------------------------------------------------------------------------ the reading
@@ -786,6 +866,7 @@ def estimate_one(b, setup, batch, arenas, flag):
     prepare(k, batch.noise2[b])
     fit_counts(k, batch.gs[b], batch.gf[b], batch.guse[b], setup.gcount)
     search_further(k)
+    escape(k)
     report(k, b, batch.out)
 
 
