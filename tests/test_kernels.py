@@ -693,6 +693,98 @@ def test_the_numba_patches_step_aside_outside_the_releases_they_were_checked_on(
         assert codegen.CPUCodeLibrary._optimize_final_module is before
 
 
+class _Cache:
+    """A stand-in for a dispatcher's on-disk cache: its writes fail as on a full disk; it can be turned off."""
+
+    def __init__(self):
+        self.on = True
+
+    def save_overload(self, sig, data):
+        raise OSError(28, "No space left on device")
+
+    def disable(self):
+        self.on = False
+
+
+def test_the_cache_patches_fail_writes_softly_turn_the_cache_off_and_read_a_read_only_folder(monkeypatch, tmp_path):
+    """Within patches.TESTED: a failed write reaches the given function instead of the compile, the cache turns off,
+    and a dispatcher made without a cache is given one that reads the folder Numba's CACHE_DIR names; a dispatcher
+    without an on-disk cache is left as it is."""
+    import types
+
+    import numba
+
+    from torchrod.kernels import patches
+
+    if not patches.supported():
+        pytest.skip("this Numba lies outside patches.TESTED")
+    dispatcher = types.SimpleNamespace(_cache=_Cache())
+    failed = []
+    assert patches.guard_saves(dispatcher, failed.append)
+    dispatcher._cache.save_overload("sig", "data")
+    assert [exc.errno for exc in failed] == [28]
+    assert patches.stop_caching(dispatcher) and not dispatcher._cache.on
+    plain = types.SimpleNamespace()
+    assert not patches.guard_saves(plain, failed.append) and not patches.stop_caching(plain)
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path))
+    jitted = numba.njit(lambda x: x + 1.0)
+    assert patches.read_only_cache(jitted)
+    assert type(jitted._cache).__name__ == "ReadOnlyCache" and str(tmp_path) in jitted._cache.cache_path
+    assert patches.without_reference_counts() == {"_nrt": False}
+
+
+def test_the_cache_patches_step_aside_outside_the_releases_they_were_checked_on(monkeypatch, tmp_path):
+    """Outside patches.TESTED the cache is Numba's own: a failed write is not guarded (it raises, as Numba's does),
+    the cache is not turned off, a read-only folder gets no cache (the entry is compiled in memory: no directory),
+    and the kernels are reference counted (no options)."""
+    import types
+
+    import numba
+
+    from torchrod.kernels import patches, targets
+
+    targets._cpu_namespace()  # (built, and kept, with the patches as this Numba takes them)
+    monkeypatch.setattr(patches, "supported", lambda: False)
+    dispatcher = types.SimpleNamespace(_cache=_Cache())
+    save = dispatcher._cache.save_overload
+    assert not patches.guard_saves(dispatcher, lambda exc: None)
+    assert dispatcher._cache.save_overload == save and "save_overload" not in vars(dispatcher._cache)
+    assert not patches.stop_caching(dispatcher) and dispatcher._cache.on
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path))
+    jitted = numba.njit(lambda x: x + 1.0)
+    cache = jitted._cache
+    assert not patches.read_only_cache(jitted) and jitted._cache is cache
+    assert patches.without_reference_counts() == {}
+    monkeypatch.setattr(targets, "_cache_directory", lambda target, extra="": None)
+    monkeypatch.setattr(targets, "_read_only_directory", lambda target, name, extra="": tmp_path)
+    compiled = targets._cpu_entry("network_rows", lambda entry: None, "network", "cpu_network")
+    assert compiled.directory is None and not compiled.writable
+    assert type(compiled.entry._cache).__name__ == "NullCache"
+    compiled._in_memory()
+    assert compiled._unkept
+
+
+def test_only_the_patches_module_steps_into_numbas_private_interfaces():
+    """Numba's private names (a dispatcher's cache, the caching module, the CPU library's final optimisation, the
+    reference-counting option, the dispatcher's call template) appear in torchrod/kernels/patches.py and nowhere else
+    in the package (torchrod's own ``self._cache`` aside)."""
+    import re
+    from pathlib import Path
+
+    private = re.compile(
+        r"(?<!self)\._cache\b|numba\.core\.caching|import[^\n]*\bcaching\b|save_overload|_optimize_final_module"
+        r"|CPUCodeLibrary|\b_nrt\b|get_call_template|_locator_classes|_impl_class"
+    )
+    package = Path(__file__).resolve().parents[1] / "torchrod"
+    found = {
+        str(path.relative_to(package)): sorted(set(private.findall(path.read_text(encoding="utf-8"))))
+        for path in package.rglob("*.py")
+    }
+    patches = found.pop(str(Path("kernels", "patches.py")))
+    assert {"._cache", "save_overload", "_optimize_final_module", "_nrt", "get_call_template"} <= set(patches)
+    assert {path: names for path, names in found.items() if names} == {}
+
+
 def test_the_warm_up_runs_the_search_on_its_tiny_reading_as_python():
     """The warm-up's options are the dtype's zeros but for the few its tiny problem needs: with them the kernel
     source, run as Python, scans from two starts, fits both counts (settling and twins on, the acceleration finite)

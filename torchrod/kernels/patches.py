@@ -1,19 +1,33 @@
-"""The two places where torchrod steps into Numba's private interfaces to compile its kernels faster, kept here and
-applied only to the Numba versions they were checked on (:data:`TESTED`).
+"""The places where torchrod steps into Numba's private interfaces, kept here and applied only to the Numba versions
+they were checked on (:data:`TESTED`); outside them each does nothing, or gives nothing, as its docstring says.
 
-Neither changes the compiled arithmetic, so the answers are the same, bit for bit, with or without them: outside
-the tested versions the kernels compile as Numba compiles them, only more slowly. :func:`optimised_at_entry`
-optimises a compile's whole module once, at its entry, not once per function above each kernel;
-:func:`general` compiles a kernel function once for its argument types, not once per constant a caller passes.
+None changes the compiled arithmetic, so the answers are the same, bit for bit, with or without them.
+Two make the first compile faster (outside the tested versions the kernels compile as Numba compiles them, only more
+slowly): :func:`optimised_at_entry` optimises a compile's whole module once, at its entry, not once per function
+above each kernel; :func:`general` compiles a kernel function once for its argument types, not once per constant a
+caller passes. :func:`without_reference_counts` gives the CPU option that leaves reference counting out of the
+kernels (outside: counted, slower). Three concern the on-disk cache of compiled kernels (outside: Numba's own cache,
+or none): :func:`guard_saves` makes a write that fails (a full disk) fail softly, :func:`stop_caching` turns a
+dispatcher's cache off, and :func:`read_only_cache` loads kernels from a folder that cannot be written.
 """
 
 from __future__ import annotations
 
 import contextlib
 import functools
+from collections.abc import Callable
 from typing import Any
 
-__all__ = ["TESTED", "general", "optimised_at_entry", "supported"]
+__all__ = [
+    "TESTED",
+    "general",
+    "guard_saves",
+    "optimised_at_entry",
+    "read_only_cache",
+    "stop_caching",
+    "supported",
+    "without_reference_counts",
+]
 
 TESTED = ((0, 59), (0, 68))
 """The oldest and newest Numba releases (major, minor) the patches were checked on, both included."""
@@ -89,3 +103,79 @@ def general(dispatcher: Any, unliteral: Any) -> Any:
 
     dispatcher.get_call_template = get_call_template
     return dispatcher
+
+
+def without_reference_counts() -> dict[str, Any]:
+    """Numba's options that compile a CPU function without reference counting (``_nrt``, an option Numba keeps for
+    itself), for kernels that allocate nothing and see only arrays their caller owns for the whole call: counted, each
+    view made and each array passed between kernel functions costs an atomic increment and decrement, about half of a
+    reading's time, and threads sharing one array contend for its count. With a Numba outside :data:`TESTED`, no
+    options: the kernels are counted, as Numba compiles them, and slower, to the same answers."""
+    return {"_nrt": False} if supported() else {}
+
+
+def guard_saves(dispatcher: Any, failed: Callable[[OSError], None]) -> bool:
+    """Numba's write of ``dispatcher``'s compiled code into its on-disk cache made to fail softly: an OSError it
+    raises (a full disk, a read-only folder) is handed to ``failed``, and the compile's code is used from memory where
+    Numba would raise the error from the compile. Returns whether the write is guarded. With a Numba outside
+    :data:`TESTED`, or a dispatcher without such a cache, False and the dispatcher as it is: a write that fails raises
+    from the compile, as Numba's does (a folder that cannot be written is then no cache at all, and the kernels
+    compile in memory: :func:`read_only_cache`)."""
+    if not supported():
+        return False
+    cache: Any = getattr(dispatcher, "_cache", None)
+    save = getattr(cache, "save_overload", None)
+    if save is None:
+        return False
+
+    def guarded(sig: Any, data: Any) -> None:
+        try:
+            save(sig, data)
+        except OSError as exc:
+            failed(exc)
+
+    cache.save_overload = guarded
+    return True
+
+
+def stop_caching(dispatcher: Any) -> bool:
+    """``dispatcher``'s on-disk cache turned off: its later compiles neither load from it nor write into it (Numba
+    offers no public way back from ``cache=True``), for kernels kept in memory once the cache failed them (a write
+    that failed, a damaged entry in a read-only cache). Returns whether it was turned off. With a Numba outside
+    :data:`TESTED`, or a dispatcher without such a cache, False and the cache as it is; with such a Numba neither
+    :func:`guard_saves` nor :func:`read_only_cache` acts, so no failure they report asks for this."""
+    if not supported():
+        return False
+    disable = getattr(getattr(dispatcher, "_cache", None), "disable", None)
+    if disable is None:
+        return False
+    disable()
+    return True
+
+
+def read_only_cache(dispatcher: Any) -> bool:
+    """``dispatcher`` (made without a cache) given Numba's on-disk cache in the folder ``numba.config.CACHE_DIR``
+    names now, the same files a writable cache holds, for a folder that cannot be written: what it holds is loaded,
+    and a write fails (:func:`guard_saves`). Numba's own cache finds no place for a function in such a folder (it
+    cannot write a probe file there), and compiles it again in every run. Returns whether it was given. With a Numba
+    outside :data:`TESTED`, or without the internals it relies on, False and the dispatcher as it is: the folder is
+    not used, and the kernels compile in memory."""
+    if not supported():
+        return False
+    try:
+        from numba.core import caching
+
+        class Locator(caching.UserProvidedCacheLocator):
+            def ensure_cache_path(self) -> None:  # (read from: nothing to make, nothing to probe)
+                pass
+
+        class Impl(caching.CompileResultCacheImpl):
+            _locator_classes = [Locator]
+
+        class ReadOnlyCache(caching.FunctionCache):
+            _impl_class = Impl
+
+        dispatcher._cache = ReadOnlyCache(dispatcher.py_func)
+    except (ImportError, AttributeError):  # pragma: no cover - another Numba: its own way
+        return False
+    return True

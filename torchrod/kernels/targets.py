@@ -14,7 +14,9 @@ source and the compiler's version (so a changed kernel or Numba never loads stal
 else ``$XDG_CACHE_HOME/torchrod`` or ``~/.cache/torchrod``. It is announced once on stderr (what compiles, about how
 long, where it is kept), and processes that start together take turns through a file lock, so one compiles and
 the others load. A cache folder that cannot be written is loaded from when it holds the kernels; a write that fails
-(a full disk) leaves no entry behind, is said once, and the kernels are kept in memory for the run. A caller
+(a full disk) leaves no entry behind, is said once, and the kernels are kept in memory for the run (both through
+Numba's private interfaces, :mod:`.patches`: with a Numba release outside :data:`.patches.TESTED` such a folder is
+not used, the kernels compiled in memory, and a failed write raises Numba's error). A caller
 compiles before it starts any clock (:meth:`Compiled.ready`): the time never counts against a reading's budget, and
 a cold run answers as a warm one does.
 
@@ -272,36 +274,26 @@ class Compiled:
         self._repaired = False  # a damaged cache entry was removed and compiled again (once)
         self.writable = writable  # False: a read-only cache that holds the kernels, loaded from, never written
         self._unkept = False  # the cache could not be written (or read): the kernels are compiled and kept in memory
-        self._guard_saves()
+        if directory is not None:
+            patches.guard_saves(entry, self._unwritten)
 
-    def _guard_saves(self) -> None:
-        """Numba's write of the compiled entry into the cache, made to fail softly: should it fail (a full disk, a
-        read-only cache), what it left is removed (so that a later run finds no entry and announces its compile),
-        it is said once, and the kernels compiled are used from memory (:meth:`_in_memory`)."""
-        cache: Any = getattr(self.entry, "_cache", None)
-        save = getattr(cache, "save_overload", None)
-        if self.directory is None or save is None:
-            return
-
-        def guarded(sig: Any, data: Any) -> None:
-            try:
-                save(sig, data)
-            except OSError as exc:
-                self._in_memory()
-                if self.writable:
-                    self._drop_entry()
-                _say(
-                    f"could not write the {self.what} kernels into the kernel cache {self.directory} "
-                    f"({exc.strerror or exc}): they are kept in memory for this run; a later run compiles them again"
-                )
-
-        cache.save_overload = guarded
+    def _unwritten(self, exc: OSError) -> None:
+        """Numba's write of the compiled entry into the cache failed (a full disk, a read-only cache), softly
+        (:func:`.patches.guard_saves`): what it left is removed (so that a later run finds no entry and announces its
+        compile), it is said once, and the kernels compiled are used from memory (:meth:`_in_memory`)."""
+        self._in_memory()
+        if self.writable:
+            self._drop_entry()
+        _say(
+            f"could not write the {self.what} kernels into the kernel cache {self.directory} "
+            f"({exc.strerror or exc}): they are kept in memory for this run; a later run compiles them again"
+        )
 
     def _in_memory(self) -> None:
-        """From now on the kernels are compiled here and kept in memory: the cache is neither read nor written."""
+        """From now on the kernels are compiled here and kept in memory: the cache is neither read nor written
+        (:func:`.patches.stop_caching`)."""
         self._unkept = True
-        with contextlib.suppress(AttributeError):
-            self.entry._cache.disable()
+        patches.stop_caching(self.entry)
 
     def _cached(self) -> bool:
         """Whether the entry's compiled code is in the on-disk cache (looked at without the lock)."""
@@ -535,32 +527,13 @@ def _cache_directory(target: str, extra: str = "") -> Path | None:
 
 def _read_only_directory(target: str, name: str, extra: str = "") -> Path | None:
     """The cache's directory of ``target`` when it cannot be written (:func:`_cache_directory` gave none) but holds
-    the compiled entry ``name`` (its index): loaded from as it is, never written (:func:`_read_only_cache`)."""
+    the compiled entry ``name`` (its index): loaded from as it is, never written
+    (:func:`.patches.read_only_cache`)."""
     path = cache_root() / f"kernels-{target}-{source_digest(extra)}"
     try:
         return path if any(path.glob(f"**/*{name}*.nbi")) else None
     except OSError:
         return None
-
-
-def _read_only_cache(py_func: Any) -> Any:
-    """Numba's on-disk cache of ``py_func`` in ``numba.config.CACHE_DIR`` (the same files a writable cache holds)
-    for a folder that cannot be written: Numba's own finds no place for such a function's cache when it cannot write
-    a probe file there, and compiles it again in every run. Its writes fail, as they do on a full disk
-    (:meth:`Compiled._guard_saves`)."""
-    from numba.core import caching
-
-    class Locator(caching.UserProvidedCacheLocator):
-        def ensure_cache_path(self) -> None:  # (read from: nothing to make, nothing to probe)
-            pass
-
-    class Impl(caching.CompileResultCacheImpl):
-        _locator_classes = [Locator]
-
-    class ReadOnlyCache(caching.FunctionCache):
-        _impl_class = Impl
-
-    return ReadOnlyCache(py_func)
 
 
 @contextlib.contextmanager
@@ -643,12 +616,9 @@ def python() -> Compiled:
     return c
 
 
-CPU_FLAGS: dict[str, Any] = {"nogil": True, "_nrt": False}
-"""Numba's options for every CPU kernel function and entry. Without the interpreter lock, so that threads run
-batches side by side. Without reference counting (``_nrt``): the kernels allocate nothing, and every array they see
-is owned by the caller for the whole call; with it, each view made and each array passed between kernel functions
-cost an atomic increment and decrement, about half of a reading's time, and threads sharing the constants' arena
-contended for its count."""
+CPU_FLAGS: dict[str, Any] = {"nogil": True}
+"""Numba's options for every CPU kernel function and entry, with :func:`.patches.without_reference_counts`. Without the
+interpreter lock, so that threads run batches side by side."""
 
 
 @functools.cache
@@ -656,7 +626,12 @@ def _cpu_namespace() -> dict[str, Any]:
     import numba
     from numba.core import types as nb_types
 
-    inner: dict[str, Any] = {**CPU_FLAGS, "no_cpython_wrapper": True, "no_cfunc_wrapper": True}
+    inner: dict[str, Any] = {
+        **CPU_FLAGS,
+        **patches.without_reference_counts(),
+        "no_cpython_wrapper": True,
+        "no_cfunc_wrapper": True,
+    }
 
     def decorate(fn: Any) -> Any:
         return patches.general(numba.njit(**inner)(fn), nb_types.unliteral)
@@ -674,11 +649,11 @@ def _cpu_entry(name: str, warm: Any, what: str, maker: str) -> Compiled:
     writable = directory is not None
     if directory is None:
         directory = _read_only_directory("cpu", name)
-    flags: dict[str, Any] = {**CPU_FLAGS, "cache": writable}
+    flags: dict[str, Any] = {**CPU_FLAGS, **patches.without_reference_counts(), "cache": writable}
     with _numba_cache_dir(directory):
         entry = numba.njit(**flags)(_cpu_namespace()[name].py_func)
-        if directory is not None and not writable:
-            entry._cache = _read_only_cache(entry.py_func)
+        if directory is not None and not writable and not patches.read_only_cache(entry):
+            directory = None  # (a read-only cache this Numba cannot load from: compiled here, kept in memory)
     return Compiled("cpu", entry, directory, warm, what, maker=maker, writable=writable)
 
 
