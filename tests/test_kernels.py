@@ -662,16 +662,33 @@ def test_a_reading_that_overflows_is_data_not_an_exception():
 
 
 def test_the_generated_accessors_are_the_ones_the_layout_gives():
-    """torchrod/kernels/views.py is generated from layout.SPEC (``python -m torchrod.kernels.layout``): a part added
-    to the description without regenerating the file fails here."""
+    """torchrod/kernels/views.py and its type stub views.pyi are generated from layout.SPEC (``python -m
+    torchrod.kernels.layout``), which places the parts the kernel modules declare: a part added to a declaration
+    without regenerating the files fails here. The groups lie in the arenas in the order of layout.GROUPS, each
+    declared by one kernel module."""
     from pathlib import Path
 
-    from torchrod.kernels import layout, views
+    from torchrod.kernels import counts, covariance, fit, layout, march, precurved, scan, search, views
 
-    assert Path(views.__file__).read_text(encoding="utf-8") == layout.render_views()
+    here = Path(views.__file__)
+    assert here.read_text(encoding="utf-8") == layout.render_views()
+    assert here.with_suffix(".pyi").read_text(encoding="utf-8") == layout.render_stub()
+    assert tuple(layout.SPEC) == layout.GROUPS
+    declared = {}
+    for module in (march, counts, search, precurved, fit, scan, covariance):
+        (name,) = [key for key in vars(module) if key.endswith("_PARTS")]
+        for group, parts in getattr(module, name).items():
+            assert group not in declared, group
+            declared[group] = parts
+    assert declared == layout.SPEC
+    assert views.Kit is layout.Kit and views.Kit._fields == tuple(name for name, _ in layout.KIT)
     for group, parts in layout.SPEC.items():
         assert getattr(views, f"{group.capitalize()}View")._fields == tuple(parts)
         assert callable(getattr(views, f"{group}_of"))
+    with pytest.raises(ValueError, match="declared twice"):
+        layout._assemble(scan.SCAN_PARTS, scan.SCAN_PARTS)
+    with pytest.raises(ValueError, match="not those of GROUPS"):
+        layout._assemble(scan.SCAN_PARTS)
 
 
 def test_the_numba_patches_step_aside_outside_the_releases_they_were_checked_on(monkeypatch):

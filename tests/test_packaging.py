@@ -95,9 +95,9 @@ def test_pyproject_lists_every_package_and_ships_every_file_by_name():
 
 def test_a_built_wheel_holds_the_package_data(tmp_path):
     """``pip wheel`` of a copy of the source (so no build files land in the checkout): the wheel carries the rod
-    files, the example data, the network and py.typed, under the version torchrod reports, and not the other files
-    that the top-level folders may hold (a set generated there, a network trained there); unpacked and imported,
-    it finds its files."""
+    files, the example data, the network, py.typed and the kernels' type stub, under the version torchrod reports,
+    and not the other files that the top-level folders may hold (a set generated there, a network trained there);
+    unpacked and imported, it finds its files."""
     pytest.importorskip("setuptools", minversion="70.1")  # builds wheels without the `wheel` package
     src = tmp_path / "src"
     src.mkdir()
@@ -121,6 +121,7 @@ def test_a_built_wheel_holds_the_package_data(tmp_path):
     for name in FILES:
         assert f"{PACKAGES[name].replace('.', '/')}/{name}" in names, name
     assert {"torchrod/py.typed", "torchrod/data/__init__.py", "torchrod/checkpoints/__init__.py"} <= names
+    assert "torchrod/kernels/views.pyi" in names  # (setuptools ships a package's stubs by itself)
     assert not any(n.endswith(("warm_start.pt", "my_stream.jsonl")) for n in names)
     assert any(n.endswith(".dist-info/licenses/LICENSE") or n.endswith(".dist-info/LICENSE") for n in names)
     assert not any(n.startswith(("tests/", "docs/", "examples/", "data/", "checkpoints/")) for n in names)

@@ -24,7 +24,7 @@ of the tests altogether (the noise's estimate and the drops included), as if not
 the noise, the verdict says so (:func:`unexplained`: ``misfit``).
 
 The quantiles come from tables the caller makes once (:func:`torchrod.kernels.host.count_tables`, held in the
-``tables`` group of :data:`torchrod.kernels.layout.SPEC`, indexed by the count difference and by the degrees of
+``tables`` group of :data:`COUNTS_PARTS`, indexed by the count difference and by the degrees of
 freedom). The one special function computed here is the chi-square
 survival of the reported p-value (:func:`chi2_survival`), once per reading.
 """
@@ -33,6 +33,15 @@ import math
 
 from .status import MISFIT, OK, POORLY_DETERMINED, TIMEOUT, UNCONVERGED
 from .views import tables_of
+
+COUNTS_PARTS: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
+    "tables": {  # the count tests' quantiles (:func:`torchrod.kernels.host.count_tables`)
+        "drop_chi2": (("KT",), "k"), "drop_f": (("KT", "D"), "k"), "misfit": (("D",), "k"), "guard": (("D",), "k"),
+        "suspect": (("D",), "k"), "kink": (("D",), "k"), "verdict": (("D",), "k"),
+    },
+}  # fmt: skip
+"""The parts of a reading's arenas that this module's functions own, by group: {name: (shape, kind)}, in the terms of
+:data:`.layout.SPEC`, which places every kernel module's groups in the arenas and generates their views."""
 
 RULE_NOISE = 0
 RULE_THRESHOLD = 1

@@ -16,6 +16,17 @@ from .fit import KINK, gram
 from .linalg import symmetric_eigen
 from .views import cov_of, model_of, reading_of
 
+COVARIANCE_PARTS: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
+    "cov": {  # the covariance's work
+        "Jm": (("n", "P"), "f"), "ok": (("P",), "b"), "d": (("P",), "f"), "C": (("P", "P"), "f"),
+        "w": (("P",), "f"), "V": (("P", "P"), "f"), "a": (("P", "P"), "f"), "inv": (("P",), "f"),
+        "cov": (("P", "P"), "f"), "active": (("P",), "b"), "Js": (("n", "P"), "f"), "std2": (("W", 3), "f"),
+        "tail": (("P",), "i"), "last": (("P", "P"), "f"),
+    },
+}  # fmt: skip
+"""The parts of a reading's arenas that this module's functions own, by group: {name: (shape, kind)}, in the terms of
+:data:`.layout.SPEC`, which places every kernel module's groups in the arenas and generates their views."""
+
 DIAG_MIN = 1e-300
 """An unknown whose J^T J diagonal is not above this has no scale: not determined."""
 

@@ -10,7 +10,7 @@ side, the slope jump i (f_x + i f_y) / EI on the distal side). Each force carrie
 the reading's present gratings and stays in it while a step moves it; a force on a bound has its own interval's
 one-sided derivative (:func:`sided`). Crossing a grating is a decision of :func:`analyse`.
 
-One Levenberg-Marquardt iteration of a row (a fit held in the ``rows`` group of :data:`torchrod.kernels.layout.SPEC`,
+One Levenberg-Marquardt iteration of a row (a fit held in the ``rows`` group of :data:`.search.SEARCH_PARTS`,
 seen through :func:`torchrod.kernels.views.rows_of`):
 
 1. :func:`analyse`: a force on (or within :data:`SNAP` of) a bound whose loss falls by leaving the interval is
@@ -34,6 +34,19 @@ from .linalg import spd_solve, sumsq
 from .march import march_exact, march_fit, slope_jump
 from .precurved import EXACT_MAX_STEP, FIT_MAX_STEP, march_precurved
 from .views import lm_of, march_of, model_of, reading_of, rows_of
+
+FIT_PARTS: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
+    "lm": {  # one Levenberg-Marquardt step's work
+        "lo": (("W",), "f"), "hi": (("W",), "f"), "Js": (("n", "P"), "f"), "free": (("P",), "f"),
+        "gi": (("P",), "f"), "near_lo": (("W",), "b"), "near_hi": (("W",), "b"), "new_int": (("W",), "i"),
+        "new_s": (("W",), "f"), "M": (("P", "P"), "f"), "L": (("P", "P"), "f"), "x": (("P",), "f"),
+        "A": (("P", "P"), "f"), "prop": (("P",), "f"), "v": (("P",), "f"), "dx": (("P",), "f"), "pv": (("P",), "f"),
+        "st": (("W",), "f"), "ft": (("W", 2), "f"), "rt": (("n",), "f"), "Jt": (("n", "P"), "f"),
+        "taken": (("P",), "f"), "rv": (("n",), "f"), "rhs": (("P",), "f"), "tail": (("P",), "i"),
+    },
+}  # fmt: skip
+"""The parts of a reading's arenas that this module's functions own, by group: {name: (shape, kind)}, in the terms of
+:data:`.layout.SPEC`, which places every kernel module's groups in the arenas and generates their views."""
 
 FLOOR = 1e-12
 """Every damped system adds this fraction of its largest diagonal entry to its diagonal."""

@@ -73,10 +73,11 @@ def _count_tables(
 def count_tables(
     num_gratings: int, max_forces: int, significance: float, suspect: float, kink_suspect: float, misfit_level: float
 ) -> dict[str, np.ndarray]:
-    """The quantiles of the count tests and the search (the ``tables`` group of :data:`.layout.SPEC`) for a rod of
-    ``num_gratings`` gratings and counts up to ``max_forces``: the drop limits at ``significance / num_gratings``
-    (Bonferroni over the intervals), the misfit guard at ``significance / MISFIT_FACTOR``, the ``suspect`` and
-    ``kink_suspect`` quantiles, and the verdict's at ``1 - misfit_level``; by degrees of freedom 0..2G."""
+    """The quantiles of the count tests and the search (the ``tables`` group of :data:`.counts.COUNTS_PARTS`) for a
+    rod of ``num_gratings`` gratings and counts up to ``max_forces``: the drop limits at ``significance /
+    num_gratings`` (Bonferroni over the intervals), the misfit guard at ``significance / MISFIT_FACTOR``, the
+    ``suspect`` and ``kink_suspect`` quantiles, and the verdict's at ``1 - misfit_level``; by degrees of freedom
+    0..2G."""
     return dict(_count_tables(num_gratings, max_forces, significance, suspect, kink_suspect, misfit_level))
 
 
@@ -95,7 +96,7 @@ def rod_setup(
     exact_max_steps: int,
     method: Any,
 ) -> tuple[np.recarray, dict[str, np.ndarray]]:
-    """The :data:`.layout.ROD` record and the parts of the ``model`` group of :data:`.layout.SPEC` of a rod (SI
+    """The :data:`.layout.ROD` record and the parts of the ``model`` group of :data:`.march.MARCH_PARTS` of a rod (SI
     units): ``segments`` its intrinsic curvature (from, to, u*_x, u*_y), ``breakpoints`` where u* may jump,
     ``method`` the exact model's tableau (c, a, bp, bv, as :class:`torchrod.model.nystrom.Tableau` holds them)."""
     extra = np.array([0.0, *breakpoints], np.float64)

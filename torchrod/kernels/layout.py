@@ -1,6 +1,6 @@
 """The kernels' data: named records for the settings, and one reading's scratch in a few arenas whose named parts
-are described once here (:data:`SPEC`), so that every target allocates it alike and every kernel function reads it
-by name.
+each kernel module declares beside the functions that own them (its ``*_PARTS``) and that are placed in the arenas
+here (:data:`SPEC`), so that every target allocates them alike and every kernel function reads them by name.
 
 Records (NumPy structured arrays, read as ``k.rod.length``):
 
@@ -14,12 +14,22 @@ A reading's scratch is four arenas (float64, int64, complex128, bool), and the c
 positions, the exact model's tableau, the count tests' quantiles) one float64 arena. A kernel function takes a small
 :class:`Kit` (the records, the arenas) and makes the views it needs with the accessors of :mod:`.views` (``rows =
 rows_of(k)``, then ``rows.loss[i]``): passed between functions, a few arenas cost the compiler far less than a
-tuple of a hundred arrays would.
+tuple of a hundred arrays would. The accessors and their type stub are generated from :data:`SPEC` by ``python -m
+torchrod.kernels.layout`` (:func:`render_views`, :func:`render_stub`).
 """
 
 from collections import namedtuple
 
 import numpy as np
+
+from .counts import COUNTS_PARTS
+from .covariance import COVARIANCE_PARTS
+from .fit import FIT_PARTS
+from .march import MARCH_PARTS
+from .precurved import PRECURVED_PARTS
+from .scan import SCAN_PARTS
+from .search import SEARCH_PARTS
+from .views import Kit  # noqa: F401 - generated beside the accessors that read it; the host makes it from here
 
 ROD = np.dtype(
     [
@@ -98,73 +108,33 @@ INFO = np.dtype(
 DIMS = ("G", "H", "n", "P", "P2", "W", "C", "Q", "R", "NT", "TE", "E", "NC", "S", "NSEG", "NX", "KT", "D")
 """The sizes the arenas' parts follow from (:func:`dims`)."""
 
-# The arenas' parts: group -> {name: (shape in DIMS or numbers, kind)}; kinds: f float64, i int64, c complex128,
-# b bool, k the constants' float64 arena. Each group becomes a named tuple of views (:mod:`.views`).
-SPEC: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
-    "model": {  # the rod: grating positions [m], the exact model's tableau, the intrinsic curvature
-        "query": (("G",), "k"), "tab_c": (("S",), "k"), "tab_a": (("S", "S"), "k"), "tab_bp": (("S",), "k"),
-        "tab_bv": (("S",), "k"), "segments": (("NSEG", 4), "k"), "extra": (("NX",), "k"),
-    },
-    "tables": {  # the count tests' quantiles (:func:`torchrod.kernels.host.count_tables`)
-        "drop_chi2": (("KT",), "k"), "drop_f": (("KT", "D"), "k"), "misfit": (("D",), "k"), "guard": (("D",), "k"),
-        "suspect": (("D",), "k"), "kink": (("D",), "k"), "verdict": (("D",), "k"),
-    },
-    "reading": {  # the reading's intervals between present gratings: bounds [m] and their gratings (-1: none)
-        "lo": (("G",), "f"), "hi": (("G",), "f"), "lo_k": (("G",), "i"), "hi_k": (("G",), "i"),
-    },
-    "rows": {  # fit states: rows 0..H the best fit of each count, the rest the search's work rows
-        "s": (("R", "W"), "f"), "f": (("R", "W", 2), "f"), "interval": (("R", "W"), "i"), "held": (("R", "W"), "b"),
-        "r": (("R", "n"), "f"), "J": (("R", "n", "P"), "f"), "A": (("R", "P", "P"), "f"), "g": (("R", "P"), "f"),
-        "proposal": (("R", "P"), "f"), "loss": (("R",), "f"), "damping": (("R",), "f"), "steps": (("R",), "i"),
-        "ratio": (("R",), "f"), "decrement": (("R",), "f"), "noise2": (("R",), "f"), "converged": (("R",), "b"),
-        "done": (("R",), "b"), "count": (("R",), "i"),
-    },
-    "march": {  # the marches' outputs and their straight-rod work
-        "curv": (("Q", 2), "f"), "jac": (("Q", 2, "P"), "f"), "phi": (("Q", 8, 6), "f"),
-        "order": (("E",), "i"), "seg": (("E",), "f"), "steps": (("E",), "i"), "jump": (("W",), "c"),
-        "mag": (("W",), "f"), "du": (("NC",), "c"), "dw": (("NC",), "c"), "carried": (("NC",), "b"),
-        "ys": (("S",), "c"), "gs": (("S",), "c"),
-    },
-    "precurved": {  # the precurved march's state and Runge-Kutta stages
-        "yn": ((3, "NC"), "f"), "ym": ((3, "NC"), "f"), "tn": ((3, "NC"), "f"), "tm": ((3, "NC"), "f"),
-        "kn": ((3, "NC"), "f"), "km": ((3, "NC"), "f"), "an": ((3, "NC"), "f"), "am": ((3, "NC"), "f"),
-    },
-    "lm": {  # one Levenberg-Marquardt step's work
-        "lo": (("W",), "f"), "hi": (("W",), "f"), "Js": (("n", "P"), "f"), "free": (("P",), "f"),
-        "gi": (("P",), "f"), "near_lo": (("W",), "b"), "near_hi": (("W",), "b"), "new_int": (("W",), "i"),
-        "new_s": (("W",), "f"), "M": (("P", "P"), "f"), "L": (("P", "P"), "f"), "x": (("P",), "f"),
-        "A": (("P", "P"), "f"), "prop": (("P",), "f"), "v": (("P",), "f"), "dx": (("P",), "f"), "pv": (("P",), "f"),
-        "st": (("W",), "f"), "ft": (("W", 2), "f"), "rt": (("n",), "f"), "Jt": (("n", "P"), "f"),
-        "taken": (("P",), "f"), "rv": (("n",), "f"), "rhs": (("P",), "f"), "tail": (("P",), "i"),
-    },
-    "scan": {  # the scan's candidates, responses and Gauss-Newton models
-        "cand": (("C",), "f"), "cint": (("C",), "i"), "valid": (("C",), "b"), "at": (("Q",), "f"),
-        "r": (("n",), "f"), "J": (("n", "P"), "f"), "Jraw": (("n", "P"), "f"), "Jc": (("C", "n", 2), "f"),
-        "Mphi": ((6, 6), "f"), "LU": ((6, 6), "f"), "piv": ((6,), "i"), "col": ((6,), "f"), "xcol": ((6,), "f"),
-        "Msol": ((6, 2), "f"), "Abb": (("P", "P"), "f"), "Acc": (("C", 2, 2), "f"), "gc": (("C", 2), "f"),
-        "Kb": (("P", "P"), "f"), "Lb": (("P", "P"), "f"), "e": (("P",), "f"), "xk": (("P",), "f"),
-        "Kinv": (("P", "P"), "f"), "gb": (("P",), "f"), "yb": (("P",), "f"), "Acb": ((2, "P"), "f"),
-        "Y": (("C", 2, "P"), "f"), "xc": (("C", 2), "f"), "dec": (("C",), "f"), "best_c": (("G",), "i"),
-        "order": (("G",), "i"), "st": (("P2",), "f"),
-    },
-    "cov": {  # the covariance's work
-        "Jm": (("n", "P"), "f"), "ok": (("P",), "b"), "d": (("P",), "f"), "C": (("P", "P"), "f"),
-        "w": (("P",), "f"), "V": (("P", "P"), "f"), "a": (("P", "P"), "f"), "inv": (("P",), "f"),
-        "cov": (("P", "P"), "f"), "active": (("P",), "b"), "Js": (("n", "P"), "f"), "std2": (("W", 3), "f"),
-        "tail": (("P",), "i"), "last": (("P", "P"), "f"),
-    },
-    "search": {  # the search's bookkeeping: counts fitted, scans kept, exchange starts, stop rules, the report
-        "fitted": (("R",), "b"), "have_scan": (("R",), "b"), "unscanned": (("R",), "b"), "losses": (("R",), "f"),
-        "gain": (("R",), "f"),
-        "near_limit": (("R",), "f"), "sc_s": (("R", "NT", "W"), "f"), "sc_f": (("R", "NT", "W", 2), "f"),
-        "sc_int": (("R", "NT", "W"), "i"), "sc_pred": (("R", "NT"), "f"), "ex_s": (("TE", "W"), "f"),
-        "ex_f": (("TE", "W", 2), "f"), "ex_int": (("TE", "W"), "i"), "ex_pred": (("TE",), "f"),
-        "taken": (("TE",), "b"), "keys": (("R", "W"), "i"), "flags": (("R",), "b"), "ids": (("R",), "i"),
-        "going": (("R",), "i"), "home": (("W",), "i"), "bs": (("W",), "f"), "bf": (("W", 2), "f"),
-        "bint": (("W",), "i"), "Jrep": (("n", "P"), "f"), "std": (("W", 3), "f"), "slot_s": (("W",), "f"),
-        "slot_f": (("W", 2), "f"), "slot_int": (("W",), "i"), "order": (("W",), "i"),
-    },
-}  # fmt: skip
+GROUPS = ("model", "tables", "reading", "rows", "march", "precurved", "lm", "scan", "cov", "search")
+"""The groups of the arenas' parts, in the order they lie in the arenas (each group's parts in the order declared)."""
+
+
+def _assemble(*declared: dict) -> dict:
+    """The groups of the kernel modules' declarations, in the order of :data:`GROUPS` (each declared once)."""
+    found: dict = {}
+    for parts in declared:
+        for group, fields in parts.items():
+            if group in found:
+                raise ValueError(f"the arenas' group {group!r} is declared twice")
+            found[group] = fields
+    if set(found) != set(GROUPS):
+        raise ValueError(f"the arenas' groups {sorted(found)} are not those of GROUPS {sorted(GROUPS)}")
+    return {group: found[group] for group in GROUPS}
+
+
+SPEC: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = _assemble(
+    MARCH_PARTS, COUNTS_PARTS, SEARCH_PARTS, PRECURVED_PARTS, FIT_PARTS, SCAN_PARTS, COVARIANCE_PARTS
+)
+"""The arenas' parts: group -> {name: (shape in :data:`DIMS` or numbers, kind)}; kinds: f float64, i int64, c
+complex128, b bool, k the constants' float64 arena. Each group is declared beside the kernel functions that own it
+(``MARCH_PARTS`` in :mod:`.march`: the rod's model and the marches' work; ``COUNTS_PARTS`` in :mod:`.counts`: the
+count tests' tables; ``SEARCH_PARTS`` in :mod:`.search`: the reading, the fit rows and the search's bookkeeping;
+``PRECURVED_PARTS`` in :mod:`.precurved`; ``FIT_PARTS`` in :mod:`.fit`: the Levenberg-Marquardt step's ``lm``;
+``SCAN_PARTS`` in :mod:`.scan`; ``COVARIANCE_PARTS`` in :mod:`.covariance`: ``cov``) and placed here in the order
+of :data:`GROUPS`. Each group becomes a named tuple of views (:mod:`.views`)."""
 
 KINDS = {"f": np.float64, "i": np.int64, "c": np.complex128, "b": np.bool_, "k": np.float64}
 
@@ -176,11 +146,6 @@ Sizes = namedtuple("Sizes", "G H starts per_interval exchange_top guess_rows sta
 """What the arenas' sizes follow from: G gratings, H the largest count, the search's settings, the most guess
 blocks for one count, the exact model's stages, the intrinsic-curvature segments and the precurved rod's extra
 events."""
-
-Kit = namedtuple("Kit", "rod opt lay info const f i c b u w flag")
-"""Everything a kernel function of one reading reads: the :data:`ROD`, :data:`OPTIONS` and :data:`LAYOUT` records,
-the reading's :data:`INFO`, the constants' arena, the four scratch arenas, the reading's u (2G,) [1/m] and w (2G,)
-(1.0 where present), and the caller's stop flag (1,)."""
 
 Setup = namedtuple("Setup", "rod opt lay const gcount")
 """What the batch shares: the :data:`ROD`, :data:`OPTIONS` and :data:`LAYOUT` records (one element each), the
@@ -305,16 +270,39 @@ del _dtype
 ARENA = {"f": "k.f", "i": "k.i", "c": "k.c", "b": "k.b", "k": "k.const"}
 """The Kit's arena of each kind, as the accessors name it."""
 
-_VIEWS_HEAD = '''"""Named views of a reading's arenas: one accessor per group of :data:`.layout.SPEC` (``rows_of(k)``,
-``lm_of(k)``, ...), returning a named tuple of views into the arenas of the :class:`.layout.Kit` ``k``.
+KIT = (
+    ("rod", "Any"), ("opt", "Any"), ("lay", "Any"), ("info", "Any"), ("const", "NDArray[np.float64]"),
+    ("f", "NDArray[np.float64]"), ("i", "NDArray[np.int64]"), ("c", "NDArray[np.complex128]"),
+    ("b", "NDArray[np.bool_]"), ("u", "NDArray[np.float64]"), ("w", "NDArray[np.float64]"),
+    ("flag", "NDArray[np.int64]"),
+)  # fmt: skip
+"""The fields of :class:`Kit` and their types for the type checker (the records are NumPy records: Any)."""
 
-GENERATED from :data:`.layout.SPEC` by ``python -m torchrod.kernels.layout``: do not edit by hand (a test holds
-this file equal to what the description gives). Each accessor is a few :func:`view` calls, inlined where it is
-called on a compiled target, so the description stays the only place the arenas' parts are listed, and grep, the
+TYPES = {
+    "f": "NDArray[np.float64]",
+    "i": "NDArray[np.int64]",
+    "c": "NDArray[np.complex128]",
+    "b": "NDArray[np.bool_]",
+    "k": "NDArray[np.float64]",
+}
+"""The type of a view of each kind, for the type checker."""
+
+_VIEWS_HEAD = f'''"""Named views of a reading's arenas: one accessor per group of :data:`.layout.SPEC` (``rows_of(k)``,
+``lm_of(k)``, ...), returning a named tuple of views into the arenas of the :class:`Kit` ``k``.
+
+GENERATED by ``python -m torchrod.kernels.layout`` from the parts each kernel module declares (its ``*_PARTS``,
+placed in the arenas by :data:`.layout.SPEC`): do not edit by hand (a test holds this file, and its type stub
+``views.pyi``, equal to what the declarations give). Each accessor is a few :func:`view` calls, inlined where it
+is called on a compiled target, so the declarations stay the only place the arenas' parts are listed, and grep, the
 type checker and a reader all see the code.
 """
 
 from collections import namedtuple
+
+Kit = namedtuple("Kit", "{" ".join(name for name, _ in KIT)}")
+"""Everything a kernel function of one reading reads: the :data:`.layout.ROD`, :data:`.layout.OPTIONS` and
+:data:`.layout.LAYOUT` records, the reading's :data:`.layout.INFO`, the constants' arena, the four scratch arenas,
+the reading's u (2G,) [1/m] and w (2G,) (1.0 where present), and the caller's stop flag (1,)."""
 
 
 def view(arena, start, shape):
@@ -325,6 +313,23 @@ def view(arena, start, shape):
     for d in shape:
         size *= d
     return arena[start : start + size].reshape(shape)
+'''
+
+_KIT_FIELDS = "".join(f"    {name}: {type_}\n" for name, type_ in KIT)
+_STUB_HEAD = f'''"""Types of :mod:`.views` for the type checker: the named views typed by kind, the accessors by the
+views they return.
+
+GENERATED with :mod:`.views` by ``python -m torchrod.kernels.layout``: do not edit by hand.
+"""
+
+from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+class Kit(NamedTuple):
+{_KIT_FIELDS}
+def view(arena: NDArray[Any], start: int, shape: tuple[int, ...]) -> NDArray[Any]: ...
 '''
 
 
@@ -350,7 +355,27 @@ def render_views() -> str:
     return "".join(out)
 
 
-if __name__ == "__main__":  # python -m torchrod.kernels.layout: write the generated accessors
+_SHADOW = "  # type: ignore[assignment]  # (a part named like a method of tuple: the field hides it)"
+
+
+def render_stub() -> str:
+    """The source of the type stub ``views.pyi``: :class:`Kit`, and for each group of :data:`SPEC` its named tuple
+    (each view typed by its kind) and its accessor."""
+    out = [_STUB_HEAD]
+    for group, parts in SPEC.items():
+        fields = "".join(
+            f"    {name}: {TYPES[kind]}{_SHADOW if name in dir(tuple) else ''}\n" for name, (_, kind) in parts.items()
+        )
+        out.append(f"\nclass {group.capitalize()}View(NamedTuple):\n{fields}")
+    out.append("\n")
+    for group in SPEC:
+        out.append(f"def {group}_of(k: Kit) -> {group.capitalize()}View: ...\n")
+    return "".join(out)
+
+
+if __name__ == "__main__":  # python -m torchrod.kernels.layout: write the generated accessors and their types
     from pathlib import Path
 
-    (Path(__file__).parent / "views.py").write_text(render_views(), encoding="utf-8")
+    here = Path(__file__).parent
+    (here / "views.py").write_text(render_views(), encoding="utf-8")
+    (here / "views.pyi").write_text(render_stub(), encoding="utf-8")

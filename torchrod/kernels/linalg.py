@@ -10,6 +10,9 @@ raises.
 
 import math
 
+import numpy as np
+from numpy.typing import NDArray
+
 EIGEN_SWEEPS = 60
 """Most sweeps of the cyclic Jacobi eigenvalue method: it converges quadratically, in under ten sweeps for the
 9 x 9 matrices it is given, so reaching this bound means the input was not a number."""
@@ -27,7 +30,7 @@ INLINE = (
 """Small functions the CUDA target inlines where they are called (:func:`.targets.cuda_namespace`)."""
 
 
-def sumsq(x, n):
+def sumsq(x: NDArray[np.float64], n: int) -> float:
     """sum_{k < n} x[k]^2."""
     t = 0.0
     for k in range(n):
@@ -35,7 +38,7 @@ def sumsq(x, n):
     return t
 
 
-def dot(a, b, n):
+def dot(a: NDArray[np.float64], b: NDArray[np.float64], n: int) -> float:
     """sum_{k < n} a[k] b[k]."""
     t = 0.0
     for k in range(n):
@@ -43,7 +46,7 @@ def dot(a, b, n):
     return t
 
 
-def cholesky_factor(M, L, P):
+def cholesky_factor(M: NDArray[np.float64], L: NDArray[np.float64], P: int) -> bool:
     """The lower Cholesky factor L of the symmetric positive definite M (its lower triangle is read). False where
     M is not finite or not positive definite (L is then left unusable)."""
     for j in range(P):
@@ -64,7 +67,7 @@ def cholesky_factor(M, L, P):
     return True
 
 
-def cholesky_apply(L, b, x, P):
+def cholesky_apply(L: NDArray[np.float64], b: NDArray[np.float64], x: NDArray[np.float64], P: int) -> bool:
     """x = (L L^T)^-1 b for the factor of :func:`cholesky_factor` (x may be b). False where x is not finite."""
     for i in range(P):
         v = b[i]
@@ -81,7 +84,9 @@ def cholesky_apply(L, b, x, P):
     return ok
 
 
-def spd_solve(M, b, x, P, L):
+def spd_solve(
+    M: NDArray[np.float64], b: NDArray[np.float64], x: NDArray[np.float64], P: int, L: NDArray[np.float64]
+) -> bool:
     """Solve M x = b for symmetric positive definite M (P x P), by Cholesky; L (P, P) scratch. True where it
     succeeded (M and b finite, M positive definite, x finite); elsewhere x = 0."""
     ok = cholesky_factor(M, L, P)
@@ -96,7 +101,7 @@ def spd_solve(M, b, x, P, L):
     return ok
 
 
-def lu_factor(M, LU, piv, P):
+def lu_factor(M: NDArray[np.float64], LU: NDArray[np.float64], piv: NDArray[np.int64], P: int) -> bool:
     """LU decomposition with partial pivoting of the general M (P x P) into LU (unit lower and upper triangles)
     and the row order piv. False where M is not finite or singular."""
     for i in range(P):
@@ -131,7 +136,9 @@ def lu_factor(M, LU, piv, P):
     return True
 
 
-def lu_apply(LU, piv, b, x, P):
+def lu_apply(
+    LU: NDArray[np.float64], piv: NDArray[np.int64], b: NDArray[np.float64], x: NDArray[np.float64], P: int
+) -> bool:
     """x = M^-1 b from :func:`lu_factor`'s LU and piv (x must not be b). False where x is not finite."""
     for i in range(P):
         v = b[piv[i]]
@@ -148,7 +155,9 @@ def lu_apply(LU, piv, b, x, P):
     return ok
 
 
-def symmetric_eigen(A, w, V, a, P):
+def symmetric_eigen(
+    A: NDArray[np.float64], w: NDArray[np.float64], V: NDArray[np.float64], a: NDArray[np.float64], P: int
+) -> bool:
     """Eigenvalues w (ascending) and orthonormal eigenvectors (the columns of V) of the symmetric A (P x P, read
     whole), by the cyclic Jacobi method on the copy ``a`` (P, P scratch). False where A is not finite (w and V are
     then NaN)."""

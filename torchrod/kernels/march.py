@@ -30,6 +30,21 @@ import math
 
 from .views import march_of, model_of
 
+MARCH_PARTS: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
+    "model": {  # the rod: grating positions [m], the exact model's tableau, the intrinsic curvature
+        "query": (("G",), "k"), "tab_c": (("S",), "k"), "tab_a": (("S", "S"), "k"), "tab_bp": (("S",), "k"),
+        "tab_bv": (("S",), "k"), "segments": (("NSEG", 4), "k"), "extra": (("NX",), "k"),
+    },
+    "march": {  # the marches' outputs and their straight-rod work
+        "curv": (("Q", 2), "f"), "jac": (("Q", 2, "P"), "f"), "phi": (("Q", 8, 6), "f"),
+        "order": (("E",), "i"), "seg": (("E",), "f"), "steps": (("E",), "i"), "jump": (("W",), "c"),
+        "mag": (("W",), "f"), "du": (("NC",), "c"), "dw": (("NC",), "c"), "carried": (("NC",), "b"),
+        "ys": (("S",), "c"), "gs": (("S",), "c"),
+    },
+}  # fmt: skip
+"""The parts of a reading's arenas that this module's functions own, by group: {name: (shape, kind)}, in the terms of
+:data:`.layout.SPEC`, which places every kernel module's groups in the arenas and generates their views."""
+
 INLINE = ("slope_jump", "event_position")
 
 FIT_STEP_ANGLE = 0.3

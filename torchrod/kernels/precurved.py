@@ -22,6 +22,15 @@ import math
 from .march import event_order, event_position
 from .views import march_of, model_of, precurved_of
 
+PRECURVED_PARTS: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
+    "precurved": {  # the precurved march's state and Runge-Kutta stages
+        "yn": ((3, "NC"), "f"), "ym": ((3, "NC"), "f"), "tn": ((3, "NC"), "f"), "tm": ((3, "NC"), "f"),
+        "kn": ((3, "NC"), "f"), "km": ((3, "NC"), "f"), "an": ((3, "NC"), "f"), "am": ((3, "NC"), "f"),
+    },
+}  # fmt: skip
+"""The parts of a reading's arenas that this module's functions own, by group: {name: (shape, kind)}, in the terms of
+:data:`.layout.SPEC`, which places every kernel module's groups in the arenas and generates their views."""
+
 FIT_MAX_STEP = 1e-2
 """Longest step [m] of the fitting model (relative error ~4e-5)."""
 

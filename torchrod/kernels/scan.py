@@ -18,6 +18,21 @@ from .linalg import cholesky_apply, cholesky_factor, lu_apply, lu_factor, sumsq
 from .march import slope_jump
 from .views import lm_of, march_of, model_of, reading_of, rows_of, scan_of
 
+SCAN_PARTS: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
+    "scan": {  # the scan's candidates, responses and Gauss-Newton models
+        "cand": (("C",), "f"), "cint": (("C",), "i"), "valid": (("C",), "b"), "at": (("Q",), "f"),
+        "r": (("n",), "f"), "J": (("n", "P"), "f"), "Jraw": (("n", "P"), "f"), "Jc": (("C", "n", 2), "f"),
+        "Mphi": ((6, 6), "f"), "LU": ((6, 6), "f"), "piv": ((6,), "i"), "col": ((6,), "f"), "xcol": ((6,), "f"),
+        "Msol": ((6, 2), "f"), "Abb": (("P", "P"), "f"), "Acc": (("C", 2, 2), "f"), "gc": (("C", 2), "f"),
+        "Kb": (("P", "P"), "f"), "Lb": (("P", "P"), "f"), "e": (("P",), "f"), "xk": (("P",), "f"),
+        "Kinv": (("P", "P"), "f"), "gb": (("P",), "f"), "yb": (("P",), "f"), "Acb": ((2, "P"), "f"),
+        "Y": (("C", 2, "P"), "f"), "xc": (("C", 2), "f"), "dec": (("C",), "f"), "best_c": (("G",), "i"),
+        "order": (("G",), "i"), "st": (("P2",), "f"),
+    },
+}  # fmt: skip
+"""The parts of a reading's arenas that this module's functions own, by group: {name: (shape, kind)}, in the terms of
+:data:`.layout.SPEC`, which places every kernel module's groups in the arenas and generates their views."""
+
 INLINE = ("interval_of", "response_rows")
 """Small functions the CUDA target inlines where they are called (:func:`.targets.cuda_namespace`)."""
 

@@ -44,9 +44,34 @@ from .counts import (
 )
 from .covariance import near_kink, uncertainty
 from .fit import bounds, finish, late, sided, start, step
-from .layout import Kit
 from .scan import interval_of, scan_model, scan_starts
-from .views import lm_of, model_of, reading_of, rows_of, search_of
+from .views import Kit, lm_of, model_of, reading_of, rows_of, search_of
+
+SEARCH_PARTS: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
+    "reading": {  # the reading's intervals between present gratings: bounds [m] and their gratings (-1: none)
+        "lo": (("G",), "f"), "hi": (("G",), "f"), "lo_k": (("G",), "i"), "hi_k": (("G",), "i"),
+    },
+    "rows": {  # fit states: rows 0..H the best fit of each count, the rest the search's work rows
+        "s": (("R", "W"), "f"), "f": (("R", "W", 2), "f"), "interval": (("R", "W"), "i"), "held": (("R", "W"), "b"),
+        "r": (("R", "n"), "f"), "J": (("R", "n", "P"), "f"), "A": (("R", "P", "P"), "f"), "g": (("R", "P"), "f"),
+        "proposal": (("R", "P"), "f"), "loss": (("R",), "f"), "damping": (("R",), "f"), "steps": (("R",), "i"),
+        "ratio": (("R",), "f"), "decrement": (("R",), "f"), "noise2": (("R",), "f"), "converged": (("R",), "b"),
+        "done": (("R",), "b"), "count": (("R",), "i"),
+    },
+    "search": {  # the search's bookkeeping: counts fitted, scans kept, exchange starts, stop rules, the report
+        "fitted": (("R",), "b"), "have_scan": (("R",), "b"), "unscanned": (("R",), "b"), "losses": (("R",), "f"),
+        "gain": (("R",), "f"),
+        "near_limit": (("R",), "f"), "sc_s": (("R", "NT", "W"), "f"), "sc_f": (("R", "NT", "W", 2), "f"),
+        "sc_int": (("R", "NT", "W"), "i"), "sc_pred": (("R", "NT"), "f"), "ex_s": (("TE", "W"), "f"),
+        "ex_f": (("TE", "W", 2), "f"), "ex_int": (("TE", "W"), "i"), "ex_pred": (("TE",), "f"),
+        "taken": (("TE",), "b"), "keys": (("R", "W"), "i"), "flags": (("R",), "b"), "ids": (("R",), "i"),
+        "going": (("R",), "i"), "home": (("W",), "i"), "bs": (("W",), "f"), "bf": (("W", 2), "f"),
+        "bint": (("W",), "i"), "Jrep": (("n", "P"), "f"), "std": (("W", 3), "f"), "slot_s": (("W",), "f"),
+        "slot_f": (("W", 2), "f"), "slot_int": (("W",), "i"), "order": (("W",), "i"),
+    },
+}  # fmt: skip
+"""The parts of a reading's arenas that this module's functions own, by group: {name: (shape, kind)}, in the terms of
+:data:`.layout.SPEC`, which places every kernel module's groups in the arenas and generates their views."""
 
 STOP_NONE = 0
 STOP_TWINS = 1
