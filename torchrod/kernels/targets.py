@@ -569,7 +569,8 @@ def view_intrinsic(intrinsic: Any, types: Any, cgutils: Any, arrayobj: Any, impu
             out = arrayobj.make_array(sig.return_type)(context, builder)
             dims = [context.cast(builder, d, t, types.intp)
                     for d, t in zip(cgutils.unpack_tuple(builder, args[2]), shape_type, strict=True)]  # fmt: skip
-            strides, step = [], source.itemsize
+            strides: list[Any] = []
+            step = source.itemsize
             for d in reversed(dims):
                 strides.insert(0, step)
                 step = builder.mul(step, d)
