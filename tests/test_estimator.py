@@ -543,7 +543,7 @@ def _options_record_written_out(o: EstimatorOptions):
     floor2 = float(o.noise_floor) ** 2
     return record(
         OPTIONS,
-        max_forces=o.width,
+        max_forces=o.width + (1 if o.num_forces and sr.escape_turning < float("inf") else 0),
         fixed=-1 if o.num_forces is None else o.num_forces,
         min_dof=tr.rod.MIN_TEST_DOF,
         starts=o.starts,
@@ -556,6 +556,7 @@ def _options_record_written_out(o: EstimatorOptions):
         max_noise2=float(o.max_noise) ** 2 + floor2,
         hopeless=sr.hopeless,
         explained=sr.explained,
+        escape_turning=sr.escape_turning,
         per_interval=sr.per_interval,
         exchange_top=sr.exchange_top,
         rounds=sr.rounds,
@@ -620,11 +621,13 @@ def _options_record_written_out(o: EstimatorOptions):
                 hopeless=2.0,
                 explained=0.02,
                 twins=False,
+                escape_turning=1.0,
             ),
         ),
         EstimatorOptions(max_forces=0, lm=tr.LMPolicy(acceleration=0.25)),
+        EstimatorOptions(num_forces=1, search=tr.SearchOptions(escape_turning=float("inf"))),
     ],
-    ids=["default", "known-noise", "fixed-threshold-policies", "no-forces"],
+    ids=["default", "known-noise", "fixed-threshold-policies", "no-forces", "fixed-no-escape"],
 )
 def test_the_options_record_holds_each_option_as_written_out_by_hand(opts):
     """The kernels' options record, made from the options by name, is byte for byte the one every field of it written

@@ -582,6 +582,7 @@ def test_ctrl_c_during_a_first_compile_answers_the_readings_read_unsolved_at_onc
         args = ["estimate", *STREAM[1:], str(readings)]
     script = f"""
 import os, signal, sys
+signal.signal(signal.SIGINT, signal.default_int_handler)  # (a shell's background job starts with it ignored)
 from torchrod.cli import main
 from torchrod.io import stream
 from torchrod.kernels import targets
