@@ -65,17 +65,18 @@ def test_clean_large_bends_are_one_force_with_no_phantom():
         assert math.hypot(force["fx"] - case[1], force["fy"] - case[2]) <= 1e-3 * math.hypot(case[1], case[2]), where
 
 
+@pytest.mark.slow
 def test_a_fixed_count_at_a_large_bend_is_recovered():
-    """With the count fixed to one, the search of one force alone ends in a wrong minimum at a large bend (before:
-    ``misfit``, the force near the base with its sign turned, in 25 of 30 such readings); the free search up to two
-    forces reaches the right one, and the fixed count starts from it (``SearchOptions.escape_turning``,
-    :func:`torchrod.kernels.search.escape`)."""
-    cases = _cases(6, seed=5)
+    """With the count fixed to one, the search of one force alone ends in a wrong minimum at a large bend (without
+    the escape: ``misfit``, the force near the base with its sign turned, in 25 of these 30 readings); the search of
+    two forces reaches the right one, and the fixed count starts from it (``SearchOptions.escape_turning``,
+    :func:`torchrod.kernels.search.escape`). Two of the 30 need that search's exchange."""
+    cases = _cases(30, seed=5)
     u = torch.tensor(np.stack([_reading(c)[0] for c in cases]))
     options = tr.EstimatorOptions(noise=0.1, num_forces=1)
     result = tr.Estimator(ROD, options).estimate(u)
     alone = tr.Estimator(ROD, _no_escape(options)).estimate(u)
-    assert (alone.status == tr.Status.MISFIT.code).sum() >= 3  # the readings this test is for
+    assert (alone.status == tr.Status.MISFIT.code).sum() >= 20  # the readings this test is for
     for case, record, spent, before in zip(
         cases, result.to_records(), result.evaluations.tolist(), alone.evaluations.tolist(), strict=True
     ):

@@ -723,9 +723,9 @@ def escape(k):
 
     The scan's starts assume small deflections; at a large bend the search of h forces alone can end in a wrong
     minimum that misfits, while the fit of h + 1 forces reaches the right one with one force to spare. So the count
-    h + 1 is fitted from every start the scan of the best h gives, and that fit without its weakest force starts h
-    once more; the better fit of h is kept. The count above stays out of the answer; its evaluations are
-    counted."""
+    h + 1 is fitted from the scan of the best h and, while it looks suspicious, searched further as a chosen count
+    is (the scan's other starts, the exchange); that fit without its weakest force starts h once more, and the
+    better fit of h is kept. The count above stays out of the answer; its evaluations are counted."""
     opt = k.opt
     h = opt.fixed
     if h < 1 or opt.max_forces <= h or k.info[0].cut:
@@ -743,10 +743,13 @@ def escape(k):
     load_row(k, H + 1, up, sw.sc_s[up, 0], sw.sc_f[up, 0], sw.sc_int[up, 0])
     first_fits(k, up, 1)
     sw.fitted[up] = True
-    if opt.starts > 1:
+    loss_limit, kink_limit = suspect_limits(k, up)
+    if opt.starts > 1 and suspicious(k, up, loss_limit, kink_limit):
         for t in range(1, opt.starts):
             load_row(k, H + t, up, sw.sc_s[up, t], sw.sc_f[up, t], sw.sc_int[up, t])
         try_starts(k, up, opt.starts - 1)
+    if suspicious(k, up, loss_limit, kink_limit):
+        exchange(k, up, loss_limit, kink_limit)
     weakest = 0
     least = math.inf
     for j in range(up):
