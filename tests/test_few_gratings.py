@@ -166,6 +166,16 @@ def test_bench_gratings_quick_prints_the_table(capsys):
     assert "| 50 % | 0.5 |" in out and "| 0 % | none |" in out
 
 
+def test_the_gratings_table_leaves_the_spreads_empty_where_no_reading_has_one_force():
+    from torchrod.eval.few_gratings import StudyRow, table
+
+    values = {f.name: 0.5 for f in dataclasses.fields(StudyRow)}
+    unmeasured = dict.fromkeys(("direction_spread", "magnitude_error", "location_error"), math.nan)
+    lines = table([StudyRow(**values), StudyRow(**{**values, **unmeasured})])
+    assert lines[-2] == "| 50 % | 0.5 | 0.50 | 0.50 | 0.50 | 0.5 | 0.5 | 0.5 | 0.50 | 0.50 |"
+    assert lines[-1] == "| 50 % | 0.5 | 0.50 | 0.50 | 0.50 |  |  |  | 0.50 | 0.50 |"
+
+
 def test_the_gradients_hold_the_calibration_weights():
     """The differentiable path fits what the kernels fit: the loss's gradient in the readings is that of the
     weighed loss at the optimum, -2 w^2 (c(theta*) - u), with the weights held fixed."""

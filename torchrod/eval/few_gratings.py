@@ -144,11 +144,14 @@ def table(rows: list[StudyRow]) -> list[str]:
         "(%) | location error (mm) | ok | count accuracy |",
         "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
+
+    def spread(x: float) -> str:  # (no reading answered with one force: no spread, an empty cell)
+        return f"{x:.1f}" if math.isfinite(x) else ""
+
     for r in rows:
         out.append(
             f"| {100 * r.gain_error:.0f} % | {'none' if r.calibration_error == 0 else f'{r.calibration_error:g}'} | "
-            f"{r.none:.2f} | {r.one:.2f} | {r.more:.2f} | {r.direction_spread:.1f} | {r.magnitude_error:.1f} | "
-            f"{r.location_error:.1f} | {r.ok:.2f} | "
-            f"{r.count_accuracy:.2f} |"
+            f"{r.none:.2f} | {r.one:.2f} | {r.more:.2f} | {spread(r.direction_spread)} | "
+            f"{spread(r.magnitude_error)} | {spread(r.location_error)} | {r.ok:.2f} | {r.count_accuracy:.2f} |"
         )
     return out
