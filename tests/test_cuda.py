@@ -6,6 +6,7 @@ on the CPU."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -76,6 +77,49 @@ def test_the_cuda_kernel_under_the_simulator_answers_as_the_cpu_kernels():
                                    rtol=0, atol=LOCATION_ATOL)  # fmt: skip
         torch.testing.assert_close(torch.tensor(sim["f"], dtype=torch.float64), cpu.forces.f.nan_to_num(),
                                    rtol=0, atol=FORCE_ATOL)  # fmt: skip
+
+
+ESCAPE = """
+import json, sys
+import torch
+import torchrod as tr
+
+u = torch.tensor(json.load(open({path!r})), dtype=torch.float64)
+est = tr.Estimator(tr.presets.nitinol290(), tr.EstimatorOptions(noise=0.1, num_forces=1, target="cuda"))
+r = est.estimate(u)
+print(json.dumps(dict(statuses=[str(s) for s in r.statuses], evaluations=r.evaluations.tolist(),
+                      s=r.forces.s.tolist(), f=r.forces.f.tolist())))
+"""
+
+
+@pytest.mark.slow
+def test_the_fixed_count_escape_under_the_simulator_answers_as_the_cpu_kernels(tmp_path):
+    """Three large-bend readings whose fixed count of one misfits without the escape (tests/test_large_bends.py):
+    the CUDA entry under the simulator searches them again through two forces as the CPU kernels do, with the same
+    statuses and evaluations, and the forces to rounding."""
+    pytest.importorskip("numba.cuda")
+    from test_large_bends import _cases, _reading
+
+    cases = [c for c in _cases(30, seed=5) if c[0] > 0.28][:3]
+    u = torch.tensor([_reading(c)[0].tolist() for c in cases], dtype=torch.float64)
+    path = tmp_path / "u.json"
+    path.write_text(json.dumps(u.tolist()))
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
+    done = subprocess.run([sys.executable, "-c", ESCAPE.format(path=str(path))], capture_output=True, text=True,
+                          timeout=600, env=env, check=False)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    simulated = json.loads(done.stdout.splitlines()[-1])
+    options = tr.EstimatorOptions(noise=0.1, num_forces=1, target="cpu")
+    cpu = tr.Estimator(tr.presets.nitinol290(), options).estimate(u)
+    alone = tr.Estimator(tr.presets.nitinol290(), dataclasses.replace(
+        options, search=dataclasses.replace(options.search, escape_turning=math.inf))).estimate(u)  # fmt: skip
+    assert alone.statuses == [tr.Status.MISFIT] * 3  # the readings this test is for
+    assert simulated["statuses"] == [str(s) for s in cpu.statuses] and tr.Status.MISFIT not in cpu.statuses
+    assert simulated["evaluations"] == cpu.evaluations.tolist()
+    torch.testing.assert_close(torch.tensor(simulated["s"], dtype=torch.float64), cpu.forces.s, rtol=0,
+                               atol=LOCATION_ATOL)  # fmt: skip
+    torch.testing.assert_close(torch.tensor(simulated["f"], dtype=torch.float64), cpu.forces.f, rtol=0,
+                               atol=FORCE_ATOL)  # fmt: skip
 
 
 def test_the_estimation_kernel_types_and_lowers_for_cuda():
