@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import pytest
 import torch
@@ -665,3 +666,12 @@ def test_every_options_record_field_is_filled_once_and_every_option_of_its_name_
     clash = dataclasses.make_dataclass("Clash", [("damping", float, 1.0)], bases=(tr.SearchOptions,), frozen=True)
     with pytest.raises(tr.OptionsError, match="'damping' is named by both LMPolicy and Clash"):
         EstimatorOptions(search=clash()).record()
+
+
+@pytest.mark.parametrize("value", [0.0, -1.0, float("nan"), True, "1.5"])
+def test_an_escape_bound_that_is_not_a_positive_angle_is_refused(value):
+    with pytest.raises(
+        tr.OptionsError, match=f"escape_turning must be a positive angle .* got {re.escape(repr(value))}"
+    ):
+        tr.SearchOptions(escape_turning=value)
+    assert tr.SearchOptions(escape_turning=float("inf")).escape_turning == float("inf")
