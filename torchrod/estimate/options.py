@@ -51,9 +51,9 @@ def _integer(obj: Any, name: str, low: int) -> None:
         raise OptionsError(f"{name} must be an integer >= {low}, got {v!r}")
 
 
-def _number(obj: Any, name: str, ok: Callable[[float], bool], what: str) -> None:
+def _number(obj: Any, name: str, ok: Callable[[float], bool], what: str, finite: bool = True) -> None:
     v = getattr(obj, name)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not ok(v):
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or (finite and not math.isfinite(v)) or not ok(v):
         raise OptionsError(f"{name} must be {what}, got {v!r}")
 
 
@@ -153,9 +153,7 @@ class SearchOptions:
             _number(self, name, lambda v: 0.0 < v < 1.0, "in (0, 1)")
         _number(self, "hopeless", lambda v: v >= 1.0, ">= 1")
         _number(self, "explained", lambda v: v >= 0.0, ">= 0")
-        v = self.escape_turning
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0.0:  # (math.inf allowed: never)
-            raise OptionsError(f"escape_turning must be a positive angle [rad] or math.inf, got {v!r}")
+        _number(self, "escape_turning", lambda v: v > 0.0, "a positive angle [rad] or math.inf", finite=False)
         if not isinstance(self.twins, bool):
             raise OptionsError(f"twins must be True or False, got {self.twins!r}")
 
