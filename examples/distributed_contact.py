@@ -5,34 +5,18 @@
 Each reading is a patch of load ``--width`` mm long (25 equal point forces side by side, 0.2 to 2 N in all, in one
 direction drawn at random), its centre drawn between the second grating and the tip of the ``nitinol290`` rod
 (gratings 20 mm apart), with noise 0.1 1/m. The estimator answers each, with the noise given and with each
-reading's own; the script counts the answers of two forces or more, says whether their patch straddles a grating,
-and for each such answer prints where its forces are and how well one force alone fits the reading.
+reading's own; the script counts the answers of two forces or more, says whether their patch straddles a grating
+and how many the count tests alone give (``merge_patches=False``: no pair merged into one patch), and for each such
+answer prints where its forces are and how well one force alone fits the reading.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 
 import torch
 
 import torchrod as tr
-
-PARTS = 25
-"""Point forces that make up one patch."""
-
-
-def patches(rod: tr.Rod, count: int, width: float, generator: torch.Generator) -> tuple[tr.PointForces, torch.Tensor]:
-    """``count`` patches of load ``width`` [m] long: the forces (count, PARTS) and each patch's centre [m]."""
-    lo, L = rod.gratings[1] + width / 2, rod.length - width / 2
-    centre = lo + (L - lo) * torch.rand(count, generator=generator, dtype=torch.float64)
-    total = 0.2 + 1.8 * torch.rand(count, generator=generator, dtype=torch.float64)
-    angle = 2 * math.pi * torch.rand(count, generator=generator, dtype=torch.float64)
-    offsets = width * ((torch.arange(PARTS, dtype=torch.float64) + 0.5) / PARTS - 0.5)
-    s = centre[:, None] + offsets[None, :]
-    direction = torch.stack([angle.cos(), angle.sin()], dim=-1)
-    f = (total[:, None] * direction / PARTS)[:, None, :].expand(count, PARTS, 2)
-    return tr.PointForces(s, f.contiguous()), centre
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,7 +28,7 @@ def main(argv: list[str] | None = None) -> int:
     rod = tr.presets.nitinol290()
     generator = torch.Generator().manual_seed(args.seed)
     width = args.width / 1e3
-    loads, centre = patches(rod, args.count, width, generator)
+    loads, centre = tr.synthetic.sample_patches(rod, args.count, width, generator)
     u = tr.grating_curvature(rod, loads)
     u = u + 0.1 * torch.randn(u.shape, generator=generator, dtype=u.dtype)
     q = torch.tensor(rod.gratings, dtype=torch.float64)
@@ -55,11 +39,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     for noise in (0.1, None):
         result = tr.Estimator(rod, tr.EstimatorOptions(noise=noise)).estimate(u)
+        tests_alone = tr.Estimator(rod, tr.EstimatorOptions(noise=noise, merge_patches=False)).estimate(u)
         two = result.num_forces >= 2
         said = "given" if noise is not None else "each reading's own"
         print(
             f"noise {said}: {int(two.sum())} of {args.count} answered with two forces or more "
-            f"({int((two & straddles).sum())} of them straddling a grating)"
+            f"({int((two & straddles).sum())} of them straddling a grating; "
+            f"{int((tests_alone.num_forces >= 2).sum())} with the count tests alone, merge_patches=False)"
         )
         idx = two.nonzero().flatten()
         if not len(idx):

@@ -79,17 +79,29 @@ def test_the_cuda_kernel_under_the_simulator_answers_as_the_cpu_kernels():
                                    rtol=0, atol=FORCE_ATOL)  # fmt: skip
 
 
-ESCAPE = """
+ON_THE_SIMULATOR = """
 import json, sys
 import torch
 import torchrod as tr
 
 u = torch.tensor(json.load(open({path!r})), dtype=torch.float64)
-est = tr.Estimator(tr.presets.nitinol290(), tr.EstimatorOptions(noise=0.1, num_forces=1, target="cuda"))
+est = tr.Estimator(tr.presets.nitinol290(), tr.EstimatorOptions({options}, target="cuda"))
 r = est.estimate(u)
 print(json.dumps(dict(statuses=[str(s) for s in r.statuses], evaluations=r.evaluations.tolist(),
-                      s=r.forces.s.tolist(), f=r.forces.f.tolist())))
+                      counts=r.num_forces.tolist(), s=r.forces.s.tolist(), f=r.forces.f.tolist())))
 """
+
+
+def _simulated(u: torch.Tensor, options: str, tmp_path: Path) -> dict:
+    """The CUDA entry's answers under numba-cuda's simulator to readings u (B, G, 2) on ``nitinol290``, with
+    ``EstimatorOptions({options})``."""
+    path = tmp_path / "u.json"
+    path.write_text(json.dumps(u.tolist()))
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
+    done = subprocess.run([sys.executable, "-c", ON_THE_SIMULATOR.format(path=str(path), options=options)],
+                          capture_output=True, text=True, timeout=600, env=env, check=False)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.splitlines()[-1])
 
 
 @pytest.mark.slow
@@ -102,19 +114,38 @@ def test_the_fixed_count_escape_under_the_simulator_answers_as_the_cpu_kernels(t
 
     cases = [c for c in _cases(30, seed=5) if c[0] > 0.28][:3]
     u = torch.tensor([_reading(c)[0].tolist() for c in cases], dtype=torch.float64)
-    path = tmp_path / "u.json"
-    path.write_text(json.dumps(u.tolist()))
-    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
-    done = subprocess.run([sys.executable, "-c", ESCAPE.format(path=str(path))], capture_output=True, text=True,
-                          timeout=600, env=env, check=False)  # fmt: skip
-    assert done.returncode == 0, done.stderr[-3000:]
-    simulated = json.loads(done.stdout.splitlines()[-1])
+    simulated = _simulated(u, "noise=0.1, num_forces=1", tmp_path)
     options = tr.EstimatorOptions(noise=0.1, num_forces=1, target="cpu")
     cpu = tr.Estimator(tr.presets.nitinol290(), options).estimate(u)
     alone = tr.Estimator(tr.presets.nitinol290(), dataclasses.replace(
         options, search=dataclasses.replace(options.search, escape_turning=math.inf))).estimate(u)  # fmt: skip
     assert alone.statuses == [tr.Status.MISFIT] * 3  # the readings this test is for
     assert simulated["statuses"] == [str(s) for s in cpu.statuses] and tr.Status.MISFIT not in cpu.statuses
+    assert simulated["evaluations"] == cpu.evaluations.tolist()
+    torch.testing.assert_close(torch.tensor(simulated["s"], dtype=torch.float64), cpu.forces.s, rtol=0,
+                               atol=LOCATION_ATOL)  # fmt: skip
+    torch.testing.assert_close(torch.tensor(simulated["f"], dtype=torch.float64), cpu.forces.f, rtol=0,
+                               atol=FORCE_ATOL)  # fmt: skip
+
+
+@pytest.mark.slow
+def test_patches_merged_into_one_force_under_the_simulator_as_on_the_cpu(tmp_path):
+    """Three patch readings that the count tests alone answer as a pair (tests/test_patches.py): the CUDA entry under
+    the simulator merges them into one force as the CPU kernels do, with the same statuses and evaluations, and the
+    forces to rounding."""
+    pytest.importorskip("numba.cuda")
+    from test_patches import _both, _readings
+
+    rod = tr.presets.nitinol290()
+    loads, _ = tr.synthetic.sample_patches(rod, 600, 0.012, torch.Generator().manual_seed(21))
+    u = _readings(rod, loads, 22)
+    merged, alone = _both(rod, u, noise=0.1)
+    u = u[(merged.num_forces < alone.num_forces).nonzero().flatten()[:3]]
+    assert len(u) == 3  # the readings this test is for
+    simulated = _simulated(u, "noise=0.1", tmp_path)
+    cpu = tr.Estimator(rod, tr.EstimatorOptions(noise=0.1, target="cpu")).estimate(u)
+    assert simulated["counts"] == cpu.num_forces.tolist() == [1, 1, 1]
+    assert simulated["statuses"] == [str(s) for s in cpu.statuses]
     assert simulated["evaluations"] == cpu.evaluations.tolist()
     torch.testing.assert_close(torch.tensor(simulated["s"], dtype=torch.float64), cpu.forces.s, rtol=0,
                                atol=LOCATION_ATOL)  # fmt: skip

@@ -552,6 +552,7 @@ def _options_record_written_out(o: EstimatorOptions):
         trusted=o.trust_guesses,
         twins=sr.twins,
         rule={"noise": 0, "threshold": 1}[o.selection],
+        merge_patches=o.merge_patches,
         threshold=o.threshold,
         floor2=floor2,
         max_noise2=float(o.max_noise) ** 2 + floor2,
@@ -596,6 +597,7 @@ def _options_record_written_out(o: EstimatorOptions):
             starts=5,
             settle=False,
             trust_guesses=True,
+            merge_patches=False,
             lm=tr.LMPolicy(
                 damping=1e-2,
                 increase=5.0,

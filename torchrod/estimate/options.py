@@ -175,6 +175,10 @@ class EstimatorOptions:
         threshold: the paper's loss threshold [1/m^2] for ``selection="threshold"``.
         significance: alpha of the count tests, before the Bonferroni factor G.
         misfit_level: the misfit verdict's significance.
+        merge_patches: a chosen fit holding two forces that the gratings cannot tell from one patch of load (close,
+            pushing the same way, the lighter one's moment about the other within what a patch no longer than the
+            grating spacing makes) is answered with one force fewer, where that fit explains the reading
+            (:func:`torchrod.kernels.counts.unresolved_pair`); the noise rule only. False: the count tests alone.
         noise_floor: [1/m] added in quadrature to sigma: the least noise any reading is assumed to carry (a
             noise-free reading is not held to a loss of exactly zero; the reported fits use the exact model,
             accurate to ~1e-9 1/m, far below this).
@@ -211,6 +215,7 @@ class EstimatorOptions:
     threshold: float = PAPER_THRESHOLD
     significance: float = 0.05
     misfit_level: float = MISFIT_LEVEL
+    merge_patches: bool = True
     noise_floor: float = 1e-3
     starts: int = 3
     settle: bool = True
@@ -248,6 +253,8 @@ class EstimatorOptions:
         _number(self, "threshold", lambda v: v > 0.0, "positive [1/m^2]")
         _number(self, "significance", lambda v: 0.0 < v < 1.0, "in (0, 1)")
         _number(self, "misfit_level", lambda v: 0.0 < v < 1.0, "in (0, 1)")
+        if not isinstance(self.merge_patches, bool):
+            raise OptionsError(f"merge_patches must be True or False, got {self.merge_patches!r}")
         _number(self, "noise_floor", lambda v: 0.0 <= v <= MAX_CURVATURE, f">= 0 and {most}")
         for name in ("noise", "max_noise"):
             sigma = getattr(self, name)

@@ -23,6 +23,14 @@ of the tests altogether (the noise's estimate and the drops included), as if not
 (``Options.fixed``) is the caller's choice and is not judged. Where the chosen count cannot explain the reading at
 the noise, the verdict says so (:func:`unexplained`: ``misfit``).
 
+A patch of load shorter than the gratings' spacing is one contact that a point force does not quite fit: a grating
+under the patch reads more than one force at its centre would give. The count tests may then answer it as a force
+and a light force beside it pushing the same way, a pair the gratings cannot tell from the patch
+(:func:`unresolved_pair`). Where the chosen fit holds such a pair and the fit of one force fewer explains the reading,
+the reading's count is capped there (``Info.cap``, set by :func:`torchrod.kernels.search.merge_patches` with
+``Options.merge_patches``; the noise rule only), and the tests choose again among the counts below. The cap acts as
+:func:`testable` does: counts above it are left out of the tests.
+
 The quantiles come from tables the caller makes once (:func:`torchrod.kernels.host.count_tables`, held in the
 ``tables`` group of :data:`COUNTS_PARTS`, indexed by the count difference and by the degrees of
 freedom). The one special function computed here is the chi-square
@@ -32,7 +40,7 @@ survival of the reported p-value (:func:`chi2_survival`), once per reading.
 import math
 
 from .status import MISFIT, OK, POORLY_DETERMINED, TIMEOUT, UNCONVERGED
-from .views import tables_of
+from .views import reading_of, tables_of
 
 COUNTS_PARTS: dict[str, dict[str, tuple[tuple[int | str, ...], str]]] = {
     "tables": {  # the count tests' quantiles (:func:`torchrod.kernels.host.count_tables`)
@@ -53,6 +61,20 @@ the paper reproduction's rule)."""
 MISFIT_FACTOR = 50.0
 """The count tests' misfit guard runs at ``alpha / MISFIT_FACTOR``: it only rejects fits far worse than noise."""
 
+PATCH_SPAN = 2.5
+"""A pair of forces is taken for one patch only when they lie less than this many grating spacings apart
+(:func:`unresolved_pair`)."""
+
+PATCH_COSINE = 0.8660254037844387
+"""A pair of forces is taken for one patch only when they push the same way: the cosine of the angle between them at
+least this (30 degrees). A patch's load is one-signed; a real pair's directions are independent."""
+
+PATCH_LEVER = 0.125
+"""A pair of forces is taken for one patch only when the lighter force's moment about the heavier one's location,
+``|f_light| d``, is below this fraction of the pair's load times the grating spacing, ``(|f_a| + |f_b|) spacing``.
+A patch of width w centred on a grating makes that grating read its load times w / 8 more moment than one force
+at its centre would, so this bounds what a patch no longer than the spacing can stand in for."""
+
 SETTLE_SAFETY = 2.0
 """A count is settled when even ``loss_last - SETTLE_SAFETY x gain`` (the scan's promise for one more force, a
 local estimate) would not make the next count chosen."""
@@ -70,15 +92,19 @@ INLINE = (
     "unexplained",
     "plausible_limit",
     "ceiling",
+    "spacing",
 )
 """Small functions the CUDA target inlines where they are called (:func:`.targets.cuda_namespace`)."""
 
 
 def testable(k, C):
     """How many of the counts 0..C-1 the reading can test: those whose fit leaves at least ``min_dof`` degrees of
-    freedom in its residuals (module docstring), no force always among them."""
+    freedom in its residuals (module docstring), no force always among them; none above the reading's cap."""
     d = k.info[0].residuals - k.opt.min_dof
     top = d // 3 + 1 if d >= 0 else 1
+    cap = k.info[0].cap + 1  # (the count a patch's pair has been merged down to, :func:`unresolved_pair`)
+    if cap < top:
+        top = cap
     return top if top < C else C
 
 
@@ -166,6 +192,37 @@ def select_count(k, losses, C):
         if losses[h] <= misfit_limit(k, h) * s2 and info.residuals - 3 * h > 0:
             return h, math.sqrt(s2)
     return (fewest if fewest >= 0 else last), math.sqrt(s2)
+
+
+def spacing(k):
+    """The mean spacing [m] of the reading's present gratings (0 with fewer than two)."""
+    m = k.info[0].residuals // 2
+    if m < 2:
+        return 0.0
+    lo = reading_of(k).lo
+    return (lo[m - 1] - lo[0]) / (m - 1)
+
+
+def unresolved_pair(k, s, f, h):
+    """Whether two of the h forces (s (h,) [m], f (h, 2) [N]) look to the reading's gratings like one patch of load
+    (module docstring): less than ``PATCH_SPAN`` spacings apart, pushing the same way within ``PATCH_COSINE``, the
+    lighter one's moment about the heavier below ``PATCH_LEVER`` of the pair's load times the spacing."""
+    delta = spacing(k)
+    if not delta > 0.0:
+        return False
+    for a in range(h):
+        na = math.sqrt(f[a, 0] * f[a, 0] + f[a, 1] * f[a, 1])
+        for b in range(a + 1, h):
+            nb = math.sqrt(f[b, 0] * f[b, 0] + f[b, 1] * f[b, 1])
+            d = abs(s[a] - s[b])
+            if not (na > 0.0 and nb > 0.0 and d < PATCH_SPAN * delta):
+                continue
+            if f[a, 0] * f[b, 0] + f[a, 1] * f[b, 1] < PATCH_COSINE * na * nb:
+                continue
+            light = na if na < nb else nb
+            if light * d < PATCH_LEVER * (na + nb) * delta:
+                return True
+    return False
 
 
 def ceiling(k, losses, C, h):

@@ -60,6 +60,7 @@ OPTIONS = np.dtype(
         ("trusted", np.bool_),
         ("twins", np.bool_),
         ("rule", np.int64),  # counts.RULE_NOISE or RULE_THRESHOLD
+        ("merge_patches", np.bool_),  # search.merge_patches
         ("threshold", np.float64),  # [1/m^2]
         ("floor2", np.float64),  # [1/m^2]
         ("max_noise2", np.float64),  # (max_noise^2 + floor^2) [1/m^2]: the misfit test's sigma^2, noise unknown
@@ -98,6 +99,7 @@ INFO = np.dtype(
         ("known", np.bool_),
         ("evaluations", np.int64),
         ("cut", np.bool_),
+        ("cap", np.int64),  # the largest count the reading may be answered with (counts.unresolved_pair)
         ("home_known", np.bool_),
         ("eigen_m", np.int64),  # the size of the last matrix the covariance's eigensolver took (-1: none yet)
         ("eigen_ok", np.bool_),  # and whether it was finite

@@ -19,8 +19,9 @@ a chosen fit that misfits. Their further starts are the scan's other intervals (
 a few steps and goes on only while it promises to beat the fit; a start that reaches the fit's own intervals
 stops there), then the exchange (:func:`exchange`): each force in turn removed and re-placed by the scan among all
 intervals. A chosen fit holding a force that is zero within its uncertainty starts the count below without that
-force (:func:`drop_negligible`). The chosen fit, where its step budget left it open, takes more steps from where it
-stands (:func:`refine`).
+force (:func:`drop_negligible`). A chosen fit holding a pair of forces the gratings cannot tell from one patch of
+load is answered with one force fewer where that fit explains the reading (:func:`merge_patches`). The chosen fit,
+where its step budget left it open, takes more steps from where it stands (:func:`refine`).
 
 With the count fixed to h, a fit that misfits a reading bending the rod far is searched once more through h + 1
 forces (:func:`escape`).
@@ -34,12 +35,14 @@ marked ``cut`` and answered with the best fit so far.
 import math
 
 from .counts import (
+    RULE_NOISE,
     p_value,
     plausible_limit,
     select_count,
     settled,
     suspect_limits,
     unexplained,
+    unresolved_pair,
     verdict,
 )
 from .covariance import near_kink, uncertainty
@@ -503,6 +506,26 @@ def drop_negligible(k):
             return
 
 
+def merge_patches(k):
+    """Where the chosen fit of h >= 2 forces holds a pair the gratings cannot tell from one patch of load
+    (:func:`.counts.unresolved_pair`) and the fit of h - 1 forces explains the reading (no misfit), the reading's
+    count is capped at h - 1 and chosen again (``Options.merge_patches``, the noise rule only). Repeated while the
+    count falls."""
+    rows = rows_of(k)
+    sw = search_of(k)
+    if k.opt.fixed >= 0 or not k.opt.merge_patches or k.opt.rule != RULE_NOISE:
+        return
+    for _ in range(k.opt.max_forces):
+        chosen = choose(k)
+        if chosen < 2 or not sw.fitted[chosen] or not sw.fitted[chosen - 1]:
+            return
+        if unexplained(k, chosen - 1, rows.loss[chosen - 1]):
+            return
+        if not unresolved_pair(k, rows.s[chosen], rows.f[chosen], chosen):
+            return
+        k.info[0].cap = chosen - 1
+
+
 # ------------------------------------------------------------------------------------------------ counts
 def choose(k):
     """The count chosen from the best loss of each count so far."""
@@ -679,6 +702,7 @@ def search_further(k):
         if wide and h >= 2 and suspicious(k, h, loss_limit, kink_limit):
             exchange(k, h, loss_limit, kink_limit)
     drop_negligible(k)
+    merge_patches(k)
     chosen = choose(k)
     if chosen >= 1 and sw.fitted[chosen]:
         if late(k):
@@ -799,6 +823,7 @@ def prepare(k, noise2):
     info.noise2 = noise2 if noise2 >= 0.0 else 0.0
     info.evaluations = 0
     info.cut = False
+    info.cap = k.opt.max_forces
 
 
 def location_key(s):

@@ -18,6 +18,10 @@ Load cases (:class:`LoadSampler`, :func:`sample_loads`)
     the simulator's step rule allows: forces far beyond the rod's range, possible without a bending limit); a
     trajectory frame, or a case moved by a location bias, that it does not resolve is refused (ValueError).
 
+Patches of load (:func:`sample_patches`)
+    A contact spread over a length rather than at a point: many equal point forces side by side, to hold the
+    estimator's point-force model against.
+
 Sensor effects (:class:`SensorModel`)
     ``clean`` is the noise-free reading: the forward model's curvature at the gratings, for the forces moved to
     ``s - location_bias`` (clamped to [0, L]) when a location bias is simulated (the meaning of
@@ -89,8 +93,10 @@ __all__ = [
     "SensorModel",
     "SyntheticDataset",
     "SyntheticSet",
+    "PATCH_PARTS",
     "generate",
     "sample_loads",
+    "sample_patches",
     "total_turning",
     "turning_and_peak",
 ]
@@ -512,6 +518,50 @@ def sample_loads(
     return PointForces(
         torch.cat([p.s for p in parts]), torch.cat([p.f for p in parts]), torch.cat([p.active for p in parts])
     )
+
+
+PATCH_PARTS = 25
+"""Point forces side by side that stand for one patch of load (:func:`sample_patches`)."""
+
+
+def sample_patches(
+    rod: Rod,
+    count: int,
+    width: float,
+    generator: torch.Generator | None = None,
+    *,
+    force_range: tuple[float, float] = (0.2, 2.0),
+) -> tuple[PointForces, torch.Tensor]:
+    """``count`` patches of load, each ``width`` [m] long: :data:`PATCH_PARTS` equal point forces side by side, all
+    one way, uniform in direction in the (f_x, f_y) plane, their total uniform in ``force_range`` [N], the patch's
+    centre uniform between the second grating and the tip (the whole patch on the rod). A contact spread over a few
+    millimetres, to hold the estimator's point forces against.
+
+    Returns:
+        the loads (:class:`PointForces`, s (count, PATCH_PARTS) [m], f (count, PATCH_PARTS, 2) [N], float64 on
+        CPU) and each patch's centre (count,) [m].
+    """
+    count = _int("count", count)
+    if count < 0:
+        raise OptionsError(f"count must be >= 0, got {count}")
+    width = _finite("width", width)
+    lo, hi = rod.gratings[1 if rod.num_gratings > 1 else 0] + width / 2, rod.length - width / 2
+    if not (width > 0.0 and hi > lo):
+        raise OptionsError(
+            f"width must be positive and leave room between the second grating and the tip, got {width!r} m"
+        )
+    f_lo, f_hi = _pair("force_range", force_range)
+    g = torch.Generator() if generator is None else generator
+    if not isinstance(g, torch.Generator):
+        raise TorchrodTypeError(f"generator must be a torch.Generator, got {type(g).__name__}")
+    f64 = torch.float64
+    centre = lo + (hi - lo) * torch.rand(count, generator=g, dtype=f64)
+    total = f_lo + (f_hi - f_lo) * torch.rand(count, generator=g, dtype=f64)
+    angle = 2 * math.pi * torch.rand(count, generator=g, dtype=f64)
+    offsets = width * ((torch.arange(PATCH_PARTS, dtype=f64) + 0.5) / PATCH_PARTS - 0.5)
+    direction = torch.stack([angle.cos(), angle.sin()], dim=-1)
+    f = (total[:, None] * direction / PATCH_PARTS)[:, None, :].expand(count, PATCH_PARTS, 2)
+    return PointForces(centre[:, None] + offsets[None, :], f.contiguous()), centre
 
 
 def _sensor_draws(n: int, G: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
