@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -112,3 +113,42 @@ def test_the_paper_rule_and_a_fixed_count_take_no_patch_rule():
 def test_merge_patches_must_be_a_bool():
     with pytest.raises(tr.OptionsError, match="merge_patches must be True or False, got 1"):
         tr.EstimatorOptions(merge_patches=1)
+
+
+def test_bench_patches_quick_prints_the_table(capsys):
+    from torchrod.cli import main
+
+    assert main(["bench", "patches", "--quick"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("nitinol290 (gratings 20 mm apart): 40 readings per set; patches 12 mm long")
+    assert "| loads | noise | 2+ forces | 2+ forces, count tests alone |" in out
+    rows = [line for line in out.splitlines() if line.startswith("| ") and " of 40 |" in line]
+    assert [r.split(" | ")[0:2] for r in rows] == [
+        [f"| {name}", noise] for name in ("patch", "point", "2 forces", "3 forces") for noise in ("given", "learned")
+    ]
+
+
+@pytest.mark.parametrize("command", ["estimate", "stream"])
+def test_the_command_line_merges_patches_unless_told_not_to(command, tmp_path, capsys):
+    """``torchrod estimate`` and ``torchrod stream`` answer a patch read as a pair with one force, and with
+    ``--no-merge-patches`` as the count tests alone do."""
+    from torchrod.cli import main
+
+    rod = tr.presets.nitinol290()
+    loads, _ = sample_patches(rod, 600, 0.012, torch.Generator().manual_seed(21))
+    u = _readings(rod, loads, 22)
+    merged, alone = _both(rod, u, noise=SIGMA)
+    picked = (merged.num_forces < alone.num_forces).nonzero().flatten()[:2].tolist()
+    path = tmp_path / "patches.jsonl"
+    path.write_text("".join(json.dumps({"id": f"p{i}", "curvature": u[i].tolist()}) + "\n" for i in picked))
+    counts = {}
+    for flag in ([], ["--no-merge-patches"]):
+        if command == "estimate":
+            argv = ["estimate", "--rod", "nitinol290", "--noise", str(SIGMA), "--quiet", *flag, str(path)]
+        else:
+            argv = ["stream", "--rod", "nitinol290", "--input", str(path), "--noise", str(SIGMA),
+                    "--per-reading-noise", "--checkpoint", "none", *flag]  # fmt: skip
+        assert main(argv) == 0
+        counts[bool(flag)] = [json.loads(x)["num_forces"] for x in capsys.readouterr().out.splitlines()]
+    assert counts[False] == merged.num_forces[picked].tolist()
+    assert counts[True] == alone.num_forces[picked].tolist()

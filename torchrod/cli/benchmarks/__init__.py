@@ -10,6 +10,7 @@ names ``torchrod bench`` knows (a suite whose module is missing is reported as n
 * ``startup``: time to the first answer (``--version``, ``--help``, a one-reading estimate) against importing torch.
 * ``gpu``: the CUDA kernels: their compiled size (no GPU needed), the CUDA tests and readings per second on a GPU.
 * ``gratings``: a needle with 3 gratings and one grating's gain off, with and without a calibration error.
+* ``patches``: patches of load against point forces and real pairs, with the patch rule and the count tests alone.
 * ``memory``: a ``torchrod stream`` process fed a million readings, its memory sampled: flat or growing.
 * ``backlog``: a backlog of 1-3 force readings through ``torchrod stream``, beside other versions' checkouts.
 """
@@ -30,4 +31,5 @@ SUITES: dict[str, str] = {
     "backlog": "a backlog of 1-3 force readings through torchrod stream, this version beside other checkouts",
     "gratings": "a 3-grating needle with one grating's gain off: the count and the forces, with and without a "
     "calibration error",
+    "patches": "patches of load against point forces and real pairs: two-force answers with and without the patch rule",
 }

@@ -134,6 +134,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     count.add_argument("--num-forces", type=int, metavar="N", help="fit exactly N forces")
     parser.add_argument("--noise", type=float, metavar="SIGMA", help="sensor noise sigma [1/m]; default: estimated")
     parser.add_argument("--selection", choices=RULES, default="noise", help="count rule (default noise)")
+    add_merge_patches_option(parser)
     parser.add_argument(
         "--threshold",
         type=float,
@@ -206,6 +207,17 @@ def check_counts(args: argparse.Namespace, rod: Rod | None = None) -> None:
         )
 
 
+def add_merge_patches_option(parser: argparse.ArgumentParser) -> None:
+    """``--no-merge-patches``: the count tests alone (``EstimatorOptions.merge_patches`` False)."""
+    parser.add_argument(
+        "--no-merge-patches",
+        dest="merge_patches",
+        action="store_false",
+        help="answer a pair of forces that the gratings cannot tell from one patch of load as two, as the count "
+        "tests alone give it (default: one force, where one explains the reading)",
+    )
+
+
 def add_workers_option(parser: argparse.ArgumentParser) -> None:
     """``--workers N``: the CPU threads the readings are solved on."""
     parser.add_argument(
@@ -236,6 +248,7 @@ def options_from_args(args: argparse.Namespace) -> EstimatorOptions:
         noise=args.noise,
         selection=args.selection,
         threshold=args.threshold,
+        merge_patches=args.merge_patches,
         starts=EstimatorOptions.starts if args.starts is None else args.starts,
         relative=getattr(args, "relative", False),
         time_budget=time_budget(args),

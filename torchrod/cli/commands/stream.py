@@ -143,7 +143,14 @@ from . import (
     settle,
     time_budget,
 )
-from .estimate import add_workers_option, check_counts, check_workers, choose_network, trusting
+from .estimate import (
+    add_merge_patches_option,
+    add_workers_option,
+    check_counts,
+    check_workers,
+    choose_network,
+    trusting,
+)
 
 HELP = "amortised estimation on a stream of readings"
 
@@ -182,6 +189,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "and /torchrod/contact_<k>/arc_length (Float64)",
     )
     add_sensor_options(parser)
+    add_merge_patches_option(parser)
     parser.add_argument("--out", metavar="FILE", help="write the answers to FILE (default: standard output)")
     parser.add_argument(
         "--batch-size",
@@ -318,6 +326,7 @@ def _run(args: argparse.Namespace) -> int:
         lm=LMPolicy(iterations=args.iterations),
         relative=args.relative,
         time_budget=time_budget(args),
+        merge_patches=args.merge_patches,
     )
     estimator = Estimator(rod, trusting(estimator_options, network), warm_start=network)
     options = StreamOptions(
