@@ -26,9 +26,10 @@ the noise, the verdict says so (:func:`unexplained`: ``misfit``).
 A patch of load shorter than the gratings' spacing is one contact that a point force does not quite fit: a grating
 under the patch reads more than one force at its centre would give. The count tests may then answer it as a force
 and a light force beside it pushing the same way, a pair the gratings cannot tell from the patch
-(:func:`unresolved_pair`). Where the chosen fit holds such a pair and the fit of one force fewer explains the reading,
-the reading's count is capped there (``Info.cap``, set by :func:`torchrod.kernels.search.merge_patches` with
-``Options.merge_patches``; the noise rule only), and the tests choose again among the counts below. The cap acts as
+(:func:`unresolved_pair`). Where the chosen fit holds such a pair and the fit of one force fewer explains the
+reading, the reading's count is capped there (its ``cap`` in :data:`.layout.INFO`, set by
+:func:`torchrod.kernels.search.merge_patches` with ``Options.merge_patches``; the noise rule only), and the tests
+choose again among the counts below; the answer is poorly determined where the pair's fit was. The cap acts as
 :func:`testable` does: counts above it are left out of the tests.
 
 The quantiles come from tables the caller makes once (:func:`torchrod.kernels.host.count_tables`, held in the

@@ -510,7 +510,8 @@ def merge_patches(k):
     """Where the chosen fit of h >= 2 forces holds a pair the gratings cannot tell from one patch of load
     (:func:`.counts.unresolved_pair`) and the fit of h - 1 forces explains the reading (no misfit), the reading's
     count is capped at h - 1 and chosen again (``Options.merge_patches``, the noise rule only). Repeated while the
-    count falls."""
+    count falls. Where the fit of h was poorly determined, the answer is too (``doubt``): such a reading does not
+    say whether it holds a patch or a pair."""
     rows = rows_of(k)
     sw = search_of(k)
     if k.opt.fixed >= 0 or not k.opt.merge_patches or k.opt.rule != RULE_NOISE:
@@ -523,6 +524,8 @@ def merge_patches(k):
             return
         if not unresolved_pair(k, rows.s[chosen], rows.f[chosen], chosen):
             return
+        if doubtful(k, chosen):
+            k.info[0].doubt = True
         k.info[0].cap = chosen - 1
 
 
@@ -824,6 +827,7 @@ def prepare(k, noise2):
     info.evaluations = 0
     info.cut = False
     info.cap = k.opt.max_forces
+    info.doubt = False
 
 
 def location_key(s):
@@ -868,7 +872,7 @@ def report(k, b, out):
         sw.slot_f[j, 0] = rows.f[chosen, j, 0] if j < chosen else 0.0
         sw.slot_f[j, 1] = rows.f[chosen, j, 1] if j < chosen else 0.0
         sw.slot_int[j] = rows.interval[chosen, j] if j < chosen else 0
-    poorly = uncertainty(k, sw.Jrep, W, chosen, sw.slot_s, sw.slot_f, sw.slot_int, sigma, sw.std)
+    poorly = uncertainty(k, sw.Jrep, W, chosen, sw.slot_s, sw.slot_f, sw.slot_int, sigma, sw.std) or info.doubt
     for j in range(W):  # by location (stable; a location that is not a number last among the forces)
         sw.order[j] = j
     for a in range(1, chosen):
