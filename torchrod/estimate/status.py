@@ -17,7 +17,9 @@ Each reading's result carries one status; when several apply, the first in this 
     thousand is flagged by chance. The p-value is reported. No set of forces of the counts considered produces
     this reading: a sensor fault (a broken or mis-registered grating, a wrong calibration), a load the model does
     not hold (a distributed load, a moment, a contact force with friction), more contacts than ``max_forces``, or a
-    wrong ``noise``. Do not act on the forces; check the sensor and the rod file.
+    wrong ``noise``. A patch of load the gratings see (``EstimatorOptions.merge_patches``) is answered so too: one
+    force where the patch is, the pair of forces that would fit it not taken for two contacts. Do not act on the
+    forces; check the sensor and the rod file.
 ``"unconverged"``
     The fit was still improving when its budget ran out (or its linear algebra failed): the forces may be off.
     Retry with more iterations (``EstimatorOptions(lm=LMPolicy(iterations=..., refine_iterations=...))``) or

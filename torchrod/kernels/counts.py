@@ -26,11 +26,13 @@ the noise, the verdict says so (:func:`unexplained`: ``misfit``).
 A patch of load shorter than the gratings' spacing is one contact that a point force does not quite fit: a grating
 under the patch reads more than one force at its centre would give. The count tests may then answer it as a force
 and a light force beside it pushing the same way, a pair the gratings cannot tell from the patch
-(:func:`unresolved_pair`). Where the chosen fit holds such a pair and the fit of one force fewer explains the
-reading, the reading's count is capped there (its ``cap`` in :data:`.layout.INFO`, set by
-:func:`torchrod.kernels.search.merge_patches` with ``Options.merge_patches``; the noise rule only), and the tests
-choose again among the counts below; the answer is poorly determined where the pair's fit was. The cap acts as
-:func:`testable` does: counts above it are left out of the tests.
+(:func:`unresolved_pair`). Where the chosen fit holds such a pair, the reading's count is capped at one force
+fewer (its ``cap`` in :data:`.layout.INFO`, set by :func:`torchrod.kernels.search.merge_patches` with
+``Options.merge_patches``; the noise rule only), and the tests choose again among the counts below. The pair may lie
+``PATCH_SPAN`` spacings apart where the fit of one force fewer explains the reading at the given noise, and
+``PATCH_SPAN_MISFIT`` where it does not (the answer is then a ``misfit``: one contact, not a point) or the noise is
+not given. The answer is poorly determined where the pair's fit was. The cap acts as :func:`testable` does: counts
+above it are left out of the tests.
 
 The quantiles come from tables the caller makes once (:func:`torchrod.kernels.host.count_tables`, held in the
 ``tables`` group of :data:`COUNTS_PARTS`, indexed by the count difference and by the degrees of
@@ -65,6 +67,12 @@ MISFIT_FACTOR = 50.0
 PATCH_SPAN = 2.5
 """A pair of forces is taken for one patch only when they lie less than this many grating spacings apart
 (:func:`unresolved_pair`)."""
+
+PATCH_SPAN_MISFIT = 1.5
+"""A pair of forces is taken for one patch only when they lie less than this many grating spacings apart, where one
+force fewer misfits the reading or the noise is not given. At a low noise one force misfits a patch over a grating
+(the gratings see that it is no point), and the pair that stands in for it lies within about one spacing; a real
+pair whose light force the count tests find lies further apart, mostly."""
 
 PATCH_COSINE = 0.8660254037844387
 """A pair of forces is taken for one patch only when they push the same way: the cosine of the angle between them at
@@ -204,10 +212,10 @@ def spacing(k):
     return (lo[m - 1] - lo[0]) / (m - 1)
 
 
-def unresolved_pair(k, s, f, h):
+def unresolved_pair(k, s, f, h, span):
     """Whether two of the h forces (s (h,) [m], f (h, 2) [N]) look to the reading's gratings like one patch of load
-    (module docstring): less than ``PATCH_SPAN`` spacings apart, pushing the same way within ``PATCH_COSINE``, the
-    lighter one's moment about the heavier below ``PATCH_LEVER`` of the pair's load times the spacing."""
+    (module docstring): less than ``span`` spacings apart, pushing the same way within ``PATCH_COSINE``, the lighter
+    one's moment about the heavier below ``PATCH_LEVER`` of the pair's load times the spacing."""
     delta = spacing(k)
     if not delta > 0.0:
         return False
@@ -216,7 +224,7 @@ def unresolved_pair(k, s, f, h):
         for b in range(a + 1, h):
             nb = math.sqrt(f[b, 0] * f[b, 0] + f[b, 1] * f[b, 1])
             d = abs(s[a] - s[b])
-            if not (na > 0.0 and nb > 0.0 and d < PATCH_SPAN * delta):
+            if not (na > 0.0 and nb > 0.0 and d < span * delta):
                 continue
             if f[a, 0] * f[b, 0] + f[a, 1] * f[b, 1] < PATCH_COSINE * na * nb:
                 continue

@@ -19,9 +19,9 @@ a chosen fit that misfits. Their further starts are the scan's other intervals (
 a few steps and goes on only while it promises to beat the fit; a start that reaches the fit's own intervals
 stops there), then the exchange (:func:`exchange`): each force in turn removed and re-placed by the scan among all
 intervals. A chosen fit holding a force that is zero within its uncertainty starts the count below without that
-force (:func:`drop_negligible`). A chosen fit holding a pair of forces the gratings cannot tell from one patch of
-load is answered with one force fewer where that fit explains the reading (:func:`merge_patches`). The chosen fit,
-where its step budget left it open, takes more steps from where it stands (:func:`refine`).
+force (:func:`drop_negligible`). The chosen fit, where its step budget left it open, takes more steps from where it
+stands (:func:`refine`); where it then holds a pair of forces the gratings cannot tell from one patch of load, the
+reading is answered with one force fewer (:func:`merge_patches`), that fit refined alike.
 
 With the count fixed to h, a fit that misfits a reading bending the rod far is searched once more through h + 1
 forces (:func:`escape`).
@@ -35,6 +35,8 @@ marked ``cut`` and answered with the best fit so far.
 import math
 
 from .counts import (
+    PATCH_SPAN,
+    PATCH_SPAN_MISFIT,
     RULE_NOISE,
     p_value,
     plausible_limit,
@@ -508,25 +510,30 @@ def drop_negligible(k):
 
 def merge_patches(k):
     """Where the chosen fit of h >= 2 forces holds a pair the gratings cannot tell from one patch of load
-    (:func:`.counts.unresolved_pair`) and the fit of h - 1 forces explains the reading (no misfit), the reading's
-    count is capped at h - 1 and chosen again (``Options.merge_patches``, the noise rule only). Repeated while the
-    count falls. Where the fit of h was poorly determined, the answer is too (``doubt``): such a reading does not
-    say whether it holds a patch or a pair."""
+    (:func:`.counts.unresolved_pair`), the reading's count is capped at h - 1 and chosen again
+    (``Options.merge_patches``, the noise rule only): within ``PATCH_SPAN`` spacings where the fit of h - 1 forces
+    explains the reading at the given noise, within ``PATCH_SPAN_MISFIT`` where it misfits (the answer then says so)
+    or the noise is not given.
+    Repeated while the count falls. Where the fit of h was poorly determined, the answer is too (``doubt``): such a
+    reading does not say whether it holds a patch or a pair. Whether the count fell."""
     rows = rows_of(k)
     sw = search_of(k)
     if k.opt.fixed >= 0 or not k.opt.merge_patches or k.opt.rule != RULE_NOISE:
-        return
+        return False
+    fell = False
     for _ in range(k.opt.max_forces):
         chosen = choose(k)
         if chosen < 2 or not sw.fitted[chosen] or not sw.fitted[chosen - 1]:
-            return
-        if unexplained(k, chosen - 1, rows.loss[chosen - 1]):
-            return
-        if not unresolved_pair(k, rows.s[chosen], rows.f[chosen], chosen):
-            return
+            return fell
+        explains = k.info[0].known and not unexplained(k, chosen - 1, rows.loss[chosen - 1])
+        span = PATCH_SPAN if explains else PATCH_SPAN_MISFIT
+        if not unresolved_pair(k, rows.s[chosen], rows.f[chosen], chosen, span):
+            return fell
         if doubtful(k, chosen):
             k.info[0].doubt = True
         k.info[0].cap = chosen - 1
+        fell = True
+    return fell
 
 
 # ------------------------------------------------------------------------------------------------ counts
@@ -705,9 +712,17 @@ def search_further(k):
         if wide and h >= 2 and suspicious(k, h, loss_limit, kink_limit):
             exchange(k, h, loss_limit, kink_limit)
     drop_negligible(k)
-    merge_patches(k)
+    finish_chosen(k)
+    if merge_patches(k):
+        finish_chosen(k)
+
+
+def finish_chosen(k):
+    """The chosen fit refined where its step budget left it open (:func:`refine`), unless the reading is late (then
+    an open fit marks it cut)."""
+    rows = rows_of(k)
     chosen = choose(k)
-    if chosen >= 1 and sw.fitted[chosen]:
+    if chosen >= 1 and search_of(k).fitted[chosen]:
         if late(k):
             if not rows.converged[chosen]:
                 k.info[0].cut = True
