@@ -1,10 +1,10 @@
 """A patch of load, not a point: how the estimator answers a contact spread over a few millimetres.
 
-    python examples/distributed_contact.py [--count N] [--width MM] [--seed S]
+    python examples/distributed_contact.py [--count N] [--width MM] [--noise SIGMA] [--seed S]
 
 Each reading is a patch of load ``--width`` mm long (25 equal point forces side by side, 0.2 to 2 N in all, in one
 direction drawn at random), its centre drawn between the second grating and the tip of the ``nitinol290`` rod
-(gratings 20 mm apart), with noise 0.1 1/m. The estimator answers each, with the noise given and with each
+(gratings 20 mm apart), with noise ``--noise`` (0.1 1/m). The estimator answers each, with the noise given and with each
 reading's own; the script counts the answers of two forces or more, says whether their patch straddles a grating
 and how many the count tests alone give (``merge_patches=False``: no pair merged into one patch), and for each such
 answer prints where its forces are and how well one force alone fits the reading.
@@ -23,6 +23,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--count", type=int, default=300, help="patches (default 300)")
     parser.add_argument("--width", type=float, default=12.0, help="patch length [mm] (default 12)")
+    parser.add_argument("--noise", type=float, default=0.1, help="sensor sigma [1/m] (default 0.1)")
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)
     rod = tr.presets.nitinol290()
@@ -30,14 +31,14 @@ def main(argv: list[str] | None = None) -> int:
     width = args.width / 1e3
     loads, centre = tr.synthetic.sample_patches(rod, args.count, width, generator)
     u = tr.grating_curvature(rod, loads)
-    u = u + 0.1 * torch.randn(u.shape, generator=generator, dtype=u.dtype)
+    u = u + args.noise * torch.randn(u.shape, generator=generator, dtype=u.dtype)
     q = torch.tensor(rod.gratings, dtype=torch.float64)
     straddles = ((q[None, :] > centre[:, None] - width / 2) & (q[None, :] < centre[:, None] + width / 2)).any(1)
     print(
         f"{args.count} patches {args.width:g} mm long on {rod.num_gratings} gratings {1e3 * (q[1] - q[0]):.0f} mm "
-        f"apart, noise 0.1 1/m; {int(straddles.sum())} straddle a grating"
+        f"apart, noise {args.noise:g} 1/m; {int(straddles.sum())} straddle a grating"
     )
-    for noise in (0.1, None):
+    for noise in (args.noise, None):
         result = tr.Estimator(rod, tr.EstimatorOptions(noise=noise)).estimate(u)
         tests_alone = tr.Estimator(rod, tr.EstimatorOptions(noise=noise, merge_patches=False)).estimate(u)
         two = result.num_forces >= 2

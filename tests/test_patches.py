@@ -53,16 +53,19 @@ def _explains(rod: tr.Rod, result: tr.EstimateResult, i: int, h: int, noise: flo
     return chi2.sf(loss, 2 * rod.num_gratings - 3 * h) >= tr.EstimatorOptions().misfit_level
 
 
-@pytest.mark.parametrize("noise", [SIGMA, None, 0.03], ids=["noise-given", "noise-learned", "low-noise-given"])
-def test_patches_answered_as_a_force_and_a_light_one_beside_it_are_answered_as_one_force(noise):
-    """12 mm patches on a rod whose gratings lie 20 mm apart: the count tests alone answer some as a force and a
-    light one beside it pushing the same way (a grating under a patch reads more than one force gives). Each such
-    answer, and only such an answer, becomes one force: within 2.5 grating spacings where one force explains the
-    reading at the given noise, within 1.5 where it misfits (the answer then says ``misfit``) or the noise is
-    learned. A pair that was poorly determined stays flagged; no count rises."""
+@pytest.mark.parametrize(
+    ("noise", "sigma"), [(SIGMA, SIGMA), (0.03, 0.03), (None, 0.03)], ids=["given", "low-given", "low-learned"]
+)
+def test_patches_answered_as_a_poorly_determined_pair_are_answered_as_one_force(noise, sigma):
+    """12 mm patches on a rod whose gratings lie 20 mm apart, noise 0.1 and 0.03 1/m: the count tests alone answer
+    some as a force and a light one beside it pushing the same way (a grating under a patch reads more than one force
+    gives). Each such answer whose pair the data do not pin down (poorly determined), and only such an answer,
+    becomes one force: within 2.5 grating spacings where one force explains the reading at the given noise, within
+    1.5 where it misfits (the answer then says ``misfit``) or the noise is learned. No answer comes out ``ok``; no
+    count rises."""
     rod = tr.presets.nitinol290()
     loads, _ = sample_patches(rod, 600, 0.012, torch.Generator().manual_seed(21))
-    u = _readings(rod, loads, 22, noise or SIGMA)
+    u = _readings(rod, loads, 22, sigma)
     merged, alone = _both(rod, u, noise=noise)
     changed = (merged.num_forces != alone.num_forces).nonzero().flatten().tolist()
     assert len(changed) >= 3, "no patch answered as a pair: the case tests nothing"
@@ -71,23 +74,22 @@ def test_patches_answered_as_a_force_and_a_light_one_beside_it_are_answered_as_o
         h = int(alone.num_forces[i])
         assert int(merged.num_forces[i]) < h  # (merged again where the count below holds a patch's pair too)
         explains = _explains(rod, alone, i, h - 1, noise)
-        assert _patch_pair(
-            rod, alone.forces.s[i, :h], alone.forces.f[i, :h], PATCH_SPAN if explains else PATCH_SPAN_MISFIT
-        )
+        span = PATCH_SPAN if explains else PATCH_SPAN_MISFIT
+        assert _patch_pair(rod, alone.forces.s[i, :h], alone.forces.f[i, :h], span)
+        assert alone.statuses[i] != tr.Status.OK  # a pair the data pinned down stays two forces
         if int(merged.num_forces[i]) == h - 1:
-            assert (merged.statuses[i] == tr.Status.MISFIT) == (noise is not None and not explains)
-        if alone.statuses[i] == tr.Status.POORLY_DETERMINED:  # a pair the data could not determine: still flagged
-            assert merged.statuses[i] in (tr.Status.POORLY_DETERMINED, tr.Status.MISFIT)
-        # the count above is still reported, as the count tests had it: the answer's count alone is refined after,
-        # so the count tests alone, which answer with it, reach a loss as low (within a hundredth of sigma^2)
-        above, refined = float(merged.losses_by_count[i, h]), float(alone.losses_by_count[i, h])
-        assert math.isfinite(above) and refined <= above + 0.01 * (noise or SIGMA) ** 2
+            said = tr.Status.MISFIT if noise is not None and not explains else tr.Status.POORLY_DETERMINED
+            assert merged.statuses[i] == said
+        # the count above is still reported, as the count tests had it
+        assert merged.losses_by_count[i, h] == alone.losses_by_count[i, h]
     if noise == 0.03:
         assert sum(merged.statuses[i] == tr.Status.MISFIT for i in changed) >= 3  # the misfit branch was taken
-    for i in range(len(u)):  # a pair left as it is does not look like a patch
+        assert sum(merged.statuses[i] == tr.Status.POORLY_DETERMINED for i in changed) >= 3  # and the other
+    for i in range(len(u)):  # a pair left as it is does not look like a patch, or the data pin it down
         h = int(merged.num_forces[i])
         span = PATCH_SPAN if _explains(rod, merged, i, h - 1, noise) else PATCH_SPAN_MISFIT
-        assert h < 2 or not _patch_pair(rod, merged.forces.s[i, :h], merged.forces.f[i, :h], span, margin=0.9)
+        if h >= 2 and _patch_pair(rod, merged.forces.s[i, :h], merged.forces.f[i, :h], span, margin=0.9):
+            assert merged.statuses[i] != tr.Status.POORLY_DETERMINED
 
 
 @pytest.mark.parametrize("k", [2, 3])

@@ -177,9 +177,10 @@ class EstimatorOptions:
         misfit_level: the misfit verdict's significance.
         merge_patches: a chosen fit holding two forces that the gratings cannot tell from one patch of load (close,
             pushing the same way, the lighter one's moment about the other within what a patch no longer than the
-            grating spacing makes) is answered with one force fewer: ``misfit`` where that fit does not explain the
-            reading at the given noise, ``poorly_determined`` where the pair was
-            (:func:`torchrod.kernels.counts.unresolved_pair`); the noise rule only. False: the count tests alone.
+            grating spacing makes) and that the data do not pin down (the fit poorly determined) is answered with
+            one force fewer, ``poorly_determined``, or ``misfit`` where one force fewer does not explain the
+            reading at the given noise (:func:`torchrod.kernels.counts.unresolved_pair`); the noise rule only.
+            False: the count tests alone.
         noise_floor: [1/m] added in quadrature to sigma: the least noise any reading is assumed to carry (a
             noise-free reading is not held to a loss of exactly zero; the reported fits use the exact model,
             accurate to ~1e-9 1/m, far below this).

@@ -17,16 +17,17 @@ Each reading's result carries one status; when several apply, the first in this 
     thousand is flagged by chance. The p-value is reported. No set of forces of the counts considered produces
     this reading: a sensor fault (a broken or mis-registered grating, a wrong calibration), a load the model does
     not hold (a distributed load, a moment, a contact force with friction), more contacts than ``max_forces``, or a
-    wrong ``noise``. A patch of load the gratings see (``EstimatorOptions.merge_patches``) is answered so too: one
-    force where the patch is, the pair of forces that would fit it not taken for two contacts. Do not act on the
-    forces; check the sensor and the rod file.
+    wrong ``noise``. A patch of load the gratings see (``EstimatorOptions.merge_patches``) may be answered so too:
+    one force where the patch is, the poorly determined pair of forces that would fit it not taken for two
+    contacts. Do not act on the forces; check the sensor and the rod file.
 ``"unconverged"``
     The fit was still improving when its budget ran out (or its linear algebra failed): the forces may be off.
     Retry with more iterations (``EstimatorOptions(lm=LMPolicy(iterations=..., refine_iterations=...))``) or
     report the reading.
 ``"poorly_determined"``
     The data cannot tell this answer from others (:mod:`torchrod.kernels.covariance`: forces the gratings cannot
-    separate, a force seen by one grating only, a location uncertain beyond its grating interval). The fit explains
+    separate, a force seen by one grating only, a location uncertain beyond its grating interval; one force where a
+    patch of load may be two close forces, ``EstimatorOptions.merge_patches``). The fit explains
     the reading, but some of its numbers are not pinned down: use the standard deviations, or a denser grating
     layout.
 ``"ok"``

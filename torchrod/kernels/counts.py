@@ -24,15 +24,15 @@ of the tests altogether (the noise's estimate and the drops included), as if not
 the noise, the verdict says so (:func:`unexplained`: ``misfit``).
 
 A patch of load shorter than the gratings' spacing is one contact that a point force does not quite fit: a grating
-under the patch reads more than one force at its centre would give. The count tests may then answer it as a force
-and a light force beside it pushing the same way, a pair the gratings cannot tell from the patch
-(:func:`unresolved_pair`). Where the chosen fit holds such a pair, the reading's count is capped at one force
-fewer (its ``cap`` in :data:`.layout.INFO`, set by :func:`torchrod.kernels.search.merge_patches` with
-``Options.merge_patches``; the noise rule only), and the tests choose again among the counts below. The pair may lie
-``PATCH_SPAN`` spacings apart where the fit of one force fewer explains the reading at the given noise, and
-``PATCH_SPAN_MISFIT`` where it does not (the answer is then a ``misfit``: one contact, not a point) or the noise is
-not given. The answer is poorly determined where the pair's fit was. The cap acts as :func:`testable` does: counts
-above it are left out of the tests.
+under the patch reads more than one force at its centre would give. To the gratings such a patch is a force and a
+light force beside it pushing the same way (:func:`unresolved_pair`), and the count tests may answer it so. Where
+the chosen fit holds such a pair and the data do not pin the pair down (the fit is poorly determined), the
+reading's count is capped at one force fewer (its ``cap`` in :data:`.layout.INFO`, set by
+:func:`torchrod.kernels.search.merge_patches` with ``Options.merge_patches``; the noise rule only), and the tests
+choose again among the counts below. The pair may lie ``PATCH_SPAN`` spacings apart where the fit of one force
+fewer explains the reading at the given noise, ``PATCH_SPAN_MISFIT`` where it does not (the answer is then a
+``misfit``: one contact, not a point) or the noise is not given. The answer stays poorly determined. The cap acts as
+:func:`testable` does: counts above it are left out of the tests.
 
 The quantiles come from tables the caller makes once (:func:`torchrod.kernels.host.count_tables`, held in the
 ``tables`` group of :data:`COUNTS_PARTS`, indexed by the count difference and by the degrees of
@@ -212,11 +212,11 @@ def spacing(k):
     return (lo[m - 1] - lo[0]) / (m - 1)
 
 
-def unresolved_pair(k, s, f, h, span):
-    """Whether two of the h forces (s (h,) [m], f (h, 2) [N]) look to the reading's gratings like one patch of load
-    (module docstring): less than ``span`` spacings apart, pushing the same way within ``PATCH_COSINE``, the lighter
-    one's moment about the heavier below ``PATCH_LEVER`` of the pair's load times the spacing."""
-    delta = spacing(k)
+def unresolved_pair(s, f, h, span, delta):
+    """Whether two of the h forces (s (h,) [m], f (h, 2) [N]) look to gratings ``delta`` [m] apart like one patch of
+    load (module docstring): less than ``span`` spacings apart, pushing the same way within ``PATCH_COSINE``, the
+    lighter one's moment about the heavier below ``PATCH_LEVER`` of the pair's load times the spacing. (Plain
+    arithmetic on arrays: the host asks it of a case's true forces too.)"""
     if not delta > 0.0:
         return False
     for a in range(h):

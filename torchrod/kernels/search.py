@@ -42,6 +42,7 @@ from .counts import (
     plausible_limit,
     select_count,
     settled,
+    spacing,
     suspect_limits,
     unexplained,
     unresolved_pair,
@@ -510,12 +511,11 @@ def drop_negligible(k):
 
 def merge_patches(k):
     """Where the chosen fit of h >= 2 forces holds a pair the gratings cannot tell from one patch of load
-    (:func:`.counts.unresolved_pair`), the reading's count is capped at h - 1 and chosen again
-    (``Options.merge_patches``, the noise rule only): within ``PATCH_SPAN`` spacings where the fit of h - 1 forces
-    explains the reading at the given noise, within ``PATCH_SPAN_MISFIT`` where it misfits (the answer then says so)
-    or the noise is not given.
-    Repeated while the count falls. Where the fit of h was poorly determined, the answer is too (``doubt``): such a
-    reading does not say whether it holds a patch or a pair. Whether the count fell."""
+    (:func:`.counts.unresolved_pair`: within ``PATCH_SPAN`` spacings where the fit of h - 1 forces explains the
+    reading at the given noise, within ``PATCH_SPAN_MISFIT`` where it misfits or the noise is not given) and the
+    data do not pin the pair down (the fit is poorly determined, :func:`doubtful`), the reading's count is capped at
+    h - 1 and chosen again, the answer poorly determined (``doubt``) or a misfit (``Options.merge_patches``, the
+    noise rule only). Repeated while the count falls. Whether the count fell."""
     rows = rows_of(k)
     sw = search_of(k)
     if k.opt.fixed >= 0 or not k.opt.merge_patches or k.opt.rule != RULE_NOISE:
@@ -527,10 +527,11 @@ def merge_patches(k):
             return fell
         explains = k.info[0].known and not unexplained(k, chosen - 1, rows.loss[chosen - 1])
         span = PATCH_SPAN if explains else PATCH_SPAN_MISFIT
-        if not unresolved_pair(k, rows.s[chosen], rows.f[chosen], chosen, span):
+        if not unresolved_pair(rows.s[chosen], rows.f[chosen], chosen, span, spacing(k)):
             return fell
-        if doubtful(k, chosen):
-            k.info[0].doubt = True
+        if not doubtful(k, chosen):  # the data pin the pair down: two forces, resolved
+            return fell
+        k.info[0].doubt = True
         k.info[0].cap = chosen - 1
         fell = True
     return fell
