@@ -158,6 +158,7 @@ def test_the_command_line_merges_patches_unless_told_not_to(command, tmp_path, c
     u = _readings(rod, loads, 22)
     merged, alone = _both(rod, u, noise=SIGMA)
     picked = (merged.num_forces < alone.num_forces).nonzero().flatten()[:2].tolist()
+    assert len(picked) == 2  # the readings this test is for
     path = tmp_path / "patches.jsonl"
     path.write_text("".join(json.dumps({"id": f"p{i}", "curvature": u[i].tolist()}) + "\n" for i in picked))
     counts = {}
