@@ -31,7 +31,7 @@ reading's count is capped at one force fewer (its ``cap`` in :data:`.layout.INFO
 :func:`torchrod.kernels.search.merge_patches` with ``Options.merge_patches``; the noise rule only), and the tests
 choose again among the counts below. The pair may lie ``PATCH_SPAN`` spacings apart where the fit of one force
 fewer explains the reading at the given noise, ``PATCH_SPAN_MISFIT`` where it does not (the answer is then a
-``misfit``: one contact, not a point) or the noise is not given. The answer stays poorly determined. The cap acts as
+``misfit``: one contact, not a point) or the noise is not given; otherwise it is poorly determined. The cap acts as
 :func:`testable` does: counts above it are left out of the tests.
 
 The quantiles come from tables the caller makes once (:func:`torchrod.kernels.host.count_tables`, held in the
@@ -65,8 +65,8 @@ MISFIT_FACTOR = 50.0
 """The count tests' misfit guard runs at ``alpha / MISFIT_FACTOR``: it only rejects fits far worse than noise."""
 
 PATCH_SPAN = 2.5
-"""A pair of forces is taken for one patch only when they lie less than this many grating spacings apart
-(:func:`unresolved_pair`)."""
+"""A pair of forces is taken for one patch only when they lie less than this many grating spacings apart, where one
+force fewer explains the reading at the given noise (:func:`unresolved_pair`)."""
 
 PATCH_SPAN_MISFIT = 1.5
 """A pair of forces is taken for one patch only when they lie less than this many grating spacings apart, where one
@@ -215,8 +215,7 @@ def spacing(k):
 def unresolved_pair(s, f, h, span, delta):
     """Whether two of the h forces (s (h,) [m], f (h, 2) [N]) look to gratings ``delta`` [m] apart like one patch of
     load (module docstring): less than ``span`` spacings apart, pushing the same way within ``PATCH_COSINE``, the
-    lighter one's moment about the heavier below ``PATCH_LEVER`` of the pair's load times the spacing. (Plain
-    arithmetic on arrays: the host asks it of a case's true forces too.)"""
+    lighter one's moment about the heavier below ``PATCH_LEVER`` of the pair's load times the spacing."""
     if not delta > 0.0:
         return False
     for a in range(h):

@@ -213,8 +213,8 @@ def add_merge_patches_option(parser: argparse.ArgumentParser) -> None:
         "--no-merge-patches",
         dest="merge_patches",
         action="store_false",
-        help="answer a pair of forces that the gratings cannot tell from one patch of load as two, as the count "
-        "tests alone give it (default: one force, where one explains the reading)",
+        help="answer a poorly determined pair of forces that the gratings cannot tell from one patch of load as two, "
+        "as the count tests alone give it (default: one force)",
     )
 
 
