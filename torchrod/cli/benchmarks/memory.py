@@ -7,8 +7,9 @@ no two lines are the same. Its answers are counted as they come, by a reader tha
 ``--interval`` seconds the resident memory (RSS, ``VmRSS`` of Linux's /proc) of the process and of any process it
 started is sampled, with the count of answers so far.
 
-Printed: a row per tenth of the run (the first sample at which that share of the readings was answered): the
-readings answered, the seconds since the start, the RSS [MiB] and the number of processes; then the peak RSS, the
+Printed: a row per tenth of the run (the first sample at which that share of the readings was answered): the share
+answered in whole per cent, rounded down (so that only all the readings read 100 %), the readings answered, the
+seconds since the start, the RSS [MiB] and the number of processes; then the peak RSS, the
 growth from the first tenth to the end and to the highest sample in between, in % (the first tenth leaves out the
 start-up: imports, the kernels, the first batches), and the verdict against ``--limit`` (default 10 %) on the
 larger of the two: a stream that holds on to something per reading (finished futures, records, a list of
@@ -212,7 +213,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"{'share':>6} | {'answered':>9} {'s':>8} | {'RSS MiB':>8} {'procs':>5}")
     for row in rows:
         print(
-            f"{100 * row.answered / count:>5.0f}% | {row.answered:>9} {row.t:>8.1f} | {row.rss / mib:>8.1f} "
+            f"{100 * row.answered // count:>5d}% | {row.answered:>9} {row.t:>8.1f} | {row.rss / mib:>8.1f} "
             f"{row.processes:>5}"
         )
     peak = max((s.rss for s in samples), default=0)
