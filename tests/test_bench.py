@@ -66,7 +66,7 @@ def test_bench_memory_quick_prints_a_row_per_sample_tenth_and_the_verdict(capsys
     # rows in order: each a later tenth, with more answers, no earlier in time; each share is its answers'
     shares, answered, seconds = ([float(row[k]) for row in rows] for k in range(3))
     assert shares == sorted(set(shares)) and answered == sorted(set(answered)) and seconds == sorted(seconds)
-    assert all(share == round(100 * n / 2000) for share, n in zip(shares, answered, strict=True))
+    assert all(share == 100 * n // 2000 for share, n in zip(shares, answered, strict=True))  # (rounded down)
     assert "2000 answers (0 error lines)" in out
     growth = re.search(
         r"^# growth from the first tenth \(([\d.]+) MiB\) to the end \(([\d.]+) MiB\): ([+-][\d.]+) %, "
