@@ -172,3 +172,24 @@ def test_the_command_line_merges_patches_unless_told_not_to(command, tmp_path, c
         counts[bool(flag)] = [json.loads(x)["num_forces"] for x in capsys.readouterr().out.splitlines()]
     assert counts[False] == merged.num_forces[picked].tolist()
     assert counts[True] == alone.num_forces[picked].tolist()
+
+
+def test_sample_patches_draws_one_way_patches_of_the_width_asked_within_the_rod():
+    """Each patch: PATCH_PARTS equal forces, one direction, spread evenly over the width about its centre, its total in
+    the range asked, the whole patch between the second grating and the tip; a width that leaves no room is refused,
+    naming it."""
+    from torchrod.synthetic import PATCH_PARTS
+
+    rod = tr.presets.nitinol290()
+    width = 0.012
+    loads, centre = sample_patches(rod, 200, width, torch.Generator().manual_seed(3), force_range=(0.5, 1.5))
+    assert loads.s.shape == (200, PATCH_PARTS) and loads.f.shape == (200, PATCH_PARTS, 2) and centre.shape == (200,)
+    assert torch.allclose(loads.s.mean(dim=1), centre)
+    spread = loads.s[:, -1] - loads.s[:, 0]
+    assert torch.allclose(spread, torch.full_like(spread, width * (PATCH_PARTS - 1) / PATCH_PARTS))
+    assert bool((loads.s[:, 0] > rod.gratings[1]).all() and (loads.s[:, -1] < rod.length).all())
+    assert torch.equal(loads.f, loads.f[:, :1].expand_as(loads.f))  # equal parts, one way
+    total = loads.f.sum(dim=1).norm(dim=-1)
+    assert bool(((total >= 0.5) & (total <= 1.5)).all()) and float(total.max() - total.min()) > 0.5
+    with pytest.raises(tr.OptionsError, match="width .* got 0.3 m"):
+        sample_patches(rod, 3, 0.3)

@@ -99,8 +99,7 @@ INFO = np.dtype(
         ("known", np.bool_),
         ("evaluations", np.int64),
         ("cut", np.bool_),
-        ("cap", np.int64),  # the largest count the reading may be answered with (counts.unresolved_pair)
-        ("doubt", np.bool_),  # answered poorly determined, whatever its fit's uncertainty (search.merge_patches)
+        ("cap", np.int64),  # the largest count the reading may be answered with; below max_forces: a patch merged
         ("home_known", np.bool_),
         ("eigen_m", np.int64),  # the size of the last matrix the covariance's eigensolver took (-1: none yet)
         ("eigen_ok", np.bool_),  # and whether it was finite

@@ -514,7 +514,7 @@ def merge_patches(k):
     (:func:`.counts.unresolved_pair`: within ``PATCH_SPAN`` spacings where the fit of h - 1 forces explains the
     reading at the given noise, within ``PATCH_SPAN_MISFIT`` where it misfits or the noise is not given) and the
     data do not pin the pair down (the fit is poorly determined, :func:`doubtful`), the reading's count is capped at
-    h - 1 and chosen again, the answer poorly determined (``doubt``) or a misfit (``Options.merge_patches``, the
+    h - 1 and chosen again, the answer poorly determined (:func:`report`) or a misfit (``Options.merge_patches``, the
     noise rule only). Repeated while the count falls. Whether the count fell."""
     rows = rows_of(k)
     sw = search_of(k)
@@ -531,7 +531,6 @@ def merge_patches(k):
             return fell
         if not doubtful(k, chosen):  # the data pin the pair down: two forces, resolved
             return fell
-        k.info[0].doubt = True
         k.info[0].cap = chosen - 1
         fell = True
     return fell
@@ -843,7 +842,6 @@ def prepare(k, noise2):
     info.evaluations = 0
     info.cut = False
     info.cap = k.opt.max_forces
-    info.doubt = False
 
 
 def location_key(s):
@@ -888,7 +886,8 @@ def report(k, b, out):
         sw.slot_f[j, 0] = rows.f[chosen, j, 0] if j < chosen else 0.0
         sw.slot_f[j, 1] = rows.f[chosen, j, 1] if j < chosen else 0.0
         sw.slot_int[j] = rows.interval[chosen, j] if j < chosen else 0
-    poorly = uncertainty(k, sw.Jrep, W, chosen, sw.slot_s, sw.slot_f, sw.slot_int, sigma, sw.std) or info.doubt
+    poorly = uncertainty(k, sw.Jrep, W, chosen, sw.slot_s, sw.slot_f, sw.slot_int, sigma, sw.std)
+    poorly = poorly or info.cap < H  # (a count merged down from a pair it could not pin down: merge_patches)
     for j in range(W):  # by location (stable; a location that is not a number last among the forces)
         sw.order[j] = j
     for a in range(1, chosen):
